@@ -1,0 +1,150 @@
+"""Contracts for what the camera side hands to the pipeline.
+
+Frames and axes
+---------------
+- World frame: local NED (north, east, down), metres, origin set by the estimator.
+- Body frame: FRD (forward, right, down); attitude is roll/pitch/yaw (ZYX Tait-Bryan, radians) of body in
+  NED, as in MAVLink ATTITUDE.
+- Camera frame: OpenCV (x right in the image, y down in the image, z along the optical axis). The nav
+  camera looks straight down with the top of the image towards the nose: x_cam = body right,
+  y_cam = body backward, z_cam = body down (``R_BODY_CAM``).
+"""
+
+from __future__ import annotations
+
+import math
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+#: Rotation taking camera-frame vectors to body-frame (FRD) vectors for the nadir mount.
+R_BODY_CAM: np.ndarray = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+R_BODY_CAM.setflags(write=False)
+
+
+class CalibrationError(ValueError):
+    """A calibration file or block is missing, malformed or inconsistent."""
+
+    def __init__(self, message: str, *, path: str | None = None) -> None:
+        super().__init__(f"{path}: {message}" if path else message)
+        self.path = path
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """Pinhole intrinsics with OpenCV distortion (k1, k2, p1, p2[, k3...]) for one image size."""
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    dist_coeffs: tuple[float, ...] = ()
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 - conventional name
+        """Camera matrix, (3, 3) float64."""
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist(self) -> np.ndarray:
+        """Distortion coefficients, (n,) float64 (empty when there is no distortion)."""
+        return np.asarray(self.dist_coeffs, dtype=np.float64)
+
+    @property
+    def hfov_rad(self) -> float:
+        return 2.0 * math.atan2(self.width_px / 2.0, self.fx_px)
+
+    @classmethod
+    def from_hfov(cls, width_px: int, height_px: int, hfov_deg: float) -> CameraCalibration:
+        """Ideal pinhole with square pixels and a centred principal point."""
+        fx = (width_px / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        return cls(width_px, height_px, fx, fx, (width_px - 1) / 2.0, (height_px - 1) / 2.0, ())
+
+    @classmethod
+    def from_opencv_yaml(cls, path: str | Path) -> CameraCalibration:
+        """Read an OpenCV calibration file (``camera_matrix``, ``distortion_coefficients``,
+        ``image_width``, ``image_height``), as written by OpenCV's calibration sample."""
+        import cv2
+
+        p = Path(path)
+        if not p.is_file():
+            raise CalibrationError("calibration file not found", path=str(p))
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+        try:
+            k_node = fs.getNode("camera_matrix")
+            if k_node.empty():
+                raise CalibrationError("missing 'camera_matrix' (expected a 3x3 matrix)", path=str(p))
+            k = k_node.mat()
+            if k is None or k.shape != (3, 3):
+                raise CalibrationError("'camera_matrix' must be 3x3", path=str(p))
+            d_node = fs.getNode("distortion_coefficients")
+            d = () if d_node.empty() else tuple(float(v) for v in d_node.mat().ravel())
+            w = int(fs.getNode("image_width").real())
+            h = int(fs.getNode("image_height").real())
+        finally:
+            fs.release()
+        if w <= 0 or h <= 0:
+            raise CalibrationError("missing or non-positive 'image_width'/'image_height'", path=str(p))
+        return cls(w, h, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), d)
+
+
+@dataclass(frozen=True)
+class Attitude:
+    """Body attitude in NED at one instant, radians (MAVLink ATTITUDE convention)."""
+
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+    def R_ned_body(self) -> np.ndarray:  # noqa: N802
+        """Rotation body(FRD) -> NED, (3, 3) float64, ZYX order."""
+        cr, sr = math.cos(self.roll_rad), math.sin(self.roll_rad)
+        cp, sp = math.cos(self.pitch_rad), math.sin(self.pitch_rad)
+        cy, sy = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        return np.array(
+            [
+                [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                [-sp, cp * sr, cp * cr],
+            ]
+        )
+
+    def R_ned_cam(self) -> np.ndarray:  # noqa: N802
+        """Rotation camera -> NED for the nadir mount, (3, 3) float64."""
+        return self.R_ned_body() @ R_BODY_CAM
+
+
+@dataclass(frozen=True)
+class NavCameraFrame:
+    """One nav-camera image and the vehicle state at its exposure.
+
+    ``image_bgr``: (H, W, 3) uint8, BGR (OpenCV order). ``attitude`` and ``alt_agl_m`` are the
+    autopilot's values interpolated to the exposure time, or None when they were stale or missing
+    (the pipeline then must not produce an absolute fix from this frame).
+    """
+
+    frame_id: uuid.UUID
+    seq: int
+    exposure_time_unix_usec: int
+    image_bgr: np.ndarray
+    attitude: Attitude | None
+    alt_agl_m: float | None
+    received_monotonic_ns: int
+    #: Aircraft-side annotations (e.g. the source's own sequence); never used for navigation.
+    meta: dict[str, object] = field(default_factory=dict, compare=False)
+
+    @property
+    def height_px(self) -> int:
+        return int(self.image_bgr.shape[0])
+
+    @property
+    def width_px(self) -> int:
+        return int(self.image_bgr.shape[1])
+
+
+def new_frame_id() -> uuid.UUID:
+    return uuid.uuid4()

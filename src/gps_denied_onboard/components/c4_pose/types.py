@@ -1,0 +1,45 @@
+"""C4 contracts: an absolute position fix from one matched frame."""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+
+from gps_denied_onboard.components.c6_tiles.types import TileId
+
+
+@dataclass(frozen=True)
+class PoseFix:
+    frame_id: uuid.UUID
+    exposure_time_unix_usec: int
+    #: Camera position in the flight's local NED frame, (3,) float64, metres.
+    pos_ned_m: np.ndarray
+    #: Covariance of ``pos_ned_m``, (3, 3) float64, m^2; from the solver's Jacobian and residuals.
+    cov_ned_m2: np.ndarray
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    #: Heading of the camera solution (body yaw), radians, NED; and its 1-sigma.
+    yaw_rad: float
+    yaw_sigma_rad: float
+    #: Angle between the solved and the autopilot's camera axes, radians (consistency check).
+    attitude_disagreement_rad: float
+    inlier_count: int
+    residual_px: float
+    tile_id: TileId
+
+    @property
+    def horiz_sigma_m(self) -> float:
+        """Horizontal 1-sigma, metres: sqrt of the larger eigenvalue of the NE covariance."""
+        return float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov_ned_m2[:2, :2]))))
+
+
+class PoseError(RuntimeError):
+    """A pose could not be solved or was rejected as degenerate/implausible; ``reason`` says why."""
+
+    def __init__(self, message: str, *, reason: str, frame_id: uuid.UUID | None = None) -> None:
+        super().__init__(f"{message} (reason={reason}, frame={frame_id})")
+        self.reason = reason
+        self.frame_id = frame_id

@@ -1,0 +1,43 @@
+"""C5 contracts: the fused navigation state sent to the autopilot."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gps_denied_onboard.constants import Provenance
+
+
+@dataclass(frozen=True)
+class EstimatorState:
+    """Estimate valid at ``time_unix_usec``. Every field that leaves the process carries its sigma."""
+
+    time_unix_usec: int
+    provenance: Provenance
+    #: (3,) float64 NED position, metres, in the flight's local tangent plane.
+    pos_ned_m: np.ndarray
+    #: (3,) float64 NED velocity, m/s.
+    vel_ned_m_s: np.ndarray
+    #: (3, 3) position covariance m^2, (3, 3) velocity covariance (m/s)^2.
+    cov_pos_ned_m2: np.ndarray
+    cov_vel_ned_m2_s2: np.ndarray
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    #: Heading of the vehicle (from the last accepted fix or the autopilot), radians; None if unknown.
+    yaw_rad: float | None
+    #: Seconds since the last accepted absolute fix (inf when none yet).
+    last_fix_age_s: float
+
+    @property
+    def horiz_sigma_m(self) -> float:
+        return float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov_pos_ned_m2[:2, :2]))))
+
+    @property
+    def vert_sigma_m(self) -> float:
+        return float(np.sqrt(self.cov_pos_ned_m2[2, 2]))
+
+    @property
+    def speed_sigma_m_s(self) -> float:
+        return float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov_vel_ned_m2_s2[:2, :2]))))

@@ -1,0 +1,305 @@
+"""Daemon configuration: YAML profiles loaded into frozen dataclasses, validated strictly.
+
+Every key is declared here with its type, unit (in the name) and range. Unknown keys, wrong types and
+out-of-range values are errors that name the key path and what was expected; nothing is coerced from a
+string and nothing unknown is ignored. Command-line overrides (``--set a.b=value``) go through the same
+validation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import ConfigDict, Field, Strict, TypeAdapter, ValidationError
+
+# Sections accept mappings; every scalar is Strict, so "3" is not an int and "yes" is not a bool.
+_STRICT = ConfigDict(extra="forbid", frozen=True)
+
+Float = Annotated[float, Strict()]
+Int = Annotated[int, Strict()]
+Str = Annotated[str, Strict()]
+Bool = Annotated[bool, Strict()]
+PosFloat = Annotated[float, Strict(), Field(gt=0)]
+PosInt = Annotated[int, Strict(), Field(ge=1)]
+Fraction = Annotated[float, Strict(), Field(ge=0, le=1)]
+
+
+def _section(cls: type) -> type:
+    """Frozen dataclass whose construction is validated by pydantic (strict, extra keys forbidden)."""
+    cls.__pydantic_config__ = _STRICT  # type: ignore[attr-defined]
+    return dataclasses.dataclass(frozen=True)(cls)
+
+
+@_section
+class IntrinsicsConfig:
+    width_px: PosInt = 640
+    height_px: PosInt = 480
+    #: Horizontal field of view; used when fx_px is not given.
+    hfov_deg: Annotated[float, Strict(), Field(gt=1, lt=179)] = 70.0
+    fx_px: PosFloat | None = None
+    fy_px: PosFloat | None = None
+    cx_px: Float | None = None
+    cy_px: Float | None = None
+    dist_coeffs: tuple[Float, ...] = ()
+
+
+@_section
+class CameraConfig:
+    #: ``tcp://HOST:PORT`` (SITL/network frame stream), ``file:PATH`` (video), ``v4l2:/dev/videoN``,
+    #: ``rtsp://...``.
+    source: Str = "tcp://127.0.0.1:5600"
+    #: OpenCV calibration YAML; when null the ``intrinsics`` block is used.
+    calibration_file: Str | None = None
+    intrinsics: IntrinsicsConfig = dataclasses.field(default_factory=IntrinsicsConfig)
+    connect_timeout_s: PosFloat = 5.0
+    frame_timeout_s: PosFloat = 3.0
+    reconnect_backoff_max_s: PosFloat = 5.0
+    #: Frames waiting for the pipeline; when full the oldest is dropped (newest frame wins).
+    queue_depth: PosInt = 1
+
+
+OutputKind = Literal["gps_input", "global_position_sensor", "vision_position_estimate"]
+
+
+@_section
+class MavlinkConfig:
+    #: pymavlink connection string: ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT``,
+    #: ``/dev/ttyACM0`` (serial, with ``baud``).
+    url: Str = "udpin:127.0.0.1:14560"
+    baud: PosInt = 921600
+    system_id: Annotated[int, Strict(), Field(ge=1, le=255)] = 1
+    component_id: Annotated[int, Strict(), Field(ge=1, le=255)] = 197
+    #: System id of the autopilot whose messages are used (others are ignored).
+    autopilot_system_id: Annotated[int, Strict(), Field(ge=1, le=255)] = 1
+    outputs: tuple[OutputKind, ...] = ("gps_input",)
+    heartbeat_hz: PosFloat = 1.0
+    #: Attitude/altitude older than this at a frame's exposure make the frame invalid for fixes.
+    attitude_max_age_s: PosFloat = 0.3
+    altitude_max_age_s: PosFloat = 1.0
+    #: No autopilot HEARTBEAT for this long = link lost (reported; estimation continues).
+    link_timeout_s: PosFloat = 3.0
+    #: MAVLink 2 signing key file (32 bytes, or 64 hex chars); mode 0600 required. Null = unsigned.
+    signing_key_file: Str | None = None
+
+
+@_section
+class CacheConfig:
+    dir: Str = "cache"
+    #: Verify sha256 of every artifact against the manifest at start (D-C10-3 gate).
+    verify_hashes: Bool = True
+
+
+@_section
+class TerrainConfig:
+    #: Flat-ground model: ground height above mean sea level, metres.
+    ground_alt_amsl_m: Float = 0.0
+
+
+@_section
+class InitConfig:
+    """Where the estimator starts when the autopilot gives no HOME_POSITION."""
+
+    lat_deg: Annotated[float, Strict(), Field(ge=-90, le=90)] | None = None
+    lon_deg: Annotated[float, Strict(), Field(ge=-180, le=180)] | None = None
+    sigma_m: PosFloat = 50.0
+    #: Use the autopilot's HOME_POSITION as the initial prior when no lat/lon is configured.
+    use_home_position: Bool = True
+
+
+@_section
+class VprConfig:
+    strategy: Str = "geo_prior"
+    top_k: PosInt = 10
+    #: Search radius = clamp(sigma_scale x horizontal sigma, min, max) around the prior.
+    prior_sigma_scale: PosFloat = 3.0
+    prior_radius_min_m: PosFloat = 60.0
+    prior_radius_max_m: PosFloat = 2000.0
+    top1_distance_warn: PosFloat = 0.5
+
+
+@_section
+class RerankConfig:
+    strategy: Str = "passthrough"
+    top_n: Annotated[int, Strict(), Field(ge=1, le=10)] = 3
+
+
+@_section
+class MatcherConfig:
+    strategy: Str = "classical"
+    min_inliers_threshold: PosInt = 25
+    residual_warn_threshold_px: PosFloat = 2.5
+    ransac_threshold_px: PosFloat = 3.0
+    ransac_confidence: Annotated[float, Strict(), Field(gt=0.5, lt=1.0)] = 0.999
+    ransac_max_iters: PosInt = 5000
+    #: Side of the map chip matched per candidate, px (the chip is centred on the tile).
+    chip_size_px: Annotated[int, Strict(), Field(ge=128, le=4096)] = 512
+    #: Classical (weights-free) strategy.
+    classical_detector: Literal["sift", "orb", "akaze"] = "sift"
+    max_features: PosInt = 1500
+    ratio_test: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.8
+    #: Learned strategies (ONNX, LightGlue-ONNX layouts).
+    disk_weights_path: Str | None = None
+    aliked_weights_path: Str | None = None
+    xfeat_weights_path: Str | None = None
+    lightglue_weights_path: Str | None = None
+    input_long_side_px: Annotated[int, Strict(), Field(ge=64, le=4096)] = 640
+    max_keypoints: PosInt = 2048
+
+
+@_section
+class PoseConfig:
+    min_inliers: Annotated[int, Strict(), Field(ge=4)] = 12
+    #: Solved camera axis vs autopilot camera axis: larger = implausible, rejected.
+    max_attitude_disagreement_deg: PosFloat = 15.0
+    #: Solved height above ground vs autopilot AGL: larger relative difference = rejected.
+    max_alt_disagreement_frac: Fraction = 0.35
+    #: Floor on the per-axis position sigma (model error the residuals cannot see), metres.
+    min_sigma_m: PosFloat = 1.0
+
+
+@_section
+class EstimatorConfig:
+    #: White-noise acceleration spectral density for the constant-velocity model, m/s^2/sqrt(Hz).
+    accel_noise_m_s2: PosFloat = 1.5
+    #: Chi-square gate on absolute fixes (2 dof); 13.8 = 99.9 %.
+    fix_gate_chi2: PosFloat = 13.8
+    #: Accept an ungated fix once the horizontal sigma exceeds this (re-acquisition after a gap).
+    reacquire_sigma_m: PosFloat = 150.0
+    #: Above this horizontal sigma the output is labelled no_estimate (fix_type 0).
+    max_output_sigma_m: PosFloat = 500.0
+    vo_noise_scale: PosFloat = 1.0
+
+
+@_section
+class FdrConfig:
+    dir: Str = "fdr"
+    max_bytes: Annotated[int, Strict(), Field(ge=1 << 16)] = 256 << 20
+    segment_bytes: Annotated[int, Strict(), Field(ge=1 << 14)] = 16 << 20
+
+
+@_section
+class LoggingConfig:
+    level: Literal["debug", "info", "warning", "error"] = "info"
+    json: Bool = True
+
+
+@_section
+class DaemonConfig:
+    status_hz: PosFloat = 1.0
+    #: Frames older than this when the pipeline gets to them are dropped, s.
+    max_frame_age_s: PosFloat = 1.0
+    pipeline_threads: PosInt = 1
+    onnx_intra_op_threads: PosInt = 2
+
+
+@_section
+class Config:
+    profile: Str = "default"
+    camera: CameraConfig = dataclasses.field(default_factory=CameraConfig)
+    mavlink: MavlinkConfig = dataclasses.field(default_factory=MavlinkConfig)
+    cache: CacheConfig = dataclasses.field(default_factory=CacheConfig)
+    terrain: TerrainConfig = dataclasses.field(default_factory=TerrainConfig)
+    init: InitConfig = dataclasses.field(default_factory=InitConfig)
+    vpr: VprConfig = dataclasses.field(default_factory=VprConfig)
+    rerank: RerankConfig = dataclasses.field(default_factory=RerankConfig)
+    matcher: MatcherConfig = dataclasses.field(default_factory=MatcherConfig)
+    pose: PoseConfig = dataclasses.field(default_factory=PoseConfig)
+    estimator: EstimatorConfig = dataclasses.field(default_factory=EstimatorConfig)
+    fdr: FdrConfig = dataclasses.field(default_factory=FdrConfig)
+    logging: LoggingConfig = dataclasses.field(default_factory=LoggingConfig)
+    daemon: DaemonConfig = dataclasses.field(default_factory=DaemonConfig)
+
+
+class ConfigError(ValueError):
+    """Invalid configuration. ``key_path`` is dotted (``matcher.min_inliers_threshold``)."""
+
+    def __init__(self, key_path: str, message: str, *, source: str | None = None) -> None:
+        where = f"{source}: " if source else ""
+        super().__init__(f"config error: {where}{key_path}: {message}")
+        self.key_path = key_path
+        self.source = source
+
+
+_ADAPTER = TypeAdapter(Config)
+
+
+def _tuples(value: Any) -> Any:
+    """YAML lists -> tuples (strict mode accepts only tuples for tuple fields)."""
+    if isinstance(value, Mapping):
+        return {k: _tuples(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return tuple(_tuples(v) for v in value)
+    return value
+
+
+def _describe(err: Mapping[str, Any]) -> tuple[str, str]:
+    loc = ".".join(str(p) for p in err.get("loc", ()) if not isinstance(p, int)) or "<root>"
+    typ = err.get("type", "")
+    got = err.get("input")
+    if typ in ("extra_forbidden", "unexpected_keyword_argument"):
+        return loc, "unknown key (not a setting; check the spelling against config/airborne.yaml)"
+    msg = str(err.get("msg", "invalid value"))
+    if msg.startswith("Input should be"):
+        msg = "expected" + msg[len("Input should be") :]
+    return loc, f"{msg}, got {got!r}"
+
+
+def config_from_mapping(data: Mapping[str, Any], *, source: str | None = None) -> Config:
+    if not isinstance(data, Mapping):
+        raise ConfigError("<root>", f"expected a mapping of sections, got {type(data).__name__}", source=source)
+    try:
+        return _ADAPTER.validate_python(_tuples(dict(data)))
+    except ValidationError as exc:
+        loc, msg = _describe(exc.errors()[0])
+        raise ConfigError(loc, msg, source=source) from exc
+
+
+def _apply_override(data: dict[str, Any], assignment: str) -> None:
+    key, sep, raw = assignment.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(assignment, "override must be KEY.PATH=VALUE")
+    parts = key.strip().split(".")
+    node = data
+    for part in parts[:-1]:
+        nxt = node.setdefault(part, {})
+        if not isinstance(nxt, dict):
+            raise ConfigError(key, f"'{part}' is not a section")
+        node = nxt
+    node[parts[-1]] = yaml.safe_load(raw) if raw.strip() else None
+
+
+def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Config:
+    """Load a YAML profile (or defaults when ``path`` is None) and apply ``KEY.PATH=VALUE`` overrides.
+
+    Relative paths inside the profile (cache.dir, fdr.dir, model files) are resolved against the
+    current working directory by their users, not here.
+    """
+    data: dict[str, Any] = {}
+    source = None
+    if path is not None:
+        p = Path(path)
+        source = str(p)
+        if not p.is_file():
+            raise ConfigError("<file>", "config file not found", source=source)
+        try:
+            loaded = yaml.safe_load(p.read_text(encoding="utf-8"))
+        except yaml.YAMLError as exc:
+            raise ConfigError("<file>", f"not valid YAML: {exc}".replace("\n", " "), source=source) from exc
+        if loaded is None:
+            loaded = {}
+        if not isinstance(loaded, dict):
+            raise ConfigError("<root>", f"expected a mapping, got {type(loaded).__name__}", source=source)
+        data = loaded
+    for item in overrides:
+        _apply_override(data, item)
+    return config_from_mapping(data, source=source)
+
+
+def config_to_dict(cfg: Config) -> dict[str, Any]:
+    """Plain, JSON-serialisable view (for the start-up log and the FDR)."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg), default=list))

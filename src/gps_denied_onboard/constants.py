@@ -1,0 +1,110 @@
+"""Every name and number that another program sees, in one place.
+
+MAVLink identities and rates, provenance labels, structured-log event names and FDR record kinds are
+part of the daemon's external contract: ground stations, log pipelines and replay tools key on them.
+Change them here only, and only on purpose.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Final
+
+# --- MAVLink identity -------------------------------------------------------------------------------
+#: Component id of this daemon (MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197).
+MAV_COMPONENT_ID: Final[int] = 197
+#: Default system id: the vehicle's (companion computers share the autopilot's system id).
+MAV_SYSTEM_ID_DEFAULT: Final[int] = 1
+#: HEARTBEAT rate of the daemon, Hz.
+HEARTBEAT_RATE_HZ: Final[float] = 1.0
+#: Minimum spacing between two STATUSTEXT messages about provenance, s (rate limit).
+STATUSTEXT_MIN_INTERVAL_S: Final[float] = 1.0
+#: GPS_INPUT.gps_id for GPS1 (ArduPilot silently ignores other ids for the first GPS).
+GPS_INPUT_GPS_ID: Final[int] = 0
+
+# NAMED_VALUE_* names: 10 characters at most (MAVLink field size).
+NV_PROVENANCE: Final[str] = "GDN_PROV"
+NV_INLIERS: Final[str] = "GDN_INL"
+NV_RESIDUAL_PX: Final[str] = "GDN_RES"
+NV_HORIZ_SIGMA_M: Final[str] = "GDN_HSIG"
+NV_FRAME_DROPS: Final[str] = "GDN_DROP"
+
+# --- SITL transport ---------------------------------------------------------------------------------
+#: Magic prefix of a frame message on the SITL camera stream (see camera.stream).
+FRAME_STREAM_MAGIC: Final[bytes] = b"GDNF"
+
+
+class Provenance(str, Enum):
+    """Where an estimate came from; one vocabulary for logs, FDR and MAVLink."""
+
+    SATELLITE_ANCHORED = "satellite_anchored"
+    VISUAL_PROPAGATED = "visual_propagated"
+    DEAD_RECKONING = "dead_reckoning"
+    NO_ESTIMATE = "no_estimate"
+
+    @property
+    def code(self) -> int:
+        """Integer code sent as NAMED_VALUE_INT ``GDN_PROV``."""
+        return _PROVENANCE_CODES[self]
+
+
+_PROVENANCE_CODES: Final[dict[Provenance, int]] = {
+    Provenance.NO_ESTIMATE: 0,
+    Provenance.DEAD_RECKONING: 1,
+    Provenance.VISUAL_PROPAGATED: 2,
+    Provenance.SATELLITE_ANCHORED: 3,
+}
+
+
+class LogEvent:
+    """Structured-log event names (the seeds' names where a seed defines them)."""
+
+    DAEMON_CONFIG: Final = "daemon.config"
+    DAEMON_READY: Final = "daemon.ready"
+    DAEMON_STOPPING: Final = "daemon.stopping"
+    DAEMON_STOPPED: Final = "daemon.stopped"
+    DAEMON_TASK_FAILED: Final = "daemon.task_failed"
+    DAEMON_STATUS: Final = "daemon.status"
+    CAMERA_CONNECTED: Final = "camera.connected"
+    CAMERA_DISCONNECTED: Final = "camera.disconnected"
+    CAMERA_FRAME_DROPPED: Final = "camera.frame_dropped"
+    CAMERA_BAD_FRAME: Final = "camera.bad_frame"
+    PIPELINE_FRAME: Final = "pipeline.frame"
+    PIPELINE_FRAME_ERROR: Final = "pipeline.frame_error"
+    PIPELINE_FRAME_INVALID: Final = "pipeline.frame_invalid"
+    MAVLINK_CONNECTED: Final = "c8.mavlink.connected"
+    MAVLINK_AUTOPILOT_SEEN: Final = "c8.mavlink.autopilot_seen"
+    MAVLINK_LINK_LOST: Final = "c8.mavlink.link_lost"
+    MAVLINK_SEND_ERROR: Final = "c8.mavlink.send_error"
+    PROVENANCE_CHANGED: Final = "c5.estimator.provenance_changed"
+    ESTIMATOR_FIX_REJECTED: Final = "c5.estimator.fix_rejected"
+    ESTIMATOR_INITIALISED: Final = "c5.estimator.initialised"
+    POSE_REJECTED: Final = "c4.pose.rejected"
+    VPR_READY: Final = "c2.vpr.ready"
+    VPR_FAR_TOP1: Final = "c2.vpr.top1_distance_above_threshold"
+    VPR_ERROR: Final = "c2.vpr.error"
+    VPR_TOPK: Final = "c2.vpr.topk"
+    CACHE_OPENED: Final = "c6.cache.opened"
+    CACHE_REFUSED: Final = "c6.cache.refused"
+    C3_READY: Final = "c3.matcher.ready"
+    C3_BACKBONE_ERROR: Final = "c3.matcher.backbone_error"
+    C3_INSUFFICIENT_INLIERS: Final = "c3.matcher.insufficient_inliers"
+    C3_RESIDUAL_ABOVE_THRESHOLD: Final = "c3.matcher.residual_above_threshold"
+    C3_ZERO_INLIERS: Final = "c3.matcher.zero_inliers"
+    C3_CANDIDATES: Final = "c3.matcher.candidates"
+    C7_ENGINE_LOADED: Final = "c7.inference.engine_loaded"
+
+
+class FdrKind:
+    """Flight-data-recorder record kinds (the seeds' kinds where a seed defines them)."""
+
+    CONFIG: Final = "daemon.config"
+    FRAME: Final = "pipeline.frame"
+    FRAME_ERROR: Final = "pipeline.frame_error"
+    ESTIMATE: Final = "estimator.state"
+    PROVENANCE_CHANGED: Final = "estimator.provenance_changed"
+    FIX_REJECTED: Final = "estimator.fix_rejected"
+    MATCHER_FRAME_DONE: Final = "matcher.frame_done"
+    MATCHER_BACKBONE_ERROR: Final = "matcher.backbone_error"
+    MATCHER_INSUFFICIENT_INLIERS: Final = "matcher.insufficient_inliers"
+    LINK_EVENT: Final = "mavlink.link_event"
