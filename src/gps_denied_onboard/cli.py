@@ -1,0 +1,158 @@
+"""``gdnav``: the daemon, the simulator, and the pre-flight tools.
+
+Exit codes: 0 success; 1 runtime failure; 2 bad configuration or arguments; 3 a resource the daemon
+needs is missing or refused (cache, model, calibration).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import structlog
+
+from gps_denied_onboard import __version__
+from gps_denied_onboard.config import ConfigError, config_to_dict, load_config
+from gps_denied_onboard.constants import FdrKind, LogEvent
+from gps_denied_onboard.logging_setup import configure_logging
+
+EXIT_OK, EXIT_FAILURE, EXIT_CONFIG, EXIT_RESOURCE = 0, 1, 2, 3
+
+
+def _err(message: str) -> None:
+    print(f"gdnav: {message}", file=sys.stderr)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    try:
+        config = load_config(args.config, args.set or ())
+    except ConfigError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    configure_logging(config.logging.level, json=config.logging.json)
+    log = structlog.get_logger("gdnav")
+    log.info(LogEvent.DAEMON_CONFIG, source=str(args.config), version=__version__, config=config_to_dict(config))
+
+    from gps_denied_onboard.daemon.service import NavDaemon
+    from gps_denied_onboard.runtime_root import StartupError, compose_root
+
+    try:
+        root = compose_root(config)
+    except StartupError as exc:
+        log.error("daemon.startup_refused", what=exc.what, error=str(exc))
+        _err(str(exc))
+        return EXIT_RESOURCE
+    root.fdr.record(FdrKind.CONFIG, {"version": __version__, "config": config_to_dict(config)})
+    return asyncio.run(NavDaemon(root).run())
+
+
+def _cmd_cache_build(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache_from_geotiff
+
+    configure_logging("info", json=False)
+    bbox = None
+    if args.bbox:
+        try:
+            bbox = tuple(float(v) for v in args.bbox.split(","))
+        except ValueError:
+            bbox = ()
+        if len(bbox) != 4:
+            _err(f"--bbox {args.bbox!r}: expected W,S,E,N in degrees")
+            return EXIT_CONFIG
+    try:
+        manifest = build_cache_from_geotiff(Path(args.source), Path(args.out), zoom=args.zoom,
+                                            bbox_lonlat=bbox, tile_size_px=args.tile_size,  # type: ignore[arg-type]
+                                            progress=not args.quiet)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    print(f"cache: {args.out}: zoom {manifest.zoom}, {manifest.tile_count} tiles")
+    return EXIT_OK
+
+
+def _cmd_sitl_run(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.sitl.runner import SitlError, run_sitl_cli
+
+    configure_logging("warning", json=False)
+    try:
+        return run_sitl_cli(args)
+    except SitlError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+
+
+def _cmd_config_check(args: argparse.Namespace) -> int:
+    try:
+        load_config(args.config, args.set or ())
+    except ConfigError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    print(f"{args.config}: ok")
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gdnav", description=__doc__.split("\n")[0])
+    parser.add_argument("--version", action="version", version=f"gdnav {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="run the navigation daemon",
+                         description="Run the navigation daemon until SIGTERM/SIGINT.")
+    run.add_argument("--config", required=True, type=Path, help="YAML profile, e.g. config/airborne.yaml")
+    run.add_argument("--set", action="append", metavar="KEY.PATH=VALUE",
+                     help="override one setting (repeatable), validated like the file")
+    run.set_defaults(func=_cmd_run)
+
+    cfg = sub.add_parser("config", help="configuration tools", description="Configuration tools.")
+    cfg_sub = cfg.add_subparsers(dest="config_command", required=True, metavar="SUBCOMMAND")
+    check = cfg_sub.add_parser("check", help="validate a profile", description="Validate a YAML profile.")
+    check.add_argument("--config", required=True, type=Path)
+    check.add_argument("--set", action="append", metavar="KEY.PATH=VALUE")
+    check.set_defaults(func=_cmd_config_check)
+
+    cache = sub.add_parser("cache", help="pre-flight map cache", description="Pre-flight map cache (F1).")
+    cache_sub = cache.add_subparsers(dest="cache_command", required=True, metavar="SUBCOMMAND")
+    build = cache_sub.add_parser("build", help="build a cache from a GeoTIFF orthophoto",
+                                 description="Cut a GeoTIFF (any CRS) into a Web-Mercator tile cache.")
+    build.add_argument("--source", required=True, help="GeoTIFF orthophoto (any CRS rasterio reads)")
+    build.add_argument("--out", required=True, help="cache directory to create or resume")
+    build.add_argument("--zoom", type=int, default=None, help="Web-Mercator zoom (default: matched to the source GSD)")
+    build.add_argument("--bbox", default=None, help="W,S,E,N in degrees (default: the whole source)")
+    build.add_argument("--tile-size", type=int, default=256, help="tile size in px (default 256)")
+    build.add_argument("--quiet", action="store_true", help="no progress bar")
+    build.set_defaults(func=_cmd_cache_build)
+
+    sitl = sub.add_parser("sitl", help="software-in-the-loop simulation",
+                          description="Simulated flight: renders the nav camera, plays the autopilot over "
+                                      "MAVLink/UDP, runs the daemon as its own process, scores it.")
+    sitl_sub = sitl.add_subparsers(dest="sitl_command", required=True, metavar="SUBCOMMAND")
+    srun = sitl_sub.add_parser("run", help="fly a scenario and write a report",
+                               description="Fly a scenario against the daemon and write a JSON + PNG report.")
+    srun.add_argument("--map", type=Path, default=None,
+                      help="GeoTIFF map (any CRS); default: the embedded procedural demo map")
+    srun.add_argument("--scenario", default="demo",
+                      help="scenario YAML path or the name of a bundled one (demo, smoke, nominal_real)")
+    srun.add_argument("--report", type=Path, default=Path("out/sitl/report.json"), help="report JSON path")
+    srun.add_argument("--appearance", type=Path, default=None,
+                      help="another image of the same area (e.g. another date) to render the frames from")
+    srun.add_argument("--config", type=Path, default=None, help="daemon profile (default: config/sitl.yaml)")
+    srun.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="daemon config override")
+    srun.add_argument("--workdir", type=Path, default=None,
+                      help="where the cache, FDR and logs go (default: next to the report)")
+    srun.add_argument("--duration", type=float, default=None, help="cut the flight to this many seconds")
+    srun.add_argument("--quiet", action="store_true", help="print only the summary")
+    srun.set_defaults(func=_cmd_sitl_run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

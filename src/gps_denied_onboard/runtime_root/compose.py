@@ -1,0 +1,159 @@
+"""Composition root (see the package docstring)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from gps_denied_onboard.camera.sources import CameraSourceError, FrameSource, open_frame_source
+from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration
+from gps_denied_onboard.components.c1_vio import HomographyVo
+from gps_denied_onboard.components.c2_5_rerank.passthrough import PassthroughRerank
+from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
+from gps_denied_onboard.components.c2_vpr.geo_prior import GeoPriorVpr
+from gps_denied_onboard.components.c2_vpr.protocol import VprStrategy
+from gps_denied_onboard.components.c3_matcher import registry as matcher_registry
+from gps_denied_onboard.components.c3_matcher.errors import StrategyNotLinkedError
+from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
+from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
+from gps_denied_onboard.components.c4_pose import PoseSolver
+from gps_denied_onboard.components.c5_estimator import NavEstimator
+from gps_denied_onboard.components.c6_tiles.store import TileStore
+from gps_denied_onboard.components.c6_tiles.types import TileStoreError
+from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
+from gps_denied_onboard.components.c8_mavlink import MavlinkLink, VehicleStateTracker
+from gps_denied_onboard.components.c13_fdr import FlightDataRecorder
+from gps_denied_onboard.config import Config
+from gps_denied_onboard.constants import LogEvent
+from gps_denied_onboard.geo import LocalTangentPlane
+from gps_denied_onboard.helpers.ransac_filter import RansacFilter
+from gps_denied_onboard.pipeline import NavigationPipeline
+
+log = structlog.get_logger(__name__)
+
+
+class StartupError(RuntimeError):
+    """The daemon cannot start: ``what`` names the broken thing (cache, model, calibration...)."""
+
+    def __init__(self, what: str, message: str) -> None:
+        super().__init__(f"cannot start: {what}: {message}")
+        self.what = what
+
+
+@dataclass
+class RuntimeRoot:
+    config: Config
+    calibration: CameraCalibration
+    ltp: LocalTangentPlane
+    tile_store: TileStore
+    fdr: FlightDataRecorder
+    tracker: VehicleStateTracker
+    link: MavlinkLink
+    camera: FrameSource
+    matcher: CrossDomainMatcher
+    pipeline: NavigationPipeline
+
+    def close(self) -> None:
+        self.link.close()
+        self.fdr.close()
+
+
+def _calibration(config: Config) -> CameraCalibration:
+    cam = config.camera
+    if cam.calibration_file is not None:
+        try:
+            return CameraCalibration.from_opencv_yaml(cam.calibration_file)
+        except CalibrationError as exc:
+            raise StartupError("camera.calibration_file", str(exc)) from exc
+    i = cam.intrinsics
+    if i.fx_px is None:
+        base = CameraCalibration.from_hfov(i.width_px, i.height_px, i.hfov_deg)
+        return CameraCalibration(base.width_px, base.height_px, base.fx_px, base.fy_px, base.cx_px, base.cy_px,
+                                 tuple(i.dist_coeffs))
+    return CameraCalibration(
+        i.width_px, i.height_px, i.fx_px, i.fy_px if i.fy_px is not None else i.fx_px,
+        i.cx_px if i.cx_px is not None else (i.width_px - 1) / 2.0,
+        i.cy_px if i.cy_px is not None else (i.height_px - 1) / 2.0, tuple(i.dist_coeffs),
+    )
+
+
+#: C2 strategies by config name.
+VPR_STRATEGIES: Mapping[str, Callable[[TileStore, Config], VprStrategy]] = {
+    "geo_prior": lambda tiles, cfg: GeoPriorVpr(tiles),
+}
+#: C2.5 strategies by config name.
+RERANK_STRATEGIES: Mapping[str, Callable[[TileStore, Config], RerankStrategy]] = {
+    "passthrough": lambda tiles, cfg: PassthroughRerank(
+        tiles, top_n=cfg.rerank.top_n, chip_size_px=cfg.matcher.chip_size_px
+    ),
+}
+
+
+def _pick(kind: str, table: Mapping[str, Any], name: str) -> Any:
+    if name not in table:
+        raise StartupError(f"{kind}.strategy", f"unknown strategy {name!r}; valid: {', '.join(sorted(table))}")
+    return table[name]
+
+
+def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = None) -> RuntimeRoot:
+    """Build every object the daemon needs from ``config``.
+
+    ``pre_constructed`` lets a caller (tests, the SITL) hand in objects by slot name instead of having
+    them built here: ``c7_inference``, ``c3_lightglue_runtime``, ``c282_ransac_filter``, ``fdr``.
+    """
+    pre = dict(pre_constructed or {})
+    calibration = _calibration(config)
+    try:
+        tiles = TileStore.open(Path(config.cache.dir), verify_hashes=config.cache.verify_hashes)
+    except TileStoreError as exc:
+        log.error(LogEvent.CACHE_REFUSED, dir=config.cache.dir, error=str(exc))
+        raise StartupError("cache", str(exc)) from exc
+    center_lon, center_lat = tiles.center_lonlat
+    ltp = LocalTangentPlane(center_lat, center_lon, config.terrain.ground_alt_amsl_m)
+    log.info(LogEvent.CACHE_OPENED, dir=config.cache.dir, tiles=len(tiles), zoom=tiles.zoom,
+             gsd_m_px=round(tiles.gsd_m_px, 3))
+
+    fdr = pre.get("fdr") or FlightDataRecorder(Path(config.fdr.dir), max_bytes=config.fdr.max_bytes,
+                                               segment_bytes=config.fdr.segment_bytes)
+    ransac = pre.get("c282_ransac_filter") or RansacFilter(
+        confidence=config.matcher.ransac_confidence, max_iters=config.matcher.ransac_max_iters
+    )
+    health = RollingHealthWindow(low_inlier_threshold=config.matcher.min_inliers_threshold)
+    deps: dict[str, Any] = {
+        "config": config.matcher, "ransac_filter": ransac, "fdr_client": fdr, "health_window": health,
+        "lightglue_runtime": pre.get("c3_lightglue_runtime"), "inference_runtime": pre.get("c7_inference"),
+        "intra_op_threads": config.daemon.onnx_intra_op_threads,
+    }
+    try:
+        matcher = matcher_registry.create_matcher(config.matcher.strategy, **deps)
+    except StrategyNotLinkedError as exc:
+        raise StartupError("matcher.strategy", str(exc)) from exc
+    except EngineLoadError as exc:
+        raise StartupError("matcher model", str(exc)) from exc
+
+    vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)
+    rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
+    pipeline = NavigationPipeline(
+        calibration=calibration, ltp=ltp, ground_alt_amsl_m=config.terrain.ground_alt_amsl_m,
+        vo=HomographyVo(calibration), vpr=vpr, vpr_config=config.vpr, rerank=rerank, matcher=matcher,
+        pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
+        estimator=NavEstimator(config.estimator, ltp), fdr=fdr,
+    )
+    tracker = VehicleStateTracker(
+        autopilot_system_id=config.mavlink.autopilot_system_id,
+        attitude_max_age_s=config.mavlink.attitude_max_age_s,
+        altitude_max_age_s=config.mavlink.altitude_max_age_s,
+        link_timeout_s=config.mavlink.link_timeout_s,
+    )
+    link = MavlinkLink(config.mavlink, tracker, fdr)
+    try:
+        camera = open_frame_source(config.camera.source, connect_timeout_s=config.camera.connect_timeout_s,
+                                   frame_timeout_s=config.camera.frame_timeout_s,
+                                   backoff_max_s=config.camera.reconnect_backoff_max_s)
+    except CameraSourceError as exc:
+        raise StartupError("camera.source", str(exc)) from exc
+    return RuntimeRoot(config, calibration, ltp, tiles, fdr, tracker, link, camera, matcher, pipeline)
