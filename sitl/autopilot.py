@@ -1,0 +1,93 @@
+"""The simulated autopilot: plays ArduPilot's side of the MAVLink link over real UDP.
+
+Sends what a flight controller sends a companion computer (HEARTBEAT, SYSTEM_TIME, ATTITUDE, ALTITUDE,
+VFR_HUD, HOME_POSITION) from the scenario's truth, and records everything the daemon sends back with
+its receive time, for scoring.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+
+from gps_denied_onboard.constants import MAV_COMPONENT_ID  # noqa: E402
+
+
+@dataclass
+class ReceivedMessage:
+    recv_time_unix_s: float
+    type: str
+    fields: dict[str, Any]
+
+
+@dataclass
+class SimAutopilot:
+    """Autopilot side of a UDP link to the daemon listening at ``daemon_port`` on loopback."""
+
+    daemon_port: int
+    system_id: int = 1
+    boot_time_unix_s: float = field(default_factory=time.time)
+    received: list[ReceivedMessage] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._conn = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{self.daemon_port}", source_system=self.system_id, source_component=1
+        )
+        self.mav = self._conn.mav
+
+    def fileno(self) -> int:
+        return int(self._conn.port.fileno())
+
+    def _boot_ms(self, now_unix_s: float) -> int:
+        return max(0, int((now_unix_s - self.boot_time_unix_s) * 1000))
+
+    def send_heartbeat(self) -> None:
+        self.mav.heartbeat_send(
+            mavutil.mavlink.MAV_TYPE_QUADROTOR, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+            mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED,
+            4, mavutil.mavlink.MAV_STATE_ACTIVE,
+        )
+
+    def send_system_time(self, now_unix_s: float) -> None:
+        self.mav.system_time_send(int(now_unix_s * 1e6), self._boot_ms(now_unix_s))
+
+    def send_attitude(self, now_unix_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float,
+                      rates_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+        yaw = math.atan2(math.sin(yaw_rad), math.cos(yaw_rad))  # ArduPilot sends -pi..pi
+        self.mav.attitude_send(self._boot_ms(now_unix_s), roll_rad, pitch_rad, yaw, *rates_rad_s)
+
+    def send_altitude(self, now_unix_s: float, alt_amsl_m: float, alt_rel_m: float, alt_agl_m: float) -> None:
+        self.mav.altitude_send(int(now_unix_s * 1e6), alt_amsl_m, alt_amsl_m, alt_rel_m, alt_rel_m,
+                               alt_amsl_m - alt_agl_m, alt_agl_m)
+
+    def send_vfr_hud(self, groundspeed_m_s: float, heading_deg: float, alt_amsl_m: float, climb_m_s: float) -> None:
+        self.mav.vfr_hud_send(groundspeed_m_s, groundspeed_m_s, int(heading_deg) % 360, 50, alt_amsl_m, climb_m_s)
+
+    def send_home(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> None:
+        self.mav.home_position_send(int(round(lat_deg * 1e7)), int(round(lon_deg * 1e7)),
+                                    int(round(alt_amsl_m * 1000)), 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0],
+                                    0.0, 0.0, 0.0)
+
+    def poll(self) -> int:
+        """Drain what the daemon sent (non-blocking); keeps only the daemon's own component."""
+        n = 0
+        while True:
+            msg = self._conn.recv_match(blocking=False)
+            if msg is None:
+                return n
+            if msg.get_type() == "BAD_DATA" or msg.get_srcComponent() != MAV_COMPONENT_ID:
+                continue
+            n += 1
+            self.received.append(ReceivedMessage(time.time(), msg.get_type(), msg.to_dict()))
+
+    def of_type(self, *types: str) -> list[ReceivedMessage]:
+        return [m for m in self.received if m.type in types]
+
+    def close(self) -> None:
+        self._conn.close()

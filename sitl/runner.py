@@ -1,0 +1,330 @@
+"""``gdnav sitl run``: fly a scenario against the daemon, in real time, over real sockets.
+
+1. Build (or reuse) the tile cache from ``--map`` (default: the embedded procedural demo map).
+2. Start the camera (TCP frame server) and the autopilot (pymavlink, UDP) on loopback.
+3. Start the daemon as its own process, unmodified, with ``config/sitl.yaml`` (+ the ports and paths
+   of this run as ``--set`` overrides), and wait for its HEARTBEAT.
+4. Fly: ATTITUDE at 50 Hz, ALTITUDE/VFR_HUD at 10 Hz, SYSTEM_TIME/HEARTBEAT at 1 Hz, HOME_POSITION
+   every 2 s; nav frames rendered from the truth (from ``--appearance`` when given) at the scenario's
+   frame rate, stamped with their exposure time.
+5. SIGTERM the daemon, time its exit, score what the autopilot side received (``sitl.report``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import hashlib
+import json
+import os
+import platform
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gps_denied_onboard.camera.stream import encode_frame
+from gps_denied_onboard.config import ConfigError, load_config
+from gps_denied_onboard.sitl.autopilot import SimAutopilot
+from gps_denied_onboard.sitl.frame_server import FrameServer
+from gps_denied_onboard.sitl.photometric import PhotometricModel, degrade_for_gap
+from gps_denied_onboard.sitl.render import MapRenderer, RenderError
+from gps_denied_onboard.sitl.report import SentFrame, plot_report, score
+from gps_denied_onboard.sitl.scenario import Scenario, ScenarioError, Trajectory, load_scenario
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_CONFIG = REPO_ROOT / "config" / "sitl.yaml"
+DAEMON_READY_TIMEOUT_S = 90.0
+DAEMON_STOP_TIMEOUT_S = 10.0
+ATTITUDE_HZ = 50.0
+ALTITUDE_HZ = 10.0
+_TAIL_S = 1.5
+
+
+class SitlError(RuntimeError):
+    """The simulation cannot run (bad map, scenario, config) or the daemon did not come up."""
+
+
+@dataclass(frozen=True)
+class SitlOptions:
+    map_path: Path | None
+    scenario: str
+    report_path: Path
+    appearance_path: Path | None = None
+    config_path: Path | None = None
+    overrides: tuple[str, ...] = ()
+    workdir: Path | None = None
+    duration_s: float | None = None
+    quiet: bool = False
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _sha_prefix(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:12]
+
+
+def _intersect(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float, float]:
+    box = (max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3]))
+    if not (box[0] < box[2] and box[1] < box[3]):
+        raise SitlError(f"--map and --appearance do not overlap: {a} vs {b}")
+    return box
+
+
+class _Flight:
+    def __init__(self, opts: SitlOptions, scenario: Scenario, trajectory: Trajectory, renderer: MapRenderer,
+                 config_path: Path, cache_dir: Path, workdir: Path, ground_alt_amsl_m: float) -> None:
+        self.opts = opts
+        self.scenario = scenario
+        self.traj = trajectory
+        self.renderer = renderer
+        self.config_path = config_path
+        self.cache_dir = cache_dir
+        self.workdir = workdir
+        self.ground_alt_amsl_m = ground_alt_amsl_m
+        self.calib = scenario.calibration()
+        self.photometric = PhotometricModel(scenario.photometric)
+        self.frames: list[SentFrame] = []
+        self.t0_unix_s = 0.0
+        self.daemon_exit_code: int | None = None
+        self.daemon_stop_s: float | None = None
+
+    def _say(self, msg: str) -> None:
+        if not self.opts.quiet:
+            print(f"[sitl] {msg}", flush=True)
+
+    def _daemon_cmd(self, mav_port: int, cam_port: int) -> list[str]:
+        sets = [
+            f"camera.source=tcp://127.0.0.1:{cam_port}",
+            f"mavlink.url=udpin:127.0.0.1:{mav_port}",
+            f"cache.dir={self.cache_dir}",
+            f"fdr.dir={self.workdir / 'fdr'}",
+            f"camera.intrinsics.width_px={self.calib.width_px}",
+            f"camera.intrinsics.height_px={self.calib.height_px}",
+            f"camera.intrinsics.fx_px={self.calib.fx_px}",
+            f"camera.intrinsics.fy_px={self.calib.fy_px}",
+            f"camera.intrinsics.cx_px={self.calib.cx_px}",
+            f"camera.intrinsics.cy_px={self.calib.cy_px}",
+            *self.opts.overrides,
+        ]
+        cmd = [sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", str(self.config_path)]
+        for s in sets:
+            cmd += ["--set", s]
+        return cmd
+
+    def _send_telemetry(self, ap: SimAutopilot, now: float, *, full: bool) -> None:
+        truth = self.traj.truth_at(max(0.0, now - self.t0_unix_s) if self.t0_unix_s else 0.0)
+        ap.send_attitude(now, truth.roll_rad, truth.pitch_rad, truth.yaw_rad)
+        if full:
+            alt_rel = truth.alt_agl_m  # home is on the flat ground
+            ap.send_altitude(now, truth.alt_amsl_m, alt_rel, truth.alt_agl_m)
+            speed = float(np.hypot(truth.vel_ned_m_s[0], truth.vel_ned_m_s[1]))
+            ap.send_vfr_hud(speed, float(np.degrees(truth.yaw_rad)) % 360.0, truth.alt_amsl_m,
+                            -float(truth.vel_ned_m_s[2]))
+
+    async def _telemetry(self, ap: SimAutopilot, stop: asyncio.Event) -> None:
+        home = self.traj.truth_at(0.0)
+        k = 0
+        next_t = time.time()
+        while not stop.is_set():
+            now = time.time()
+            full = k % int(ATTITUDE_HZ / ALTITUDE_HZ) == 0
+            self._send_telemetry(ap, now, full=full)
+            if k % int(ATTITUDE_HZ) == 0:
+                ap.send_heartbeat()
+                ap.send_system_time(now)
+            if k % int(2 * ATTITUDE_HZ) == 0:
+                ap.send_home(home.lat_deg, home.lon_deg, self.ground_alt_amsl_m)
+            ap.poll()
+            k += 1
+            next_t += 1.0 / ATTITUDE_HZ
+            await asyncio.sleep(max(0.0, next_t - time.time()))
+
+    def _render(self, index: int, t_s: float) -> tuple[bytes, Any]:
+        truth = self.traj.truth_at(t_s)
+        img = self.renderer.render(self.calib, truth.lat_deg, truth.lon_deg, truth.alt_agl_m, truth.attitude())
+        img = self.photometric.apply(img, index)
+        gap = self.scenario.gap_at(t_s)
+        if gap is not None:
+            img = degrade_for_gap(img, gap)
+        exposure_us = int(round((self.t0_unix_s + t_s) * 1e6))
+        return encode_frame(img, seq=index, exposure_time_unix_usec=exposure_us), truth
+
+    async def _camera(self, server: FrameServer, stop: asyncio.Event) -> None:
+        loop = asyncio.get_running_loop()
+        for index, t_s in enumerate(self.traj.frame_times_s()):
+            if stop.is_set():
+                return
+            await asyncio.sleep(max(0.0, self.t0_unix_s + float(t_s) - time.time()))
+            message, truth = await loop.run_in_executor(None, self._render, index, float(t_s))
+            await server.send(message)
+            self.frames.append(SentFrame(index, int(round((self.t0_unix_s + float(t_s)) * 1e6)), float(t_s),
+                                         truth.lat_deg, truth.lon_deg, truth.alt_agl_m))
+
+    async def fly(self) -> SimAutopilot:
+        server = FrameServer()
+        cam_port = await server.start()
+        mav_port = _free_udp_port()
+        ap = SimAutopilot(daemon_port=mav_port)
+        log_path = self.workdir / "daemon.log"
+        stop = asyncio.Event()
+        with log_path.open("wb") as log_file:
+            proc = subprocess.Popen(self._daemon_cmd(mav_port, cam_port), stdout=log_file, stderr=log_file,
+                                    env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            try:
+                telemetry = asyncio.create_task(self._telemetry(ap, stop), name="sitl_telemetry")
+                self._say(f"daemon pid {proc.pid}; waiting for its HEARTBEAT (log: {log_path})")
+                deadline = time.time() + DAEMON_READY_TIMEOUT_S
+                while not ap.of_type("HEARTBEAT"):
+                    if proc.poll() is not None:
+                        raise SitlError(f"daemon exited with code {proc.returncode} before its first HEARTBEAT; "
+                                        f"see {log_path}")
+                    if time.time() > deadline:
+                        raise SitlError(f"no HEARTBEAT from the daemon in {DAEMON_READY_TIMEOUT_S:.0f} s; see {log_path}")
+                    await asyncio.sleep(0.1)
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(server.client_connected.wait(), 10.0)
+                self.t0_unix_s = time.time() + 0.2
+                self._say(f"flying '{self.scenario.name}': {self.traj.duration_s:.0f} s, "
+                          f"{len(self.traj.frame_times_s())} frames")
+                await self._camera(server, stop)
+                await asyncio.sleep(_TAIL_S)
+                stop.set()
+                await telemetry
+                ap.poll()
+            finally:
+                stop.set()
+                t_term = time.monotonic()
+                if proc.poll() is None:
+                    proc.send_signal(signal.SIGTERM)
+                try:
+                    self.daemon_exit_code = await asyncio.get_running_loop().run_in_executor(
+                        None, lambda: proc.wait(DAEMON_STOP_TIMEOUT_S))
+                    self.daemon_stop_s = time.monotonic() - t_term
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    self.daemon_exit_code = proc.wait()
+                await server.close()
+        ap.poll()
+        return ap
+
+
+def run_sitl(opts: SitlOptions) -> dict[str, Any]:
+    """Fly one scenario and return the report (also written to ``opts.report_path`` with a PNG)."""
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache_from_geotiff
+
+    workdir = opts.workdir or opts.report_path.parent / "work"
+    workdir.mkdir(parents=True, exist_ok=True)
+    opts.report_path.parent.mkdir(parents=True, exist_ok=True)
+    config_path = opts.config_path or DEFAULT_CONFIG
+    if not config_path.is_file():
+        raise SitlError(f"daemon profile {config_path} not found; pass --config")
+    try:
+        daemon_cfg = load_config(config_path, opts.overrides)
+    except ConfigError as exc:
+        raise SitlError(str(exc)) from exc
+    ground_alt = daemon_cfg.terrain.ground_alt_amsl_m
+
+    map_path = opts.map_path
+    if map_path is None:
+        from gps_denied_onboard.sitl.demo_map import generate_demo_map
+
+        map_path = workdir / "demo_map.tif"
+        if not map_path.is_file():
+            generate_demo_map(map_path)
+    try:
+        scenario = load_scenario(opts.scenario)
+        map_renderer = MapRenderer(map_path)
+        renderer = MapRenderer(opts.appearance_path) if opts.appearance_path else map_renderer
+    except (ScenarioError, RenderError) as exc:
+        raise SitlError(str(exc)) from exc
+    bbox = map_renderer.bbox_lonlat
+    if opts.appearance_path:
+        bbox = _intersect(bbox, renderer.bbox_lonlat)
+    try:
+        trajectory = scenario.resolve(bbox, ground_alt)
+    except ScenarioError as exc:
+        raise SitlError(str(exc)) from exc
+    if opts.duration_s is not None:
+        trajectory.duration_s = min(trajectory.duration_s, opts.duration_s)
+
+    cache_dir = workdir / f"cache-{_sha_prefix(map_path)}"
+    t_cache = time.monotonic()
+    try:
+        build_cache_from_geotiff(map_path, cache_dir, progress=not opts.quiet)
+    except CacheBuildError as exc:
+        raise SitlError(f"cannot build the cache from {map_path}: {exc}") from exc
+    cache_s = time.monotonic() - t_cache
+
+    flight = _Flight(opts, scenario, trajectory, renderer, config_path, cache_dir, workdir, ground_alt)
+    ap = asyncio.run(flight.fly())
+
+    def truth_at_unix(t_unix_s: float) -> tuple[float, float]:
+        s = trajectory.truth_at(min(max(0.0, t_unix_s - flight.t0_unix_s), trajectory.duration_s))
+        return s.lat_deg, s.lon_deg
+
+    report = score(flight.frames, ap.received, truth_at_unix)
+    ap.close()
+    report.update({
+        "scenario": scenario.name,
+        "map": str(map_path),
+        "appearance": str(opts.appearance_path) if opts.appearance_path else None,
+        "daemon_config": str(config_path),
+        "daemon_overrides": list(opts.overrides),
+        "matcher": daemon_cfg.matcher.strategy,
+        "daemon_exit_code": flight.daemon_exit_code,
+        "daemon_stop_s": flight.daemon_stop_s,
+        "cache_build_s": round(cache_s, 2),
+        "heartbeats_received": len(ap.of_type("HEARTBEAT")),
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "daemon_log": str(workdir / "daemon.log"),
+        "fdr_dir": str(workdir / "fdr"),
+    })
+    opts.report_path.write_text(json.dumps(report, indent=2))
+    plot_report(report, opts.report_path.with_suffix(".png"), title=f"{scenario.name} on {map_path.name}")
+    return report
+
+
+def summary_lines(report: dict[str, Any]) -> list[str]:
+    h, lat = report["horizontal_error_m"], report["latency_ms"]
+
+    def f(v: float | None, unit: str) -> str:
+        return "n/a" if v is None else f"{v:.2f} {unit}"
+
+    return [
+        f"scenario      {report['scenario']}  (map {Path(report['map']).name}, matcher {report['matcher']})",
+        f"frames        {report['frames']} sent, {report['frames_answered']} answered with GPS_INPUT",
+        f"availability  {report['availability']:.3f}",
+        f"horiz error   p50 {f(h['p50'], 'm')}  p95 {f(h['p95'], 'm')}  max {f(h['max'], 'm')}",
+        f"latency       p50 {f(lat['p50'], 'ms')}  p95 {f(lat['p95'], 'ms')}",
+        f"provenance    {report['provenance_counts']}",
+        f"daemon exit   code {report['daemon_exit_code']} after SIGTERM in {f(report['daemon_stop_s'], 's')}",
+    ]
+
+
+def run_sitl_cli(args: argparse.Namespace) -> int:
+    opts = SitlOptions(
+        map_path=args.map, scenario=args.scenario, report_path=args.report, appearance_path=args.appearance,
+        config_path=args.config, overrides=tuple(args.set or ()), workdir=args.workdir,
+        duration_s=args.duration, quiet=args.quiet,
+    )
+    report = run_sitl(opts)
+    for line in summary_lines(report):
+        print(line)
+    print(f"report        {opts.report_path} (+ {opts.report_path.with_suffix('.png').name})")
+    return 0 if report["daemon_exit_code"] == 0 else 1
