@@ -11,11 +11,23 @@ import numpy as np
 
 @dataclass(frozen=True)
 class TensorSpec:
-    """Expected tensor: name, rank (None = any) and numpy dtype name (``float32``, ``int64``...)."""
+    """Expected tensor: name, rank (None = any) and numpy dtype name (``float32``, ``int64``...).
+
+    ``dtype`` may list accepted alternatives separated by ``|`` (``"int64|float32"``: the LightGlue-ONNX
+    exports disagree on the keypoint dtype). ``shape``, when given, has one entry per dimension: an int
+    is a fixed size that a model with a static dimension there must have (``descriptors`` D=128), None
+    accepts anything; dynamic model dimensions always pass.
+    """
 
     name: str
     rank: int | None
     dtype: str
+    shape: tuple[int | None, ...] | None = None
+
+    @property
+    def dtypes(self) -> tuple[str, ...]:
+        """The accepted numpy dtype names (``dtype`` split on ``|``)."""
+        return tuple(part.strip() for part in self.dtype.split("|") if part.strip())
 
 
 @dataclass(frozen=True)
