@@ -1,0 +1,256 @@
+"""C10 contract: the map cache's on-disk layout and its manifest.
+
+A cache is a directory::
+
+    manifest.json              written last, atomically: its presence means "complete"
+    mosaic_z{Z}.npy            uint8 (H, W, 3) BGR Web-Mercator mosaic, opened with np.load(mmap_mode="r")
+    tiles.json                 valid XYZ tiles: x, y, TileId (zoom, lat, lon of the centre), valid fraction
+    tile_valid_fraction.npy    float32 (rows, cols): valid-pixel fraction of every tile in the range
+
+Every artifact is listed in ``manifest.artifacts`` with its size and sha256; C6 refuses a cache whose
+artifacts do not match (D-C10-3). This module is deliberately light (json + hashlib) because the
+daemon imports it at start-up.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+#: Version of the cache layout; bump on any incompatible change.
+CACHE_FORMAT_VERSION = 1
+MANIFEST_NAME = "manifest.json"
+TILES_NAME = "tiles.json"
+TILE_VALID_FRACTION_NAME = "tile_valid_fraction.npy"
+_HASH_CHUNK_BYTES = 8 << 20
+
+
+def mosaic_name(zoom: int) -> str:
+    """File name of the mosaic at ``zoom``."""
+    return f"mosaic_z{zoom}.npy"
+
+
+def sha256_file(path: Path) -> str:
+    """Hex sha256 of a file, streamed in 8 MiB chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(_HASH_CHUNK_BYTES):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def write_json_atomic(path: Path, payload: Any) -> None:
+    """Write JSON to ``path`` via a temporary file, fsync and os.replace, so readers never see half."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(payload, fh, indent=1, sort_keys=True)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+class CacheManifestError(RuntimeError):
+    """A cache directory is incomplete, of another format version, or its artifacts do not match the
+    manifest. C6 re-raises it as TileStoreError; this module stays free of C6 imports so that C6 can
+    depend on it without an import cycle."""
+
+    def __init__(self, message: str, *, path: str | None = None) -> None:
+        super().__init__(f"{message} ({path})" if path else message)
+        self.message = message
+        self.path = path
+
+
+class CacheBuildError(RuntimeError):
+    """The cache could not be built (bad source, bad parameters, empty result, I/O)."""
+
+    def __init__(self, message: str, *, path: str | None = None) -> None:
+        super().__init__(f"{message} ({path})" if path else message)
+        self.path = path
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """Where the map came from: ``kind`` ("geotiff"), path, sha256 of the file, CRS as text."""
+
+    kind: str
+    path: str
+    sha256: str
+    crs: str
+
+
+@dataclass(frozen=True)
+class TileRange:
+    """Inclusive XYZ tile range ``[x0..x1] x [y0..y1]`` at the cache zoom."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+
+    @property
+    def n_cols(self) -> int:
+        return self.x1 - self.x0 + 1
+
+    @property
+    def n_rows(self) -> int:
+        return self.y1 - self.y0 + 1
+
+
+@dataclass(frozen=True)
+class VprInfo:
+    """Global-descriptor backbone used for the cache ("geo_prior" = no descriptors yet)."""
+
+    backbone: str
+    model_sha256: str | None
+
+
+@dataclass(frozen=True)
+class ArtifactInfo:
+    """Recorded size (bytes) and sha256 of one artifact file."""
+
+    sha256: str
+    bytes: int
+
+
+@dataclass(frozen=True)
+class CacheManifest:
+    """In-memory form of ``manifest.json`` (field names mirror the JSON keys).
+
+    ``bbox_lonlat`` is the mapped area ``(west, south, east, north)`` in degrees: the source footprint
+    intersected with the requested bbox (the mosaic itself covers the whole tile range around it).
+    ``mosaic_shape`` is ``(H, W, 3)`` px. ``artifacts`` maps a file name relative to the cache
+    directory to its size and sha256 and is treated as read-only.
+    """
+
+    format_version: int
+    created_utc: str
+    source: SourceInfo
+    zoom: int
+    tile_size_px: int
+    tile_range: TileRange
+    bbox_lonlat: tuple[float, float, float, float]
+    mosaic_shape: tuple[int, int, int]
+    tile_count: int
+    min_tile_valid_fraction: float
+    resampling: str
+    vpr: VprInfo
+    artifacts: Mapping[str, ArtifactInfo] = field(default_factory=dict)
+
+    @property
+    def mosaic_name(self) -> str:
+        return mosaic_name(self.zoom)
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON object written to ``manifest.json``."""
+        return {
+            "format_version": self.format_version,
+            "created_utc": self.created_utc,
+            "source": vars(self.source).copy(),
+            "zoom": self.zoom,
+            "tile_size_px": self.tile_size_px,
+            "tile_range": vars(self.tile_range).copy(),
+            "bbox_lonlat": list(self.bbox_lonlat),
+            "mosaic_shape": list(self.mosaic_shape),
+            "tile_count": self.tile_count,
+            "min_tile_valid_fraction": self.min_tile_valid_fraction,
+            "resampling": self.resampling,
+            "vpr": vars(self.vpr).copy(),
+            "artifacts": {name: vars(info).copy() for name, info in sorted(self.artifacts.items())},
+        }
+
+    @classmethod
+    def from_json(cls, payload: Mapping[str, Any], *, path: str | None = None) -> CacheManifest:
+        """Parse a manifest object; a wrong version or a missing/mistyped key raises CacheManifestError."""
+        version = payload.get("format_version") if isinstance(payload, Mapping) else None
+        if version != CACHE_FORMAT_VERSION:
+            raise CacheManifestError(
+                f"unsupported cache format_version {version!r}, expected {CACHE_FORMAT_VERSION}; "
+                "rebuild the cache",
+                path=path,
+            )
+        try:
+            bbox = tuple(float(v) for v in payload["bbox_lonlat"])
+            shape = tuple(int(v) for v in payload["mosaic_shape"])
+            if len(bbox) != 4 or len(shape) != 3:
+                raise ValueError("bbox_lonlat needs 4 values and mosaic_shape 3")
+            vpr = payload["vpr"]
+            return cls(
+                format_version=int(version),
+                created_utc=str(payload["created_utc"]),
+                source=SourceInfo(**{k: str(v) for k, v in payload["source"].items()}),
+                zoom=int(payload["zoom"]),
+                tile_size_px=int(payload["tile_size_px"]),
+                tile_range=TileRange(**{k: int(v) for k, v in payload["tile_range"].items()}),
+                bbox_lonlat=bbox,  # type: ignore[arg-type]
+                mosaic_shape=shape,  # type: ignore[arg-type]
+                tile_count=int(payload["tile_count"]),
+                min_tile_valid_fraction=float(payload["min_tile_valid_fraction"]),
+                resampling=str(payload["resampling"]),
+                vpr=VprInfo(backbone=str(vpr["backbone"]), model_sha256=vpr["model_sha256"]),
+                artifacts={
+                    str(name): ArtifactInfo(sha256=str(info["sha256"]), bytes=int(info["bytes"]))
+                    for name, info in payload["artifacts"].items()
+                },
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise CacheManifestError(f"malformed cache manifest: {exc!r}", path=path) from exc
+
+    @classmethod
+    def load(cls, cache_dir: Path) -> CacheManifest:
+        """Read ``cache_dir/manifest.json``; a missing or unreadable manifest raises CacheManifestError."""
+        path = Path(cache_dir) / MANIFEST_NAME
+        try:
+            text = path.read_text(encoding="utf-8")
+        except FileNotFoundError as exc:
+            raise CacheManifestError(
+                "no cache manifest: the directory is not a cache or its build did not finish", path=str(path)
+            ) from exc
+        except OSError as exc:
+            raise CacheManifestError(f"cannot read cache manifest: {exc}", path=str(path)) from exc
+        try:
+            payload = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise CacheManifestError(f"cache manifest is not valid JSON: {exc}", path=str(path)) from exc
+        return cls.from_json(payload, path=str(path))
+
+    def save(self, cache_dir: Path) -> None:
+        """Write ``manifest.json`` atomically (the last step of a build)."""
+        write_json_atomic(Path(cache_dir) / MANIFEST_NAME, self.to_json())
+
+    def verify_artifacts(self, cache_dir: Path, *, verify_hashes: bool = True) -> None:
+        """Check that every artifact exists with its recorded size and (optionally) sha256.
+
+        Raises CacheManifestError naming the first artifact that is missing, truncated/grown or altered.
+        """
+        cache_dir = Path(cache_dir)
+        for name in (self.mosaic_name, TILES_NAME):
+            if name not in self.artifacts:
+                raise CacheManifestError(
+                    f"manifest does not list required artifact {name!r}", path=str(cache_dir)
+                )
+        for name, info in sorted(self.artifacts.items()):
+            path = cache_dir / name
+            try:
+                size = path.stat().st_size
+            except FileNotFoundError as exc:
+                raise CacheManifestError(f"cache artifact {name!r} is missing", path=str(path)) from exc
+            if size != info.bytes:
+                raise CacheManifestError(
+                    f"cache artifact {name!r} has {size} bytes, manifest records {info.bytes} "
+                    "(truncated or replaced)",
+                    path=str(path),
+                )
+            if verify_hashes:
+                actual = sha256_file(path)
+                if actual != info.sha256:
+                    raise CacheManifestError(
+                        f"cache artifact {name!r} sha256 mismatch: {actual[:16]}..., "
+                        f"manifest records {info.sha256[:16]}... (tampered or corrupted)",
+                        path=str(path),
+                    )

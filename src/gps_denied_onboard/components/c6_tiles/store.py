@@ -1,0 +1,345 @@
+"""C6 tile store: opens a verified map cache and serves tiles and page-cache-backed chips.
+
+The mosaic is memory-mapped read-only: chips are views of it, so pixels are paged in by the kernel on
+first touch and shared with every other consumer, never copied.
+
+Pixel convention (chips and mosaic): OpenCV's, ``(x, y)`` with ``(0, 0)`` at the *centre* of the
+top-left pixel, x east, y south. The Web-Mercator grid is corner-based, hence the 0.5 px offsets below.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import structlog
+
+from gps_denied_onboard.components.c6_tiles.georef import WebMercatorGrid
+from gps_denied_onboard.components.c6_tiles.types import TileId, TileStoreError
+from gps_denied_onboard.components.c10_cache_build.manifest import (
+    TILES_NAME,
+    CacheManifest,
+    CacheManifestError,
+)
+from gps_denied_onboard.constants import LogEvent
+
+_log = structlog.get_logger(__name__)
+
+#: Mean Earth radius, m (same as geo.haversine_m, so distances agree across stages).
+_EARTH_MEAN_RADIUS_M = 6_371_008.8
+
+
+class TileChip:
+    """A square window of the mosaic around one tile; implements ``TilePixelsHandle``.
+
+    ``pixels()`` is a read-only (h, w, 3) uint8 BGR view of the memory-mapped mosaic (h = w = size_px
+    unless the mosaic is smaller). ``origin_px`` is the global Web-Mercator pixel (x, y) of the
+    top-left corner of chip pixel (0, 0) at the store's zoom.
+    """
+
+    __slots__ = ("_grid", "_origin_px", "_pixels", "_tile_id")
+
+    def __init__(
+        self, tile_id: TileId, grid: WebMercatorGrid, pixels: np.ndarray, origin_px: tuple[int, int]
+    ):
+        self._tile_id = tile_id
+        self._grid = grid
+        self._pixels = pixels
+        self._origin_px = origin_px
+
+    @property
+    def tile_id(self) -> TileId:
+        return self._tile_id
+
+    @property
+    def origin_px(self) -> tuple[int, int]:
+        return self._origin_px
+
+    @property
+    def size_px(self) -> tuple[int, int]:
+        """(width, height) of the chip in pixels."""
+        return int(self._pixels.shape[1]), int(self._pixels.shape[0])
+
+    @property
+    def gsd_m_px(self) -> float:
+        """Ground sampling distance at the chip centre, metres per pixel."""
+        w, h = self.size_px
+        _, lat = self.chip_px_to_lonlat(np.array([(w - 1) / 2.0, (h - 1) / 2.0]))
+        return self._grid.gsd_m_px(float(lat))
+
+    @property
+    def valid_fraction(self) -> float:
+        """Fraction of chip pixels that are map data (nodata is an all-zero pixel). Reads the pixels."""
+        return float(np.count_nonzero(self._pixels.any(axis=-1))) / max(
+            1, self._pixels.shape[0] * self._pixels.shape[1]
+        )
+
+    def pixels(self) -> np.ndarray:
+        """Read-only (h, w, 3) uint8 BGR view of the mosaic (no copy)."""
+        return self._pixels
+
+    def chip_px_to_lonlat(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Chip pixel (..., 2) float (x, y) -> (lon_deg, lat_deg), each of shape (...)."""
+        p = np.asarray(px, dtype=np.float64)
+        return self._grid.px_to_lonlat(p + (np.asarray(self._origin_px, dtype=np.float64) + 0.5))
+
+    def lonlat_to_chip_px(self, lon_deg: np.ndarray, lat_deg: np.ndarray) -> np.ndarray:
+        """(lon_deg, lat_deg) of shape (...) -> chip pixel (..., 2) float64 (x, y)."""
+        return self._grid.lonlat_to_px(lon_deg, lat_deg) - (
+            np.asarray(self._origin_px, dtype=np.float64) + 0.5
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class TileCentreIndex:
+    """Vectorised radius search over tile centres.
+
+    ``tile_ids`` has N entries; ``lat_rad`` / ``lon_rad`` / ``cos_lat`` are float64 (N,) arrays of the
+    centres. Ties in distance are broken by position in ``tile_ids`` (deterministic).
+    """
+
+    tile_ids: tuple[TileId, ...]
+    lat_rad: np.ndarray
+    lon_rad: np.ndarray
+    cos_lat: np.ndarray
+
+    @classmethod
+    def from_tile_ids(cls, tile_ids: tuple[TileId, ...]) -> TileCentreIndex:
+        lat = np.radians(np.fromiter((t.lat_deg for t in tile_ids), dtype=np.float64, count=len(tile_ids)))
+        lon = np.radians(np.fromiter((t.lon_deg for t in tile_ids), dtype=np.float64, count=len(tile_ids)))
+        return cls(tile_ids=tile_ids, lat_rad=lat, lon_rad=lon, cos_lat=np.cos(lat))
+
+    def near(
+        self, lat_deg: float, lon_deg: float, radius_m: float, k: int | None = None
+    ) -> list[tuple[TileId, float]]:
+        """Tiles whose centre is within ``radius_m`` ground metres, nearest first, at most ``k``."""
+        if not (math.isfinite(radius_m) and radius_m >= 0.0):
+            raise ValueError(f"radius_m must be a finite number >= 0, got {radius_m}")
+        if k is not None and k < 1:
+            raise ValueError(f"k must be >= 1 or None, got {k}")
+        lat0, lon0 = math.radians(lat_deg), math.radians(lon_deg)
+        # Latitude difference alone bounds the great-circle distance: a cheap prefilter.
+        candidates = np.flatnonzero(np.abs(self.lat_rad - lat0) <= radius_m / _EARTH_MEAN_RADIUS_M + 1e-12)
+        if candidates.size == 0:
+            return []
+        dlat = self.lat_rad[candidates] - lat0
+        dlon = self.lon_rad[candidates] - lon0
+        a = np.sin(dlat / 2.0) ** 2 + math.cos(lat0) * self.cos_lat[candidates] * np.sin(dlon / 2.0) ** 2
+        dist = 2.0 * _EARTH_MEAN_RADIUS_M * np.arcsin(np.sqrt(np.clip(a, 0.0, 1.0)))
+        inside = dist <= radius_m
+        candidates, dist = candidates[inside], dist[inside]
+        order = np.lexsort((candidates, dist))
+        if k is not None:
+            order = order[:k]
+        picked, picked_dist = candidates[order].tolist(), dist[order].tolist()
+        return [(self.tile_ids[i], float(d)) for i, d in zip(picked, picked_dist, strict=True)]
+
+
+class TileStore:
+    """Read-only view of a verified map cache (see ``c10_cache_build.manifest`` for the layout).
+
+    Build with ``TileStore.open``; the daemon does so once at start-up and refuses to fly on a cache
+    that fails verification (D-C10-3).
+    """
+
+    def __init__(
+        self,
+        cache_dir: Path,
+        manifest: CacheManifest,
+        mosaic: np.ndarray,
+        tile_ids: tuple[TileId, ...],
+        tile_xy: np.ndarray,
+    ) -> None:
+        """Prefer ``TileStore.open``. ``tile_xy`` is int64 (N, 2) XYZ (x, y) of ``tile_ids``."""
+        self._cache_dir = cache_dir
+        self._manifest = manifest
+        self._grid = WebMercatorGrid(manifest.zoom, manifest.tile_size_px)
+        self._mosaic = mosaic
+        self._tile_ids = tile_ids
+        self._tile_xy = tile_xy
+        self._index_of = {tile_id: i for i, tile_id in enumerate(tile_ids)}
+        self._centres = TileCentreIndex.from_tile_ids(tile_ids)
+        tr = manifest.tile_range
+        #: Global px of the mosaic's top-left corner.
+        self._mosaic_origin_px = (tr.x0 * manifest.tile_size_px, tr.y0 * manifest.tile_size_px)
+
+    @classmethod
+    def open(cls, cache_dir: Path, *, verify_hashes: bool = True) -> TileStore:
+        """Open and verify a cache directory; raise TileStoreError naming what is wrong.
+
+        Checks the format version, that every artifact exists with its recorded size and (when
+        ``verify_hashes``) sha256, that the mosaic has the recorded shape, and that the tile list agrees.
+        """
+        cache_dir = Path(cache_dir)
+        t0 = time.monotonic()
+        try:
+            try:
+                manifest = CacheManifest.load(cache_dir)
+                manifest.verify_artifacts(cache_dir, verify_hashes=verify_hashes)
+            except CacheManifestError as exc:
+                raise TileStoreError(exc.message, path=exc.path) from exc
+            mosaic = _open_mosaic(cache_dir / manifest.mosaic_name, manifest)
+            tile_ids, tile_xy = _load_tiles(cache_dir / TILES_NAME, manifest)
+        except TileStoreError as exc:
+            _log.error(LogEvent.CACHE_REFUSED, cache_dir=str(cache_dir), reason=str(exc))
+            raise
+        store = cls(cache_dir, manifest, mosaic, tile_ids, tile_xy)
+        _log.info(
+            LogEvent.CACHE_OPENED,
+            cache_dir=str(cache_dir),
+            zoom=manifest.zoom,
+            tile_count=len(tile_ids),
+            mosaic_shape=list(manifest.mosaic_shape),
+            verified_hashes=verify_hashes,
+            seconds=round(time.monotonic() - t0, 3),
+        )
+        return store
+
+    # --- description -------------------------------------------------------------------------------
+    @property
+    def cache_dir(self) -> Path:
+        return self._cache_dir
+
+    @property
+    def manifest(self) -> CacheManifest:
+        return self._manifest
+
+    @property
+    def grid(self) -> WebMercatorGrid:
+        return self._grid
+
+    @property
+    def zoom(self) -> int:
+        return self._manifest.zoom
+
+    @property
+    def tile_size_px(self) -> int:
+        return self._manifest.tile_size_px
+
+    @property
+    def tile_ids(self) -> tuple[TileId, ...]:
+        """Valid tiles, sorted by XYZ (y, x)."""
+        return self._tile_ids
+
+    @property
+    def bbox_lonlat(self) -> tuple[float, float, float, float]:
+        """Mapped area (west, south, east, north), degrees."""
+        return self._manifest.bbox_lonlat
+
+    @property
+    def center_lonlat(self) -> tuple[float, float]:
+        """(lon_deg, lat_deg) of the centre of ``bbox_lonlat``."""
+        w, s, e, n = self._manifest.bbox_lonlat
+        return (w + e) / 2.0, (s + n) / 2.0
+
+    @property
+    def gsd_m_px(self) -> float:
+        """Ground sampling distance of the mosaic at the map centre, metres per pixel."""
+        return self._grid.gsd_m_px(self.center_lonlat[1])
+
+    @property
+    def mosaic(self) -> np.ndarray:
+        """Read-only memory-mapped (H, W, 3) uint8 BGR mosaic; all-zero pixels are nodata."""
+        return self._mosaic
+
+    def __len__(self) -> int:
+        return len(self._tile_ids)
+
+    def all_tiles(self) -> tuple[TileId, ...]:
+        """Every valid tile (same as ``tile_ids``)."""
+        return self._tile_ids
+
+    def tile_xyz(self, tile_id: TileId) -> tuple[int, int, int]:
+        """XYZ (x, y, zoom) of a tile of this cache."""
+        x, y = self._tile_xy[self._index(tile_id)]
+        return int(x), int(y), self.zoom
+
+    # --- queries -----------------------------------------------------------------------------------
+    def tiles_near(
+        self, lat_deg: float, lon_deg: float, radius_m: float, k: int | None = None
+    ) -> list[tuple[TileId, float]]:
+        """Valid tiles whose centre is within ``radius_m`` ground metres, ``(tile_id, distance_m)``
+        nearest first (ties by tile order), at most ``k``."""
+        return self._centres.near(lat_deg, lon_deg, radius_m, k)
+
+    def chip(self, tile_id: TileId, size_px: int) -> TileChip:
+        """A ``size_px`` square chip centred on the tile, shifted to stay inside the mosaic.
+
+        In a dimension where the mosaic is smaller than ``size_px`` the chip spans the whole mosaic.
+        """
+        if size_px < 1:
+            raise ValueError(f"size_px must be >= 1, got {size_px}")
+        x, y = self._tile_xy[self._index(tile_id)]
+        ts = self.tile_size_px
+        height, width = self._mosaic.shape[:2]
+        centre_col = (int(x) - self._manifest.tile_range.x0) * ts + ts // 2
+        centre_row = (int(y) - self._manifest.tile_range.y0) * ts + ts // 2
+        col0, chip_w = _clamp_span(centre_col - size_px // 2, size_px, width)
+        row0, chip_h = _clamp_span(centre_row - size_px // 2, size_px, height)
+        view = self._mosaic[row0 : row0 + chip_h, col0 : col0 + chip_w]
+        origin = (self._mosaic_origin_px[0] + col0, self._mosaic_origin_px[1] + row0)
+        return TileChip(tile_id, self._grid, view, origin)
+
+    def lonlat_to_mosaic_px(self, lon_deg: np.ndarray, lat_deg: np.ndarray) -> np.ndarray:
+        """(lon_deg, lat_deg) of shape (...) -> mosaic pixel (..., 2) float64 (x, y), OpenCV convention."""
+        return self._grid.lonlat_to_px(lon_deg, lat_deg) - (
+            np.asarray(self._mosaic_origin_px, np.float64) + 0.5
+        )
+
+    def mosaic_px_to_lonlat(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mosaic pixel (..., 2) float (x, y) -> (lon_deg, lat_deg), each of shape (...)."""
+        p = np.asarray(px, dtype=np.float64)
+        return self._grid.px_to_lonlat(p + (np.asarray(self._mosaic_origin_px, np.float64) + 0.5))
+
+    def _index(self, tile_id: TileId) -> int:
+        try:
+            return self._index_of[tile_id]
+        except KeyError as exc:
+            raise TileStoreError(
+                f"tile {tuple(tile_id)} is not a valid tile of this cache (zoom {self.zoom})",
+                path=str(self._cache_dir),
+            ) from exc
+
+
+def _clamp_span(start: int, size: int, extent: int) -> tuple[int, int]:
+    """(start, length) of a window of ``size`` moved to lie inside ``[0, extent)``."""
+    if size >= extent:
+        return 0, extent
+    return min(max(start, 0), extent - size), size
+
+
+def _open_mosaic(path: Path, manifest: CacheManifest) -> np.ndarray:
+    try:
+        mosaic = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise TileStoreError(f"cannot memory-map mosaic {path.name!r}: {exc}", path=str(path)) from exc
+    if mosaic.dtype != np.uint8 or tuple(mosaic.shape) != tuple(manifest.mosaic_shape):
+        raise TileStoreError(
+            f"mosaic {path.name!r} is {mosaic.dtype} {mosaic.shape}, manifest records uint8 "
+            f"{tuple(manifest.mosaic_shape)}",
+            path=str(path),
+        )
+    return mosaic
+
+
+def _load_tiles(path: Path, manifest: CacheManifest) -> tuple[tuple[TileId, ...], np.ndarray]:
+    try:
+        payload = json.loads(path.read_text(encoding="utf-8"))
+        entries = payload["tiles"]
+        xy = np.array([(int(t["x"]), int(t["y"])) for t in entries], dtype=np.int64).reshape(-1, 2)
+        tile_ids = tuple(TileId.of(manifest.zoom, t["lat_deg"], t["lon_deg"]) for t in entries)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise TileStoreError(f"malformed tile list {path.name!r}: {exc!r}", path=str(path)) from exc
+    tr = manifest.tile_range
+    in_range = (xy[:, 0] >= tr.x0) & (xy[:, 0] <= tr.x1) & (xy[:, 1] >= tr.y0) & (xy[:, 1] <= tr.y1)
+    if len(tile_ids) != manifest.tile_count or not bool(np.all(in_range)):
+        raise TileStoreError(
+            f"tile list {path.name!r} disagrees with the manifest ({len(tile_ids)} tiles, "
+            f"manifest records {manifest.tile_count} in range {vars(tr)})",
+            path=str(path),
+        )
+    return tile_ids, xy

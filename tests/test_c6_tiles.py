@@ -1,0 +1,245 @@
+"""C6 tile store: verification gate, radius search, and page-cache-backed chips on a real built cache."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from rasterio.transform import from_origin
+from rasterio.warp import transform as warp_transform
+
+from gps_denied_onboard.components.c6_tiles import (
+    TileCentreIndex,
+    TileChip,
+    TileId,
+    TilePixelsHandle,
+    TileStore,
+    TileStoreError,
+)
+from gps_denied_onboard.components.c10_cache_build import build_cache_from_geotiff
+from gps_denied_onboard.geo import haversine_m
+
+P_LON, P_LAT = 16.3, 48.2
+ZOOM = 16
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A zoom-16 cache built from a textured 4 m UTM source whose western strip is nodata."""
+    root = tmp_path_factory.mktemp("c6")
+    x, y = warp_transform("EPSG:4326", "EPSG:32633", [P_LON], [P_LAT])
+    width, height = 900, 600
+    data = (60 + np.random.default_rng(1).integers(0, 150, size=(3, height, width))).astype(np.uint8)
+    data[:, :, :150] = 0
+    src = root / "src.tif"
+    with rasterio.open(
+        src,
+        "w",
+        driver="GTiff",
+        width=width,
+        height=height,
+        count=3,
+        dtype="uint8",
+        crs="EPSG:32633",
+        transform=from_origin(x[0] - width * 2.0, y[0] + height * 2.0, 4.0, 4.0),
+        nodata=0,
+    ) as dst:
+        dst.write(data)
+    build_cache_from_geotiff(src, root / "cache", zoom=ZOOM, progress=False)
+    return root / "cache"
+
+
+@pytest.fixture(scope="module")
+def store(cache_dir: Path) -> TileStore:
+    return TileStore.open(cache_dir)
+
+
+def _copy(cache_dir: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "cache"
+    shutil.copytree(cache_dir, out)
+    return out
+
+
+def test_open_valid_cache_exposes_geometry(store: TileStore) -> None:
+    """A fresh cache opens with its zoom, tile list, read-only mmap mosaic and centre GSD."""
+    assert store.zoom == ZOOM and store.tile_size_px == 256
+    assert len(store) == store.manifest.tile_count == len(store.all_tiles()) > 10
+    assert isinstance(store.mosaic, np.memmap) and not store.mosaic.flags.writeable
+    assert store.mosaic.shape == tuple(store.manifest.mosaic_shape)
+    lon_c, lat_c = store.center_lonlat
+    w, s, e, n = store.bbox_lonlat
+    assert w < lon_c < e and s < lat_c < n
+    assert store.gsd_m_px == pytest.approx(156_543.034 / 2**ZOOM * math.cos(math.radians(lat_c)), rel=1e-6)
+
+
+def test_open_tampered_mosaic_byte_raises_naming_artifact(cache_dir: Path, tmp_path: Path) -> None:
+    """One flipped mosaic byte fails the sha256 gate, naming the mosaic; skipping hashes lets it open."""
+    out = _copy(cache_dir, tmp_path)
+    mosaic = out / f"mosaic_z{ZOOM}.npy"
+    raw = bytearray(mosaic.read_bytes())
+    raw[-1000] ^= 0xFF
+    mosaic.write_bytes(bytes(raw))
+    with pytest.raises(TileStoreError, match=rf"mosaic_z{ZOOM}\.npy.*sha256"):
+        TileStore.open(out)
+    assert len(TileStore.open(out, verify_hashes=False)) > 0
+
+
+def test_open_truncated_artifact_raises_even_without_hashes(cache_dir: Path, tmp_path: Path) -> None:
+    """A truncated artifact is refused by its recorded size, with or without hash checks."""
+    out = _copy(cache_dir, tmp_path)
+    tiles = out / "tiles.json"
+    tiles.write_bytes(tiles.read_bytes()[:-10])
+    with pytest.raises(TileStoreError, match=r"tiles\.json.*bytes"):
+        TileStore.open(out, verify_hashes=False)
+
+
+def test_open_missing_artifact_raises(cache_dir: Path, tmp_path: Path) -> None:
+    """A deleted artifact is named in the error."""
+    out = _copy(cache_dir, tmp_path)
+    (out / "tile_valid_fraction.npy").unlink()
+    with pytest.raises(TileStoreError, match=r"tile_valid_fraction\.npy.*missing"):
+        TileStore.open(out)
+
+
+def test_open_without_manifest_raises(tmp_path: Path) -> None:
+    """A directory without a manifest (not a cache, or an unfinished build) is refused."""
+    with pytest.raises(TileStoreError, match="no cache manifest"):
+        TileStore.open(tmp_path)
+
+
+def test_open_unknown_format_version_raises(cache_dir: Path, tmp_path: Path) -> None:
+    """A manifest of another format version is refused with the expected version in the message."""
+    out = _copy(cache_dir, tmp_path)
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["format_version"] = 2
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(TileStoreError, match="format_version 2, expected 1"):
+        TileStore.open(out)
+
+
+def test_tiles_near_sorted_within_radius_matches_brute_force(store: TileStore) -> None:
+    """tiles_near returns exactly the tiles within the radius, nearest first, with true distances."""
+    radius = 700.0
+    got = store.tiles_near(P_LAT, P_LON, radius)
+    lats = np.array([t.lat_deg for t in store.tile_ids])
+    lons = np.array([t.lon_deg for t in store.tile_ids])
+    dist = haversine_m(P_LAT, P_LON, lats, lons)
+    expected = {t for t, d in zip(store.tile_ids, dist, strict=True) if d <= radius}
+    assert {t for t, _ in got} == expected and len(got) >= 4
+    distances = [d for _, d in got]
+    assert distances == sorted(distances) and distances[-1] <= radius
+    for tile_id, d in got:
+        assert d == pytest.approx(
+            float(haversine_m(P_LAT, P_LON, tile_id.lat_deg, tile_id.lon_deg)), abs=1e-6
+        )
+
+
+def test_tiles_near_k_and_empty_and_bad_radius(store: TileStore) -> None:
+    """k keeps the k nearest; a far query is empty; a negative radius is a ValueError."""
+    full = store.tiles_near(P_LAT, P_LON, 2_000.0)
+    assert store.tiles_near(P_LAT, P_LON, 2_000.0, k=3) == full[:3]
+    assert store.tiles_near(0.0, 0.0, 1_000.0) == []
+    with pytest.raises(ValueError, match="radius_m"):
+        store.tiles_near(P_LAT, P_LON, -1.0)
+
+
+def test_tile_centre_index_breaks_ties_by_order() -> None:
+    """Equal distances come back in tile order, so results are deterministic."""
+    ids = (TileId.of(16, 48.0, 16.001), TileId.of(16, 48.0, 15.999), TileId.of(16, 48.0, 16.001))
+    got = TileCentreIndex.from_tile_ids(ids).near(48.0, 16.0, 1_000.0)
+    assert [t for t, _ in got] == [ids[0], ids[1], ids[2]]
+
+
+def test_tiles_near_latency_100k_tile_centres() -> None:
+    """A radius query over 100k tile centres stays fast (vectorised); prints the median latency."""
+    n_side = 317
+    xs, ys = np.meshgrid(np.arange(n_side), np.arange(n_side))
+    lats = 48.0 + ys.ravel() * 0.002
+    lons = 16.0 + xs.ravel() * 0.003
+    ids = tuple(TileId.of(16, la, lo) for la, lo in zip(lats.tolist(), lons.tolist(), strict=True))
+    index = TileCentreIndex.from_tile_ids(ids)
+    assert len(ids) > 100_000
+    times = []
+    for i in range(50):
+        t0 = time.perf_counter()
+        got = index.near(48.3 + i * 1e-4, 16.5, 1_500.0, k=10)
+        times.append(time.perf_counter() - t0)
+    assert len(got) == 10
+    median_ms = 1e3 * float(np.median(times))
+    print(f"\ntiles_near over {len(ids)} tile centres: median {median_ms:.2f} ms (k=10, r=1.5 km)")
+    assert median_ms < 50.0
+
+
+def test_chip_is_readonly_view_of_mosaic(store: TileStore) -> None:
+    """chip.pixels() is a (size, size, 3) uint8 view of the mmap mosaic, not a copy, and read-only."""
+    tile_id = store.tiles_near(P_LAT, P_LON, 500.0, k=1)[0][0]
+    chip = store.chip(tile_id, 400)
+    pixels = chip.pixels()
+    assert isinstance(chip, TilePixelsHandle) and isinstance(chip, TileChip)
+    assert pixels.shape == (400, 400, 3) and pixels.dtype == np.uint8
+    assert np.shares_memory(pixels, store.mosaic)
+    assert not pixels.flags.writeable
+    assert chip.tile_id == tile_id
+
+
+def test_chip_georeference_round_trips_below_0_01_px(store: TileStore) -> None:
+    """chip px -> lon/lat -> chip px round-trips to < 0.01 px, and the chip centre is the tile centre."""
+    tile_id = store.tiles_near(P_LAT, P_LON, 500.0, k=1)[0][0]
+    chip = store.chip(tile_id, 512)
+    px = np.random.default_rng(2).uniform(0, 511, size=(200, 2))
+    lon, lat = chip.chip_px_to_lonlat(px)
+    assert np.abs(chip.lonlat_to_chip_px(lon, lat) - px).max() < 0.01
+    centre = chip.lonlat_to_chip_px(np.array([tile_id.lon_deg]), np.array([tile_id.lat_deg]))[0]
+    assert np.allclose(centre, [255.5, 255.5], atol=0.05)
+    assert chip.gsd_m_px == pytest.approx(store.grid.gsd_m_px(tile_id.lat_deg), rel=1e-4)
+
+
+def test_chip_pixels_agree_with_mosaic_lookup(store: TileStore) -> None:
+    """The chip pixel at a lon/lat is the mosaic pixel at the same lon/lat."""
+    tile_id = store.tile_ids[len(store) // 2]
+    chip = store.chip(tile_id, 300)
+    lon, lat = chip.chip_px_to_lonlat(np.array([[17.0, 203.0]]))
+    mosaic_px = store.lonlat_to_mosaic_px(lon, lat)[0].round().astype(int)
+    assert np.array_equal(chip.pixels()[203, 17], store.mosaic[mosaic_px[1], mosaic_px[0]])
+    back_lon, back_lat = store.mosaic_px_to_lonlat(store.lonlat_to_mosaic_px(lon, lat))
+    assert back_lon == pytest.approx(lon, abs=1e-10) and back_lat == pytest.approx(lat, abs=1e-10)
+
+
+def test_chip_near_mosaic_edge_stays_inside(store: TileStore) -> None:
+    """A chip around a corner tile is shifted to lie fully inside the mosaic."""
+    height, width = store.mosaic.shape[:2]
+    corner = max(store.tile_ids, key=lambda t: (t.lon_deg, -t.lat_deg))  # east-most, then south-most
+    chip = store.chip(corner, 600)
+    x0 = chip.origin_px[0] - store.manifest.tile_range.x0 * 256
+    y0 = chip.origin_px[1] - store.manifest.tile_range.y0 * 256
+    assert chip.pixels().shape == (600, 600, 3)
+    assert 0 <= x0 <= width - 600 and 0 <= y0 <= height - 600
+    assert x0 == width - 600
+
+
+def test_chip_larger_than_mosaic_uses_whole_extent(store: TileStore) -> None:
+    """A chip larger than the mosaic spans the whole mosaic in that dimension."""
+    height, width = store.mosaic.shape[:2]
+    chip = store.chip(store.tile_ids[0], max(height, width) + 100)
+    assert chip.pixels().shape == (height, width, 3)
+    assert chip.size_px == (width, height)
+
+
+def test_chip_valid_fraction_reflects_nodata(store: TileStore) -> None:
+    """A chip over the western nodata border has valid_fraction < 1; an interior one has 1."""
+    west = min(store.tile_ids, key=lambda t: (t.lon_deg, t.lat_deg))
+    assert store.chip(west, 512).valid_fraction < 0.95
+    interior = store.tiles_near(P_LAT, P_LON + 0.005, 300.0, k=1)[0][0]
+    assert store.chip(interior, 128).valid_fraction == 1.0
+
+
+def test_chip_unknown_tile_raises(store: TileStore) -> None:
+    """Asking for a tile that is not in the cache is a TileStoreError naming it."""
+    with pytest.raises(TileStoreError, match="not a valid tile"):
+        store.chip(TileId.of(ZOOM, 0.0, 0.0), 256)
