@@ -1,0 +1,547 @@
+"""C8 link: one pymavlink connection to the autopilot, driven by the daemon's event loop.
+
+- ``open()`` creates the connection (``udpin:``/``udpout:``/``udp:``/``tcp:``/serial device). pymavlink's
+  UDP sockets are non-blocking; a TCP connect is attempted once (pymavlink's own retry loop, which
+  sleeps, is disabled) and a failure only marks the link down and schedules a reconnect.
+- ``fileno()`` is for ``loop.add_reader``; it changes after a reconnect, so the daemon re-registers the
+  reader when it does. ``poll()`` drains what is pending without blocking and also drives reconnects
+  and the STATUSTEXT coalescing queue, so the daemon calls it from the reader callback *and* from a
+  timer (at least at the heartbeat rate).
+- Transport errors mark the link down and schedule a reconnect with capped exponential backoff and
+  jitter; ``c8.mavlink.link_lost`` is logged once per outage (transport error or heartbeat timeout).
+- Sends never block and never raise into the caller: errors are counted and logged (rate-limited).
+- Provenance STATUSTEXT: at most one per ``STATUSTEXT_MIN_INTERVAL_S``; a transition inside the interval
+  is held (the newest replaces an older pending one, with a count of the coalesced transitions in the
+  text) and sent by the first ``poll``/``send_heartbeat``/``notify_provenance`` after the interval, so
+  the ground always ends up seeing the latest state.
+- MAVLink 2 signing when ``signing_key_file`` is set: outgoing messages are signed; incoming unsigned or
+  wrongly signed messages are rejected (except RADIO_STATUS, which radios inject unsigned).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import random
+import stat
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+import structlog
+
+from gps_denied_onboard.components.c5_estimator.types import EstimatorState
+from gps_denied_onboard.components.c8_mavlink import messages
+from gps_denied_onboard.components.c8_mavlink.messages import DIALECT, mavutil
+from gps_denied_onboard.components.c8_mavlink.vehicle_state import VehicleStateTracker
+from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
+from gps_denied_onboard.config import MavlinkConfig
+from gps_denied_onboard.constants import (
+    NV_FRAME_DROPS,
+    NV_HORIZ_SIGMA_M,
+    NV_INLIERS,
+    NV_PROVENANCE,
+    NV_RESIDUAL_PX,
+    STATUSTEXT_MIN_INTERVAL_S,
+    FdrKind,
+    LogEvent,
+    Provenance,
+)
+
+_log = structlog.get_logger(__name__)
+
+#: Reconnect backoff: first delay, cap, and relative jitter (+-).
+RECONNECT_BACKOFF_INITIAL_S: Final[float] = 0.5
+RECONNECT_BACKOFF_MAX_S: Final[float] = 10.0
+RECONNECT_JITTER_FRAC: Final[float] = 0.2
+#: At most this many messages are handled per poll() (keeps one callback short under a flood).
+MAX_MESSAGES_PER_POLL: Final[int] = 1000
+#: send_error logs are emitted at most once per this interval (the count is always kept).
+SEND_ERROR_LOG_INTERVAL_S: Final[float] = 5.0
+#: Message ids accepted unsigned when signing is on (RADIO_STATUS is injected by SiK radios).
+UNSIGNED_ALLOWED_MSG_IDS: Final[frozenset[int]] = frozenset({DIALECT.MAVLINK_MSG_ID_RADIO_STATUS})
+
+_NAMED_VALUE_NAMES: Final[tuple[str, ...]] = (
+    NV_PROVENANCE,
+    NV_INLIERS,
+    NV_RESIDUAL_PX,
+    NV_HORIZ_SIGMA_M,
+    NV_FRAME_DROPS,
+)
+_URL_PREFIXES: Final[tuple[str, ...]] = ("udpin:", "udpout:", "udp:", "tcp:", "tcpin:")
+
+
+class MavlinkError(RuntimeError):
+    """Base of C8 errors. ``url`` names the connection."""
+
+    def __init__(self, message: str, *, url: str | None = None) -> None:
+        super().__init__(f"{message} (url={url})" if url else message)
+        self.url = url
+
+
+class MavlinkConfigError(MavlinkError):
+    """The MAVLink configuration cannot be used (bad URL, unusable signing key file)."""
+
+    def __init__(self, message: str, *, url: str | None = None, path: str | None = None) -> None:
+        super().__init__(f"{path}: {message}" if path else message, url=url)
+        self.path = path
+
+
+class _PeerClosed(ConnectionError):
+    """Raised from pymavlink's TCP EOF/reset hooks so that poll() sees the loss."""
+
+
+def load_signing_key(path: str | Path) -> bytes:
+    """Read a MAVLink 2 signing key: 32 raw bytes or 64 hex characters (surrounding whitespace allowed).
+
+    The file must not be readable or writable by group or others (mode & 0o077 == 0).
+    """
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError as exc:
+        raise MavlinkConfigError(f"signing key file cannot be read: {exc.strerror}", path=str(p)) from exc
+    if not stat.S_ISREG(st.st_mode):
+        raise MavlinkConfigError("signing key file is not a regular file", path=str(p))
+    if st.st_mode & 0o077:
+        raise MavlinkConfigError(
+            f"signing key file has mode {stat.S_IMODE(st.st_mode):04o}; it must not be accessible to group "
+            "or others (chmod 600)",
+            path=str(p),
+        )
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise MavlinkConfigError(f"signing key file cannot be read: {exc.strerror}", path=str(p)) from exc
+    if len(raw) == 32:
+        return raw
+    text = raw.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise MavlinkConfigError(
+                "signing key file has 64 characters but they are not hex", path=str(p)
+            ) from exc
+    raise MavlinkConfigError(
+        f"signing key must be 32 raw bytes or 64 hex characters, got {len(raw)} bytes", path=str(p)
+    )
+
+
+def _validate_url(url: str) -> None:
+    if url.startswith(_URL_PREFIXES):
+        host_port = url.split(":", 1)[1]
+        host, sep, port = host_port.rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+            raise MavlinkConfigError("expected SCHEME:HOST:PORT (e.g. udpin:0.0.0.0:14550)", url=url)
+        return
+    if url.startswith("/") or url.upper().startswith("COM"):
+        return  # serial device
+    raise MavlinkConfigError(
+        f"unsupported connection string; expected one of {', '.join(_URL_PREFIXES)} or a serial device path",
+        url=url,
+    )
+
+
+@dataclass(frozen=True)
+class LinkStats:
+    """Counters since open()."""
+
+    connected: bool
+    messages_received: int
+    bad_packets: int
+    messages_sent: int
+    send_errors: int
+    sends_dropped_link_down: int
+    reconnects: int
+    statustext_sent: int
+    statustext_coalesced: int
+
+
+@dataclass
+class _PendingStatus:
+    severity: int
+    text: str
+    coalesced: int
+
+
+def severity_for(new: Provenance) -> int:
+    """STATUSTEXT severity for a transition to ``new``: INFO anchored, WARNING VIO/dead reckoning,
+    CRITICAL no estimate."""
+    if new is Provenance.SATELLITE_ANCHORED:
+        return DIALECT.MAV_SEVERITY_INFO
+    if new is Provenance.NO_ESTIMATE:
+        return DIALECT.MAV_SEVERITY_CRITICAL
+    return DIALECT.MAV_SEVERITY_WARNING
+
+
+class MavlinkLink:
+    """The daemon's MAVLink endpoint (see the module docstring). Thread-safe: sends may come from the
+    pipeline thread while the event loop polls."""
+
+    def __init__(
+        self,
+        config: MavlinkConfig,
+        tracker: VehicleStateTracker,
+        fdr: FdrClient | None = None,
+        clock: Callable[[], float] = time.time,
+        rng: random.Random | None = None,
+    ) -> None:
+        self._config = config
+        self._tracker = tracker
+        self._fdr = fdr
+        self._clock = clock
+        self._rng = rng or random.Random()
+        self._lock = threading.RLock()
+        self._conn: Any = None
+        self._opened = False
+        self._signing_key: bytes | None = None
+        self._boot_monotonic = time.monotonic()
+        # reconnect state
+        self._backoff_s = RECONNECT_BACKOFF_INITIAL_S
+        self._next_reconnect_s: float | None = None
+        self._outage = False  # a link_lost was logged and no recovery seen yet
+        self._was_alive = False
+        # counters
+        self._received = 0
+        self._bad = 0
+        self._sent = 0
+        self._send_errors = 0
+        self._dropped_down = 0
+        self._reconnects = 0
+        self._last_send_error_log_s = -float("inf")
+        self._suppressed_send_errors = 0
+        # statustext
+        self._last_status_s = -float("inf")
+        self._pending: _PendingStatus | None = None
+        self._status_sent = 0
+        self._status_coalesced = 0
+        self._vision_reset_counter = 0
+        self._last_provenance: Provenance | None = None
+
+    # --- lifecycle ----------------------------------------------------------------------------------
+    def open(self) -> None:
+        """Validate the config (URL, signing key) and connect. Raises ``MavlinkConfigError`` for a
+        configuration that can never work; a transport failure only schedules a reconnect."""
+        _validate_url(self._config.url)
+        if self._config.signing_key_file is not None:
+            self._signing_key = load_signing_key(self._config.signing_key_file)
+        with self._lock:
+            self._opened = True
+            self._connect(self._clock())
+
+    def _connect(self, now: float) -> bool:
+        cfg = self._config
+        try:
+            conn = mavutil.mavlink_connection(
+                cfg.url,
+                baud=cfg.baud,
+                source_system=cfg.system_id,
+                source_component=cfg.component_id,
+                autoreconnect=False,  # reconnects are ours: pymavlink's sleep and block
+                retries=0,
+            )
+        except (OSError, ValueError) as exc:
+            self._schedule_reconnect(now, reason=f"connect failed: {exc}")
+            return False
+        if isinstance(conn, mavutil.mavtcp):
+            # pymavlink prints and swallows EOF/reset on TCP; turn them into an exception poll() sees.
+            conn.handle_eof = _raise_peer_closed
+            conn.handle_disconnect = _raise_peer_closed
+        if self._signing_key is not None:
+            conn.setup_signing(
+                self._signing_key,
+                sign_outgoing=True,
+                allow_unsigned_callback=_allow_unsigned,
+                link_id=0,
+            )
+        self._conn = conn
+        self._backoff_s = RECONNECT_BACKOFF_INITIAL_S
+        self._next_reconnect_s = None
+        _log.info(LogEvent.MAVLINK_CONNECTED, url=cfg.url, signed=self._signing_key is not None)
+        self._record_event("connected", url=cfg.url, signed=self._signing_key is not None)
+        return True
+
+    def close(self) -> None:
+        """Close the connection; later sends are dropped and polls return 0."""
+        with self._lock:
+            self._opened = False
+            self._drop_connection()
+            self._next_reconnect_s = None
+
+    def _drop_connection(self) -> None:
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            with contextlib.suppress(OSError):
+                conn.close()
+
+    def fileno(self) -> int | None:
+        """File descriptor to watch for input (changes after a reconnect), or None while down."""
+        with self._lock:
+            conn = self._conn
+        if conn is None:
+            return None
+        fd = getattr(conn, "fd", None)
+        if fd is None and hasattr(conn, "port") and hasattr(conn.port, "fileno"):
+            with contextlib.suppress(OSError, ValueError):
+                fd = conn.port.fileno()
+        return fd if isinstance(fd, int) and fd >= 0 else None
+
+    @property
+    def connected(self) -> bool:
+        return self._conn is not None
+
+    @property
+    def tracker(self) -> VehicleStateTracker:
+        return self._tracker
+
+    # --- receive ------------------------------------------------------------------------------------
+    def poll(self) -> int:
+        """Handle every pending input message without blocking; returns how many were decoded.
+
+        Also: reconnect when due, report heartbeat loss/recovery, send a due coalesced STATUSTEXT.
+        """
+        now = self._clock()
+        count = 0
+        with self._lock:
+            reconnect_due = self._next_reconnect_s is not None and now >= self._next_reconnect_s
+            if self._opened and self._conn is None and reconnect_due:
+                self._reconnects += 1
+                self._connect(now)
+            conn = self._conn
+            if conn is not None:
+                try:
+                    for _ in range(MAX_MESSAGES_PER_POLL):
+                        msg = conn.recv_msg()
+                        if msg is None:
+                            break
+                        if msg.get_type() == "BAD_DATA":
+                            self._bad += 1
+                            continue
+                        count += 1
+                        self._tracker.handle(msg, now)
+                except (OSError, _PeerClosed) as exc:
+                    self._drop_connection()
+                    self._schedule_reconnect(now, reason=f"receive failed: {exc}")
+            self._received += count
+        self._check_liveness(now)
+        self._flush_pending_status(now)
+        return count
+
+    def _schedule_reconnect(self, now: float, *, reason: str) -> None:
+        delay = self._backoff_s * (1.0 + self._rng.uniform(-RECONNECT_JITTER_FRAC, RECONNECT_JITTER_FRAC))
+        self._next_reconnect_s = now + delay
+        self._backoff_s = min(self._backoff_s * 2.0, RECONNECT_BACKOFF_MAX_S)
+        self._report_lost(reason=reason, retry_in_s=round(delay, 3))
+
+    def _report_lost(self, **fields: object) -> None:
+        if self._outage:
+            return
+        self._outage = True
+        _log.warning(LogEvent.MAVLINK_LINK_LOST, url=self._config.url, **fields)
+        self._record_event("link_lost", **fields)
+
+    def _check_liveness(self, now: float) -> None:
+        alive = self._tracker.link_alive(now)
+        if alive and not self._was_alive:
+            if self._outage:
+                _log.info(LogEvent.MAVLINK_LINK_RESTORED, url=self._config.url)
+                self._record_event("link_restored")
+            self._outage = False
+        elif not alive and self._was_alive:
+            with self._lock:
+                self._report_lost(reason="heartbeat timeout")
+        self._was_alive = alive
+
+    # --- send ---------------------------------------------------------------------------------------
+    def _send(self, msg: Any) -> bool:
+        """Send one message; never raises. Returns True when handed to the transport."""
+        with self._lock:
+            conn = self._conn
+            if conn is None:
+                self._dropped_down += 1
+                return False
+            try:
+                conn.mav.send(msg)
+            except (OSError, _PeerClosed) as exc:
+                self._drop_connection()
+                self._schedule_reconnect(self._clock(), reason=f"send failed: {exc}")
+                self._count_send_error(exc, msg)
+                return False
+            except Exception as exc:  # an encoding bug must not take the pipeline down; counted + logged
+                self._count_send_error(exc, msg)
+                return False
+            self._sent += 1
+            return True
+
+    def _count_send_error(self, exc: BaseException, msg: Any) -> None:
+        self._send_errors += 1
+        now = self._clock()
+        if now - self._last_send_error_log_s >= SEND_ERROR_LOG_INTERVAL_S:
+            _log.warning(
+                LogEvent.MAVLINK_SEND_ERROR,
+                msg_type=getattr(msg, "msgname", type(msg).__name__),
+                error=repr(exc),
+                suppressed=self._suppressed_send_errors,
+                total=self._send_errors,
+            )
+            self._last_send_error_log_s = now
+            self._suppressed_send_errors = 0
+        else:
+            self._suppressed_send_errors += 1
+
+    def _build_and_send(self, build: Callable[[Any], Any]) -> bool:
+        with self._lock:
+            conn = self._conn
+            if conn is None:
+                self._dropped_down += 1
+                return False
+            try:
+                msg = build(conn.mav)
+            except Exception as exc:  # bad input to a builder: counted + logged, never raised
+                self._count_send_error(exc, build)
+                return False
+            return self._send(msg)
+
+    def time_boot_ms(self) -> int:
+        """Milliseconds since this link object was created (our own "boot" for NAMED_VALUE times)."""
+        return int((time.monotonic() - self._boot_monotonic) * 1000) & 0xFFFFFFFF
+
+    def send_heartbeat(self, system_status: int = DIALECT.MAV_STATE_ACTIVE) -> bool:
+        """Our HEARTBEAT (onboard controller, no autopilot, component ``config.component_id``)."""
+        ok = self._build_and_send(lambda mav: messages.heartbeat(mav, system_status))
+        self._flush_pending_status(self._clock())
+        return ok
+
+    def send_estimate(
+        self,
+        state: EstimatorState,
+        *,
+        time_unix_usec: int,
+        inliers: int,
+        residual_px: float,
+        frame_drops: int,
+    ) -> int:
+        """Send ``config.outputs`` for ``state`` plus the NAMED_VALUE set; returns the number of messages
+        handed to the transport (0 while the link is down)."""
+        sent = 0
+        with self._lock:
+            if (
+                self._last_provenance is Provenance.NO_ESTIMATE
+                and state.provenance is not Provenance.NO_ESTIMATE
+            ):
+                self._vision_reset_counter = (self._vision_reset_counter + 1) & 0xFF  # re-initialised
+            self._last_provenance = state.provenance
+        processing_usec = max(0, int(self._clock() * 1e6) - int(state.time_unix_usec))
+        for output in self._config.outputs:
+            if output == "gps_input":
+                sent += self._build_and_send(
+                    lambda mav: messages.gps_input(mav, state, time_unix_usec=time_unix_usec)
+                )
+            elif output == "global_position_sensor":
+                sent += self._build_and_send(
+                    lambda mav: messages.global_position_sensor(
+                        mav,
+                        state,
+                        time_unix_usec=time_unix_usec,
+                        processing_time_usec=processing_usec,
+                        target_system=self._config.autopilot_system_id,
+                    )
+                )
+            elif output == "vision_position_estimate" and state.provenance is not Provenance.NO_ESTIMATE:
+                sent += self._build_and_send(
+                    lambda mav: messages.vision_position_estimate(
+                        mav, state, time_usec=time_unix_usec, reset_counter=self._vision_reset_counter
+                    )
+                )
+        horiz = state.horiz_sigma_m
+        with self._lock:
+            conn = self._conn
+        if conn is None:
+            with self._lock:
+                self._dropped_down += len(_NAMED_VALUE_NAMES)
+            return sent
+        for msg in messages.named_values(
+            conn.mav,
+            time_boot_ms=self.time_boot_ms(),
+            provenance=state.provenance,
+            inliers=inliers,
+            residual_px=residual_px,
+            horiz_sigma_m=horiz,
+            frame_drops=frame_drops,
+        ):
+            sent += self._send(msg)
+        return sent
+
+    def reset_vision_counter(self) -> int:
+        """Bump VISION_POSITION_ESTIMATE.reset_counter (call when the estimate jumps); returns it."""
+        with self._lock:
+            self._vision_reset_counter = (self._vision_reset_counter + 1) & 0xFF
+            return self._vision_reset_counter
+
+    # --- status text --------------------------------------------------------------------------------
+    def send_statustext(self, severity: int, text: str) -> bool:
+        """One STATUSTEXT, not rate-limited (for one-off events such as start-up)."""
+        return self._build_and_send(lambda mav: messages.statustext(mav, severity, text))
+
+    def notify_provenance(self, old: Provenance | None, new: Provenance, text: str | None = None) -> None:
+        """Report a provenance transition as STATUSTEXT, rate-limited to STATUSTEXT_MIN_INTERVAL_S; a
+        transition inside the interval is coalesced (latest wins, count kept) and sent when allowed."""
+        if text is None:
+            text = f"GDN: {old.value if old else 'start'} -> {new.value}"
+        severity = severity_for(new)
+        now = self._clock()
+        with self._lock:
+            if self._pending is not None:
+                self._pending = _PendingStatus(severity, text, self._pending.coalesced + 1)
+                self._status_coalesced += 1
+            else:
+                self._pending = _PendingStatus(severity, text, 0)
+        self._flush_pending_status(now)
+
+    def _flush_pending_status(self, now: float) -> None:
+        with self._lock:
+            pending = self._pending
+            if pending is None or now - self._last_status_s < STATUSTEXT_MIN_INTERVAL_S:
+                return
+            text = pending.text
+            if pending.coalesced:
+                suffix = f" (+{pending.coalesced})"
+                text = messages.clip_statustext(text, messages.STATUSTEXT_MAX_BYTES - len(suffix)).decode()
+                text += suffix
+            if self._conn is None:
+                return  # keep it pending until the link is back
+            if self._build_and_send(lambda mav: messages.statustext(mav, pending.severity, text)):
+                self._pending = None
+                self._last_status_s = now
+                self._status_sent += 1
+                self._record_event("statustext", severity=pending.severity, text=text)
+
+    # --- misc ---------------------------------------------------------------------------------------
+    def _record_event(self, event: str, **fields: object) -> None:
+        if self._fdr is not None:
+            self._fdr.record(FdrKind.LINK_EVENT, {"event": event, **fields})
+
+    def stats(self) -> LinkStats:
+        with self._lock:
+            return LinkStats(
+                connected=self._conn is not None,
+                messages_received=self._received,
+                bad_packets=self._bad,
+                messages_sent=self._sent,
+                send_errors=self._send_errors,
+                sends_dropped_link_down=self._dropped_down,
+                reconnects=self._reconnects,
+                statustext_sent=self._status_sent,
+                statustext_coalesced=self._status_coalesced,
+            )
+
+
+def _raise_peer_closed(*_args: object) -> None:
+    raise _PeerClosed("peer closed the connection")
+
+
+def _allow_unsigned(_mav: Any, msg_id: int) -> bool:
+    return msg_id in UNSIGNED_ALLOWED_MSG_IDS

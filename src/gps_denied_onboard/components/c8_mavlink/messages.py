@@ -1,0 +1,322 @@
+"""C8 outgoing messages: pure builders from an ``EstimatorState`` to pymavlink message objects.
+
+Every builder takes a pymavlink ``MAVLink`` instance (``connection.mav``, or ``MAVLink(None)`` in tests)
+and returns an encoded-but-unsent message object; nothing here touches a socket.
+
+Policy (what the autopilot is told, and why)
+--------------------------------------------
+- **fix_type** (``fix_type_for``): ``satellite_anchored`` and ``visual_propagated`` are a 3D fix (3)
+  while the horizontal 1-sigma is at most ``FIX_3D_MAX_HORIZ_SIGMA_M`` and the position is finite;
+  above that limit they are "no fix" (1). ``dead_reckoning`` is "no fix" (1): it is a constant-velocity
+  prediction without any image measurement, and the autopilot's own IMU dead reckoning is better, so we
+  must not let the EKF fuse it as a measurement. ``no_estimate`` (or a non-finite position) is
+  "no GPS" (0). ArduPilot only uses GPS_INPUT with fix_type >= 3 and time_week > 0.
+- **accuracy**: ``horiz_accuracy``/``vert_accuracy``/``speed_accuracy`` are the state's 1-sigma values
+  (metres, m/s) straight from the covariance, never a constant.
+- **hdop/vdop**: ArduPilot echoes ``hdop * 100`` as GPS_RAW_INT.eph and uses hdop in its GPS health
+  checks, so hdop must move with the covariance: ``hdop = horiz_sigma_m / NOMINAL_UERE_M`` (and
+  ``vdop = vert_sigma_m / NOMINAL_UERE_M``), with a nominal user-equivalent range error of 5 m, so a
+  GNSS-like 5 m sigma reads as hdop 1.0. Clamped to [0.01, HDOP_MAX].
+- **ignore_flags**: only for fields that are truly unknown: non-finite altitude (ALT, VDOP,
+  VERTICAL_ACCURACY), non-finite horizontal velocity or its covariance (VEL_HORIZ, SPEED_ACCURACY), a
+  non-finite vertical velocity or variance (VEL_VERT). Ignored fields are sent as 0, never NaN.
+- **yaw** (GPS_INPUT.yaw, centidegrees): 0 means unknown, so north is sent as 36000.
+- **satellites_visible**: a synthetic count (``SATELLITES_WITH_FIX``) while fix_type is 3, else 0,
+  because ArduPilot's pre-arm/EKF checks look at the satellite count of a GPS.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from typing import Any, Final
+
+import numpy as np
+
+from gps_denied_onboard.camera.types import Attitude
+from gps_denied_onboard.components.c5_estimator.types import EstimatorState
+from gps_denied_onboard.constants import (
+    GPS_INPUT_GPS_ID,
+    NV_FRAME_DROPS,
+    NV_HORIZ_SIGMA_M,
+    NV_INLIERS,
+    NV_PROVENANCE,
+    NV_RESIDUAL_PX,
+    Provenance,
+)
+from gps_denied_onboard.geo import gps_week_and_ms
+
+# pymavlink chooses the wire protocol when a dialect is loaded, from the MAVLINK20 environment variable.
+# MAVLink 2 is required here (signing, GPS_INPUT.yaw extension, GLOBAL_POSITION_SENSOR id 296 > 255),
+# so it is forced for the whole process before mavutil is imported, and re-applied if mavutil had
+# already been imported elsewhere with MAVLink 1.
+os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
+
+if getattr(mavutil.mavlink, "WIRE_PROTOCOL_VERSION", "") != "2.0":
+    mavutil.set_dialect(mavutil.current_dialect)
+
+#: The dialect module of every connection (pymavlink's default "all", MAVLink 2; it contains common,
+#: ardupilotmega and development, so GPS_INPUT and GLOBAL_POSITION_SENSOR are both defined).
+DIALECT: Final = mavutil.mavlink
+
+#: Horizontal 1-sigma above which an anchored/VIO estimate is reported as "no fix" instead of 3D, m.
+FIX_3D_MAX_HORIZ_SIGMA_M: Final[float] = 50.0
+#: Nominal user-equivalent range error used to turn sigmas into DOPs, m (sigma 5 m -> hdop 1.0).
+NOMINAL_UERE_M: Final[float] = 5.0
+#: Largest DOP sent (ArduPilot stores hdop*100 in a uint16; 99.99 is "very bad", not "unknown").
+HDOP_MAX: Final[float] = 99.99
+#: Synthetic satellites_visible while reporting a 3D fix.
+SATELLITES_WITH_FIX: Final[int] = 10
+#: STATUSTEXT.text field size, bytes.
+STATUSTEXT_MAX_BYTES: Final[int] = 50
+#: Variance used for attitude entries of VISION_POSITION_ESTIMATE when the attitude is not known, rad^2.
+UNKNOWN_ANGLE_VARIANCE_RAD2: Final[float] = math.pi**2
+
+#: GPS_FIX_TYPE values used by the policy.
+FIX_TYPE_NO_GPS: Final[int] = 0
+FIX_TYPE_NO_FIX: Final[int] = 1
+FIX_TYPE_3D: Final[int] = 3
+
+MavlinkMessage = Any  # pymavlink message objects are dynamically generated classes
+
+
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(float(v)) for v in values)
+
+
+def fix_type_for(
+    provenance: Provenance, horiz_sigma_m: float, *, max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M
+) -> int:
+    """GPS_FIX_TYPE for an estimate (see the module docstring for the policy)."""
+    if provenance is Provenance.NO_ESTIMATE or not _finite(horiz_sigma_m):
+        return FIX_TYPE_NO_GPS
+    if provenance is Provenance.DEAD_RECKONING:
+        return FIX_TYPE_NO_FIX
+    if horiz_sigma_m <= max_fix_sigma_m:
+        return FIX_TYPE_3D
+    return FIX_TYPE_NO_FIX
+
+
+def _dop(sigma_m: float) -> float:
+    return float(min(max(sigma_m / NOMINAL_UERE_M, 0.01), HDOP_MAX))
+
+
+def yaw_cdeg(yaw_rad: float | None) -> int:
+    """GPS_INPUT.yaw: centidegrees in (0, 36000]; 0 = unknown, north = 36000."""
+    if yaw_rad is None or not _finite(yaw_rad):
+        return 0
+    cdeg = round(math.degrees(yaw_rad) * 100.0) % 36000
+    return 36000 if cdeg == 0 else int(cdeg)
+
+
+def _e7(deg: float) -> int:
+    return round(deg * 1e7)
+
+
+def _position_finite(state: EstimatorState) -> bool:
+    return (
+        _finite(state.lat_deg, state.lon_deg) and abs(state.lat_deg) <= 90.0 and abs(state.lon_deg) <= 180.0
+    )
+
+
+def gps_input(
+    mav: Any,
+    state: EstimatorState,
+    *,
+    time_unix_usec: int,
+    fix_type: int | None = None,
+    satellites_visible: int | None = None,
+    gps_id: int = GPS_INPUT_GPS_ID,
+    max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
+) -> MavlinkMessage:
+    """GPS_INPUT (ArduPilot, GPS1_TYPE=14) for ``state`` stamped at ``time_unix_usec``.
+
+    ``fix_type``/``satellites_visible`` default to the policy (``fix_type_for``, ``SATELLITES_WITH_FIX``).
+    ``time_unix_usec`` must be a Unix time (it also gives time_week/time_week_ms); a time before the
+    GPS epoch raises ``ValueError`` because ArduPilot discards a fix with time_week 0.
+    """
+    week, week_ms = gps_week_and_ms(int(time_unix_usec))
+    if week <= 0:
+        raise ValueError(
+            f"GPS_INPUT needs a Unix time after the GPS epoch, got time_unix_usec={time_unix_usec}"
+        )
+    horiz_sigma = state.horiz_sigma_m if np.all(np.isfinite(state.cov_pos_ned_m2[:2, :2])) else math.inf
+    if fix_type is None:
+        fix_type = fix_type_for(state.provenance, horiz_sigma, max_fix_sigma_m=max_fix_sigma_m)
+    if not _position_finite(state):
+        fix_type = FIX_TYPE_NO_GPS
+    if satellites_visible is None:
+        satellites_visible = SATELLITES_WITH_FIX if fix_type >= FIX_TYPE_3D else 0
+
+    flags = 0
+    f = DIALECT
+    vel = np.asarray(state.vel_ned_m_s, dtype=np.float64)
+    cov_v = np.asarray(state.cov_vel_ned_m2_s2, dtype=np.float64)
+    alt = float(state.alt_amsl_m)
+    vert_sigma = state.vert_sigma_m if _finite(state.cov_pos_ned_m2[2, 2]) else math.nan
+    if not _finite(alt, vert_sigma):
+        flags |= f.GPS_INPUT_IGNORE_FLAG_ALT | f.GPS_INPUT_IGNORE_FLAG_VDOP
+        flags |= f.GPS_INPUT_IGNORE_FLAG_VERTICAL_ACCURACY
+        alt, vert_sigma = 0.0, 0.0
+    horiz_vel_ok = bool(np.all(np.isfinite(vel[:2])) and np.all(np.isfinite(cov_v[:2, :2])))
+    speed_sigma = state.speed_sigma_m_s if horiz_vel_ok else 0.0
+    if not horiz_vel_ok:
+        flags |= f.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ | f.GPS_INPUT_IGNORE_FLAG_SPEED_ACCURACY
+    if not _finite(vel[2], cov_v[2, 2]):
+        flags |= f.GPS_INPUT_IGNORE_FLAG_VEL_VERT
+    if not _finite(horiz_sigma):
+        flags |= f.GPS_INPUT_IGNORE_FLAG_HORIZONTAL_ACCURACY | f.GPS_INPUT_IGNORE_FLAG_HDOP
+    vn, ve = (float(vel[0]), float(vel[1])) if horiz_vel_ok else (0.0, 0.0)
+    vd = float(vel[2]) if not flags & f.GPS_INPUT_IGNORE_FLAG_VEL_VERT else 0.0
+    lat_e7, lon_e7 = (_e7(state.lat_deg), _e7(state.lon_deg)) if _position_finite(state) else (0, 0)
+    h_acc = float(horiz_sigma) if _finite(horiz_sigma) else 0.0
+    return mav.gps_input_encode(
+        int(time_unix_usec),
+        int(gps_id),
+        flags,
+        week_ms,
+        week,
+        int(fix_type),
+        lat_e7,
+        lon_e7,
+        alt,
+        _dop(h_acc) if h_acc > 0 else 0.01,
+        _dop(vert_sigma) if vert_sigma > 0 else 0.01,
+        vn,
+        ve,
+        vd,
+        float(speed_sigma),
+        h_acc,
+        float(vert_sigma),
+        int(satellites_visible),
+        yaw_cdeg(state.yaw_rad),
+    )
+
+
+def global_position_sensor(
+    mav: Any,
+    state: EstimatorState,
+    *,
+    time_unix_usec: int,
+    processing_time_usec: int,
+    target_system: int,
+    sensor_id: int = 0,
+    max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
+) -> MavlinkMessage:
+    """GLOBAL_POSITION_SENSOR (PX4 v1.18+; id 296, in pymavlink's common/ardupilotmega dialects).
+
+    source = GLOBAL_POSITION_SRC_VISION; the UNHEALTHY flag is set whenever ``fix_type_for`` would not
+    report a 3D fix, so PX4 sees the same validity as ArduPilot. ``alt_ellipsoid`` is NaN (we only know
+    AMSL), which the message defines as "use ``alt``". ``processing_time_usec`` = transmission time minus
+    exposure time (clamped to uint32).
+    """
+    horiz = state.horiz_sigma_m
+    usable = fix_type_for(state.provenance, horiz, max_fix_sigma_m=max_fix_sigma_m) >= FIX_TYPE_3D
+    usable = usable and _position_finite(state)
+    flags = 0 if usable else DIALECT.GLOBAL_POSITION_UNHEALTHY
+    lat_e7, lon_e7 = (_e7(state.lat_deg), _e7(state.lon_deg)) if _position_finite(state) else (0, 0)
+    return mav.global_position_sensor_encode(
+        int(target_system),
+        0,
+        int(sensor_id),
+        int(time_unix_usec),
+        int(min(max(processing_time_usec, 0), 0xFFFFFFFF)),
+        DIALECT.GLOBAL_POSITION_SRC_VISION,
+        flags,
+        lat_e7,
+        lon_e7,
+        math.nan,
+        float(state.alt_amsl_m),
+        float(horiz) if _finite(horiz) else math.inf,
+        float(state.vert_sigma_m),
+    )
+
+
+def pose_covariance_upper(cov_pos_ned_m2: np.ndarray, attitude_var_rad2: Sequence[float]) -> list[float]:
+    """21-element row-major upper triangle of the 6x6 (x, y, z, roll, pitch, yaw) covariance."""
+    full = np.zeros((6, 6), dtype=np.float64)
+    full[:3, :3] = np.asarray(cov_pos_ned_m2, dtype=np.float64)
+    full[3, 3], full[4, 4], full[5, 5] = (float(v) for v in attitude_var_rad2)
+    return [float(full[i, j]) for i in range(6) for j in range(i, 6)]
+
+
+def vision_position_estimate(
+    mav: Any,
+    state: EstimatorState,
+    *,
+    time_usec: int,
+    reset_counter: int,
+    attitude: Attitude | None = None,
+    attitude_var_rad2: Sequence[float] | None = None,
+) -> MavlinkMessage:
+    """VISION_POSITION_ESTIMATE in the local NED frame of ``state`` (its origin must be the autopilot's
+    EKF origin, set with SET_GPS_GLOBAL_ORIGIN). Attitude entries are the given attitude, or zeros with
+    ``UNKNOWN_ANGLE_VARIANCE_RAD2`` variances when unknown (yaw from ``state.yaw_rad`` when known)."""
+    pos = np.asarray(state.pos_ned_m, dtype=np.float64)
+    if attitude is not None:
+        roll, pitch, yaw = attitude.roll_rad, attitude.pitch_rad, attitude.yaw_rad
+        var = attitude_var_rad2 or (0.01, 0.01, 0.05)
+    else:
+        roll, pitch = 0.0, 0.0
+        yaw = state.yaw_rad if state.yaw_rad is not None else 0.0
+        var = attitude_var_rad2 or (UNKNOWN_ANGLE_VARIANCE_RAD2,) * 3
+    return mav.vision_position_estimate_encode(
+        int(time_usec),
+        float(pos[0]),
+        float(pos[1]),
+        float(pos[2]),
+        float(roll),
+        float(pitch),
+        float(yaw),
+        pose_covariance_upper(state.cov_pos_ned_m2, var),
+        int(reset_counter) & 0xFF,
+    )
+
+
+def named_values(
+    mav: Any,
+    *,
+    time_boot_ms: int,
+    provenance: Provenance,
+    inliers: int,
+    residual_px: float,
+    horiz_sigma_m: float,
+    frame_drops: int,
+) -> list[MavlinkMessage]:
+    """NAMED_VALUE_INT/FLOAT set shown by ground stations: GDN_PROV (provenance code), GDN_INL, GDN_RES,
+    GDN_HSIG, GDN_DROP. Non-finite floats are sent as NaN (the GCS shows "nan", i.e. unknown)."""
+    t = int(time_boot_ms) & 0xFFFFFFFF
+
+    def _i32(v: int) -> int:
+        return int(min(max(int(v), -(2**31)), 2**31 - 1))
+
+    return [
+        mav.named_value_int_encode(t, NV_PROVENANCE.encode(), provenance.code),
+        mav.named_value_int_encode(t, NV_INLIERS.encode(), _i32(inliers)),
+        mav.named_value_float_encode(t, NV_RESIDUAL_PX.encode(), float(residual_px)),
+        mav.named_value_float_encode(t, NV_HORIZ_SIGMA_M.encode(), float(horiz_sigma_m)),
+        mav.named_value_int_encode(t, NV_FRAME_DROPS.encode(), _i32(frame_drops)),
+    ]
+
+
+def clip_statustext(text: str, max_bytes: int = STATUSTEXT_MAX_BYTES) -> bytes:
+    """Printable ASCII cut to ``max_bytes``: ground stations decode STATUSTEXT as ASCII, so other
+    characters become "?" (one byte each, so a cut never splits a character); controls become spaces."""
+    clean = "".join(ch if ch.isprintable() else " " for ch in text)
+    return clean.encode("ascii", errors="replace")[:max_bytes]
+
+
+def statustext(mav: Any, severity: int, text: str) -> MavlinkMessage:
+    """STATUSTEXT with ``severity`` (MAV_SEVERITY_*) and ``text`` truncated to 50 bytes."""
+    if not 0 <= int(severity) <= 7:
+        raise ValueError(f"STATUSTEXT severity must be a MAV_SEVERITY (0..7), got {severity}")
+    return mav.statustext_encode(int(severity), clip_statustext(text), 0, 0)
+
+
+def heartbeat(mav: Any, system_status: int) -> MavlinkMessage:
+    """HEARTBEAT of this daemon: MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID."""
+    return mav.heartbeat_encode(
+        DIALECT.MAV_TYPE_ONBOARD_CONTROLLER, DIALECT.MAV_AUTOPILOT_INVALID, 0, 0, int(system_status)
+    )

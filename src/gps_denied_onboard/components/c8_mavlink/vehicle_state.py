@@ -1,0 +1,452 @@
+"""C8 inbound: the autopilot's attitude, altitude, home, IMU and liveness, from decoded MAVLink messages.
+
+Only the configured autopilot's messages are used: source system ``autopilot_system_id`` and
+component 1 (MAV_COMP_ID_AUTOPILOT1). A HEARTBEAT counts only when it also declares a real autopilot
+(``autopilot != MAV_AUTOPILOT_INVALID``) and is not a GCS/onboard-controller type, so a ground station
+or another companion computer cannot keep the link "alive".
+
+Time
+----
+Samples are stored in the autopilot's boot time (``time_boot_ms`` / ``time_usec`` since boot), which
+keeps their spacing exact; queries in Unix time are mapped with an offset ``unix - boot``:
+
+- from SYSTEM_TIME (``time_unix_usec - time_boot_ms * 1000``), exponentially smoothed, when the
+  autopilot has a Unix time (``time_unix_usec > 0``): ``TimeSource.SYSTEM_TIME``;
+- otherwise from the local receive time of each timestamped message (same smoothing; biased late by
+  the link latency): ``TimeSource.RECEIVE_TIME``.
+
+A jump of the offset by more than ``OFFSET_RESET_S`` (autopilot reboot, clock set) resets the smoothing;
+``time_boot_ms`` going backwards by more than that clears every buffer (the old samples belong to the
+previous boot).
+
+Altitude (above home, i.e. AGL over flat ground at home height), in priority order, the first source
+with a sample within ``altitude_max_age_s`` of the query wins:
+1. ALTITUDE.altitude_relative (the autopilot's own "relative to home" output);
+2. GLOBAL_POSITION_INT.relative_alt (mm);
+3. VFR_HUD.alt (AMSL) minus the HOME_POSITION altitude (only once home is known; VFR_HUD has no
+   timestamp, so its receive time is used).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any, Final
+
+import structlog
+
+from gps_denied_onboard.camera.types import Attitude
+from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
+from gps_denied_onboard.constants import LogEvent
+
+_log = structlog.get_logger(__name__)
+
+#: MAV_COMP_ID_AUTOPILOT1.
+AUTOPILOT_COMPONENT_ID: Final[int] = 1
+#: Ring-buffer length per series (ATTITUDE at 50 Hz -> 10 s).
+BUFFER_LEN: Final[int] = 512
+#: Attitude is extrapolated past the newest sample (or before the oldest) by at most this, then held.
+EXTRAPOLATION_LIMIT_S: Final[float] = 0.05
+#: Smoothing factor of the boot->Unix offset (per sample).
+OFFSET_ALPHA: Final[float] = 0.05
+#: Offset jumps larger than this restart the smoothing; boot time going back this much = reboot.
+OFFSET_RESET_S: Final[float] = 1.0
+#: time_usec values above this are Unix times (after 2001-09-09), below it times since boot.
+_UNIX_USEC_THRESHOLD: Final[int] = 1_000_000_000_000_000
+
+_NOT_AUTOPILOT_TYPES: Final[frozenset[int]] = frozenset(
+    {
+        DIALECT.MAV_TYPE_GCS,
+        DIALECT.MAV_TYPE_ONBOARD_CONTROLLER,
+        DIALECT.MAV_TYPE_GIMBAL,
+        DIALECT.MAV_TYPE_ADSB,
+        DIALECT.MAV_TYPE_CAMERA,
+    }
+)
+
+
+class TimeSource(str, Enum):
+    """How autopilot boot time is mapped to Unix time."""
+
+    NONE = "none"
+    SYSTEM_TIME = "system_time"
+    RECEIVE_TIME = "receive_time"
+
+
+class AltitudeSource(str, Enum):
+    ALTITUDE = "altitude"
+    GLOBAL_POSITION_INT = "global_position_int"
+    VFR_HUD = "vfr_hud"
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """Latest HIGHRES_IMU or SCALED_IMU, SI units, body FRD. ``msg_type`` names the source message."""
+
+    msg_type: str
+    time_boot_usec: int
+    accel_m_s2: tuple[float, float, float]
+    gyro_rad_s: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class VehicleStateSnapshot:
+    """What the tracker knows, for status reports and the FDR."""
+
+    autopilot_seen: bool
+    link_alive: bool
+    last_heartbeat_unix_s: float | None
+    time_source: TimeSource
+    boot_to_unix_offset_usec: int | None
+    home: tuple[float, float, float] | None
+    attitude_samples: int
+    latest_attitude_time_unix_usec: int | None
+    messages_used: int
+    messages_ignored: int
+
+
+class _Series:
+    """Time-sorted samples keyed by autopilot boot time (usec), bounded length."""
+
+    def __init__(self, maxlen: int = BUFFER_LEN) -> None:
+        self.t_usec: list[int] = []
+        self.values: list[tuple[float, ...]] = []
+        self._maxlen = maxlen
+
+    def add(self, t_usec: int, value: tuple[float, ...]) -> None:
+        if not self.t_usec or t_usec > self.t_usec[-1]:
+            self.t_usec.append(t_usec)
+            self.values.append(value)
+        else:
+            i = bisect.bisect_left(self.t_usec, t_usec)
+            if i < len(self.t_usec) and self.t_usec[i] == t_usec:
+                self.values[i] = value  # duplicate timestamp: keep the latest
+                return
+            self.t_usec.insert(i, t_usec)
+            self.values.insert(i, value)
+        if len(self.t_usec) > self._maxlen:
+            del self.t_usec[0], self.values[0]
+
+    def clear(self) -> None:
+        self.t_usec.clear()
+        self.values.clear()
+
+    def __len__(self) -> int:
+        return len(self.t_usec)
+
+
+def _wrap_pi(angle_rad: float) -> float:
+    """Angle in [-pi, pi)."""
+    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _interp(
+    series: _Series, t_usec: int, *, max_age_usec: int, extrap_usec: int, wrap: tuple[bool, ...]
+) -> tuple[float, ...] | None:
+    """Value at ``t_usec``: linear between bracketing samples (angles with wrap[i] interpolated along the
+    short arc), extrapolated from the end pair by at most ``extrap_usec`` and then held; None when the
+    nearest sample is more than ``max_age_usec`` away."""
+    ts = series.t_usec
+    if not ts:
+        return None
+    i = bisect.bisect_left(ts, t_usec)
+    nearest = min(
+        (abs(ts[j] - t_usec) for j in (i - 1, i) if 0 <= j < len(ts)),
+        default=None,
+    )
+    if nearest is None or nearest > max_age_usec:
+        return None
+    if i < len(ts) and ts[i] == t_usec:
+        return series.values[i]
+    if 0 < i < len(ts):
+        j0, j1, t_eff = i - 1, i, t_usec
+    elif len(ts) == 1:
+        return series.values[0]
+    elif i == 0:
+        j0, j1 = 0, 1
+        t_eff = max(t_usec, ts[0] - extrap_usec)
+    else:
+        j0, j1 = len(ts) - 2, len(ts) - 1
+        t_eff = min(t_usec, ts[-1] + extrap_usec)
+    t0, t1 = ts[j0], ts[j1]
+    frac = (t_eff - t0) / (t1 - t0)
+    out = []
+    for k, (a, b) in enumerate(zip(series.values[j0], series.values[j1], strict=True)):
+        if wrap[k]:
+            out.append(_wrap_pi(a + frac * _wrap_pi(b - a)))
+        else:
+            out.append(a + frac * (b - a))
+    return tuple(out)
+
+
+class VehicleStateTracker:
+    """Autopilot state from decoded pymavlink messages; thread-safe (fed by the event loop, queried by the
+    pipeline thread). Stale data is invalid: every query returns None rather than reuse an old value."""
+
+    def __init__(
+        self,
+        autopilot_system_id: int,
+        attitude_max_age_s: float,
+        altitude_max_age_s: float,
+        link_timeout_s: float,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        if attitude_max_age_s <= 0 or altitude_max_age_s <= 0 or link_timeout_s <= 0:
+            raise ValueError(
+                "max ages and link timeout must be > 0, got "
+                f"attitude={attitude_max_age_s}, altitude={altitude_max_age_s}, link={link_timeout_s}"
+            )
+        self.autopilot_system_id = int(autopilot_system_id)
+        self._att_max_usec = int(attitude_max_age_s * 1e6)
+        self._alt_max_usec = int(altitude_max_age_s * 1e6)
+        self._extrap_usec = int(min(EXTRAPOLATION_LIMIT_S, attitude_max_age_s) * 1e6)
+        self._link_timeout_s = float(link_timeout_s)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._attitude = _Series()
+        self._alt: dict[AltitudeSource, _Series] = {s: _Series() for s in AltitudeSource}
+        self._home: tuple[float, float, float] | None = None
+        self._imu: ImuSample | None = None
+        self._sys_offset_usec: float | None = None
+        self._rx_offset_usec: float | None = None
+        self._last_boot_usec: int | None = None
+        self._last_heartbeat_s: float | None = None
+        self._autopilot_seen = False
+        self._used = 0
+        self._ignored = 0
+
+    # --- input --------------------------------------------------------------------------------------
+    def handle(self, msg: Any, recv_time_unix_s: float) -> bool:
+        """Use one decoded message received at ``recv_time_unix_s``; returns True if it was used."""
+        try:
+            src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+            mtype = msg.get_type()
+        except AttributeError:
+            self._ignored += 1
+            return False
+        if src_sys != self.autopilot_system_id or src_comp != AUTOPILOT_COMPONENT_ID:
+            self._ignored += 1
+            return False
+        handler = _HANDLERS.get(mtype)
+        if handler is None:
+            self._ignored += 1
+            return False
+        recv_usec = int(recv_time_unix_s * 1e6)
+        with self._lock:
+            used = handler(self, msg, recv_usec)
+            if used:
+                self._used += 1
+            else:
+                self._ignored += 1
+        return used
+
+    def _on_heartbeat(self, msg: Any, recv_usec: int) -> bool:
+        if msg.autopilot == DIALECT.MAV_AUTOPILOT_INVALID or msg.type in _NOT_AUTOPILOT_TYPES:
+            return False
+        self._last_heartbeat_s = recv_usec / 1e6
+        if not self._autopilot_seen:
+            self._autopilot_seen = True
+            _log.info(
+                LogEvent.MAVLINK_AUTOPILOT_SEEN,
+                system_id=self.autopilot_system_id,
+                mav_type=int(msg.type),
+                autopilot=int(msg.autopilot),
+            )
+        return True
+
+    def _note_boot_time(self, boot_usec: int) -> None:
+        """Detect an autopilot reboot (boot time going back) and drop the previous boot's samples."""
+        last = self._last_boot_usec
+        if last is not None and boot_usec < last - OFFSET_RESET_S * 1e6:
+            self._attitude.clear()
+            for s in self._alt.values():
+                s.clear()
+            self._sys_offset_usec = None
+            self._rx_offset_usec = None
+            self._imu = None
+        if last is None or boot_usec > last or boot_usec < last - OFFSET_RESET_S * 1e6:
+            self._last_boot_usec = boot_usec
+
+    @staticmethod
+    def _smooth(current: float | None, sample: float) -> float:
+        if current is None or abs(sample - current) > OFFSET_RESET_S * 1e6:
+            return sample
+        return current + OFFSET_ALPHA * (sample - current)
+
+    def _timestamped(self, boot_usec: int, recv_usec: int) -> int:
+        """Register a boot-time stamp received at ``recv_usec``; returns the boot time (usec)."""
+        self._note_boot_time(boot_usec)
+        self._rx_offset_usec = self._smooth(self._rx_offset_usec, recv_usec - boot_usec)
+        return boot_usec
+
+    def _to_boot_usec(self, time_usec: int, recv_usec: int) -> int:
+        """A message's ``time_usec`` (Unix or since boot) as boot time."""
+        if time_usec >= _UNIX_USEC_THRESHOLD:
+            offset = self._offset_usec()
+            return int(time_usec - offset) if offset is not None else self._recv_as_boot(recv_usec)
+        return self._timestamped(time_usec, recv_usec)
+
+    def _recv_as_boot(self, recv_usec: int) -> int:
+        offset = self._offset_usec()
+        return int(recv_usec - offset) if offset is not None else recv_usec
+
+    def _on_system_time(self, msg: Any, recv_usec: int) -> bool:
+        boot_usec = int(msg.time_boot_ms) * 1000
+        self._timestamped(boot_usec, recv_usec)
+        if int(msg.time_unix_usec) <= 0:
+            return True  # the autopilot has no Unix time (no GNSS, no RTC): keep receive-time mapping
+        self._sys_offset_usec = self._smooth(self._sys_offset_usec, int(msg.time_unix_usec) - boot_usec)
+        return True
+
+    def _on_attitude(self, msg: Any, recv_usec: int) -> bool:
+        vals = (float(msg.roll), float(msg.pitch), float(msg.yaw))
+        if not all(math.isfinite(v) for v in vals):
+            return False
+        t = self._timestamped(int(msg.time_boot_ms) * 1000, recv_usec)
+        self._attitude.add(t, vals)
+        return True
+
+    def _on_altitude(self, msg: Any, recv_usec: int) -> bool:
+        rel = float(msg.altitude_relative)
+        if not math.isfinite(rel):
+            return False
+        self._alt[AltitudeSource.ALTITUDE].add(self._to_boot_usec(int(msg.time_usec), recv_usec), (rel,))
+        return True
+
+    def _on_global_position_int(self, msg: Any, recv_usec: int) -> bool:
+        t = self._timestamped(int(msg.time_boot_ms) * 1000, recv_usec)
+        self._alt[AltitudeSource.GLOBAL_POSITION_INT].add(t, (int(msg.relative_alt) / 1000.0,))
+        return True
+
+    def _on_vfr_hud(self, msg: Any, recv_usec: int) -> bool:
+        if self._home is None or not math.isfinite(float(msg.alt)):
+            return False
+        rel = float(msg.alt) - self._home[2]
+        self._alt[AltitudeSource.VFR_HUD].add(self._recv_as_boot(recv_usec), (rel,))
+        return True
+
+    def _on_home_position(self, msg: Any, recv_usec: int) -> bool:
+        self._home = (int(msg.latitude) / 1e7, int(msg.longitude) / 1e7, int(msg.altitude) / 1000.0)
+        return True
+
+    def _on_highres_imu(self, msg: Any, recv_usec: int) -> bool:
+        t = self._to_boot_usec(int(msg.time_usec), recv_usec)
+        self._imu = ImuSample(
+            "HIGHRES_IMU",
+            t,
+            (float(msg.xacc), float(msg.yacc), float(msg.zacc)),
+            (float(msg.xgyro), float(msg.ygyro), float(msg.zgyro)),
+        )
+        return True
+
+    def _on_scaled_imu(self, msg: Any, recv_usec: int) -> bool:
+        t = self._timestamped(int(msg.time_boot_ms) * 1000, recv_usec)
+        g = 9.80665 / 1000.0  # mG -> m/s^2
+        self._imu = ImuSample(
+            msg.get_type(),
+            t,
+            (msg.xacc * g, msg.yacc * g, msg.zacc * g),
+            (msg.xgyro / 1000.0, msg.ygyro / 1000.0, msg.zgyro / 1000.0),  # mrad/s -> rad/s
+        )
+        return True
+
+    # --- queries ------------------------------------------------------------------------------------
+    def _offset_usec(self) -> float | None:
+        return self._sys_offset_usec if self._sys_offset_usec is not None else self._rx_offset_usec
+
+    @property
+    def time_source(self) -> TimeSource:
+        with self._lock:
+            if self._sys_offset_usec is not None:
+                return TimeSource.SYSTEM_TIME
+            return TimeSource.RECEIVE_TIME if self._rx_offset_usec is not None else TimeSource.NONE
+
+    def attitude_at(self, time_unix_usec: int) -> Attitude | None:
+        """Autopilot attitude at a Unix time, or None when no sample lies within attitude_max_age_s."""
+        with self._lock:
+            offset = self._offset_usec()
+            if offset is None:
+                return None
+            vals = _interp(
+                self._attitude,
+                int(time_unix_usec - offset),
+                max_age_usec=self._att_max_usec,
+                extrap_usec=self._extrap_usec,
+                wrap=(True, False, True),
+            )
+        return None if vals is None else Attitude(vals[0], vals[1], vals[2])
+
+    def alt_agl_at(self, time_unix_usec: int) -> float | None:
+        """Height above home (AGL over flat ground at home height), m, at a Unix time; None when stale."""
+        with self._lock:
+            offset = self._offset_usec()
+            if offset is None:
+                return None
+            t = int(time_unix_usec - offset)
+            for source in AltitudeSource:
+                vals = _interp(
+                    self._alt[source], t, max_age_usec=self._alt_max_usec, extrap_usec=0, wrap=(False,)
+                )
+                if vals is not None:
+                    return float(vals[0])
+        return None
+
+    def home(self) -> tuple[float, float, float] | None:
+        """(lat_deg, lon_deg, alt_amsl_m) from HOME_POSITION, or None before it was received."""
+        with self._lock:
+            return self._home
+
+    def latest_imu(self) -> ImuSample | None:
+        with self._lock:
+            return self._imu
+
+    def link_alive(self, now: float | None = None) -> bool:
+        """True when the autopilot's HEARTBEAT was received within link_timeout_s of ``now``."""
+        now_s = self._clock() if now is None else now
+        with self._lock:
+            last = self._last_heartbeat_s
+        return last is not None and (now_s - last) <= self._link_timeout_s
+
+    @property
+    def autopilot_seen(self) -> bool:
+        return self._autopilot_seen
+
+    def snapshot(self, now: float | None = None) -> VehicleStateSnapshot:
+        alive = self.link_alive(now)
+        source = self.time_source
+        with self._lock:
+            offset = self._offset_usec()
+            latest = None
+            if self._attitude.t_usec and offset is not None:
+                latest = int(self._attitude.t_usec[-1] + offset)
+            return VehicleStateSnapshot(
+                autopilot_seen=self._autopilot_seen,
+                link_alive=alive,
+                last_heartbeat_unix_s=self._last_heartbeat_s,
+                time_source=source,
+                boot_to_unix_offset_usec=None if offset is None else int(offset),
+                home=self._home,
+                attitude_samples=len(self._attitude),
+                latest_attitude_time_unix_usec=latest,
+                messages_used=self._used,
+                messages_ignored=self._ignored,
+            )
+
+
+_HANDLERS: Final[dict[str, Callable[[VehicleStateTracker, Any, int], bool]]] = {
+    "HEARTBEAT": VehicleStateTracker._on_heartbeat,
+    "SYSTEM_TIME": VehicleStateTracker._on_system_time,
+    "ATTITUDE": VehicleStateTracker._on_attitude,
+    "ALTITUDE": VehicleStateTracker._on_altitude,
+    "GLOBAL_POSITION_INT": VehicleStateTracker._on_global_position_int,
+    "VFR_HUD": VehicleStateTracker._on_vfr_hud,
+    "HOME_POSITION": VehicleStateTracker._on_home_position,
+    "HIGHRES_IMU": VehicleStateTracker._on_highres_imu,
+    "SCALED_IMU": VehicleStateTracker._on_scaled_imu,
+    "SCALED_IMU2": VehicleStateTracker._on_scaled_imu,
+}

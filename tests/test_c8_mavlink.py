@@ -1,0 +1,535 @@
+"""C8 MAVLink: vehicle state tracking, message building, and the link over real UDP/TCP on 127.0.0.1."""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import socket
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import structlog
+
+from gps_denied_onboard.components.c5_estimator.types import EstimatorState
+from gps_denied_onboard.components.c8_mavlink import (
+    MavlinkConfigError,
+    MavlinkLink,
+    TimeSource,
+    VehicleStateTracker,
+    load_signing_key,
+)
+from gps_denied_onboard.components.c8_mavlink import messages as m
+from gps_denied_onboard.components.c8_mavlink.messages import DIALECT as D
+from gps_denied_onboard.components.c8_mavlink.messages import mavutil
+from gps_denied_onboard.config import MavlinkConfig
+from gps_denied_onboard.constants import GPS_INPUT_GPS_ID, LogEvent, Provenance
+from gps_denied_onboard.geo import gps_week_and_ms
+
+T0_UNIX_USEC = 1_717_000_000_000_000  # 2024-05-29
+BOOT0_MS = 100_000
+KEY_HEX = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff"
+
+
+class FakeClock:
+    """Settable clock shared by the link and the tracker."""
+
+    def __init__(self, t: float = T0_UNIX_USEC / 1e6) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _state(
+    provenance: Provenance = Provenance.SATELLITE_ANCHORED,
+    *,
+    sigma_ne_m: tuple[float, float] = (3.0, 4.0),
+    yaw_rad: float | None = 0.5,
+    vel: tuple[float, float, float] = (5.0, -2.0, 0.5),
+    lat_deg: float = 50.4501234,
+) -> EstimatorState:
+    return EstimatorState(
+        time_unix_usec=T0_UNIX_USEC,
+        provenance=provenance,
+        pos_ned_m=np.array([10.0, 20.0, -100.0]),
+        vel_ned_m_s=np.array(vel),
+        cov_pos_ned_m2=np.diag([sigma_ne_m[0] ** 2, sigma_ne_m[1] ** 2, 25.0]),
+        cov_vel_ned_m2_s2=np.diag([0.25, 0.16, 0.09]),
+        lat_deg=lat_deg,
+        lon_deg=30.5234567,
+        alt_amsl_m=250.0,
+        yaw_rad=yaw_rad,
+        last_fix_age_s=0.2,
+    )
+
+
+def _decoded(build: Callable[[Any], Any], src: tuple[int, int] = (1, 1)) -> Any:
+    """Encode with one MAVLink instance and decode with another: a real received message."""
+    tx = D.MAVLink(None, srcSystem=src[0], srcComponent=src[1])
+    return D.MAVLink(None).decode(bytearray(build(tx).pack(tx)))
+
+
+def _ap_heartbeat(mav: Any) -> Any:
+    return mav.heartbeat_encode(D.MAV_TYPE_QUADROTOR, D.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, D.MAV_STATE_ACTIVE)
+
+
+def _tracker(clock: Callable[[], float] = time.time) -> VehicleStateTracker:
+    return VehicleStateTracker(
+        1, attitude_max_age_s=0.3, altitude_max_age_s=1.0, link_timeout_s=3.0, clock=clock
+    )
+
+
+def _pump(link: MavlinkLink, until: Callable[[], bool], timeout_s: float = 2.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        link.poll()
+        if until():
+            return True
+        time.sleep(0.005)
+    return until()
+
+
+def _recv_all(conn: Any, msg_type: str, wait_s: float = 0.3) -> list[Any]:
+    out = []
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        msg = conn.recv_match(type=msg_type, blocking=True, timeout=0.05)
+        if msg is not None:
+            out.append(msg)
+    return out
+
+
+@pytest.fixture
+def udp_pair() -> Iterator[tuple[MavlinkLink, Any, FakeClock, int]]:
+    """A MavlinkLink on udpin:127.0.0.1:PORT and a pymavlink "autopilot" (sysid 1, comp 1) sending to it."""
+    port = _free_udp_port()
+    clock = FakeClock()
+    tracker = _tracker(clock)
+    link = MavlinkLink(
+        MavlinkConfig(
+            url=f"udpin:127.0.0.1:{port}",
+            outputs=("gps_input", "global_position_sensor", "vision_position_estimate"),
+        ),
+        tracker,
+        clock=clock,
+    )
+    link.open()
+    ap = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    try:
+        yield link, ap, clock, port
+    finally:
+        ap.close()
+        link.close()
+
+
+# --- vehicle state -----------------------------------------------------------------------------------
+
+
+def test_tracker_interpolates_attitude_over_udp_with_yaw_wrap(udp_pair: tuple) -> None:
+    """ATTITUDE over UDP, time-mapped by SYSTEM_TIME; yaw interpolates across +-pi the short way."""
+    link, ap, _clock, _ = udp_pair
+    ap.mav.send(_ap_heartbeat(ap.mav))
+    ap.mav.system_time_send(T0_UNIX_USEC, BOOT0_MS)
+    ap.mav.attitude_send(BOOT0_MS, 0.1, -0.05, 3.1, 0, 0, 0)
+    ap.mav.attitude_send(BOOT0_MS + 100, 0.2, -0.15, -3.1, 0, 0, 0)
+    tr = link.tracker
+    assert _pump(link, lambda: tr.snapshot().attitude_samples == 2)
+    assert tr.time_source is TimeSource.SYSTEM_TIME
+    mid = tr.attitude_at(T0_UNIX_USEC + 50_000)
+    assert mid is not None
+    assert mid.roll_rad == pytest.approx(0.15, abs=1e-6)
+    assert mid.pitch_rad == pytest.approx(-0.10, abs=1e-6)
+    assert abs(abs(mid.yaw_rad) - math.pi) < 1e-3  # through +-pi, not through 0
+    quarter = tr.attitude_at(T0_UNIX_USEC + 25_000)
+    assert quarter is not None and quarter.yaw_rad == pytest.approx(
+        3.1 + 0.25 * (2 * math.pi - 6.2), abs=1e-5
+    )
+    # extrapolation beyond the newest sample is clamped at 50 ms, then held
+    late = tr.attitude_at(T0_UNIX_USEC + 100_000 + 200_000)
+    assert late is not None and late.roll_rad == pytest.approx(0.25, abs=1e-6)
+    # nearest sample older than attitude_max_age_s (0.3 s): invalid
+    assert tr.attitude_at(T0_UNIX_USEC + 100_000 + 301_000) is None
+    assert tr.attitude_at(T0_UNIX_USEC - 301_000) is None
+
+
+def test_tracker_falls_back_to_receive_time_without_system_time() -> None:
+    """Without SYSTEM_TIME, boot time maps to Unix via receive times, and the state says so."""
+    tr = _tracker()
+    assert tr.time_source is TimeSource.NONE and tr.attitude_at(T0_UNIX_USEC) is None
+    recv_s = T0_UNIX_USEC / 1e6
+    tr.handle(_decoded(lambda mav: mav.attitude_encode(BOOT0_MS, 0.0, 0.0, 1.0, 0, 0, 0)), recv_s)
+    tr.handle(_decoded(lambda mav: mav.attitude_encode(BOOT0_MS + 20, 0.0, 0.0, 1.2, 0, 0, 0)), recv_s + 0.02)
+    assert tr.time_source is TimeSource.RECEIVE_TIME
+    att = tr.attitude_at(T0_UNIX_USEC + 10_000)
+    assert att is not None and att.yaw_rad == pytest.approx(1.1, abs=1e-3)
+    # a later SYSTEM_TIME takes over the mapping
+    tr.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC + 5_000_000, BOOT0_MS)), recv_s + 0.03)
+    assert tr.time_source is TimeSource.SYSTEM_TIME
+    assert tr.attitude_at(T0_UNIX_USEC + 10_000) is None  # 5 s away from any sample now
+    assert tr.attitude_at(T0_UNIX_USEC + 5_010_000) is not None
+
+
+def test_tracker_altitude_priority_and_staleness() -> None:
+    """ALTITUDE.altitude_relative first, then GLOBAL_POSITION_INT.relative_alt, then VFR_HUD - home."""
+    tr = _tracker()
+    recv_s = T0_UNIX_USEC / 1e6
+    tr.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC, BOOT0_MS)), recv_s)
+    q = [1.0, 0.0, 0.0, 0.0]
+    home = _decoded(lambda mav: mav.home_position_encode(504501234, 305234567, 180_000, 0, 0, 0, q, 0, 0, 0))
+    tr.handle(home, recv_s)
+    assert tr.home() == pytest.approx((50.4501234, 30.5234567, 180.0))
+    # VFR_HUD only: AMSL minus home altitude (receive time)
+    tr.handle(_decoded(lambda mav: mav.vfr_hud_encode(10, 10, 90, 50, 300.0, 0)), recv_s)
+    assert tr.alt_agl_at(T0_UNIX_USEC) == pytest.approx(120.0)
+    tr.handle(
+        _decoded(lambda mav: mav.global_position_int_encode(BOOT0_MS, 0, 0, 0, 110_000, 0, 0, 0, 0)), recv_s
+    )
+    assert tr.alt_agl_at(T0_UNIX_USEC) == pytest.approx(110.0)
+    tr.handle(_decoded(lambda mav: mav.altitude_encode(BOOT0_MS * 1000, 0, 0, 0, 100.0, 0, 0)), recv_s)
+    assert tr.alt_agl_at(T0_UNIX_USEC) == pytest.approx(100.0)
+    # ALTITUDE goes stale (no newer sample), GLOBAL_POSITION_INT continues
+    tr.handle(
+        _decoded(lambda mav: mav.global_position_int_encode(BOOT0_MS + 2000, 0, 0, 0, 111_000, 0, 0, 0, 0)),
+        recv_s + 2.0,
+    )
+    assert tr.alt_agl_at(T0_UNIX_USEC + 2_000_000) == pytest.approx(111.0)
+    assert tr.alt_agl_at(T0_UNIX_USEC + 3_500_000) is None  # every source older than 1 s
+
+
+def test_tracker_ignores_gcs_and_companion_heartbeats_over_udp(udp_pair: tuple) -> None:
+    """Heartbeats from a GCS, another companion, or sysid 1 with MAV_AUTOPILOT_INVALID do not count."""
+    link, ap, _clock, port = udp_pair
+    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+    comp = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=191)
+    fake = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    try:
+        gcs.mav.heartbeat_send(D.MAV_TYPE_GCS, D.MAV_AUTOPILOT_INVALID, 0, 0, D.MAV_STATE_ACTIVE)
+        comp.mav.heartbeat_send(D.MAV_TYPE_QUADROTOR, D.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)  # wrong comp
+        fake.mav.heartbeat_send(D.MAV_TYPE_ONBOARD_CONTROLLER, D.MAV_AUTOPILOT_INVALID, 0, 0, 4)
+        tr = link.tracker
+        assert _pump(link, lambda: tr.snapshot().messages_ignored >= 3)
+        assert not tr.autopilot_seen and not tr.link_alive()
+        ap.mav.send(_ap_heartbeat(ap.mav))
+        assert _pump(link, lambda: tr.autopilot_seen)
+        assert tr.link_alive()
+    finally:
+        for c in (gcs, comp, fake):
+            c.close()
+
+
+# --- messages ----------------------------------------------------------------------------------------
+
+
+def test_fix_type_policy_by_provenance_and_sigma() -> None:
+    """3D while anchored/VIO and sigma <= limit; no fix for dead reckoning or large sigma; 0 for none."""
+    assert m.fix_type_for(Provenance.SATELLITE_ANCHORED, 4.0) == 3
+    assert m.fix_type_for(Provenance.VISUAL_PROPAGATED, m.FIX_3D_MAX_HORIZ_SIGMA_M) == 3
+    assert m.fix_type_for(Provenance.VISUAL_PROPAGATED, m.FIX_3D_MAX_HORIZ_SIGMA_M + 0.1) == 1
+    assert m.fix_type_for(Provenance.DEAD_RECKONING, 4.0) == 1
+    assert m.fix_type_for(Provenance.NO_ESTIMATE, 4.0) == 0
+    assert m.fix_type_for(Provenance.SATELLITE_ANCHORED, math.nan) == 0
+    mav = D.MAVLink(None)
+    nan_pos = m.gps_input(mav, _state(lat_deg=math.nan), time_unix_usec=T0_UNIX_USEC)
+    assert nan_pos.fix_type == 0 and nan_pos.lat == 0
+
+
+def test_gps_input_accuracy_dop_and_ignore_flags() -> None:
+    """Accuracy fields are the state's sigmas, hdop tracks them, ignore_flags only for unknowns."""
+    mav = D.MAVLink(None)
+    msg = m.gps_input(mav, _state(), time_unix_usec=T0_UNIX_USEC)
+    assert msg.ignore_flags == 0
+    assert msg.horiz_accuracy == pytest.approx(4.0) and msg.vert_accuracy == pytest.approx(5.0)
+    assert msg.speed_accuracy == pytest.approx(0.5)
+    assert msg.hdop == pytest.approx(4.0 / m.NOMINAL_UERE_M) and msg.vdop == pytest.approx(1.0)
+    assert msg.yaw == round(math.degrees(0.5) * 100)
+    assert m.gps_input(mav, _state(yaw_rad=0.0), time_unix_usec=T0_UNIX_USEC).yaw == 36000
+    assert m.gps_input(mav, _state(yaw_rad=None), time_unix_usec=T0_UNIX_USEC).yaw == 0
+    no_vd = m.gps_input(mav, _state(vel=(1.0, 2.0, math.nan)), time_unix_usec=T0_UNIX_USEC)
+    assert no_vd.ignore_flags == D.GPS_INPUT_IGNORE_FLAG_VEL_VERT and no_vd.vd == 0.0
+    worse = m.gps_input(mav, _state(sigma_ne_m=(30.0, 40.0)), time_unix_usec=T0_UNIX_USEC)
+    assert worse.hdop == pytest.approx(8.0) and worse.hdop > msg.hdop
+    with pytest.raises(ValueError, match="GPS epoch"):
+        m.gps_input(mav, _state(), time_unix_usec=1_000_000)
+
+
+def test_vision_position_estimate_covariance_and_reset_counter() -> None:
+    """VISION_POSITION_ESTIMATE carries NED position, the 21-element upper triangle and reset_counter."""
+    tx = D.MAVLink(None, srcSystem=1, srcComponent=197)
+    msg = m.vision_position_estimate(tx, _state(), time_usec=T0_UNIX_USEC, reset_counter=3)
+    rx = D.MAVLink(None).decode(bytearray(msg.pack(tx)))
+    assert (rx.x, rx.y, rx.z) == pytest.approx((10.0, 20.0, -100.0))
+    cov = list(rx.covariance)
+    assert len(cov) == 21 and rx.reset_counter == 3
+    assert cov[0] == pytest.approx(9.0) and cov[6] == pytest.approx(16.0) and cov[11] == pytest.approx(25.0)
+    assert cov[1] == 0.0 and cov[20] == pytest.approx(math.pi**2, rel=1e-6)
+
+
+def test_statustext_truncates_to_50_ascii_bytes() -> None:
+    """Long or non-ASCII text is cut to 50 bytes without breaking the message."""
+    tx = D.MAVLink(None)
+    msg = m.statustext(tx, D.MAV_SEVERITY_WARNING, "é" + "x" * 80 + "\n")
+    rx = D.MAVLink(None).decode(bytearray(msg.pack(tx)))
+    assert rx.text == "?" + "x" * 49 and rx.severity == D.MAV_SEVERITY_WARNING
+    with pytest.raises(ValueError, match="severity"):
+        m.statustext(tx, 9, "bad")
+
+
+# --- link --------------------------------------------------------------------------------------------
+
+
+def test_link_outputs_decode_on_autopilot_side(udp_pair: tuple) -> None:
+    """GPS_INPUT, GLOBAL_POSITION_SENSOR, VISION_POSITION_ESTIMATE, NAMED_VALUEs, HEARTBEAT decode sanely."""
+    link, ap, _clock, _ = udp_pair
+    ap.mav.send(_ap_heartbeat(ap.mav))
+    assert _pump(link, lambda: link.tracker.autopilot_seen)
+    state = _state()
+    t_usec = T0_UNIX_USEC + 40_000
+    n = link.send_estimate(state, time_unix_usec=t_usec, inliers=87, residual_px=1.25, frame_drops=2)
+    assert n == 8
+    assert link.send_heartbeat(D.MAV_STATE_ACTIVE)
+
+    got = _recv_all(ap, None, 0.4)
+    by_type = {x.get_type(): x for x in got}
+    gps = by_type.get("GPS_INPUT")
+    assert gps is not None and gps.get_srcComponent() == 197 and gps.get_srcSystem() == 1
+    assert gps.lat == 504501234 and gps.lon == 305234567
+    assert gps.lat / 1e7 == pytest.approx(state.lat_deg, abs=1e-7)
+    assert gps.alt == pytest.approx(250.0)
+    assert gps.horiz_accuracy == pytest.approx(state.horiz_sigma_m)
+    assert gps.vert_accuracy == pytest.approx(state.vert_sigma_m)
+    assert gps.speed_accuracy == pytest.approx(state.speed_sigma_m_s)
+    assert (gps.vn, gps.ve, gps.vd) == pytest.approx((5.0, -2.0, 0.5))
+    week, week_ms = gps_week_and_ms(t_usec)
+    assert gps.time_week == week > 0 and gps.time_week_ms == week_ms and gps.time_usec == t_usec
+    assert gps.gps_id == GPS_INPUT_GPS_ID == 0 and gps.fix_type == 3 and gps.satellites_visible > 0
+
+    gps_sensor = by_type.get("GLOBAL_POSITION_SENSOR")
+    assert gps_sensor is not None and gps_sensor.lat == 504501234
+    assert gps_sensor.eph == pytest.approx(4.0) and gps_sensor.epv == pytest.approx(5.0)
+    assert gps_sensor.source == D.GLOBAL_POSITION_SRC_VISION and gps_sensor.flags == 0
+    vpe = by_type.get("VISION_POSITION_ESTIMATE")
+    assert vpe is not None and vpe.x == pytest.approx(10.0)
+
+    values = {x.name: x.value for x in got if x.get_type().startswith("NAMED_VALUE")}
+    assert values["GDN_PROV"] == Provenance.SATELLITE_ANCHORED.code == 3
+    assert values["GDN_INL"] == 87 and values["GDN_DROP"] == 2
+    assert values["GDN_RES"] == pytest.approx(1.25) and values["GDN_HSIG"] == pytest.approx(4.0)
+
+    hb = [x for x in got if x.get_type() == "HEARTBEAT" and x.get_srcComponent() == 197]
+    assert hb, "no heartbeat from component 197"
+    assert hb[0].type == D.MAV_TYPE_ONBOARD_CONTROLLER and hb[0].autopilot == D.MAV_AUTOPILOT_INVALID
+    assert link.stats().send_errors == 0
+
+
+def test_link_no_estimate_sends_fix_type_zero_and_unhealthy(udp_pair: tuple) -> None:
+    """no_estimate: GPS_INPUT fix 0, GLOBAL_POSITION_SENSOR flagged unhealthy, no VISION_POSITION_ESTIMATE."""
+    link, ap, _clock, _ = udp_pair
+    ap.mav.send(_ap_heartbeat(ap.mav))
+    assert _pump(link, lambda: link.tracker.autopilot_seen)
+    link.send_estimate(
+        _state(Provenance.NO_ESTIMATE),
+        time_unix_usec=T0_UNIX_USEC,
+        inliers=0,
+        residual_px=math.nan,
+        frame_drops=0,
+    )
+    got = _recv_all(ap, ["GPS_INPUT", "GLOBAL_POSITION_SENSOR", "VISION_POSITION_ESTIMATE"], 0.3)
+    by_type = {x.get_type(): x for x in got}
+    assert by_type["GPS_INPUT"].fix_type == 0
+    assert by_type["GLOBAL_POSITION_SENSOR"].flags & D.GLOBAL_POSITION_UNHEALTHY
+    assert "VISION_POSITION_ESTIMATE" not in by_type
+
+
+def test_statustext_rate_limited_and_coalesced(udp_pair: tuple) -> None:
+    """Transitions inside the interval are coalesced; the latest is sent once the interval allows."""
+    link, ap, clock, _ = udp_pair
+    ap.mav.send(_ap_heartbeat(ap.mav))
+    assert _pump(link, lambda: link.tracker.autopilot_seen)
+    link.notify_provenance(Provenance.SATELLITE_ANCHORED, Provenance.VISUAL_PROPAGATED, "GDN: vio only")
+    clock.t += 0.2
+    link.notify_provenance(Provenance.VISUAL_PROPAGATED, Provenance.NO_ESTIMATE, "GDN: lost")
+    clock.t += 0.2
+    link.notify_provenance(Provenance.NO_ESTIMATE, Provenance.SATELLITE_ANCHORED, "GDN: anchored again")
+    link.poll()
+    first = _recv_all(ap, "STATUSTEXT", 0.3)
+    assert [x.text for x in first] == ["GDN: vio only"]
+    assert first[0].severity == D.MAV_SEVERITY_WARNING
+    clock.t += 0.61  # 1.01 s after the first
+    link.poll()
+    second = _recv_all(ap, "STATUSTEXT", 0.3)
+    assert [x.text for x in second] == ["GDN: anchored again (+1)"]
+    assert second[0].severity == D.MAV_SEVERITY_INFO
+    clock.t += 5.0
+    link.poll()
+    assert _recv_all(ap, "STATUSTEXT", 0.2) == []  # nothing pending, nothing repeated
+    link.notify_provenance(Provenance.SATELLITE_ANCHORED, Provenance.NO_ESTIMATE, "GDN: lost")
+    third = _recv_all(ap, "STATUSTEXT", 0.3)
+    assert [(x.text, x.severity) for x in third] == [("GDN: lost", D.MAV_SEVERITY_CRITICAL)]
+    stats = link.stats()
+    assert stats.statustext_sent == 3 and stats.statustext_coalesced == 1
+
+
+def _key_file(tmp_path: Path, content: bytes, mode: int, name: str = "mavlink.key") -> Path:
+    p = tmp_path / name
+    p.write_bytes(content)
+    os.chmod(p, mode)
+    return p
+
+
+def test_signing_key_file_permissions_and_format_are_checked(tmp_path: Path) -> None:
+    """A group/world-readable key file, a wrong length, or a missing file is refused at open()."""
+    assert load_signing_key(_key_file(tmp_path, KEY_HEX.encode() + b"\n", 0o600)) == bytes.fromhex(KEY_HEX)
+    assert load_signing_key(_key_file(tmp_path, bytes(range(32)), 0o400)) == bytes(range(32))
+    cases = [
+        (_key_file(tmp_path, KEY_HEX.encode(), 0o644, "world.key"), "mode 0644"),
+        (_key_file(tmp_path, KEY_HEX.encode(), 0o640, "group.key"), "mode 0640"),
+        (_key_file(tmp_path, b"short", 0o600, "short.key"), "32 raw bytes or 64 hex"),
+        (_key_file(tmp_path, b"z" * 64, 0o600, "nothex.key"), "not hex"),
+        (tmp_path / "missing.key", "cannot be read"),
+    ]
+    for path, match in cases:
+        cfg = MavlinkConfig(url=f"udpin:127.0.0.1:{_free_udp_port()}", signing_key_file=str(path))
+        link = MavlinkLink(cfg, _tracker())
+        with pytest.raises(MavlinkConfigError, match=match):
+            link.open()
+        assert not link.connected
+
+
+def test_signing_outgoing_verified_by_keyed_receiver(tmp_path: Path) -> None:
+    """With a key, outputs are signed and verify on the keyed side; unsigned ones are rejected there,
+    and the signed link ignores an unsigned autopilot."""
+    key = bytes.fromhex(KEY_HEX)
+    key_path = _key_file(tmp_path, KEY_HEX.encode(), 0o600)
+    for signed in (True, False):
+        port = _free_udp_port()
+        cfg = MavlinkConfig(url=f"udpin:127.0.0.1:{port}", signing_key_file=str(key_path) if signed else None)
+        link = MavlinkLink(cfg, _tracker())
+        link.open()
+        ap = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+        try:
+            ap.setup_signing(key, sign_outgoing=True)
+            ap.mav.send(_ap_heartbeat(ap.mav))
+            tracker = link.tracker
+            assert _pump(link, lambda: tracker.autopilot_seen)  # noqa: B023 - called within the iteration
+            link.send_estimate(
+                _state(), time_unix_usec=T0_UNIX_USEC, inliers=1, residual_px=1.0, frame_drops=0
+            )
+            gps = ap.recv_match(type="GPS_INPUT", blocking=True, timeout=0.5 if not signed else 1.0)
+            if signed:
+                assert gps is not None and gps.get_signed() and gps.lat == 504501234
+            else:
+                assert gps is None and ap.mav.signing.goodsig_count == 0  # rejected: "Invalid signature"
+        finally:
+            ap.close()
+            link.close()
+    # the signed link refuses an unsigned autopilot
+    port = _free_udp_port()
+    link = MavlinkLink(
+        MavlinkConfig(url=f"udpin:127.0.0.1:{port}", signing_key_file=str(key_path)), _tracker()
+    )
+    link.open()
+    ap = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    try:
+        ap.mav.send(_ap_heartbeat(ap.mav))
+        assert not _pump(link, lambda: link.tracker.autopilot_seen, timeout_s=0.3)
+        assert link.stats().bad_packets >= 1
+    finally:
+        ap.close()
+        link.close()
+
+
+def test_link_heartbeat_loss_and_recovery_with_fake_clock(udp_pair: tuple) -> None:
+    """No autopilot heartbeat for link_timeout_s -> not alive, link_lost logged once; resumes after."""
+    link, ap, clock, port = udp_pair
+    ap.mav.send(_ap_heartbeat(ap.mav))
+    assert _pump(link, lambda: link.tracker.link_alive())
+    ap.close()
+    with structlog.testing.capture_logs() as logs:
+        clock.t += 2.9
+        link.poll()
+        assert link.tracker.link_alive()
+        clock.t += 0.2  # 3.1 s > link_timeout_s = 3 s
+        link.poll()
+        assert not link.tracker.link_alive()
+        clock.t += 5.0
+        link.poll()
+        ap2 = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+        try:
+            ap2.mav.send(_ap_heartbeat(ap2.mav))
+            assert _pump(link, lambda: link.tracker.link_alive())
+        finally:
+            ap2.close()
+    events = [e["event"] for e in logs]
+    assert events.count(LogEvent.MAVLINK_LINK_LOST) == 1
+    assert events.count(LogEvent.MAVLINK_LINK_RESTORED) == 1
+
+
+def test_link_tcp_transport_loss_reconnects_with_backoff() -> None:
+    """TCP: no server at open -> down; server appears -> connects; peer close -> down, then reconnects."""
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    server.bind(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    server.close()  # nothing listening yet
+    clock = FakeClock()
+    link = MavlinkLink(MavlinkConfig(url=f"tcp:127.0.0.1:{port}"), _tracker(clock), clock=clock)
+    with structlog.testing.capture_logs() as logs:
+        link.open()
+        assert not link.connected and link.fileno() is None
+        assert link.send_heartbeat() is False  # dropped, not raised
+        server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        server.bind(("127.0.0.1", port))
+        server.listen(1)
+        server.settimeout(2.0)
+        try:
+            link.poll()
+            assert not link.connected  # backoff (0.5 s +- 20 %) not yet elapsed
+            clock.t += 0.61
+            link.poll()
+            assert link.connected and isinstance(link.fileno(), int)
+            peer, _ = server.accept()
+            tx = D.MAVLink(None, srcSystem=1, srcComponent=1)
+            peer.sendall(_ap_heartbeat(tx).pack(tx))
+            assert _pump(link, lambda: link.tracker.autopilot_seen)
+            peer.close()  # transport loss
+            assert _pump(link, lambda: not link.connected)
+            clock.t += 0.61
+            link.poll()
+            assert link.connected and link.stats().reconnects == 2
+            peer2, _ = server.accept()
+            peer2.close()
+        finally:
+            server.close()
+            link.close()
+    assert [e["event"] for e in logs].count(LogEvent.MAVLINK_LINK_LOST) >= 1
+
+
+def test_link_sends_never_raise_when_closed() -> None:
+    """Sends on a link that is not open are dropped and counted, never raised."""
+    link = MavlinkLink(MavlinkConfig(url="udpout:127.0.0.1:9"), _tracker())
+    assert (
+        link.send_estimate(_state(), time_unix_usec=T0_UNIX_USEC, inliers=1, residual_px=1.0, frame_drops=0)
+        == 0
+    )
+    link.notify_provenance(None, Provenance.SATELLITE_ANCHORED)
+    assert link.poll() == 0
+    assert link.stats().sends_dropped_link_down > 0
+
+
+def test_link_rejects_unknown_url_scheme() -> None:
+    """An unsupported connection string is a MavlinkConfigError naming the URL."""
+    link = MavlinkLink(MavlinkConfig(url="http://127.0.0.1:80"), _tracker())
+    with pytest.raises(MavlinkConfigError, match=re.escape("http://127.0.0.1:80")):
+        link.open()
