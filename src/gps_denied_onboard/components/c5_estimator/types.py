@@ -41,3 +41,18 @@ class EstimatorState:
     @property
     def speed_sigma_m_s(self) -> float:
         return float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov_vel_ned_m2_s2[:2, :2]))))
+
+
+@dataclass(frozen=True)
+class FixDecision:
+    """What the estimator did with one measurement (absolute fix or VO motion).
+
+    ``nis``: normalised innovation squared of the horizontal part (chi-square, 2 dof) before the update;
+    NaN when it was not computed (e.g. not initialised, invalid input). ``reason``: ``accepted``,
+    ``accepted_reacquire``, ``gated``, ``fix_sigma_too_large``, ``invalid_measurement``,
+    ``not_initialised``.
+    """
+
+    accepted: bool
+    nis: float
+    reason: str

@@ -1,0 +1,344 @@
+"""C4 pose solver: camera pose and position covariance from map-matched inliers on flat ground.
+
+Pipeline per candidate
+----------------------
+1. Each inlier's tile pixel -> (lon, lat) through the tile's georeference -> NED on the flat ground at
+   ``ground_alt_amsl_m``. The world points are planar (D = const up to Earth curvature: ~8 cm at 1 km).
+2. Planar PnP (``SOLVEPNP_IPPE``, both of its solutions; ``SOLVEPNP_SQPNP`` as fallback) on points
+   centred on their centroid (NED coordinates can be kilometres from the origin; centring keeps the
+   problem well conditioned), then ``solvePnPRefineLM``. Distortion is handled by OpenCV from the
+   calibration's coefficients.
+3. Covariance: ``sigma^2 (J^T J)^-1`` over (rvec, tvec) from ``cv2.projectPoints``' Jacobian, with
+   ``sigma^2`` the residual variance per image coordinate with the dof correction (2I - 6), propagated to
+   the camera centre ``C = -R^T t`` with a numerical Jacobian, then floored per axis by
+   ``PoseConfig.min_sigma_m``. The floor stands for error the residuals cannot see: the map's own
+   georeference error, terrain that is not flat, and matches that are consistently biased (the same
+   model error gives small residuals but a shifted pose).
+4. Plausibility gates (each a ``PoseError`` with a :class:`PoseRejectReason`): enough inliers, a 2-D
+   spread of the inliers in the image, a solver result in front of the camera, height above ground
+   vs the autopilot's AGL, optical axis vs the autopilot's attitude, a finite covariance.
+
+Frames: world = local NED (metres); camera = OpenCV; ``R`` from ``solvePnP`` maps world to camera, so
+``R_ned_cam = R^T`` and the camera's optical axis in NED is ``R[2, :]``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Final
+
+import cv2
+import numpy as np
+import structlog
+
+from gps_denied_onboard.camera.types import R_BODY_CAM, CameraCalibration, NavCameraFrame
+from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet
+from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
+from gps_denied_onboard.components.c6_tiles.types import TilePixelsHandle
+from gps_denied_onboard.config import PoseConfig
+from gps_denied_onboard.constants import LogEvent
+from gps_denied_onboard.geo import LocalTangentPlane
+
+_log = structlog.get_logger(__name__)
+
+#: Default minimum standard deviation of the inliers along their minor principal axis, image px.
+#: Below this the points are close to a line and the pose about that line is unobservable.
+DEFAULT_MIN_SPREAD_PX: Final[float] = 8.0
+#: IPPE returns two poses; a second one whose RMS error is within this factor of the best is
+#: considered equally plausible and the autopilot's attitude picks between them.
+_IPPE_AMBIGUITY_RATIO: Final[float] = 1.5
+#: Step of the numerical derivatives with respect to the rotation vector, radians.
+_ROT_EPS_RAD: Final[float] = 1e-6
+
+
+class PoseRejectReason:
+    """Values of ``PoseError.reason`` (logged with ``c4.pose.rejected`` and recorded by the FDR)."""
+
+    TOO_FEW_INLIERS: Final = "too_few_inliers"
+    INVALID_CORRESPONDENCES: Final = "invalid_correspondences"
+    MISSING_ATTITUDE: Final = "missing_attitude"
+    DEGENERATE_GEOMETRY: Final = "degenerate_geometry"
+    SOLVER_FAILED: Final = "solver_failed"
+    BEHIND_CAMERA: Final = "behind_camera"
+    ALTITUDE_DISAGREEMENT: Final = "altitude_disagreement"
+    ATTITUDE_DISAGREEMENT: Final = "attitude_disagreement"
+    NON_FINITE_COVARIANCE: Final = "non_finite_covariance"
+
+
+def _camera_centre(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    rot, _ = cv2.Rodrigues(rvec)
+    return -rot.T @ tvec.reshape(3)
+
+
+def _body_yaw_rad(rvec: np.ndarray) -> float:
+    """Body yaw (NED, radians) of the solution, through the nadir mount (image top = nose)."""
+    rot, _ = cv2.Rodrigues(rvec)
+    r_ned_body = rot.T @ R_BODY_CAM.T
+    return math.atan2(r_ned_body[1, 0], r_ned_body[0, 0])
+
+
+def _wrap_pi(angle_rad: float) -> float:
+    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
+class PoseSolver:
+    """Absolute camera pose from a C3 candidate's inliers, its tile georeference and the calibration.
+
+    ``config``: the ``pose`` section. ``ltp``: the flight's NED frame. ``ground_alt_amsl_m``: the
+    flat-ground height (``terrain.ground_alt_amsl_m``). ``min_spread_px``: degeneracy threshold, see
+    :data:`DEFAULT_MIN_SPREAD_PX`.
+    """
+
+    def __init__(
+        self,
+        config: PoseConfig,
+        ltp: LocalTangentPlane,
+        ground_alt_amsl_m: float,
+        *,
+        min_spread_px: float = DEFAULT_MIN_SPREAD_PX,
+    ) -> None:
+        if not math.isfinite(ground_alt_amsl_m):
+            raise ValueError(f"ground_alt_amsl_m must be finite, got {ground_alt_amsl_m!r}")
+        if not min_spread_px > 0:
+            raise ValueError(f"min_spread_px must be > 0, got {min_spread_px!r}")
+        self._config = config
+        self._ltp = ltp
+        self._ground_alt_amsl_m = float(ground_alt_amsl_m)
+        self._min_spread_px = float(min_spread_px)
+
+    def solve(
+        self,
+        frame: NavCameraFrame,
+        candidate: CandidateMatchSet,
+        tile: TilePixelsHandle,
+        calibration: CameraCalibration,
+    ) -> PoseFix:
+        """Solve the camera pose for ``frame`` from ``candidate``'s inliers on ``tile``.
+
+        Raises :class:`PoseError` (``reason`` from :class:`PoseRejectReason`) when the pose cannot be
+        solved or is implausible; the rejection is logged as ``c4.pose.rejected``.
+        """
+        try:
+            return self._solve(frame, candidate, tile, calibration)
+        except PoseError as exc:
+            _log.warning(
+                LogEvent.POSE_REJECTED,
+                reason=exc.reason,
+                detail=str(exc),
+                frame_id=str(frame.frame_id),
+                tile_id=tuple(candidate.tile_id),
+                inliers=int(np.asarray(candidate.inlier_correspondences).shape[0]),
+            )
+            raise
+
+    # -- steps -------------------------------------------------------------------------------------------
+
+    def _reject(self, message: str, reason: str, frame: NavCameraFrame) -> PoseError:
+        return PoseError(message, reason=reason, frame_id=frame.frame_id)
+
+    def _solve(
+        self,
+        frame: NavCameraFrame,
+        candidate: CandidateMatchSet,
+        tile: TilePixelsHandle,
+        calibration: CameraCalibration,
+    ) -> PoseFix:
+        cfg = self._config
+        corr = np.asarray(candidate.inlier_correspondences, dtype=np.float64)
+        if corr.ndim != 2 or corr.shape[1] != 4:
+            raise self._reject(
+                f"inlier_correspondences must be (I, 4), got {corr.shape}",
+                PoseRejectReason.INVALID_CORRESPONDENCES,
+                frame,
+            )
+        n_pts = corr.shape[0]
+        if n_pts < cfg.min_inliers:
+            raise self._reject(
+                f"{n_pts} inliers < min_inliers {cfg.min_inliers}", PoseRejectReason.TOO_FEW_INLIERS, frame
+            )
+        if not np.all(np.isfinite(corr)):
+            raise self._reject(
+                "non-finite inlier coordinates", PoseRejectReason.INVALID_CORRESPONDENCES, frame
+            )
+        if frame.attitude is None:
+            # The frame contract: without a fresh attitude no absolute fix may come from this frame.
+            raise self._reject("frame has no attitude", PoseRejectReason.MISSING_ATTITUDE, frame)
+
+        img_px = np.ascontiguousarray(corr[:, 0:2])
+        spread_px = self._minor_axis_std_px(img_px)
+        if spread_px < self._min_spread_px:
+            raise self._reject(
+                f"inliers nearly collinear: minor-axis std {spread_px:.2f} px < {self._min_spread_px} px",
+                PoseRejectReason.DEGENERATE_GEOMETRY,
+                frame,
+            )
+
+        lon, lat = tile.chip_px_to_lonlat(np.ascontiguousarray(corr[:, 2:4]))
+        world_ned = self._ltp.to_ned(lat, lon, np.full(n_pts, self._ground_alt_amsl_m))
+        if not np.all(np.isfinite(world_ned)):
+            raise self._reject(
+                "tile georeference gave non-finite ground points",
+                PoseRejectReason.INVALID_CORRESPONDENCES,
+                frame,
+            )
+        centroid = world_ned.mean(axis=0)
+        obj = np.ascontiguousarray(world_ned - centroid)
+        k_mat, dist = calibration.K, calibration.dist
+        expected_axis = frame.attitude.R_ned_cam()[:, 2]
+
+        rvec, tvec = self._pnp(obj, img_px, k_mat, dist, expected_axis, frame)
+        rot, _ = cv2.Rodrigues(rvec)
+        if not np.all((obj @ rot.T + tvec.reshape(1, 3))[:, 2] > 0):
+            raise self._reject(
+                "solution puts ground points behind the camera", PoseRejectReason.BEHIND_CAMERA, frame
+            )
+
+        centre_local = _camera_centre(rvec, tvec)
+        pos_ned = centre_local + centroid
+        lat_c, lon_c, alt_c = self._ltp.to_geodetic(pos_ned)
+        alt_amsl = float(alt_c)
+        agl_solved = alt_amsl - self._ground_alt_amsl_m
+        if agl_solved <= 0:
+            raise self._reject(
+                f"solved camera is {agl_solved:.1f} m above ground", PoseRejectReason.BEHIND_CAMERA, frame
+            )
+        if frame.alt_agl_m is not None and frame.alt_agl_m > 0:
+            frac = abs(agl_solved - frame.alt_agl_m) / frame.alt_agl_m
+            if frac > cfg.max_alt_disagreement_frac:
+                raise self._reject(
+                    f"solved AGL {agl_solved:.1f} m vs autopilot {frame.alt_agl_m:.1f} m "
+                    f"({frac:.0%} > {cfg.max_alt_disagreement_frac:.0%})",
+                    PoseRejectReason.ALTITUDE_DISAGREEMENT,
+                    frame,
+                )
+        solved_axis = rot[2, :]
+        disagreement_rad = float(np.arccos(np.clip(solved_axis @ expected_axis, -1.0, 1.0)))
+        if disagreement_rad > math.radians(cfg.max_attitude_disagreement_deg):
+            raise self._reject(
+                f"optical axis {math.degrees(disagreement_rad):.1f} deg from the autopilot's "
+                f"(> {cfg.max_attitude_disagreement_deg} deg)",
+                PoseRejectReason.ATTITUDE_DISAGREEMENT,
+                frame,
+            )
+
+        cov_ned, yaw_sigma, residual_med_px = self._covariance(obj, img_px, rvec, tvec, k_mat, dist, frame)
+        return PoseFix(
+            frame_id=frame.frame_id,
+            exposure_time_unix_usec=frame.exposure_time_unix_usec,
+            pos_ned_m=pos_ned,
+            cov_ned_m2=cov_ned,
+            lat_deg=float(lat_c),
+            lon_deg=float(lon_c),
+            alt_amsl_m=alt_amsl,
+            yaw_rad=_body_yaw_rad(rvec),
+            yaw_sigma_rad=yaw_sigma,
+            attitude_disagreement_rad=disagreement_rad,
+            inlier_count=n_pts,
+            residual_px=residual_med_px,
+            tile_id=candidate.tile_id,
+        )
+
+    @staticmethod
+    def _minor_axis_std_px(img_px: np.ndarray) -> float:
+        cov = np.cov(img_px.T)
+        return float(np.sqrt(max(np.linalg.eigvalsh(cov)[0], 0.0)))
+
+    def _pnp(
+        self,
+        obj: np.ndarray,
+        img_px: np.ndarray,
+        k_mat: np.ndarray,
+        dist: np.ndarray,
+        expected_axis: np.ndarray,
+        frame: NavCameraFrame,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Planar PnP + LM refinement; the IPPE ambiguity is resolved with the autopilot's attitude."""
+        candidates: list[tuple[np.ndarray, np.ndarray, float]] = []
+        try:
+            n_sol, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img_px, k_mat, dist, flags=cv2.SOLVEPNP_IPPE)
+            if n_sol:
+                candidates = [(r, t, float(e)) for r, t, e in zip(rvecs, tvecs, np.ravel(errs), strict=True)]
+            else:
+                n_sol, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+                    obj, img_px, k_mat, dist, flags=cv2.SOLVEPNP_SQPNP
+                )
+                candidates = [(r, t, float(e)) for r, t, e in zip(rvecs, tvecs, np.ravel(errs), strict=True)]
+        except cv2.error as exc:
+            raise PoseError(
+                f"OpenCV PnP failed: {exc}",
+                reason=PoseRejectReason.SOLVER_FAILED,
+                frame_id=frame.frame_id,
+            ) from exc
+        candidates = [c for c in candidates if np.all(np.isfinite(c[0])) and np.all(np.isfinite(c[1]))]
+        if not candidates:
+            raise self._reject("PnP returned no solution", PoseRejectReason.SOLVER_FAILED, frame)
+        best_err = min(c[2] for c in candidates)
+        plausible = [c for c in candidates if c[2] <= _IPPE_AMBIGUITY_RATIO * best_err + 1e-9]
+
+        def axis_misfit(c: tuple[np.ndarray, np.ndarray, float]) -> float:
+            rot, _ = cv2.Rodrigues(c[0])
+            return -float(rot[2, :] @ expected_axis)
+
+        rvec, tvec, _ = min(plausible, key=axis_misfit)
+        rvec = np.array(rvec, dtype=np.float64).reshape(3, 1)
+        tvec = np.array(tvec, dtype=np.float64).reshape(3, 1)
+        try:
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img_px, k_mat, dist, rvec, tvec)
+        except cv2.error as exc:
+            raise PoseError(
+                "OpenCV solvePnPRefineLM failed",
+                reason=PoseRejectReason.SOLVER_FAILED,
+                frame_id=frame.frame_id,
+            ) from exc
+        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+            raise self._reject("refined pose is not finite", PoseRejectReason.SOLVER_FAILED, frame)
+        return rvec, tvec
+
+    def _covariance(
+        self,
+        obj: np.ndarray,
+        img_px: np.ndarray,
+        rvec: np.ndarray,
+        tvec: np.ndarray,
+        k_mat: np.ndarray,
+        dist: np.ndarray,
+        frame: NavCameraFrame,
+    ) -> tuple[np.ndarray, float, float]:
+        """(camera-centre covariance NED m^2 (floored), yaw sigma rad, median residual px)."""
+        proj, jac = cv2.projectPoints(obj, rvec, tvec, k_mat, dist)
+        resid = proj.reshape(-1, 2) - img_px
+        n_pts = img_px.shape[0]
+        dof = 2 * n_pts - 6
+        sigma2_px2 = float(np.sum(resid**2)) / dof
+        jac_pose = np.asarray(jac, dtype=np.float64)[:, :6]
+        try:
+            cov_pose = sigma2_px2 * np.linalg.inv(jac_pose.T @ jac_pose)
+        except np.linalg.LinAlgError as exc:
+            raise PoseError(
+                "reprojection Jacobian is singular",
+                reason=PoseRejectReason.NON_FINITE_COVARIANCE,
+                frame_id=frame.frame_id,
+            ) from exc
+
+        # d C / d (rvec, tvec): C = -R(r)^T t; numerical in r (central differences), exact in t.
+        rot, _ = cv2.Rodrigues(rvec)
+        g = np.zeros((3, 6))
+        g_yaw = np.zeros(6)
+        for i in range(3):
+            step = np.zeros((3, 1))
+            step[i] = _ROT_EPS_RAD
+            g[:, i] = (_camera_centre(rvec + step, tvec) - _camera_centre(rvec - step, tvec)) / (
+                2 * _ROT_EPS_RAD
+            )
+            g_yaw[i] = _wrap_pi(_body_yaw_rad(rvec + step) - _body_yaw_rad(rvec - step)) / (2 * _ROT_EPS_RAD)
+        g[:, 3:] = -rot.T
+        cov_c = g @ cov_pose @ g.T
+        cov_c = 0.5 * (cov_c + cov_c.T)
+        yaw_var = float(g_yaw @ cov_pose @ g_yaw)
+        if not (np.all(np.isfinite(cov_c)) and math.isfinite(yaw_var)):
+            raise self._reject("pose covariance is not finite", PoseRejectReason.NON_FINITE_COVARIANCE, frame)
+        floor_var = self._config.min_sigma_m**2
+        # Adding a non-negative diagonal keeps the matrix positive semi-definite.
+        cov_c = cov_c + np.diag(np.maximum(floor_var - np.diag(cov_c), 0.0))
+        residual_med = float(np.median(np.linalg.norm(resid, axis=1)))
+        return cov_c, math.sqrt(max(yaw_var, 0.0)), residual_med

@@ -1,0 +1,240 @@
+"""C5 estimator: convergence, gating, re-acquisition, provenance and honest covariance growth."""
+
+from __future__ import annotations
+
+import math
+import uuid
+
+import numpy as np
+import pytest
+import structlog
+
+from gps_denied_onboard.components.c1_vio.types import VoMotion
+from gps_denied_onboard.components.c4_pose.types import PoseFix
+from gps_denied_onboard.components.c5_estimator import FixReason, NavEstimator
+from gps_denied_onboard.components.c6_tiles.types import TileId
+from gps_denied_onboard.config import EstimatorConfig
+from gps_denied_onboard.constants import LogEvent, Provenance
+from gps_denied_onboard.geo import LocalTangentPlane
+
+LTP = LocalTangentPlane(17.59, 78.12, 500.0)
+T0_USEC = 1_700_000_000_000_000
+S = 1_000_000  # one second in microseconds
+
+
+def _fix(pos_ned: np.ndarray, sigma_m: float, t_usec: int, *, yaw_rad: float = 0.3) -> PoseFix:
+    lat, lon, alt = LTP.to_geodetic(pos_ned)
+    return PoseFix(
+        frame_id=uuid.uuid4(),
+        exposure_time_unix_usec=t_usec,
+        pos_ned_m=np.asarray(pos_ned, dtype=np.float64),
+        cov_ned_m2=np.eye(3) * sigma_m**2,
+        lat_deg=float(lat),
+        lon_deg=float(lon),
+        alt_amsl_m=float(alt),
+        yaw_rad=yaw_rad,
+        yaw_sigma_rad=0.01,
+        attitude_disagreement_rad=0.01,
+        inlier_count=80,
+        residual_px=0.8,
+        tile_id=TileId.of(18, float(lat), float(lon)),
+    )
+
+
+def _vo(delta_ne: np.ndarray, sigma_m: float, dt_s: float) -> VoMotion:
+    return VoMotion(
+        uuid.uuid4(), uuid.uuid4(), dt_s, np.asarray(delta_ne, float), np.eye(2) * sigma_m**2, 200
+    )
+
+
+def _estimator(**cfg: float) -> NavEstimator:
+    return NavEstimator(EstimatorConfig(**cfg), LTP)
+
+
+def test_estimator_converges_on_constant_velocity_truth() -> None:
+    """Noisy 5 m fixes at 2 Hz on a straight 10 m/s track: error shrinks and NEES stays consistent."""
+    rng = np.random.default_rng(0)
+    vel = np.array([8.0, 6.0, 0.0])
+    start = np.array([100.0, -50.0, -120.0])
+    est = _estimator()
+    est.initialise(start + np.array([60.0, -40.0, 0.0]), 80.0, T0_USEC)
+    errors, fix_errors, nees = [], [], []
+    for k in range(1, 241):
+        t = T0_USEC + k * S // 2
+        truth = start + vel * (k / 2)
+        measured = truth + rng.normal(0, 5.0, 3)
+        decision = est.update_fix(_fix(measured, 5.0, t))
+        assert decision.accepted, decision
+        st = est.state()
+        err = st.pos_ned_m[:2] - truth[:2]
+        errors.append(float(np.linalg.norm(err)))
+        fix_errors.append(float(np.linalg.norm(measured[:2] - truth[:2])))
+        nees.append(float(err @ np.linalg.solve(st.cov_pos_ned_m2[:2, :2], err)))
+    assert errors[0] < 20.0  # from 72 m of prior error
+    assert np.mean(errors[-60:]) < 0.5 * np.mean(fix_errors[-60:])  # filtering beats single fixes
+    assert 0.8 < np.mean(nees[40:]) < 4.0  # 2 dof
+    assert np.linalg.norm(st.vel_ned_m_s[:2] - vel[:2]) < 1.5
+    assert st.provenance is Provenance.SATELLITE_ANCHORED
+    assert st.yaw_rad == pytest.approx(0.3)
+    assert st.last_fix_age_s == 0.0
+
+
+def test_estimator_gate_rejects_far_fix_and_accepts_consistent_one() -> None:
+    """With ~5 m sigma, a fix 200 m away is gated (and logged); a fix 4 m away is fused."""
+    est = _estimator()
+    est.initialise(np.array([0.0, 0.0, -100.0]), 5.0, T0_USEC, vel_sigma_m_s=0.5)
+    with structlog.testing.capture_logs() as logs:
+        far = est.update_fix(_fix(np.array([200.0, 0.0, -100.0]), 3.0, T0_USEC + S // 3))
+    assert not far.accepted and far.reason == FixReason.GATED and far.nis > 13.8
+    assert any(e["event"] == LogEvent.ESTIMATOR_FIX_REJECTED and e["nis"] == far.nis for e in logs)
+    assert np.linalg.norm(est.state().pos_ned_m[:2]) < 1.0  # not teleported
+    near = est.update_fix(_fix(np.array([3.0, -2.5, -100.0]), 3.0, T0_USEC + 2 * S // 3))
+    assert near.accepted and near.reason == FixReason.ACCEPTED and near.nis < 13.8
+    assert est.state().pos_ned_m[0] > 1.0
+
+
+def test_estimator_reacquires_after_long_gap() -> None:
+    """After a 30 s gap (sigma > reacquire_sigma_m) a fix far outside the gate is accepted."""
+    est = _estimator()
+    est.initialise(np.array([0.0, 0.0, -100.0]), 5.0, T0_USEC)
+    t = T0_USEC + 30 * S
+    est.predict_to(t)
+    assert est.state().horiz_sigma_m > 150.0
+    far = np.array([1500.0, 300.0, -100.0])
+    decision = est.update_fix(_fix(far, 4.0, t))
+    assert decision.accepted and decision.reason == FixReason.ACCEPTED_REACQUIRE
+    assert decision.nis > 13.8  # the gate alone would have refused it
+    st = est.state()
+    assert np.linalg.norm(st.pos_ned_m[:2] - far[:2]) < 5.0
+    assert st.horiz_sigma_m < 5.0
+    # The same situation with re-acquisition disabled keeps the gate.
+    strict = _estimator(reacquire_sigma_m=1e6)
+    strict.initialise(np.array([0.0, 0.0, -100.0]), 5.0, T0_USEC)
+    assert strict.update_fix(_fix(far, 4.0, t)).reason == FixReason.GATED
+
+
+def test_estimator_reacquire_refuses_enormous_fix_sigma() -> None:
+    """A re-acquisition fix whose own sigma is above reacquire_sigma_m is refused."""
+    est = _estimator()
+    est.initialise(np.array([0.0, 0.0, -100.0]), 5.0, T0_USEC)
+    decision = est.update_fix(_fix(np.array([1500.0, 0.0, -100.0]), 400.0, T0_USEC + 30 * S))
+    assert not decision.accepted and decision.reason == FixReason.FIX_SIGMA_TOO_LARGE
+
+
+def test_estimator_rejects_invalid_and_uninitialised_fixes() -> None:
+    """NaN positions / non-PD covariances are refused; nothing is fused before initialise."""
+    est = _estimator()
+    assert est.update_fix(_fix(np.zeros(3), 3.0, T0_USEC)).reason == FixReason.NOT_INITIALISED
+    est.initialise(np.zeros(3), 5.0, T0_USEC)
+    bad = _fix(np.array([np.nan, 0.0, 0.0]), 3.0, T0_USEC + S)
+    assert est.update_fix(bad).reason == FixReason.INVALID_MEASUREMENT
+    neg = _fix(np.zeros(3), 3.0, T0_USEC + S)
+    neg = PoseFix(**{**neg.__dict__, "cov_ned_m2": -np.eye(3)})
+    assert est.update_fix(neg).reason == FixReason.INVALID_MEASUREMENT
+
+
+def test_estimator_provenance_transitions() -> None:
+    """no_estimate -> dead_reckoning -> satellite_anchored -> visual_propagated -> dead_reckoning ->
+    no_estimate, each change logged with from/to."""
+    est = _estimator()
+    assert est.state(T0_USEC).provenance is Provenance.NO_ESTIMATE
+    with structlog.testing.capture_logs() as logs:
+        est.initialise(np.array([0.0, 0.0, -100.0]), 20.0, T0_USEC, vel_sigma_m_s=2.0)
+        assert est.state().provenance is Provenance.DEAD_RECKONING
+        est.update_fix(_fix(np.array([1.0, 1.0, -100.0]), 3.0, T0_USEC + S))
+        assert est.state().provenance is Provenance.SATELLITE_ANCHORED
+        t = T0_USEC + S
+        for _ in range(15):  # 5 s of VO only, 3 Hz, the vehicle hovering
+            t += S // 3
+            assert est.update_vo(_vo(np.zeros(2), 0.5, 1 / 3), time_unix_usec=t).accepted
+        assert est.state().provenance is Provenance.VISUAL_PROPAGATED
+        assert est.state(t + 3 * S).provenance is Provenance.DEAD_RECKONING
+        assert est.state(t + 600 * S).provenance is Provenance.NO_ESTIMATE
+    changes = [(e["from"], e["to"]) for e in logs if e["event"] == LogEvent.PROVENANCE_CHANGED]
+    assert changes == [
+        ("no_estimate", "dead_reckoning"),
+        ("dead_reckoning", "satellite_anchored"),
+        ("satellite_anchored", "visual_propagated"),
+        ("visual_propagated", "dead_reckoning"),
+        ("dead_reckoning", "no_estimate"),
+    ]
+
+
+def test_estimator_sigma_grows_monotonically_without_fixes() -> None:
+    """Pure prediction: the horizontal sigma increases at every step, and state() does not mutate."""
+    est = _estimator()
+    est.initialise(np.zeros(3), 3.0, T0_USEC, vel_sigma_m_s=1.0)
+    before = est.state()
+    sigmas = [est.state(T0_USEC + k * S // 2).horiz_sigma_m for k in range(0, 60)]
+    assert np.all(np.diff(sigmas) > 0)
+    after = est.state()
+    assert after.time_unix_usec == before.time_unix_usec
+    assert after.horiz_sigma_m == before.horiz_sigma_m
+    stepped = []
+    for k in range(1, 60):
+        est.predict_to(T0_USEC + k * S // 2)
+        stepped.append(est.state().horiz_sigma_m)
+    assert np.all(np.diff(stepped) > 0)
+    assert stepped[-1] == pytest.approx(sigmas[-1], rel=1e-9)
+
+
+def test_estimator_vo_slows_sigma_growth() -> None:
+    """After a fix, 30 s of VO keeps the sigma well below pure prediction, yet still growing."""
+    fused, blind = _estimator(), _estimator()
+    for est in (fused, blind):
+        est.initialise(np.array([0.0, 0.0, -100.0]), 5.0, T0_USEC)
+    vel = np.array([10.0, 0.0])
+    t = T0_USEC
+    vo_sigmas = []
+    for _ in range(90):
+        t += S // 3
+        assert fused.update_vo(_vo(vel / 3, 0.6, 1 / 3), time_unix_usec=t).accepted
+        blind.predict_to(t)
+        vo_sigmas.append(fused.state().horiz_sigma_m)
+    assert fused.state().horiz_sigma_m < 0.5 * blind.state().horiz_sigma_m
+    assert np.all(np.diff(vo_sigmas[10:]) > 0)  # VO bounds velocity, not position
+    assert fused.state().vel_ned_m_s[0] == pytest.approx(10.0, abs=0.5)
+
+
+def test_estimator_vo_gate_rejects_blunder() -> None:
+    """A VO velocity 60 m/s off a well-known velocity is gated, not fused."""
+    est = _estimator()
+    est.initialise(np.zeros(3), 5.0, T0_USEC, vel_sigma_m_s=0.5)
+    decision = est.update_vo(_vo(np.array([20.0, 0.0]), 0.3, 1 / 3), time_unix_usec=T0_USEC + S // 3)
+    assert not decision.accepted and decision.reason == FixReason.GATED
+    assert abs(est.state().vel_ned_m_s[0]) < 0.1
+
+
+def test_estimator_ignores_time_going_backwards() -> None:
+    """predict_to an earlier time is logged and leaves the state unchanged."""
+    est = _estimator()
+    est.initialise(np.zeros(3), 5.0, T0_USEC)
+    est.predict_to(T0_USEC + 2 * S)
+    before = est.state()
+    with structlog.testing.capture_logs() as logs:
+        est.predict_to(T0_USEC + S)
+    after = est.state()
+    assert after.time_unix_usec == T0_USEC + 2 * S
+    assert np.array_equal(after.cov_pos_ned_m2, before.cov_pos_ned_m2)
+    assert any(e["event"] == LogEvent.ESTIMATOR_TIME_BACKWARDS for e in logs)
+
+
+def test_estimator_stale_fix_refused() -> None:
+    """A fix more than max_fix_lag_s older than the filter time is refused as stale."""
+    est = _estimator()
+    est.initialise(np.zeros(3), 5.0, T0_USEC)
+    est.predict_to(T0_USEC + 5 * S)
+    assert est.update_fix(_fix(np.zeros(3), 3.0, T0_USEC + 2 * S)).reason == FixReason.STALE
+
+
+def test_estimator_altitude_update_sets_down() -> None:
+    """AGL 120 m over ground at 520 m AMSL (origin 500 m) -> d near -140 m and geodetic alt near 640 m."""
+    est = _estimator()
+    est.initialise(np.zeros(3), 30.0, T0_USEC)
+    for _ in range(5):
+        assert est.update_altitude(120.0, 520.0, 1.0).accepted
+    st = est.state()
+    assert st.pos_ned_m[2] == pytest.approx(-140.0, abs=1.0)
+    assert st.alt_amsl_m == pytest.approx(640.0, abs=1.0)
+    assert st.vert_sigma_m < 1.0
+    assert math.isfinite(st.lat_deg) and math.isfinite(st.lon_deg)
