@@ -1,0 +1,831 @@
+"""SITL scenarios: a YAML flight script, loaded strictly, resolved over a map into a truth trajectory.
+
+A scenario says where and how the simulated aircraft flies and what its nav camera sees; the runner
+resolves it over the map it was given (``Scenario.resolve``) into a ``Trajectory`` whose ``truth_at(t_s)``
+is the ground truth that frames are rendered from and that the daemon's output is scored against.
+
+Scenario YAML schema
+--------------------
+Every key below is the whole vocabulary: an unknown key, a wrong type (a string where a number is
+expected, a bool where an integer is expected) or an out-of-range value is a ``ScenarioError`` naming the
+key path (``waypoints.points[2][2].alt_agl_m``) and what was expected. Integers are accepted where a
+number is expected.
+
+``name`` (str, required)
+    Scenario name (reports, log lines).
+``description`` (str, default "")
+    Free text.
+``duration_s`` (number > 0 or null, default null)
+    Length of the run, s. null = ``start_delay_s`` + the time to fly the path once. When longer than that,
+    the aircraft holds (hovers) at the last waypoint for the rest of the run.
+``frame_rate_hz`` (number > 0, default 3.0)
+    Nav-camera frame rate; frames are exposed at ``t_s = k / frame_rate_hz``, k = 0, 1, ...
+``speed_m_s`` (number > 0, default 12.0)
+    Ground speed along the path, m/s (constant; no wind).
+``alt_agl_m`` (number > 0, required)
+    Height above the (flat) ground, m; the default for every waypoint.
+``climb_rate_m_s`` (number > 0, default 2.0)
+    Largest vertical speed, m/s: an altitude change is a ramp at this rate that starts when the aircraft
+    passes the previous waypoint (the middle of its turn).
+``turn_rate_deg_s`` (number > 0, default 15.0)
+    Turn rate at the waypoints, deg/s: each corner is flown as a circular arc of radius
+    ``speed / turn_rate`` (tighter when the legs are too short for it), so the heading (= track direction,
+    no wind, no crab) is continuous. No bank is modelled: roll and pitch come from ``attitude_wobble`` only.
+``ground_alt_amsl_m`` (number or null, default null)
+    Height of the flat ground above mean sea level, m. null = the value the runner passes to
+    ``Scenario.resolve`` (the daemon's ``terrain.ground_alt_amsl_m``), so truth and daemon agree; set it
+    to simulate a terrain-height error.
+``start_delay_s`` (number >= 0, default 2.0)
+    The aircraft holds (hovers, zero velocity, heading along the first leg) at the first waypoint for
+    this long before flying the path; frames are streamed during the hold.
+``camera`` (mapping)
+    Ideal pinhole nav camera (no distortion, centred principal point), nadir mount, image top = nose.
+    ``width_px`` (int >= 16, default 640), ``height_px`` (int >= 16, default 480),
+    ``hfov_deg`` (number in (1, 179), default 70.0).
+``attitude_wobble`` (mapping)
+    Deterministic roll/pitch oscillation: roll = ``roll_amp_deg`` sin(2 pi t / ``period_s``),
+    pitch = ``pitch_amp_deg`` sin(2 pi t / (1.618 ``period_s``) + 0.7). Keys ``roll_amp_deg``,
+    ``pitch_amp_deg`` (numbers in [0, 45), default 0) and ``period_s`` (number > 0, default 7.0).
+``photometric`` (mapping)
+    Per-frame camera photometry (see ``sitl.photometric.PhotometricParams``): ``gain_range`` and
+    ``gamma_range`` ([lo, hi], 0 < lo <= hi, default [1, 1]), ``colour_shift_dn`` (>= 0, default 0),
+    ``noise_sigma_dn`` (>= 0, default 0), ``blur_prob`` (in [0, 1], default 0), ``blur_sigma_px``
+    (>= 0, default 0), ``seed`` (int >= 0, default 0).
+``waypoints`` (mapping, required)
+    ``frame``: ``map_relative`` or ``wgs84`` (required).
+    ``points``: at least two points. A point is ``[a, b]`` or ``[a, b, {alt_agl_m: H}]`` (the mapping
+    overrides the altitude for the leg that ends at that point; the first point's altitude is the start
+    altitude). For ``map_relative``, (a, b) = (u, v) in [0, 1]: u = 0 at the west edge of the usable box,
+    1 at its east edge; v = 0 south, 1 north. For ``wgs84``, (a, b) = (lat_deg, lon_deg), and every
+    point must lie on the map. Consecutive points must differ.
+    ``margin_m`` (``map_relative`` only; number >= 0 or ``auto``, default ``auto``): the usable box is the
+    map's lon/lat box shrunk by this on every side, so that the camera footprint stays on the map.
+    ``auto`` = the footprint radius at the highest waypoint altitude with the largest wobble tilt
+    (``Scenario.footprint_radius_m``) + 5 m.
+``map_gaps`` (list, default [])
+    Time windows in which the nav image is degraded (``sitl.photometric.degrade_for_gap``):
+    ``{from_s: number >= 0, to_s: number > from_s, kind: featureless | blackout}``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from gps_denied_onboard.camera.types import Attitude, CameraCalibration
+from gps_denied_onboard.geo import LocalTangentPlane
+
+from .photometric import GapKind, PhotometricParams
+
+#: Where the scenarios shipped with the package live (``demo``, ``smoke``, ``nominal_real``).
+BUILTIN_SCENARIOS_DIR: Path = Path(__file__).resolve().parent / "scenarios"
+
+#: Extra clearance added to the automatic margin, m.
+_AUTO_MARGIN_EXTRA_M = 5.0
+#: Ratio of the pitch wobble period to the roll period: irrational, so the two never lock into a pattern.
+_PITCH_PERIOD_RATIO = 1.618
+_PITCH_PHASE_RAD = 0.7
+
+
+class ScenarioError(ValueError):
+    """Invalid scenario. ``key_path`` is dotted, with list indices (``waypoints.points[1][0]``)."""
+
+    def __init__(self, key_path: str, message: str, *, source: str | None = None) -> None:
+        where = f"{source}: " if source else ""
+        super().__init__(f"scenario error: {where}{key_path}: {message}")
+        self.key_path = key_path
+        self.source = source
+
+
+class WaypointFrame(str, Enum):
+    """How waypoint coordinates are given."""
+
+    MAP_RELATIVE = "map_relative"
+    WGS84 = "wgs84"
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """Ideal pinhole nav camera: image size, px, and horizontal field of view, degrees."""
+
+    width_px: int = 640
+    height_px: int = 480
+    hfov_deg: float = 70.0
+
+    def calibration(self) -> CameraCalibration:
+        """The camera as the ``CameraCalibration`` the renderer and the daemon use."""
+        return CameraCalibration.from_hfov(self.width_px, self.height_px, self.hfov_deg)
+
+
+@dataclass(frozen=True)
+class WobbleSpec:
+    """Roll/pitch oscillation amplitudes, degrees, and the roll period, s."""
+
+    roll_amp_deg: float = 0.0
+    pitch_amp_deg: float = 0.0
+    period_s: float = 7.0
+
+    def roll_pitch_rad(self, t_s: float) -> tuple[float, float]:
+        """(roll_rad, pitch_rad) at time ``t_s``."""
+        w = 2.0 * math.pi / self.period_s
+        roll = math.radians(self.roll_amp_deg) * math.sin(w * t_s)
+        pitch = math.radians(self.pitch_amp_deg) * math.sin(w / _PITCH_PERIOD_RATIO * t_s + _PITCH_PHASE_RAD)
+        return roll, pitch
+
+    @property
+    def max_tilt_rad(self) -> float:
+        """Upper bound of the camera axis tilt from nadir, radians."""
+        return math.radians(self.roll_amp_deg) + math.radians(self.pitch_amp_deg)
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """One waypoint: (a, b) = (u, v) map fractions for ``map_relative``, (lat_deg, lon_deg) for ``wgs84``.
+
+    ``alt_agl_m`` overrides the scenario altitude for the leg ending here (None = the scenario default).
+    """
+
+    a: float
+    b: float
+    alt_agl_m: float | None = None
+
+
+@dataclass(frozen=True)
+class WaypointLayout:
+    """The path's waypoints and how to read them. ``margin_m`` None = automatic (map_relative only)."""
+
+    frame: WaypointFrame
+    points: tuple[Waypoint, ...]
+    margin_m: float | None = None
+
+
+@dataclass(frozen=True)
+class MapGap:
+    """Frames exposed in ``[from_s, to_s)`` are degraded as ``kind``."""
+
+    from_s: float
+    to_s: float
+    kind: GapKind
+
+
+@dataclass(frozen=True)
+class TruthState:
+    """Ground truth of the simulated aircraft at one instant.
+
+    Position: WGS84 ``lat_deg``/``lon_deg``, ``alt_amsl_m`` above mean sea level and ``alt_agl_m`` above the
+    flat ground. ``vel_ned_m_s``: (3,) float64 read-only, NED m/s. Attitude: body FRD in NED, ZYX
+    roll/pitch/yaw in radians (MAVLink ATTITUDE convention), yaw in (-pi, pi], 0 = north, pi/2 = east.
+    """
+
+    t_s: float
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    alt_agl_m: float
+    vel_ned_m_s: np.ndarray = field(compare=False)
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+    @property
+    def attitude(self) -> Attitude:
+        return Attitude(self.roll_rad, self.pitch_rad, self.yaw_rad)
+
+
+# --------------------------------------------------------------------------------------------------------
+# Path geometry (local NED metres, horizontal only)
+
+
+@dataclass(frozen=True)
+class _Line:
+    s0_m: float
+    length_m: float
+    start_ne: tuple[float, float]
+    heading_rad: float
+
+    def at(self, ds: float) -> tuple[float, float, float]:
+        c, s = math.cos(self.heading_rad), math.sin(self.heading_rad)
+        return self.start_ne[0] + ds * c, self.start_ne[1] + ds * s, self.heading_rad
+
+
+@dataclass(frozen=True)
+class _Arc:
+    s0_m: float
+    length_m: float
+    centre_ne: tuple[float, float]
+    radius_m: float
+    heading0_rad: float
+    #: +1 = right turn (heading increases), -1 = left turn.
+    sign: float
+
+    def at(self, ds: float) -> tuple[float, float, float]:
+        psi = self.heading0_rad + self.sign * ds / self.radius_m
+        # The centre lies on the right (sign +1) or left normal of the track; the aircraft is opposite.
+        n = self.centre_ne[0] + self.sign * self.radius_m * math.sin(psi)
+        e = self.centre_ne[1] - self.sign * self.radius_m * math.cos(psi)
+        return n, e, psi
+
+
+def _wrap_pi(angle_rad: float) -> float:
+    """Angle to (-pi, pi]."""
+    a = math.fmod(angle_rad + math.pi, 2.0 * math.pi)
+    if a <= 0.0:
+        a += 2.0 * math.pi
+    return a - math.pi
+
+
+def _build_path(
+    points_ne: np.ndarray, turn_radius_m: float
+) -> tuple[tuple[_Line | _Arc, ...], list[float], float]:
+    """Lines joined by tangent arcs at the interior waypoints.
+
+    Returns the segments, the along-path distance at which each waypoint is "passed" (start, middle of its
+    arc, end), and the total length, m.
+    """
+    n_pts = len(points_ne)
+    legs = np.diff(points_ne, axis=0)
+    leg_len = np.hypot(legs[:, 0], legs[:, 1])
+    headings = np.arctan2(legs[:, 1], legs[:, 0])
+    # Tangent distance and radius of each corner; a corner may use at most half of each adjacent leg.
+    cut = np.zeros(n_pts)
+    corners: dict[int, tuple[float, float, float]] = {}
+    for i in range(1, n_pts - 1):
+        turn = _wrap_pi(float(headings[i] - headings[i - 1]))
+        if abs(turn) < 1e-9:
+            continue
+        tan_half = math.tan(abs(turn) / 2.0)
+        tangent = min(turn_radius_m * tan_half, 0.5 * leg_len[i - 1], 0.5 * leg_len[i])
+        radius = tangent / tan_half
+        if radius < 1e-6:
+            continue
+        cut[i] = tangent
+        corners[i] = (turn, radius, tangent)
+
+    segments: list[_Line | _Arc] = []
+    passed_s = [0.0]
+    s = 0.0
+    for i in range(n_pts - 1):
+        psi = float(headings[i])
+        d = np.array([math.cos(psi), math.sin(psi)])
+        start = points_ne[i] + d * cut[i]
+        length = float(leg_len[i] - cut[i] - cut[i + 1])
+        if length > 1e-9:
+            segments.append(_Line(s, length, (float(start[0]), float(start[1])), psi))
+            s += length
+        j = i + 1
+        if j in corners:
+            turn, radius, _tangent = corners[j]
+            sign = 1.0 if turn > 0 else -1.0
+            arc_start = points_ne[j] - d * cut[j]
+            centre = arc_start + sign * radius * np.array([-math.sin(psi), math.cos(psi)])
+            arc_len = radius * abs(turn)
+            segments.append(_Arc(s, arc_len, (float(centre[0]), float(centre[1])), radius, psi, sign))
+            passed_s.append(s + arc_len / 2.0)
+            s += arc_len
+        else:
+            passed_s.append(s)
+    return tuple(segments), passed_s, s
+
+
+def _altitude_knots(
+    start_agl_m: float, events: Sequence[tuple[float, float]], climb_rate_m_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Knots (t_s, alt_agl_m) of the piecewise-linear altitude: at each event time the target changes and
+    the altitude ramps towards it at ``climb_rate_m_s`` (an unfinished ramp continues to the new target)."""
+    knots_t = [0.0]
+    knots_z = [start_agl_m]
+    t, z, target = 0.0, start_agl_m, start_agl_m
+    for t_event, new_target in [*events, (math.inf, math.nan)]:
+        if z != target:
+            if knots_t[-1] < t:
+                knots_t.append(t)  # the ramp starts here; until now the altitude was level
+                knots_z.append(z)
+            t_reach = t + abs(target - z) / climb_rate_m_s
+            if t_reach <= t_event:
+                t, z = t_reach, target
+            else:
+                z = z + math.copysign(climb_rate_m_s * (t_event - t), target - z)
+                t = t_event
+            knots_t.append(t)
+            knots_z.append(z)
+        if math.isinf(t_event):
+            break
+        t = max(t, t_event)
+        target = new_target
+    return np.asarray(knots_t), np.asarray(knots_z)
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A resolved flight: the scenario's path placed on one map, at one ground height.
+
+    ``origin``: local NED frame (at ground level) in which the path was built. ``duration_s``: run
+    length; ``start_delay_s``: hold before the path; ``path_length_m``: horizontal path length.
+    ``waypoints_lat_lon_deg``: (N, 2) float64, the resolved waypoints. ``footprint_radius_m``: largest
+    ground distance from the nadir point that the camera can see on this flight (used for the margin).
+    """
+
+    origin: LocalTangentPlane
+    ground_alt_amsl_m: float
+    speed_m_s: float
+    start_delay_s: float
+    duration_s: float
+    frame_rate_hz: float
+    path_length_m: float
+    waypoints_lat_lon_deg: np.ndarray
+    footprint_radius_m: float
+    wobble: WobbleSpec
+    _segments: tuple[_Line | _Arc, ...] = field(repr=False)
+    _alt_knots_t_s: np.ndarray = field(repr=False)
+    _alt_knots_agl_m: np.ndarray = field(repr=False)
+
+    @property
+    def flight_end_s(self) -> float:
+        """Time at which the aircraft reaches the last waypoint, s."""
+        return self.start_delay_s + self.path_length_m / self.speed_m_s
+
+    def frame_times_s(self) -> np.ndarray:
+        """Exposure times of the run's frames, s: (n,) float64, ``k / frame_rate_hz`` < ``duration_s``."""
+        n = math.ceil(self.duration_s * self.frame_rate_hz - 1e-9)
+        return np.arange(n, dtype=np.float64) / self.frame_rate_hz
+
+    def _horizontal(self, t_s: float) -> tuple[float, float, float, bool]:
+        """(north_m, east_m, heading_rad, moving) at ``t_s``."""
+        s = (t_s - self.start_delay_s) * self.speed_m_s
+        moving = 0.0 < s < self.path_length_m
+        s = min(max(s, 0.0), self.path_length_m)
+        seg = self._segments[-1]
+        for candidate in self._segments:
+            if s <= candidate.s0_m + candidate.length_m:
+                seg = candidate
+                break
+        n, e, psi = seg.at(min(max(s - seg.s0_m, 0.0), seg.length_m))
+        return n, e, psi, moving
+
+    def _altitude(self, t_s: float) -> tuple[float, float]:
+        """(alt_agl_m, climb_rate_m_s up-positive) at ``t_s``."""
+        kt, kz = self._alt_knots_t_s, self._alt_knots_agl_m
+        z = float(np.interp(t_s, kt, kz))
+        i = int(np.searchsorted(kt, t_s, side="right"))
+        if 0 < i < len(kt):
+            dt = kt[i] - kt[i - 1]
+            rate = float((kz[i] - kz[i - 1]) / dt) if dt > 0 else 0.0
+        else:
+            rate = 0.0
+        return z, rate
+
+    def truth_at(self, t_s: float) -> TruthState:
+        """Truth at ``t_s`` (s since the start of the run). Before 0 and after the path it holds position."""
+        t = float(t_s)
+        if not math.isfinite(t):
+            raise ValueError(f"t_s must be finite, got {t_s!r}")
+        n, e, psi, moving = self._horizontal(t)
+        alt_agl, climb = self._altitude(max(t, 0.0))
+        lat, lon, _alt = self.origin.to_geodetic(np.array([n, e, 0.0]))
+        speed = self.speed_m_s if moving else 0.0
+        vel = np.array([speed * math.cos(psi), speed * math.sin(psi), -climb])
+        vel.setflags(write=False)
+        roll, pitch = self.wobble.roll_pitch_rad(t)
+        return TruthState(
+            t_s=t,
+            lat_deg=float(lat),
+            lon_deg=float(lon),
+            alt_amsl_m=self.ground_alt_amsl_m + alt_agl,
+            alt_agl_m=alt_agl,
+            vel_ned_m_s=vel,
+            roll_rad=roll,
+            pitch_rad=pitch,
+            yaw_rad=_wrap_pi(psi),
+        )
+
+
+# --------------------------------------------------------------------------------------------------------
+# The scenario
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A loaded scenario (see the module docstring for every key's meaning and unit)."""
+
+    name: str
+    alt_agl_m: float
+    waypoints: WaypointLayout
+    description: str = ""
+    duration_s: float | None = None
+    frame_rate_hz: float = 3.0
+    speed_m_s: float = 12.0
+    climb_rate_m_s: float = 2.0
+    turn_rate_deg_s: float = 15.0
+    ground_alt_amsl_m: float | None = None
+    start_delay_s: float = 2.0
+    camera: CameraSpec = field(default_factory=CameraSpec)
+    attitude_wobble: WobbleSpec = field(default_factory=WobbleSpec)
+    photometric: PhotometricParams = field(default_factory=PhotometricParams)
+    map_gaps: tuple[MapGap, ...] = ()
+    #: File the scenario was read from (None when built from a mapping).
+    source: str | None = field(default=None, compare=False)
+
+    def calibration(self) -> CameraCalibration:
+        """The nav camera's calibration."""
+        return self.camera.calibration()
+
+    def gap_at(self, t_s: float) -> GapKind | None:
+        """The map-gap degradation for a frame exposed at ``t_s``, or None."""
+        for gap in self.map_gaps:
+            if gap.from_s <= t_s < gap.to_s:
+                return gap.kind
+        return None
+
+    @property
+    def max_alt_agl_m(self) -> float:
+        alts = [p.alt_agl_m for p in self.waypoints.points if p.alt_agl_m is not None]
+        return max([self.alt_agl_m, *alts])
+
+    def footprint_radius_m(self, alt_agl_m: float | None = None) -> float:
+        """Largest ground distance from the nadir point to what an image corner sees, m, at ``alt_agl_m``
+        (default: the highest waypoint altitude) with the largest wobble tilt."""
+        alt = self.max_alt_agl_m if alt_agl_m is None else alt_agl_m
+        calib = self.calibration()
+        half_diag_px = math.hypot(calib.width_px / 2.0, calib.height_px / 2.0)
+        angle = math.atan2(half_diag_px, calib.fx_px) + self.attitude_wobble.max_tilt_rad
+        if angle >= math.radians(80.0):
+            raise ScenarioError(
+                "camera",
+                f"camera half-diagonal FOV + wobble tilt = {math.degrees(angle):.1f} deg sees the horizon",
+            )
+        return alt * math.tan(angle)
+
+    def resolve(
+        self, map_bbox_lonlat: tuple[float, float, float, float], ground_alt_amsl_m: float | None = None
+    ) -> Trajectory:
+        """Place the scenario on a map whose usable area is ``map_bbox_lonlat`` = (W, S, E, N) degrees.
+
+        ``ground_alt_amsl_m`` (the daemon's terrain height) is used when the scenario's own is null.
+        Raises ``ScenarioError`` when the map is too small for the margin or a wgs84 waypoint is off it.
+        """
+        west, south, east, north = (float(v) for v in map_bbox_lonlat)
+        if not (west < east and south < north):
+            raise ScenarioError(
+                "<map>", f"map bbox must be (W, S, E, N) with W < E and S < N, got {map_bbox_lonlat}"
+            )
+        ground = self.ground_alt_amsl_m if self.ground_alt_amsl_m is not None else ground_alt_amsl_m
+        if ground is None:
+            raise ScenarioError("ground_alt_amsl_m", "null in the scenario and not given by the runner")
+        footprint = self.footprint_radius_m()
+        lat_c, lon_c = (south + north) / 2.0, (west + east) / 2.0
+        origin = LocalTangentPlane(lat_c, lon_c, float(ground))
+        pts = self.waypoints.points
+
+        if self.waypoints.frame is WaypointFrame.MAP_RELATIVE:
+            corner_lat = np.array([south, north, south, north, north, south])
+            corner_lon = np.array([east, east, west, west, lon_c, lon_c])
+            ned = origin.to_ned(corner_lat, corner_lon, np.full(6, float(ground)))
+            # Conservative half-sizes: the narrower of the north and south edges (meridians converge).
+            half_e = float(min(ned[0, 1], ned[1, 1], -ned[2, 1], -ned[3, 1]))
+            half_n = float(min(ned[4, 0], -ned[5, 0]))
+            margin = self.waypoints.margin_m
+            if margin is None:
+                margin = footprint + _AUTO_MARGIN_EXTRA_M
+            if half_e - margin <= 0.0 or half_n - margin <= 0.0:
+                raise ScenarioError(
+                    "waypoints.margin_m",
+                    f"map is {2 * half_e:.0f} m x {2 * half_n:.0f} m (E x N), too small for a margin of "
+                    f"{margin:.0f} m on each side (camera footprint radius {footprint:.0f} m at "
+                    f"{self.max_alt_agl_m:g} m AGL)",
+                    source=self.source,
+                )
+            points_ne = np.array(
+                [
+                    [
+                        -(half_n - margin) + p.b * 2.0 * (half_n - margin),
+                        -(half_e - margin) + p.a * 2.0 * (half_e - margin),
+                    ]
+                    for p in pts
+                ]
+            )
+        else:
+            for i, p in enumerate(pts):
+                if not (south <= p.a <= north and west <= p.b <= east):
+                    raise ScenarioError(
+                        f"waypoints.points[{i}]",
+                        f"({p.a}, {p.b}) is off the map "
+                        f"(lat {south:.6f}..{north:.6f}, lon {west:.6f}..{east:.6f})",
+                        source=self.source,
+                    )
+            ned = origin.to_ned(
+                np.array([p.a for p in pts]), np.array([p.b for p in pts]), np.full(len(pts), float(ground))
+            )
+            points_ne = ned[:, :2]
+
+        leg = np.hypot(*np.diff(points_ne, axis=0).T)
+        if np.any(leg < 1e-3):
+            i = int(np.argmax(leg < 1e-3)) + 1
+            raise ScenarioError(
+                f"waypoints.points[{i}]", "same position as the previous point", source=self.source
+            )
+
+        turn_radius = self.speed_m_s / math.radians(self.turn_rate_deg_s)
+        segments, passed_s, length = _build_path(points_ne, turn_radius)
+        alts = [self.alt_agl_m if p.alt_agl_m is None else p.alt_agl_m for p in pts]
+        events = [
+            (self.start_delay_s + passed_s[i - 1] / self.speed_m_s, alts[i]) for i in range(1, len(pts))
+        ]
+        knots_t, knots_z = _altitude_knots(alts[0], events, self.climb_rate_m_s)
+        duration = (
+            self.duration_s if self.duration_s is not None else self.start_delay_s + length / self.speed_m_s
+        )
+        wp_lat, wp_lon, _ = origin.to_geodetic(np.column_stack([points_ne, np.zeros(len(pts))]))
+        return Trajectory(
+            origin=origin,
+            ground_alt_amsl_m=float(ground),
+            speed_m_s=self.speed_m_s,
+            start_delay_s=self.start_delay_s,
+            duration_s=float(duration),
+            frame_rate_hz=self.frame_rate_hz,
+            path_length_m=length,
+            waypoints_lat_lon_deg=np.column_stack([wp_lat, wp_lon]),
+            footprint_radius_m=footprint,
+            wobble=self.attitude_wobble,
+            _segments=segments,
+            _alt_knots_t_s=knots_t,
+            _alt_knots_agl_m=knots_z,
+        )
+
+
+# --------------------------------------------------------------------------------------------------------
+# Strict YAML reading
+
+_REQUIRED: Any = object()
+
+
+def _type_name(value: object) -> str:
+    return "null" if value is None else type(value).__name__
+
+
+class _Block:
+    """A mapping being read; tracks which keys were consumed so that the rest can be reported."""
+
+    def __init__(self, data: object, path: str, source: str | None) -> None:
+        if not isinstance(data, Mapping):
+            raise ScenarioError(
+                path or "<root>", f"expected a mapping, got {_type_name(data)}", source=source
+            )
+        for key in data:
+            if not isinstance(key, str):
+                raise ScenarioError(path or "<root>", f"keys must be strings, got {key!r}", source=source)
+        self.data: dict[str, Any] = dict(data)
+        self.path = path
+        self.source = source
+        self.known: list[str] = []
+
+    def key_path(self, key: str) -> str:
+        return f"{self.path}.{key}" if self.path else key
+
+    def error(self, key: str, message: str) -> ScenarioError:
+        return ScenarioError(self.key_path(key), message, source=self.source)
+
+    def get(self, key: str, default: Any = _REQUIRED) -> Any:
+        self.known.append(key)
+        if key not in self.data:
+            if default is _REQUIRED:
+                raise self.error(key, "required key is missing")
+            return default
+        return self.data[key]
+
+    def number(
+        self,
+        key: str,
+        default: Any = _REQUIRED,
+        *,
+        ge: float | None = None,
+        gt: float | None = None,
+        lt: float | None = None,
+        le: float | None = None,
+        nullable: bool = False,
+    ) -> Any:
+        value = self.get(key, default)
+        if value is None and nullable:
+            return None
+        return _check_number(value, self.key_path(key), self.source, ge=ge, gt=gt, lt=lt, le=le)
+
+    def integer(self, key: str, default: Any = _REQUIRED, *, ge: int) -> int:
+        value = self.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.error(key, f"expected an integer, got {_type_name(value)} {value!r}")
+        if value < ge:
+            raise self.error(key, f"expected an integer >= {ge}, got {value}")
+        return value
+
+    def string(self, key: str, default: Any = _REQUIRED) -> str:
+        value = self.get(key, default)
+        if not isinstance(value, str):
+            raise self.error(key, f"expected a string, got {_type_name(value)} {value!r}")
+        return value
+
+    def block(self, key: str) -> _Block:
+        return _Block(self.get(key, {}), self.key_path(key), self.source)
+
+    def finish(self) -> None:
+        unknown = sorted(set(self.data) - set(self.known))
+        if unknown:
+            valid = ", ".join(self.known)
+            raise self.error(unknown[0], f"unknown key; expected one of: {valid}")
+
+
+def _check_number(
+    value: object,
+    path: str,
+    source: str | None,
+    *,
+    ge: float | None = None,
+    gt: float | None = None,
+    lt: float | None = None,
+    le: float | None = None,
+) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ScenarioError(path, f"expected a number, got {_type_name(value)} {value!r}", source=source)
+    x = float(value)
+    bounds = [
+        (ge is not None and not x >= ge, f">= {ge}"),
+        (gt is not None and not x > gt, f"> {gt}"),
+        (lt is not None and not x < lt, f"< {lt}"),
+        (le is not None and not x <= le, f"<= {le}"),
+    ]
+    if not math.isfinite(x):
+        raise ScenarioError(path, f"expected a finite number, got {value!r}", source=source)
+    for failed, what in bounds:
+        if failed:
+            raise ScenarioError(path, f"expected a number {what}, got {value!r}", source=source)
+    return x
+
+
+def _range_pair(block: _Block, key: str) -> tuple[float, float]:
+    value = block.get(key, [1.0, 1.0])
+    path = block.key_path(key)
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise ScenarioError(path, f"expected [lo, hi], got {value!r}", source=block.source)
+    lo = _check_number(value[0], f"{path}[0]", block.source, gt=0.0)
+    hi = _check_number(value[1], f"{path}[1]", block.source, gt=0.0)
+    if lo > hi:
+        raise ScenarioError(path, f"expected lo <= hi, got {value!r}", source=block.source)
+    return lo, hi
+
+
+def _read_waypoints(block: _Block) -> WaypointLayout:
+    frame_raw = block.string("frame")
+    try:
+        frame = WaypointFrame(frame_raw)
+    except ValueError as exc:
+        valid = ", ".join(f.value for f in WaypointFrame)
+        raise block.error("frame", f"expected one of: {valid}; got {frame_raw!r}") from exc
+    margin_raw = block.get("margin_m", "auto")
+    margin: float | None
+    if frame is WaypointFrame.WGS84:
+        if "margin_m" in block.data:
+            raise block.error("margin_m", "only applies to frame: map_relative")
+        margin = None
+    elif margin_raw == "auto":
+        margin = None
+    else:
+        margin = _check_number(margin_raw, block.key_path("margin_m"), block.source, ge=0.0)
+    raw_points = block.get("points")
+    points_path = block.key_path("points")
+    if not isinstance(raw_points, list) or len(raw_points) < 2:
+        raise ScenarioError(
+            points_path, f"expected a list of at least 2 points, got {raw_points!r}", source=block.source
+        )
+    if frame is WaypointFrame.MAP_RELATIVE:
+        ranges = [(0.0, 1.0), (0.0, 1.0)]
+    else:
+        ranges = [(-90.0, 90.0), (-180.0, 180.0)]
+    points = []
+    for i, raw in enumerate(raw_points):
+        path = f"{points_path}[{i}]"
+        if not isinstance(raw, list) or len(raw) not in (2, 3):
+            raise ScenarioError(
+                path, f"expected [a, b] or [a, b, {{alt_agl_m: H}}], got {raw!r}", source=block.source
+            )
+        a, b = (
+            _check_number(raw[k], f"{path}[{k}]", block.source, ge=ranges[k][0], le=ranges[k][1])
+            for k in range(2)
+        )
+        alt = None
+        if len(raw) == 3:
+            opts = _Block(raw[2], f"{path}[2]", block.source)
+            # Optional here so that a misspelt key is reported as unknown rather than as a missing alt_agl_m.
+            alt = opts.number("alt_agl_m", None, gt=0.0, nullable=True)
+            opts.finish()
+        points.append(Waypoint(a, b, alt))
+    block.finish()
+    return WaypointLayout(frame, tuple(points), margin)
+
+
+def _read_gaps(value: object, source: str | None) -> tuple[MapGap, ...]:
+    if not isinstance(value, list):
+        raise ScenarioError("map_gaps", f"expected a list, got {_type_name(value)}", source=source)
+    gaps = []
+    for i, raw in enumerate(value):
+        b = _Block(raw, f"map_gaps[{i}]", source)
+        start = b.number("from_s", ge=0.0)
+        end = b.number("to_s", gt=start)
+        kind_raw = b.string("kind")
+        try:
+            kind = GapKind(kind_raw)
+        except ValueError as exc:
+            valid = ", ".join(k.value for k in GapKind)
+            raise b.error("kind", f"expected one of: {valid}; got {kind_raw!r}") from exc
+        b.finish()
+        gaps.append(MapGap(start, end, kind))
+    return tuple(gaps)
+
+
+def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None) -> Scenario:
+    """Build a ``Scenario`` from parsed YAML, strictly (see the module docstring)."""
+    root = _Block(data, "", source)
+    name = root.string("name")
+    description = root.string("description", "")
+    duration = root.number("duration_s", None, gt=0.0, nullable=True)
+    frame_rate = root.number("frame_rate_hz", 3.0, gt=0.0)
+    speed = root.number("speed_m_s", 12.0, gt=0.0)
+    alt = root.number("alt_agl_m", gt=0.0)
+    climb = root.number("climb_rate_m_s", 2.0, gt=0.0)
+    turn = root.number("turn_rate_deg_s", 15.0, gt=0.0)
+    ground = root.number("ground_alt_amsl_m", None, nullable=True)
+    delay = root.number("start_delay_s", 2.0, ge=0.0)
+
+    cam = root.block("camera")
+    camera = CameraSpec(
+        cam.integer("width_px", 640, ge=16),
+        cam.integer("height_px", 480, ge=16),
+        cam.number("hfov_deg", 70.0, gt=1, lt=179),
+    )
+    cam.finish()
+
+    wob = root.block("attitude_wobble")
+    wobble = WobbleSpec(
+        wob.number("roll_amp_deg", 0.0, ge=0.0, lt=45.0),
+        wob.number("pitch_amp_deg", 0.0, ge=0.0, lt=45.0),
+        wob.number("period_s", 7.0, gt=0.0),
+    )
+    wob.finish()
+
+    ph = root.block("photometric")
+    photometric = PhotometricParams(
+        gain_range=_range_pair(ph, "gain_range"),
+        gamma_range=_range_pair(ph, "gamma_range"),
+        colour_shift_dn=ph.number("colour_shift_dn", 0.0, ge=0.0),
+        noise_sigma_dn=ph.number("noise_sigma_dn", 0.0, ge=0.0),
+        blur_prob=ph.number("blur_prob", 0.0, ge=0.0, le=1.0),
+        blur_sigma_px=ph.number("blur_sigma_px", 0.0, ge=0.0),
+        seed=ph.integer("seed", 0, ge=0),
+    )
+    ph.finish()
+
+    waypoints = _read_waypoints(root.block("waypoints"))
+    gaps = _read_gaps(root.get("map_gaps", []), source)
+    root.finish()
+    scenario = Scenario(
+        name=name,
+        alt_agl_m=alt,
+        waypoints=waypoints,
+        description=description,
+        duration_s=duration,
+        frame_rate_hz=frame_rate,
+        speed_m_s=speed,
+        climb_rate_m_s=climb,
+        turn_rate_deg_s=turn,
+        ground_alt_amsl_m=ground,
+        start_delay_s=delay,
+        camera=camera,
+        attitude_wobble=wobble,
+        photometric=photometric,
+        map_gaps=gaps,
+        source=source,
+    )
+    scenario.footprint_radius_m()  # rejects a camera + wobble that would see the horizon
+    return scenario
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load a scenario YAML file. A bare name (``demo``) loads the built-in scenario of that name."""
+    p = Path(path)
+    if not p.suffix and not p.exists():
+        p = BUILTIN_SCENARIOS_DIR / f"{p.name}.yaml"
+    source = str(p)
+    if not p.is_file():
+        builtin = ", ".join(sorted(f.stem for f in BUILTIN_SCENARIOS_DIR.glob("*.yaml")))
+        raise ScenarioError(
+            "<file>", f"scenario file not found (built-in scenarios: {builtin})", source=source
+        )
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ScenarioError("<file>", f"not valid YAML: {exc}".replace("\n", " "), source=source) from exc
+    return scenario_from_mapping(data, source=source)
