@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import dataclasses
 import hashlib
 import json
 import os
@@ -157,7 +158,7 @@ class _Flight:
 
     def _render(self, index: int, t_s: float) -> tuple[bytes, Any]:
         truth = self.traj.truth_at(t_s)
-        img = self.renderer.render(self.calib, truth.lat_deg, truth.lon_deg, truth.alt_agl_m, truth.attitude())
+        img = self.renderer.render(self.calib, truth.lat_deg, truth.lon_deg, truth.alt_agl_m, truth.attitude)
         img = self.photometric.apply(img, index)
         gap = self.scenario.gap_at(t_s)
         if gap is not None:
@@ -261,7 +262,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     except ScenarioError as exc:
         raise SitlError(str(exc)) from exc
     if opts.duration_s is not None:
-        trajectory.duration_s = min(trajectory.duration_s, opts.duration_s)
+        trajectory = dataclasses.replace(trajectory, duration_s=min(trajectory.duration_s, opts.duration_s))
 
     cache_dir = workdir / f"cache-{_sha_prefix(map_path)}"
     t_cache = time.monotonic()

@@ -143,7 +143,7 @@ class NavigationPipeline:
             self._initialise(prior, frame)
         self._est.predict_to(t)
         if motion is not None:
-            self._est.update_vo(motion)
+            self._est.update_vo(motion, time_unix_usec=t)
         lap("estimator_predict")
 
         fix, accepted, inliers, residual, reason = self._absolute_fix(frame, timings)
