@@ -41,5 +41,12 @@ class MatchResult:
 
 @dataclass(frozen=True)
 class MatcherHealth:
+    """Rolling matcher health (see ``health.RollingHealthWindow``)."""
+
+    #: Frames in a row whose best inlier count was below the low-inlier threshold (0 after a good one).
     consecutive_low_inlier: int
+    #: Mean best-candidate inlier count over the frames of the last 60 s (0.0 when there were none).
     mean_inliers_60s: float
+    #: Frames in the last 60 s, and how many of them had at least one backbone error.
+    frames_60s: int = 0
+    backbone_error_frames_60s: int = 0
