@@ -238,3 +238,24 @@ def test_estimator_altitude_update_sets_down() -> None:
     assert st.alt_amsl_m == pytest.approx(640.0, abs=1.0)
     assert st.vert_sigma_m < 1.0
     assert math.isfinite(st.lat_deg) and math.isfinite(st.lon_deg)
+
+
+def test_estimator_consecutive_gated_fixes_inflate_covariance() -> None:
+    """Three fixes in a row that disagree with the state grow its stated sigma to the disagreement and
+    the next consistent fix is accepted; a single rejected fix leaves the sigma alone."""
+    from gps_denied_onboard.components.c5_estimator.ekf import CONSECUTIVE_GATED_INFLATE
+
+    est = _estimator()
+    start = np.array([0.0, 0.0, -120.0])
+    est.initialise(start, 1.0, T0_USEC)
+    moved = start + np.array([40.0, 0.0, 0.0])
+    decisions = []
+    for k in range(1, CONSECUTIVE_GATED_INFLATE + 2):
+        t = T0_USEC + k * S // 10
+        decisions.append(est.update_fix(_fix(moved, 1.0, t)))
+        if k == 1:
+            assert est.state(t).horiz_sigma_m < 3.0
+    gated = [d.accepted for d in decisions[:CONSECUTIVE_GATED_INFLATE]]
+    assert gated == [False] * CONSECUTIVE_GATED_INFLATE
+    assert decisions[-1].accepted
+    assert np.linalg.norm(est.state(T0_USEC + S // 2).pos_ned_m[:2] - moved[:2]) < 5.0

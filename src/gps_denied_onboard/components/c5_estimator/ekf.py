@@ -55,6 +55,8 @@ DEFAULT_VO_RECENT_S: Final[float] = 2.0
 #: Fixes whose exposure is older than the filter time by more than this are dropped (out of order).
 DEFAULT_MAX_FIX_LAG_S: Final[float] = 1.0
 
+#: Consecutive gated fixes after which their disagreement is added to the position covariance.
+CONSECUTIVE_GATED_INFLATE: Final[int] = 3
 _H_POS = np.hstack([np.eye(3), np.zeros((3, 3))])
 _H_VEL_NE = np.hstack([np.zeros((2, 3)), np.eye(3)[:2]])
 _H_D = np.array([[0.0, 0.0, 1.0, 0.0, 0.0, 0.0]])
@@ -118,6 +120,7 @@ class NavEstimator:
         self._kf = KalmanFilter(dim_x=6, dim_z=3)
         self._time_usec: int | None = None
         self._last_fix_usec: int | None = None
+        self._consecutive_gated = 0
         self._last_vo_usec: int | None = None
         self._yaw_rad: float | None = None
         self._provenance = Provenance.NO_ESTIMATE
@@ -158,6 +161,7 @@ class NavEstimator:
         self._kf.P = np.diag([sigma_m**2] * 3 + [vel_sigma_m_s**2] * 3)
         self._time_usec = int(time_unix_usec)
         self._last_fix_usec = None
+        self._consecutive_gated = 0
         self._last_vo_usec = None
         self._yaw_rad = None
         _log.info(
@@ -256,6 +260,7 @@ class NavEstimator:
                 jump_m=float(np.hypot(*innov)),
             )
         elif nis > gate:
+            self._consecutive_gated += 1
             _log.warning(
                 LogEvent.ESTIMATOR_FIX_REJECTED,
                 reason=FixReason.GATED,
@@ -263,12 +268,22 @@ class NavEstimator:
                 gate=gate,
                 innovation_m=float(np.hypot(*innov)),
                 tile_id=tuple(fix.tile_id),
+                consecutive=self._consecutive_gated,
             )
+            if self._consecutive_gated >= CONSECUTIVE_GATED_INFLATE:
+                # Several fixes in a row disagree with the state: either they are all wrong or the state
+                # is (an unmodelled manoeuvre). Either way the stated accuracy is no longer honest, so the
+                # disagreement is added to the position covariance; a single wrong tile never gets here.
+                self._kf.P[:2, :2] += np.outer(innov, innov)
+                self._consecutive_gated = 0
+                _log.warning(LogEvent.ESTIMATOR_COVARIANCE_INFLATED, innovation_m=float(np.hypot(*innov)),
+                             horiz_sigma_m=_horiz_sigma_m(self._kf.P))
             return FixDecision(False, nis, FixReason.GATED)
         else:
             reason = FixReason.ACCEPTED
 
         self._kf.update(pos.reshape(3, 1), R=cov, H=_H_POS)
+        self._consecutive_gated = 0
         self._last_fix_usec = self._time_usec
         if math.isfinite(fix.yaw_rad):
             self._yaw_rad = float(fix.yaw_rad)
