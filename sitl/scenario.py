@@ -22,6 +22,9 @@ number is expected.
     Nav-camera frame rate; frames are exposed at ``t_s = k / frame_rate_hz``, k = 0, 1, ...
 ``speed_m_s`` (number > 0, default 12.0)
     Ground speed along the path, m/s (constant; no wind).
+``accel_m_s2`` (number > 0, default 2.5)
+    Largest horizontal acceleration, m/s^2: the aircraft speeds up from the hold and slows down to the
+    last waypoint at this rate (a trapezoidal speed profile; triangular when the path is too short).
 ``alt_agl_m`` (number > 0, required)
     Height above the (flat) ground, m; the default for every waypoint.
 ``climb_rate_m_s`` (number > 0, default 2.0)
@@ -233,6 +236,46 @@ class _Arc:
         return n, e, psi
 
 
+def _profile_duration_s(length_m: float, v_m_s: float, a_m_s2: float) -> float:
+    """Time to fly ``length_m`` from rest to rest with cruise speed v and acceleration a, s."""
+    ramp_m = v_m_s * v_m_s / (2.0 * a_m_s2)
+    if length_m <= 2.0 * ramp_m:
+        return 2.0 * math.sqrt(length_m / a_m_s2)
+    return 2.0 * v_m_s / a_m_s2 + (length_m - 2.0 * ramp_m) / v_m_s
+
+
+def _profile_at(tau_s: float, length_m: float, v_m_s: float, a_m_s2: float) -> tuple[float, float]:
+    """(distance along the path m, speed m/s) at ``tau_s`` after leaving the hold: a trapezoidal speed
+    profile (triangular when the path is shorter than the two ramps), at rest before and after."""
+    if tau_s <= 0.0:
+        return 0.0, 0.0
+    v = min(v_m_s, math.sqrt(a_m_s2 * length_m))  # peak speed of a triangular profile
+    t_ramp = v / a_m_s2
+    d_ramp = 0.5 * a_m_s2 * t_ramp * t_ramp
+    t_cruise = max(0.0, (length_m - 2.0 * d_ramp) / v)
+    total = 2.0 * t_ramp + t_cruise
+    if tau_s >= total:
+        return length_m, 0.0
+    if tau_s < t_ramp:
+        return 0.5 * a_m_s2 * tau_s * tau_s, a_m_s2 * tau_s
+    if tau_s < t_ramp + t_cruise:
+        return d_ramp + v * (tau_s - t_ramp), v
+    rest = total - tau_s
+    return length_m - 0.5 * a_m_s2 * rest * rest, a_m_s2 * rest
+
+
+def _time_at_distance_s(s_m: float, length_m: float, v_m_s: float, a_m_s2: float) -> float:
+    """Inverse of ``_profile_at`` (bisection; the profile is monotonic)."""
+    lo, hi = 0.0, _profile_duration_s(length_m, v_m_s, a_m_s2)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if _profile_at(mid, length_m, v_m_s, a_m_s2)[0] < s_m:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
 def _wrap_pi(angle_rad: float) -> float:
     """Angle to (-pi, pi]."""
     a = math.fmod(angle_rad + math.pi, 2.0 * math.pi)
@@ -335,6 +378,7 @@ class Trajectory:
     origin: LocalTangentPlane
     ground_alt_amsl_m: float
     speed_m_s: float
+    accel_m_s2: float
     start_delay_s: float
     duration_s: float
     frame_rate_hz: float
@@ -349,7 +393,7 @@ class Trajectory:
     @property
     def flight_end_s(self) -> float:
         """Time at which the aircraft reaches the last waypoint, s."""
-        return self.start_delay_s + self.path_length_m / self.speed_m_s
+        return self.start_delay_s + _profile_duration_s(self.path_length_m, self.speed_m_s, self.accel_m_s2)
 
     def frame_times_s(self) -> np.ndarray:
         """Exposure times of the run's frames, s: (n,) float64, ``k / frame_rate_hz`` < ``duration_s``."""
@@ -358,9 +402,8 @@ class Trajectory:
 
     def _horizontal(self, t_s: float) -> tuple[float, float, float, bool]:
         """(north_m, east_m, heading_rad, moving) at ``t_s``."""
-        s = (t_s - self.start_delay_s) * self.speed_m_s
+        s, _speed = _profile_at(t_s - self.start_delay_s, self.path_length_m, self.speed_m_s, self.accel_m_s2)
         moving = 0.0 < s < self.path_length_m
-        s = min(max(s, 0.0), self.path_length_m)
         seg = self._segments[-1]
         for candidate in self._segments:
             if s <= candidate.s0_m + candidate.length_m:
@@ -389,7 +432,7 @@ class Trajectory:
         n, e, psi, moving = self._horizontal(t)
         alt_agl, climb = self._altitude(max(t, 0.0))
         lat, lon, _alt = self.origin.to_geodetic(np.array([n, e, 0.0]))
-        speed = self.speed_m_s if moving else 0.0
+        _s, speed = _profile_at(t - self.start_delay_s, self.path_length_m, self.speed_m_s, self.accel_m_s2)
         vel = np.array([speed * math.cos(psi), speed * math.sin(psi), -climb])
         vel.setflags(write=False)
         roll, pitch = self.wobble.roll_pitch_rad(t)
@@ -421,6 +464,7 @@ class Scenario:
     duration_s: float | None = None
     frame_rate_hz: float = 3.0
     speed_m_s: float = 12.0
+    accel_m_s2: float = 2.5
     climb_rate_m_s: float = 2.0
     turn_rate_deg_s: float = 15.0
     ground_alt_amsl_m: float | None = None
@@ -535,17 +579,22 @@ class Scenario:
         segments, passed_s, length = _build_path(points_ne, turn_radius)
         alts = [self.alt_agl_m if p.alt_agl_m is None else p.alt_agl_m for p in pts]
         events = [
-            (self.start_delay_s + passed_s[i - 1] / self.speed_m_s, alts[i]) for i in range(1, len(pts))
+            (self.start_delay_s + _time_at_distance_s(passed_s[i - 1], length, self.speed_m_s, self.accel_m_s2),
+             alts[i])
+            for i in range(1, len(pts))
         ]
         knots_t, knots_z = _altitude_knots(alts[0], events, self.climb_rate_m_s)
         duration = (
-            self.duration_s if self.duration_s is not None else self.start_delay_s + length / self.speed_m_s
+            self.duration_s
+            if self.duration_s is not None
+            else self.start_delay_s + _profile_duration_s(length, self.speed_m_s, self.accel_m_s2)
         )
         wp_lat, wp_lon, _ = origin.to_geodetic(np.column_stack([points_ne, np.zeros(len(pts))]))
         return Trajectory(
             origin=origin,
             ground_alt_amsl_m=float(ground),
             speed_m_s=self.speed_m_s,
+            accel_m_s2=self.accel_m_s2,
             start_delay_s=self.start_delay_s,
             duration_s=float(duration),
             frame_rate_hz=self.frame_rate_hz,
@@ -754,6 +803,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     duration = root.number("duration_s", None, gt=0.0, nullable=True)
     frame_rate = root.number("frame_rate_hz", 3.0, gt=0.0)
     speed = root.number("speed_m_s", 12.0, gt=0.0)
+    accel = root.number("accel_m_s2", 2.5, gt=0.0)
     alt = root.number("alt_agl_m", gt=0.0)
     climb = root.number("climb_rate_m_s", 2.0, gt=0.0)
     turn = root.number("turn_rate_deg_s", 15.0, gt=0.0)
@@ -799,6 +849,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         duration_s=duration,
         frame_rate_hz=frame_rate,
         speed_m_s=speed,
+        accel_m_s2=accel,
         climb_rate_m_s=climb,
         turn_rate_deg_s=turn,
         ground_alt_amsl_m=ground,

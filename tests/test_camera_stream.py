@@ -12,11 +12,16 @@ from gps_denied_onboard.camera.stream import EncodedFrame, FrameStreamError, enc
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 
 
-def _reader(data: bytes) -> asyncio.StreamReader:
-    r = asyncio.StreamReader()
-    r.feed_data(data)
-    r.feed_eof()
-    return r
+def _read(data: bytes) -> EncodedFrame:
+    """Parse one message from bytes through a real StreamReader (created inside the running loop)."""
+
+    async def go() -> EncodedFrame:
+        r = asyncio.StreamReader()
+        r.feed_data(data)
+        r.feed_eof()
+        return await read_frame(r)
+
+    return asyncio.run(go())
 
 
 def _image() -> np.ndarray:
@@ -28,7 +33,7 @@ def test_stream_round_trip_png_is_lossless() -> None:
     """A PNG frame decodes to the exact pixels, with its header fields."""
     img = _image()
     msg = encode_frame(img, seq=7, exposure_time_unix_usec=1_700_000_000_123_456, encoding="png")
-    frame = asyncio.run(read_frame(_reader(msg)))
+    frame = _read(msg)
     assert (frame.seq, frame.exposure_time_unix_usec, frame.width_px, frame.height_px) == (7, 1_700_000_000_123_456, 64, 48)
     np.testing.assert_array_equal(frame.decode(), img)
 
@@ -36,7 +41,7 @@ def test_stream_round_trip_png_is_lossless() -> None:
 def test_stream_bad_magic_is_named() -> None:
     """Garbage instead of a frame is a FrameStreamError naming the magic."""
     with pytest.raises(FrameStreamError, match="magic"):
-        asyncio.run(read_frame(_reader(b"XXXX" + b"\0" * 16)))
+        _read(b"XXXX" + b"\0" * 16)
 
 
 def test_stream_header_field_type_is_checked() -> None:
@@ -44,7 +49,7 @@ def test_stream_header_field_type_is_checked() -> None:
     header = b'{"seq": "1", "exposure_time_unix_usec": 1, "encoding": "png", "width_px": 1, "height_px": 1}'
     msg = b"GDNF" + struct.pack(">I", len(header)) + header + struct.pack(">I", 1) + b"x"
     with pytest.raises(FrameStreamError, match="'seq'"):
-        asyncio.run(read_frame(_reader(msg)))
+        _read(msg)
 
 
 def test_stream_corrupt_payload_fails_decode_not_read() -> None:
@@ -57,7 +62,7 @@ def test_stream_corrupt_payload_fails_decode_not_read() -> None:
 def test_stream_size_mismatch_is_refused() -> None:
     """An image whose size differs from its header is refused."""
     msg = encode_frame(_image(), seq=1, exposure_time_unix_usec=1, encoding="png")
-    frame = asyncio.run(read_frame(_reader(msg)))
+    frame = _read(msg)
     wrong = EncodedFrame(frame.seq, frame.exposure_time_unix_usec, "png", 65, 48, frame.payload)
     with pytest.raises(FrameStreamError, match="65x48"):
         wrong.decode()

@@ -179,17 +179,21 @@ def test_scenario_file_errors_name_the_file(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------------------------- trajectory
 
 
-def test_trajectory_speed_and_velocity_constant_along_path() -> None:
-    """Ground speed is constant through legs and turns, and vel_ned matches the position derivative."""
+def test_trajectory_speed_profile_trapezoidal_and_velocity_consistent() -> None:
+    """Speed ramps at accel_m_s2 to the cruise speed and back to rest; vel_ned matches the position
+    derivative through legs, turns and ramps."""
     traj = _scenario().resolve(BBOX, 400.0)
     ltp = traj.origin
     dt = 0.05
+    accel = traj.accel_m_s2
     for t in np.arange(traj.start_delay_s + 0.1, traj.flight_end_s - 0.1, 0.37):
         a, b = traj.truth_at(t), traj.truth_at(t + dt)
         d = _ne(b.lat_deg, b.lon_deg, ltp) - _ne(a.lat_deg, a.lon_deg, ltp)
-        assert np.hypot(*d) / dt == pytest.approx(10.0, abs=0.05)
-        assert np.hypot(*a.vel_ned_m_s[:2]) == pytest.approx(10.0, abs=1e-9)
-        np.testing.assert_allclose(d / dt, a.vel_ned_m_s[:2], atol=0.3)
+        expected = min(10.0, accel * (t - traj.start_delay_s), accel * (traj.flight_end_s - t))
+        assert np.hypot(*a.vel_ned_m_s[:2]) == pytest.approx(expected, abs=1e-6)
+        np.testing.assert_allclose(d / dt, 0.5 * (a.vel_ned_m_s[:2] + b.vel_ned_m_s[:2]), atol=0.3)
+    cruise = traj.truth_at(traj.start_delay_s + 10.0 / accel + 1.0)
+    assert np.hypot(*cruise.vel_ned_m_s[:2]) == pytest.approx(10.0, abs=1e-9)
 
 
 def test_trajectory_heading_follows_track_and_is_continuous() -> None:

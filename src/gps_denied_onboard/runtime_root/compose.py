@@ -24,12 +24,14 @@ from gps_denied_onboard.components.c4_pose import PoseSolver
 from gps_denied_onboard.components.c5_estimator import NavEstimator
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
+from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
 from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
 from gps_denied_onboard.components.c8_mavlink import MavlinkLink, VehicleStateTracker
 from gps_denied_onboard.components.c13_fdr import FlightDataRecorder
 from gps_denied_onboard.config import Config
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
+from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 from gps_denied_onboard.pipeline import NavigationPipeline
 
@@ -81,6 +83,9 @@ def _calibration(config: Config) -> CameraCalibration:
     )
 
 
+#: C3 strategies that need no model file (and so no ONNX runtime objects).
+WEIGHTS_FREE_MATCHERS = frozenset({"classical"})
+
 #: C2 strategies by config name.
 VPR_STRATEGIES: Mapping[str, Callable[[TileStore, Config], VprStrategy]] = {
     "geo_prior": lambda tiles, cfg: GeoPriorVpr(tiles),
@@ -97,6 +102,23 @@ def _pick(kind: str, table: Mapping[str, Any], name: str) -> Any:
     if name not in table:
         raise StartupError(f"{kind}.strategy", f"unknown strategy {name!r}; valid: {', '.join(sorted(table))}")
     return table[name]
+
+
+def _matcher_deps(config: Config, pre: Mapping[str, Any], ransac: RansacFilter, fdr: FlightDataRecorder,
+                  health: RollingHealthWindow) -> dict[str, Any]:
+    """The superset of collaborators a C3 strategy may ask for; ONNX objects only for learned strategies
+    (the weights-free default must start on a machine without any model file)."""
+    deps: dict[str, Any] = {"config": config.matcher, "ransac_filter": ransac, "fdr_client": fdr,
+                            "health_window": health}
+    if config.matcher.strategy in WEIGHTS_FREE_MATCHERS:
+        return deps
+    runtime = pre.get("c7_inference") or OnnxInferenceRuntime(intra_op_threads=config.daemon.onnx_intra_op_threads)
+    lightglue = pre.get("c3_lightglue_runtime")
+    if lightglue is None:
+        # Without a LightGlue model the helper matches by mutual nearest neighbour (logged by the helper).
+        lightglue = LightGlueRuntime(runtime, config.matcher.lightglue_weights_path)
+    deps.update(inference_runtime=runtime, lightglue_runtime=lightglue)
+    return deps
 
 
 def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = None) -> RuntimeRoot:
@@ -123,13 +145,9 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         confidence=config.matcher.ransac_confidence, max_iters=config.matcher.ransac_max_iters
     )
     health = RollingHealthWindow(low_inlier_threshold=config.matcher.min_inliers_threshold)
-    deps: dict[str, Any] = {
-        "config": config.matcher, "ransac_filter": ransac, "fdr_client": fdr, "health_window": health,
-        "lightglue_runtime": pre.get("c3_lightglue_runtime"), "inference_runtime": pre.get("c7_inference"),
-        "intra_op_threads": config.daemon.onnx_intra_op_threads,
-    }
     try:
-        matcher = matcher_registry.create_matcher(config.matcher.strategy, **deps)
+        matcher = matcher_registry.create_matcher(config.matcher.strategy, **_matcher_deps(config, pre, ransac, fdr,
+                                                                                           health))
     except StrategyNotLinkedError as exc:
         raise StartupError("matcher.strategy", str(exc)) from exc
     except EngineLoadError as exc:
