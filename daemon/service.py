@@ -55,6 +55,9 @@ class NavDaemon:
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pipeline")
         self._provenance = Provenance.NO_ESTIMATE
         self._last_outcome: FrameOutcome | None = None
+        #: Set before the tasks are cancelled. asyncio.wait_for can swallow a cancellation that lands as its
+        #: inner wait completes (CPython 3.10/3.11), so the I/O loop also checks this flag.
+        self._stopping = False
         self.counters = DaemonCounters()
 
     # -- lifecycle ---------------------------------------------------------------------------------
@@ -88,11 +91,15 @@ class NavDaemon:
         finally:
             log.info(LogEvent.DAEMON_STOPPING)
             self._notifier.stopping()
-            for task in [stopper, *tasks.values()]:
+            self._stopping = True
+            everything = [stopper, *tasks.values()]
+            for task in everything:
                 task.cancel()
-            for task in [stopper, *tasks.values()]:
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
+            # Bounded: a task that ignores cancellation must not hold the process past its stop budget.
+            _, stuck = await asyncio.wait(everything, timeout=_STOP_GRACE_S)
+            for task in stuck:
+                log.error(LogEvent.DAEMON_TASK_STUCK, task=task.get_name(),
+                          stack=[f"{f.f_code.co_filename}:{f.f_lineno}" for f in task.get_stack()])
             # The worker thread may be inside one frame; give it a bounded grace, never wait forever.
             self._executor.shutdown(wait=False, cancel_futures=True)
             await asyncio.sleep(0)
@@ -197,7 +204,7 @@ class NavDaemon:
         readable = asyncio.Event()
         fd: int | None = None
         try:
-            while True:
+            while not self._stopping:
                 current = link.fileno()
                 if current != fd:
                     if fd is not None:

@@ -64,6 +64,7 @@ class LogEvent:
     DAEMON_STOPPING: Final = "daemon.stopping"
     DAEMON_STOPPED: Final = "daemon.stopped"
     DAEMON_TASK_FAILED: Final = "daemon.task_failed"
+    DAEMON_TASK_STUCK: Final = "daemon.task_stuck"
     DAEMON_STATUS: Final = "daemon.status"
     CAMERA_CONNECTED: Final = "camera.connected"
     CAMERA_DISCONNECTED: Final = "camera.disconnected"

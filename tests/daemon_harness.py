@@ -1,0 +1,83 @@
+"""Test harness: a real daemon process on loopback, with a small real cache and a real autopilot link."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def build_small_cache(root: Path) -> tuple[Path, Path]:
+    """A 600 m procedural map and its cache (real GeoTIFF, real cache build). Returns (map, cache)."""
+    from gps_denied_onboard.components.c10_cache_build import build_cache_from_geotiff
+    from gps_denied_onboard.sitl.demo_map import generate_demo_map
+
+    map_path = root / "map.tif"
+    cache = root / "cache"
+    if not map_path.exists():
+        generate_demo_map(map_path, size_m=600.0, gsd_m=0.5)
+    build_cache_from_geotiff(map_path, cache, progress=False)
+    return map_path, cache
+
+
+@dataclass
+class DaemonProcess:
+    proc: subprocess.Popen[bytes]
+    mav_port: int
+    cam_port: int
+    log_path: Path
+    fdr_dir: Path
+
+    def log_text(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, timeout_s: float = 10.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+        try:
+            return self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            return self.proc.wait()
+
+
+def start_daemon(workdir: Path, cache: Path, *, extra_env: dict[str, str] | None = None,
+                 overrides: tuple[str, ...] = ()) -> DaemonProcess:
+    mav_port, cam_port = free_udp_port(), free_tcp_port()
+    log_path = workdir / "daemon.log"
+    fdr_dir = workdir / "fdr"
+    cmd = [sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", str(REPO / "config" / "sitl.yaml"),
+           "--set", f"camera.source=tcp://127.0.0.1:{cam_port}", "--set", f"mavlink.url=udpin:127.0.0.1:{mav_port}",
+           "--set", f"cache.dir={cache}", "--set", f"fdr.dir={fdr_dir}"]
+    for o in overrides:
+        cmd += ["--set", o]
+    with log_path.open("wb") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=log, env={**os.environ, **(extra_env or {})})
+    return DaemonProcess(proc, mav_port, cam_port, log_path, fdr_dir)
+
+
+def wait_for(predicate, timeout_s: float, interval_s: float = 0.05) -> bool:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(interval_s)
+    return False

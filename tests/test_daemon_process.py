@@ -1,0 +1,107 @@
+"""The daemon as a real process: start-up, READY, MAVLink heartbeat, bad frames, clean SIGTERM exit."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import struct
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon_harness import build_small_cache, start_daemon, wait_for
+from gps_denied_onboard.camera.stream import encode_frame
+from gps_denied_onboard.components.c13_fdr import read_records
+from gps_denied_onboard.sitl.autopilot import SimAutopilot
+
+pytestmark = pytest.mark.sitl
+
+
+@pytest.fixture(scope="module")
+def small_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return build_small_cache(tmp_path_factory.mktemp("cache"))[1]
+
+
+def _autopilot_until_heartbeat(port: int, timeout_s: float = 60.0) -> SimAutopilot:
+    ap = SimAutopilot(daemon_port=port)
+
+    def beat() -> bool:
+        ap.send_heartbeat()
+        ap.poll()
+        return bool(ap.of_type("HEARTBEAT"))
+
+    assert wait_for(beat, timeout_s, 0.2), "no HEARTBEAT from the daemon"
+    return ap
+
+
+def test_daemon_sigterm_exits_cleanly_within_2s(tmp_path: Path, small_cache: Path) -> None:
+    """After READY and its first HEARTBEAT, SIGTERM stops the daemon with code 0 in under 2 s."""
+    notify = tmp_path / "notify.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sd:
+        sd.bind(str(notify))
+        sd.settimeout(60.0)
+        d = start_daemon(tmp_path, small_cache, extra_env={"NOTIFY_SOCKET": str(notify)})
+        try:
+            ready = sd.recv(4096).decode()
+            assert "READY=1" in ready.split("\n")
+            ap = _autopilot_until_heartbeat(d.mav_port)
+            hb = ap.of_type("HEARTBEAT")[0].fields
+            assert hb["type"] == 18 and hb["autopilot"] == 8  # ONBOARD_CONTROLLER, AUTOPILOT_INVALID
+            t0 = time.monotonic()
+            d.proc.terminate()
+            code = d.proc.wait(10)
+            elapsed = time.monotonic() - t0
+        finally:
+            d.stop()
+    assert code == 0, d.log_text()[-2000:]
+    assert elapsed < 2.0, f"stop took {elapsed:.2f} s"
+    events = [json.loads(line).get("event") for line in d.log_text().splitlines() if line.startswith("{")]
+    assert "daemon.stopping" in events and "daemon.stopped" in events
+
+
+def test_daemon_keeps_running_and_records_bad_frames(tmp_path: Path, small_cache: Path) -> None:
+    """A corrupt image and a wrong-size frame are recorded in the FDR and counted; the daemon keeps going."""
+    d = start_daemon(tmp_path, small_cache)
+    try:
+        ap = _autopilot_until_heartbeat(d.mav_port)
+
+        async def stream() -> None:
+            sent = asyncio.Event()
+
+            async def on_client(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+                if sent.is_set():  # the daemon reconnects after we hang up; send the bad frames once
+                    return
+                sent.set()
+                now_us = int(time.time() * 1e6)
+                good = encode_frame(np.zeros((480, 640, 3), np.uint8), seq=1, exposure_time_unix_usec=now_us)
+                corrupt = bytearray(good)
+                (hlen,) = struct.unpack(">I", good[4:8])
+                body = 8 + hlen + 4
+                corrupt[body : body + 64] = b"\x00" * 64  # valid header, JPEG payload destroyed
+                wrong_size = encode_frame(np.zeros((100, 100, 3), np.uint8), seq=2,
+                                          exposure_time_unix_usec=now_us)
+                writer.write(bytes(corrupt))
+                writer.write(wrong_size)
+                await writer.drain()
+                await asyncio.sleep(2.0)
+                writer.close()
+
+            server = await asyncio.start_server(on_client, "127.0.0.1", d.cam_port)
+            async with server:
+                await asyncio.sleep(4.0)
+
+        asyncio.run(stream())
+        ap.send_heartbeat()
+        assert d.proc.poll() is None, "daemon died on bad frames"
+    finally:
+        code = d.stop()
+    assert code == 0
+    errors = [r for r in read_records(d.fdr_dir) if r["kind"] == "pipeline.frame_error"]
+    stages = {r["stage"] for r in errors}
+    assert {"decode", "size"} <= stages, errors
+    assert any("100x100" in r["error"] for r in errors)
+    stopped = [json.loads(ln) for ln in d.log_text().splitlines() if '"daemon.stopped"' in ln][0]
+    assert stopped["frames_bad"] == 2
