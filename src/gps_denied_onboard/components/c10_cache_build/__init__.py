@@ -17,6 +17,11 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
 
 if TYPE_CHECKING:
     from gps_denied_onboard.components.c10_cache_build.geotiff import build_cache_from_geotiff, choose_zoom
+    from gps_denied_onboard.components.c10_cache_build.xyz import (
+        build_cache,
+        build_cache_from_url,
+        build_cache_from_xyz_dir,
+    )
 
 __all__ = [
     "CACHE_FORMAT_VERSION",
@@ -27,7 +32,10 @@ __all__ = [
     "SourceInfo",
     "TileRange",
     "VprInfo",
+    "build_cache",
     "build_cache_from_geotiff",
+    "build_cache_from_url",
+    "build_cache_from_xyz_dir",
     "choose_zoom",
 ]
 
@@ -39,4 +47,8 @@ def __getattr__(name: str) -> Any:
         from gps_denied_onboard.components.c10_cache_build import geotiff
 
         return getattr(geotiff, name)
+    if name in {"build_cache", "build_cache_from_url", "build_cache_from_xyz_dir"}:
+        from gps_denied_onboard.components.c10_cache_build import xyz
+
+        return getattr(xyz, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -100,7 +100,7 @@ def build_cache_from_geotiff(
     t_start = time.monotonic()
     source = Path(source)
     out_dir = Path(out_dir)
-    _check_params(zoom, bbox_lonlat, tile_size_px, min_tile_valid_fraction)
+    check_build_params(zoom, bbox_lonlat, tile_size_px, min_tile_valid_fraction)
     if not source.is_file():
         raise CacheBuildError("source GeoTIFF not found", path=str(source))
     try:
@@ -113,14 +113,17 @@ def build_cache_from_geotiff(
         source_info = SourceInfo(
             kind="geotiff", path=str(source.resolve()), sha256=sha256_file(source), crs=str(dataset.crs)
         )
-        existing = _up_to_date_manifest(out_dir, source_info, plan, tile_size_px, min_tile_valid_fraction)
+        existing = up_to_date_manifest(
+            out_dir,
+            source_info=source_info,
+            zoom=plan.zoom,
+            tile_size_px=tile_size_px,
+            tile_range=plan.tile_range,
+            bbox_lonlat=plan.bbox_lonlat,
+            min_tile_valid_fraction=min_tile_valid_fraction,
+            resampling=_RESAMPLING.name,
+        )
         if existing is not None:
-            _log.info(
-                LogEvent.CACHE_UP_TO_DATE,
-                cache_dir=str(out_dir),
-                zoom=existing.zoom,
-                tile_count=existing.tile_count,
-            )
             return existing
         return _build(
             dataset, source_info, plan, out_dir, tile_size_px, min_tile_valid_fraction, progress, t_start
@@ -140,15 +143,19 @@ def choose_zoom(source_gsd_m_px: float, lat_deg: float, tile_size_px: int = 256)
     return best_zoom
 
 
-def _check_params(
+def check_build_params(
     zoom: int | None,
     bbox_lonlat: tuple[float, float, float, float] | None,
-    tile_size_px: int,
+    tile_size_px: int | None,
     min_tile_valid_fraction: float,
 ) -> None:
+    """Validate the parameters every cache source shares; raise CacheBuildError naming the bad one.
+
+    ``tile_size_px`` None means "detect from the source" (XYZ tiles) and is not checked here.
+    """
     if zoom is not None and not (MIN_ZOOM <= int(zoom) <= MAX_ZOOM):
         raise CacheBuildError(f"zoom {zoom} out of range, expected {MIN_ZOOM}..{MAX_ZOOM}")
-    if not (16 <= tile_size_px <= 4096):
+    if tile_size_px is not None and not (16 <= tile_size_px <= 4096):
         raise CacheBuildError(f"tile_size_px {tile_size_px} out of range, expected 16..4096")
     if not (0.0 < min_tile_valid_fraction <= 1.0):
         raise CacheBuildError(f"min_tile_valid_fraction {min_tile_valid_fraction} must be in (0, 1]")
@@ -218,23 +225,42 @@ def _plan(
     centre_lon, centre_lat = (area[0] + area[2]) / 2.0, (area[1] + area[3]) / 2.0
     source_gsd = _source_ground_gsd_m_px(dataset, centre_lon, centre_lat)
     chosen = int(zoom) if zoom is not None else choose_zoom(source_gsd, centre_lat, tile_size_px)
-    grid = WebMercatorGrid(chosen, tile_size_px)
-    nw = grid.lonlat_to_px(area[0], area[3]) / tile_size_px
-    se = grid.lonlat_to_px(area[2], area[1]) / tile_size_px
-    # An east/south edge exactly on a tile border must not pull in the next (empty) tile.
-    tile_range = TileRange(
-        x0=math.floor(nw[0]),
-        y0=math.floor(nw[1]),
-        x1=max(math.ceil(se[0]) - 1, math.floor(nw[0])),
-        y1=max(math.ceil(se[1]) - 1, math.floor(nw[1])),
-    )
+    tile_range = tile_range_for_bbox(WebMercatorGrid(chosen, tile_size_px), area)
     return _Plan(zoom=chosen, tile_range=tile_range, bbox_lonlat=area, source_gsd_m_px=source_gsd)
 
 
-def _up_to_date_manifest(
-    out_dir: Path, source_info: SourceInfo, plan: _Plan, tile_size_px: int, min_tile_valid_fraction: float
+def tile_range_for_bbox(grid: WebMercatorGrid, bbox_lonlat: tuple[float, float, float, float]) -> TileRange:
+    """The XYZ tiles at ``grid``'s zoom that cover ``(west, south, east, north)`` degrees."""
+    west, south, east, north = bbox_lonlat
+    ts = grid.tile_size_px
+    nw = grid.lonlat_to_px(west, min(north, _MAX_LAT_DEG)) / ts
+    se = grid.lonlat_to_px(east, max(south, -_MAX_LAT_DEG)) / ts
+    last = (1 << grid.zoom) - 1
+    # An east/south edge exactly on a tile border must not pull in the next (empty) tile.
+    x0, y0 = min(max(math.floor(nw[0]), 0), last), min(max(math.floor(nw[1]), 0), last)
+    return TileRange(
+        x0=x0,
+        y0=y0,
+        x1=min(max(math.ceil(se[0]) - 1, x0), last),
+        y1=min(max(math.ceil(se[1]) - 1, y0), last),
+    )
+
+
+def up_to_date_manifest(
+    out_dir: Path,
+    *,
+    source_info: SourceInfo,
+    zoom: int,
+    tile_size_px: int,
+    tile_range: TileRange,
+    bbox_lonlat: tuple[float, float, float, float],
+    min_tile_valid_fraction: float,
+    resampling: str,
 ) -> CacheManifest | None:
-    """The existing manifest when it describes exactly this build and its artifacts are intact (sizes)."""
+    """The existing manifest when it describes exactly this build and its artifacts are intact (sizes).
+
+    Logs ``CACHE_UP_TO_DATE`` when it returns one.
+    """
     if not (out_dir / MANIFEST_NAME).is_file():
         return None
     try:
@@ -243,15 +269,21 @@ def _up_to_date_manifest(
     except CacheManifestError:
         return None
     same = (
-        existing.source.sha256 == source_info.sha256
-        and existing.zoom == plan.zoom
+        existing.source.kind == source_info.kind
+        and existing.source.sha256 == source_info.sha256
+        and existing.zoom == zoom
         and existing.tile_size_px == tile_size_px
-        and existing.tile_range == plan.tile_range
+        and existing.tile_range == tile_range
         and existing.min_tile_valid_fraction == min_tile_valid_fraction
-        and existing.resampling == _RESAMPLING.name
-        and np.allclose(existing.bbox_lonlat, plan.bbox_lonlat, rtol=0.0, atol=1e-12)
+        and existing.resampling == resampling
+        and np.allclose(existing.bbox_lonlat, bbox_lonlat, rtol=0.0, atol=1e-12)
     )
-    return existing if same else None
+    if not same:
+        return None
+    _log.info(
+        LogEvent.CACHE_UP_TO_DATE, cache_dir=str(out_dir), zoom=existing.zoom, tile_count=existing.tile_count
+    )
+    return existing
 
 
 def _band_plan(dataset: rasterio.io.DatasetReader) -> tuple[tuple[int, ...], np.ndarray | None]:
@@ -361,6 +393,122 @@ def _remove_stale(out_dir: Path, keep: set[str]) -> None:
             path.unlink()
 
 
+def prepare_cache_dir(out_dir: Path, *, zoom: int, mosaic_shape: tuple[int, int, int]) -> Path:
+    """Make ``out_dir`` ready for a build and return the temporary mosaic path to fill.
+
+    Removes the manifest first (from here until a new one is written the cache reads as incomplete),
+    checks the free space for the mosaic and deletes mosaics of earlier builds (e.g. another zoom).
+    """
+    mosaic_bytes = mosaic_shape[0] * mosaic_shape[1] * mosaic_shape[2]
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
+        free = shutil.disk_usage(out_dir).free
+    except OSError as exc:
+        raise CacheBuildError(f"cannot prepare the cache directory: {exc}", path=str(out_dir)) from exc
+    if mosaic_bytes > free:
+        raise CacheBuildError(
+            f"mosaic needs {mosaic_bytes / 1e9:.2f} GB at zoom {zoom}, only {free / 1e9:.2f} GB free",
+            path=str(out_dir),
+        )
+    _remove_stale(out_dir, keep=set())
+    return out_dir / (mosaic_name(zoom) + ".tmp")
+
+
+def finalize_cache(
+    out_dir: Path,
+    *,
+    mosaic_tmp: Path,
+    fractions: np.ndarray,
+    source_info: SourceInfo,
+    zoom: int,
+    tile_size_px: int,
+    tile_range: TileRange,
+    bbox_lonlat: tuple[float, float, float, float],
+    min_tile_valid_fraction: float,
+    resampling: str,
+    t_start: float,
+) -> CacheManifest:
+    """Publish a filled mosaic: tile list, valid fractions, artifact hashes and, last, the manifest.
+
+    ``fractions`` is float32 (n_rows, n_cols): the valid-pixel fraction of every tile of ``tile_range``.
+    Raises CacheBuildError when no tile reaches ``min_tile_valid_fraction`` (the temporary mosaic is
+    removed) or on an I/O error.
+    """
+    ts = tile_size_px
+    tr = tile_range
+    grid = WebMercatorGrid(zoom, ts)
+    shape = (tr.n_rows * ts, tr.n_cols * ts, 3)
+    mosaic_file = mosaic_name(zoom)
+    n_tiles = tr.n_rows * tr.n_cols
+    rows, cols = np.nonzero(fractions >= min_tile_valid_fraction)
+    if rows.size == 0:
+        mosaic_tmp.unlink(missing_ok=True)
+        raise CacheBuildError(
+            f"empty result: no tile at zoom {zoom} has >= {min_tile_valid_fraction:.0%} valid pixels "
+            "(source all nodata in the requested area?)",
+            path=source_info.path,
+        )
+    tiles = []
+    # np.nonzero is row-major, so the list is sorted by (y, x): a stable tile order for every consumer.
+    for row, col in zip(rows.tolist(), cols.tolist(), strict=True):
+        x, y = tr.x0 + col, tr.y0 + row
+        lon, lat = grid.tile_center_lonlat(x, y)
+        tile_id = TileId.of(zoom, lat, lon)
+        tiles.append(
+            {
+                "x": x,
+                "y": y,
+                "zoom": tile_id.zoom,
+                "lat_deg": tile_id.lat_deg,
+                "lon_deg": tile_id.lon_deg,
+                "valid_fraction": round(float(fractions[row, col]), 6),
+            }
+        )
+    try:
+        os.replace(mosaic_tmp, out_dir / mosaic_file)
+        write_json_atomic(out_dir / TILES_NAME, {"zoom": zoom, "tile_size_px": ts, "tiles": tiles})
+        fractions_tmp = out_dir / (TILE_VALID_FRACTION_NAME + ".tmp")
+        with open(fractions_tmp, "wb") as fh:
+            np.save(fh, fractions.astype(np.float32, copy=False))
+        os.replace(fractions_tmp, out_dir / TILE_VALID_FRACTION_NAME)
+        artifacts = {
+            name: ArtifactInfo(sha256=sha256_file(out_dir / name), bytes=(out_dir / name).stat().st_size)
+            for name in (mosaic_file, TILES_NAME, TILE_VALID_FRACTION_NAME)
+        }
+        manifest = CacheManifest(
+            format_version=CACHE_FORMAT_VERSION,
+            created_utc=datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+            source=source_info,
+            zoom=zoom,
+            tile_size_px=ts,
+            tile_range=tr,
+            bbox_lonlat=bbox_lonlat,
+            mosaic_shape=shape,
+            tile_count=len(tiles),
+            min_tile_valid_fraction=min_tile_valid_fraction,
+            resampling=resampling,
+            vpr=VprInfo(backbone="geo_prior", model_sha256=None),
+            artifacts=artifacts,
+        )
+        manifest.save(out_dir)
+    except OSError as exc:
+        raise CacheBuildError(f"cannot write cache artifacts: {exc}", path=str(out_dir)) from exc
+    seconds = time.monotonic() - t_start
+    _log.info(
+        LogEvent.CACHE_BUILT,
+        cache_dir=str(out_dir),
+        source_kind=source_info.kind,
+        zoom=zoom,
+        tile_count=len(tiles),
+        tiles_in_range=n_tiles,
+        seconds=round(seconds, 3),
+        tiles_per_s=round(n_tiles / seconds, 1) if seconds > 0 else None,
+        mosaic_shape=list(shape),
+    )
+    return manifest
+
+
 def _build(
     dataset: rasterio.io.DatasetReader,
     source_info: SourceInfo,
@@ -375,21 +523,7 @@ def _build(
     tr = plan.tile_range
     grid = WebMercatorGrid(plan.zoom, ts)
     shape = (tr.n_rows * ts, tr.n_cols * ts, 3)
-    mosaic_bytes = shape[0] * shape[1] * 3
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        # The manifest goes first: from here until the new one is written the cache is "incomplete".
-        (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
-        free = shutil.disk_usage(out_dir).free
-    except OSError as exc:
-        raise CacheBuildError(f"cannot prepare the cache directory: {exc}", path=str(out_dir)) from exc
-    if mosaic_bytes > free:
-        raise CacheBuildError(
-            f"mosaic needs {mosaic_bytes / 1e9:.2f} GB at zoom {plan.zoom}, only {free / 1e9:.2f} GB free",
-            path=str(out_dir),
-        )
-    mosaic_file = mosaic_name(plan.zoom)
-    _remove_stale(out_dir, keep=set())
+    mosaic_tmp = prepare_cache_dir(out_dir, zoom=plan.zoom, mosaic_shape=shape)
 
     bands, lut = _band_plan(dataset)
     decimation = max(
@@ -398,7 +532,6 @@ def _build(
     origin_x, origin_y = grid.px_to_merc(np.array([tr.x0 * ts, tr.y0 * ts], dtype=np.float64))
     res = grid.merc_m_per_px
     fractions = np.zeros((tr.n_rows, tr.n_cols), dtype=np.float32)
-    mosaic_tmp = out_dir / (mosaic_file + ".tmp")
     blocks = _blocks(tr, ts)
     n_tiles = tr.n_rows * tr.n_cols
     show = progress and sys.stderr.isatty()
@@ -422,69 +555,16 @@ def _build(
         del mosaic
     except (RasterioError, OSError) as exc:
         raise CacheBuildError(f"reprojection failed: {exc}", path=source_info.path) from exc
-
-    rows, cols = np.nonzero(fractions >= min_tile_valid_fraction)
-    if rows.size == 0:
-        mosaic_tmp.unlink(missing_ok=True)
-        raise CacheBuildError(
-            f"empty result: no tile at zoom {plan.zoom} has >= {min_tile_valid_fraction:.0%} valid pixels "
-            "(source all nodata in the requested area?)",
-            path=source_info.path,
-        )
-    tiles = []
-    # np.nonzero is row-major, so the list is sorted by (y, x): a stable tile order for every consumer.
-    for row, col in zip(rows.tolist(), cols.tolist(), strict=True):
-        x, y = tr.x0 + col, tr.y0 + row
-        lon, lat = grid.tile_center_lonlat(x, y)
-        tile_id = TileId.of(plan.zoom, lat, lon)
-        tiles.append(
-            {
-                "x": x,
-                "y": y,
-                "zoom": tile_id.zoom,
-                "lat_deg": tile_id.lat_deg,
-                "lon_deg": tile_id.lon_deg,
-                "valid_fraction": round(float(fractions[row, col]), 6),
-            }
-        )
-    try:
-        os.replace(mosaic_tmp, out_dir / mosaic_file)
-        write_json_atomic(out_dir / TILES_NAME, {"zoom": plan.zoom, "tile_size_px": ts, "tiles": tiles})
-        fractions_tmp = out_dir / (TILE_VALID_FRACTION_NAME + ".tmp")
-        with open(fractions_tmp, "wb") as fh:
-            np.save(fh, fractions)
-        os.replace(fractions_tmp, out_dir / TILE_VALID_FRACTION_NAME)
-        artifacts = {
-            name: ArtifactInfo(sha256=sha256_file(out_dir / name), bytes=(out_dir / name).stat().st_size)
-            for name in (mosaic_file, TILES_NAME, TILE_VALID_FRACTION_NAME)
-        }
-        manifest = CacheManifest(
-            format_version=CACHE_FORMAT_VERSION,
-            created_utc=datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-            source=source_info,
-            zoom=plan.zoom,
-            tile_size_px=ts,
-            tile_range=tr,
-            bbox_lonlat=plan.bbox_lonlat,
-            mosaic_shape=shape,
-            tile_count=len(tiles),
-            min_tile_valid_fraction=min_tile_valid_fraction,
-            resampling=_RESAMPLING.name,
-            vpr=VprInfo(backbone="geo_prior", model_sha256=None),
-            artifacts=artifacts,
-        )
-        manifest.save(out_dir)
-    except OSError as exc:
-        raise CacheBuildError(f"cannot write cache artifacts: {exc}", path=str(out_dir)) from exc
-    seconds = time.monotonic() - t_start
-    _log.info(
-        LogEvent.CACHE_BUILT,
-        cache_dir=str(out_dir),
+    return finalize_cache(
+        out_dir,
+        mosaic_tmp=mosaic_tmp,
+        fractions=fractions,
+        source_info=source_info,
         zoom=plan.zoom,
-        tile_count=len(tiles),
-        tiles_in_range=n_tiles,
-        seconds=round(seconds, 3),
-        tiles_per_s=round(n_tiles / seconds, 1) if seconds > 0 else None,
-        mosaic_shape=list(shape),
+        tile_size_px=ts,
+        tile_range=tr,
+        bbox_lonlat=plan.bbox_lonlat,
+        min_tile_valid_fraction=min_tile_valid_fraction,
+        resampling=_RESAMPLING.name,
+        t_start=t_start,
     )
-    return manifest
