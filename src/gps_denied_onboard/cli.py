@@ -50,7 +50,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_cache_build(args: argparse.Namespace) -> int:
-    from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache_from_geotiff
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache
+    from gps_denied_onboard.components.c11_tile_download import TileDownloadError
 
     configure_logging("info", json=False)
     bbox = None
@@ -62,11 +63,21 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
         if len(bbox) != 4:
             _err(f"--bbox {args.bbox!r}: expected W,S,E,N in degrees")
             return EXIT_CONFIG
+    headers = {}
+    for h in args.header:
+        name, sep, value = h.partition(":")
+        if not sep or not name.strip():
+            _err(f"--header {h!r}: expected NAME:VALUE")
+            return EXIT_CONFIG
+        headers[name.strip()] = value.strip()
     try:
-        manifest = build_cache_from_geotiff(Path(args.source), Path(args.out), zoom=args.zoom,
-                                            bbox_lonlat=bbox, tile_size_px=args.tile_size,  # type: ignore[arg-type]
-                                            progress=not args.quiet)
-    except CacheBuildError as exc:
+        manifest = build_cache(
+            args.source, Path(args.out), zoom=args.zoom, bbox_lonlat=bbox, tile_size_px=args.tile_size,
+            tms=args.tms, progress=not args.quiet, allow_failed_tiles=args.allow_failed_tiles,
+            downloader_options={"concurrency": args.concurrency, "rate_limit_per_s": args.rate_limit,
+                                "max_retries": args.max_retries, "timeout_s": args.timeout, "headers": headers},
+        )
+    except (CacheBuildError, TileDownloadError) as exc:
         _err(str(exc))
         return EXIT_CONFIG
     print(f"cache: {args.out}: zoom {manifest.zoom}, {manifest.tile_count} tiles")
@@ -115,13 +126,31 @@ def build_parser() -> argparse.ArgumentParser:
 
     cache = sub.add_parser("cache", help="pre-flight map cache", description="Pre-flight map cache (F1).")
     cache_sub = cache.add_subparsers(dest="cache_command", required=True, metavar="SUBCOMMAND")
-    build = cache_sub.add_parser("build", help="build a cache from a GeoTIFF orthophoto",
-                                 description="Cut a GeoTIFF (any CRS) into a Web-Mercator tile cache.")
-    build.add_argument("--source", required=True, help="GeoTIFF orthophoto (any CRS rasterio reads)")
+    build = cache_sub.add_parser(
+        "build", help="build a cache from a GeoTIFF, an XYZ tile directory or a tile server",
+        description="Build a Web-Mercator tile cache (F1). Idempotent: re-running with the same inputs "
+                    "changes nothing; an interrupted download resumes.")
+    build.add_argument("--source", required=True,
+                       help="GeoTIFF file (any CRS), directory of {z}/{x}/{y} tiles, or http(s):// tile URL "
+                            "template with {z}/{x}/{y}")
     build.add_argument("--out", required=True, help="cache directory to create or resume")
-    build.add_argument("--zoom", type=int, default=None, help="Web-Mercator zoom (default: matched to the source GSD)")
-    build.add_argument("--bbox", default=None, help="W,S,E,N in degrees (default: the whole source)")
-    build.add_argument("--tile-size", type=int, default=256, help="tile size in px (default 256)")
+    build.add_argument("--zoom", type=int, default=None,
+                       help="Web-Mercator zoom (default: matched to a GeoTIFF's GSD; required for a tile server)")
+    build.add_argument("--bbox", default=None,
+                       help="W,S,E,N in degrees (default: the whole source; required for a tile server)")
+    build.add_argument("--tile-size", type=int, default=None,
+                       help="tile size in px (default: 256 for a GeoTIFF, detected for XYZ tiles)")
+    build.add_argument("--tms", action="store_true", help="XYZ directory uses TMS rows (y from the south)")
+    build.add_argument("--concurrency", type=int, default=4, help="tile server: parallel downloads (default 4)")
+    build.add_argument("--rate-limit", type=float, default=10.0,
+                       help="tile server: max requests per second (default 10)")
+    build.add_argument("--max-retries", type=int, default=5,
+                       help="tile server: retries per tile on 429/5xx/timeouts (default 5)")
+    build.add_argument("--timeout", type=float, default=20.0, help="tile server: per-request timeout, s")
+    build.add_argument("--header", action="append", default=[], metavar="NAME:VALUE",
+                       help="tile server: extra HTTP header (repeatable), e.g. Referer")
+    build.add_argument("--allow-failed-tiles", action="store_true",
+                       help="tile server: build with gaps where downloads still failed after retries")
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     build.set_defaults(func=_cmd_cache_build)
 
