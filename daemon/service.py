@@ -14,7 +14,6 @@ import contextlib
 import signal
 import time
 import uuid
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import structlog
@@ -26,13 +25,15 @@ from gps_denied_onboard.camera.types import NavCameraFrame
 from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
+from gps_denied_onboard.daemon.worker import WorkerThread
 from gps_denied_onboard.pipeline import FrameOutcome, InitialPrior
 from gps_denied_onboard.runtime_root import RuntimeRoot
 
 log = structlog.get_logger(__name__)
 
-#: Seconds allowed for the in-flight frame to finish when stopping (the 2 s stop budget includes it).
-_STOP_GRACE_S = 1.0
+#: Seconds allowed for cancelled tasks, then for the in-flight frame, when stopping (2 s budget in all).
+_STOP_GRACE_S = 0.5
+_FRAME_GRACE_S = 0.5
 
 
 @dataclass
@@ -52,7 +53,7 @@ class NavDaemon:
         self._cfg = root.config
         self._notifier = notifier or SdNotifier()
         self._queue: LatestQueue[tuple[CapturedFrame, int]] = LatestQueue(self._cfg.camera.queue_depth)
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pipeline")
+        self._worker = WorkerThread("pipeline")
         self._provenance = Provenance.NO_ESTIMATE
         self._last_outcome: FrameOutcome | None = None
         #: Set before the tasks are cancelled. asyncio.wait_for can swallow a cancellation that lands as its
@@ -98,14 +99,14 @@ class NavDaemon:
             # Bounded: a task that ignores cancellation must not hold the process past its stop budget.
             _, stuck = await asyncio.wait(everything, timeout=_STOP_GRACE_S)
             for task in stuck:
-                log.error(LogEvent.DAEMON_TASK_STUCK, task=task.get_name(),
-                          stack=[f"{f.f_code.co_filename}:{f.f_lineno}" for f in task.get_stack()])
-            # The worker thread may be inside one frame; give it a bounded grace, never wait forever.
-            self._executor.shutdown(wait=False, cancel_futures=True)
-            await asyncio.sleep(0)
-            deadline = time.monotonic() + _STOP_GRACE_S
-            while any(t.is_alive() for t in self._executor._threads) and time.monotonic() < deadline:  # noqa: SLF001
-                await asyncio.sleep(0.02)
+                log.error(
+                    LogEvent.DAEMON_TASK_STUCK,
+                    task=task.get_name(),
+                    stack=[f"{f.f_code.co_filename}:{f.f_lineno}" for f in task.get_stack()],
+                )
+            # The worker may be inside one frame: a bounded grace, then it is abandoned (daemon thread).
+            if not await self._worker.stop(_FRAME_GRACE_S):
+                log.warning(LogEvent.DAEMON_TASK_STUCK, task="pipeline_thread", grace_s=_FRAME_GRACE_S)
             self._root.close()
             self._notifier.close()
             log.info(LogEvent.DAEMON_STOPPED, exit_code=exit_code, **vars(self.counters))
@@ -119,7 +120,6 @@ class NavDaemon:
                 log.debug(LogEvent.CAMERA_FRAME_DROPPED, seq=frame.seq, dropped_total=self._queue.dropped)
 
     async def _pipeline_worker(self) -> None:
-        loop = asyncio.get_running_loop()
         tracker = self._root.tracker
         while True:
             captured, received_ns = await self._queue.get()
@@ -127,14 +127,16 @@ class NavDaemon:
             age_s = time.time() - t_us / 1e6
             if age_s > self._cfg.daemon.max_frame_age_s:
                 self.counters.frames_stale += 1
-                log.warning(LogEvent.PIPELINE_FRAME_INVALID, seq=captured.seq, reason="stale", age_s=round(age_s, 3))
+                log.warning(
+                    LogEvent.PIPELINE_FRAME_INVALID, seq=captured.seq, reason="stale", age_s=round(age_s, 3)
+                )
                 continue
             # Vehicle state is sampled on the loop (single owner); the pipeline thread gets values only.
             attitude = tracker.attitude_at(t_us)
             alt_agl_m = tracker.alt_agl_at(t_us)
             prior = self._prior()
-            outcome = await loop.run_in_executor(
-                self._executor, self._process, captured, received_ns, attitude, alt_agl_m, prior
+            outcome = await self._worker.submit(
+                self._process, captured, received_ns, attitude, alt_agl_m, prior
             )
             if outcome is not None:
                 self._publish(outcome)
@@ -148,32 +150,49 @@ class NavDaemon:
             return InitialPrior(home[0], home[1], init.sigma_m, "home_position")
         return None
 
-    def _process(self, captured: CapturedFrame, received_ns: int, attitude, alt_agl_m,  # type: ignore[no-untyped-def]
-                 prior: InitialPrior | None) -> FrameOutcome | None:
+    def _process(
+        self,
+        captured: CapturedFrame,
+        received_ns: int,
+        attitude,
+        alt_agl_m,  # type: ignore[no-untyped-def]
+        prior: InitialPrior | None,
+    ) -> FrameOutcome | None:
         """Runs on the pipeline thread. A per-frame error is recorded and the daemon keeps flying."""
         try:
             image = captured.decode()
         except FrameStreamError as exc:
             self.counters.frames_bad += 1
             log.warning(LogEvent.CAMERA_BAD_FRAME, seq=captured.seq, error=str(exc))
-            self._root.fdr.record(FdrKind.FRAME_ERROR, {"seq": captured.seq, "stage": "decode", "error": str(exc)})
+            self._root.fdr.record(
+                FdrKind.FRAME_ERROR, {"seq": captured.seq, "stage": "decode", "error": str(exc)}
+            )
             return None
         cal = self._root.calibration
         if image.shape[1] != cal.width_px or image.shape[0] != cal.height_px:
             self.counters.frames_bad += 1
-            msg = f"frame is {image.shape[1]}x{image.shape[0]}, calibration is for {cal.width_px}x{cal.height_px}"
+            got, want = f"{image.shape[1]}x{image.shape[0]}", f"{cal.width_px}x{cal.height_px}"
+            msg = f"frame is {got}, calibration is for {want}"
             log.warning(LogEvent.CAMERA_BAD_FRAME, seq=captured.seq, error=msg)
             self._root.fdr.record(FdrKind.FRAME_ERROR, {"seq": captured.seq, "stage": "size", "error": msg})
             return None
-        frame = NavCameraFrame(uuid.uuid4(), captured.seq, captured.exposure_time_unix_usec, image, attitude,
-                               alt_agl_m, received_ns)
+        frame = NavCameraFrame(
+            uuid.uuid4(),
+            captured.seq,
+            captured.exposure_time_unix_usec,
+            image,
+            attitude,
+            alt_agl_m,
+            received_ns,
+        )
         try:
             return self._root.pipeline.process(frame, prior)
-        except Exception as exc:  # noqa: BLE001 - keep flying on any per-frame failure; it is recorded
+        except Exception as exc:  # keep flying on any per-frame failure; it is recorded
             self.counters.frame_errors += 1
             log.exception(LogEvent.PIPELINE_FRAME_ERROR, seq=captured.seq, error=repr(exc))
-            self._root.fdr.record(FdrKind.FRAME_ERROR, {"seq": captured.seq, "stage": "pipeline",
-                                                        "error": repr(exc)})
+            self._root.fdr.record(
+                FdrKind.FRAME_ERROR, {"seq": captured.seq, "stage": "pipeline", "error": repr(exc)}
+            )
             return None
 
     def _publish(self, outcome: FrameOutcome) -> None:
@@ -182,21 +201,36 @@ class NavDaemon:
         self._last_outcome = outcome
         latency_ms = (time.time() * 1e6 - outcome.exposure_time_unix_usec) / 1e3
         self.counters.last_latency_ms = latency_ms
-        log.info(LogEvent.PIPELINE_FRAME, seq=outcome.seq, provenance=outcome.provenance.value,
-                 inliers=outcome.inliers, fix=outcome.fix_accepted, reason=outcome.no_fix_reason,
-                 sigma_m=round(outcome.state.horiz_sigma_m, 2) if outcome.state else None,
-                 latency_ms=round(latency_ms, 1), timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()})
+        log.info(
+            LogEvent.PIPELINE_FRAME,
+            seq=outcome.seq,
+            provenance=outcome.provenance.value,
+            inliers=outcome.inliers,
+            fix=outcome.fix_accepted,
+            reason=outcome.no_fix_reason,
+            sigma_m=round(outcome.state.horiz_sigma_m, 2) if outcome.state else None,
+            latency_ms=round(latency_ms, 1),
+            timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()},
+        )
         new = outcome.provenance
         if new is not self._provenance:
             old, self._provenance = self._provenance, new
-            log.warning(LogEvent.PROVENANCE_CHANGED, old=old.value, new=new.value, reason=outcome.no_fix_reason)
-            self._root.fdr.record(FdrKind.PROVENANCE_CHANGED, {"old": old.value, "new": new.value,
-                                                               "reason": outcome.no_fix_reason})
+            log.warning(
+                LogEvent.PROVENANCE_CHANGED, old=old.value, new=new.value, reason=outcome.no_fix_reason
+            )
+            self._root.fdr.record(
+                FdrKind.PROVENANCE_CHANGED,
+                {"old": old.value, "new": new.value, "reason": outcome.no_fix_reason},
+            )
             self._root.link.notify_provenance(old, new, outcome.no_fix_reason)
         if outcome.state is not None:
-            self._root.link.send_estimate(outcome.state, time_unix_usec=outcome.exposure_time_unix_usec,
-                                          inliers=outcome.inliers, residual_px=outcome.residual_px,
-                                          frame_drops=self._queue.dropped)
+            self._root.link.send_estimate(
+                outcome.state,
+                time_unix_usec=outcome.exposure_time_unix_usec,
+                inliers=outcome.inliers,
+                residual_px=outcome.residual_px,
+                frame_drops=self._queue.dropped,
+            )
 
     async def _mavlink_rx(self) -> None:
         loop = asyncio.get_running_loop()
@@ -246,9 +280,16 @@ class NavDaemon:
                 last_status = now
                 c = self.counters
                 alive = self._root.tracker.link_alive(time.time())
-                log.info(LogEvent.DAEMON_STATUS, provenance=self._provenance.value, link_alive=alive,
-                         dropped=self._queue.dropped, bad_frames=c.frames_bad + self._root.camera.bad_frames,
-                         **{k: v for k, v in vars(c).items() if k != "frames_bad"})
-                self._notifier.status(f"{self._provenance.value} frames={c.frames_processed} "
-                                      f"fixes={c.fixes_accepted} drops={self._queue.dropped}")
+                log.info(
+                    LogEvent.DAEMON_STATUS,
+                    provenance=self._provenance.value,
+                    link_alive=alive,
+                    dropped=self._queue.dropped,
+                    bad_frames=c.frames_bad + self._root.camera.bad_frames,
+                    **{k: v for k, v in vars(c).items() if k != "frames_bad"},
+                )
+                self._notifier.status(
+                    f"{self._provenance.value} frames={c.frames_processed} "
+                    f"fixes={c.fixes_accepted} drops={self._queue.dropped}"
+                )
             await asyncio.sleep(tick)

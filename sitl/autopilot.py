@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from gps_denied_onboard.constants import MAV_COMPONENT_ID  # noqa: E402
+from gps_denied_onboard.constants import MAV_COMPONENT_ID
 
 
 @dataclass
@@ -49,30 +49,58 @@ class SimAutopilot:
 
     def send_heartbeat(self) -> None:
         self.mav.heartbeat_send(
-            mavutil.mavlink.MAV_TYPE_QUADROTOR, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+            mavutil.mavlink.MAV_TYPE_QUADROTOR,
+            mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
             mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED,
-            4, mavutil.mavlink.MAV_STATE_ACTIVE,
+            4,
+            mavutil.mavlink.MAV_STATE_ACTIVE,
         )
 
     def send_system_time(self, now_unix_s: float) -> None:
         self.mav.system_time_send(int(now_unix_s * 1e6), self._boot_ms(now_unix_s))
 
-    def send_attitude(self, now_unix_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float,
-                      rates_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+    def send_attitude(
+        self,
+        now_unix_s: float,
+        roll_rad: float,
+        pitch_rad: float,
+        yaw_rad: float,
+        rates_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> None:
         yaw = math.atan2(math.sin(yaw_rad), math.cos(yaw_rad))  # ArduPilot sends -pi..pi
         self.mav.attitude_send(self._boot_ms(now_unix_s), roll_rad, pitch_rad, yaw, *rates_rad_s)
 
     def send_altitude(self, now_unix_s: float, alt_amsl_m: float, alt_rel_m: float, alt_agl_m: float) -> None:
-        self.mav.altitude_send(int(now_unix_s * 1e6), alt_amsl_m, alt_amsl_m, alt_rel_m, alt_rel_m,
-                               alt_amsl_m - alt_agl_m, alt_agl_m)
+        self.mav.altitude_send(
+            int(now_unix_s * 1e6),
+            alt_amsl_m,
+            alt_amsl_m,
+            alt_rel_m,
+            alt_rel_m,
+            alt_amsl_m - alt_agl_m,
+            alt_agl_m,
+        )
 
-    def send_vfr_hud(self, groundspeed_m_s: float, heading_deg: float, alt_amsl_m: float, climb_m_s: float) -> None:
-        self.mav.vfr_hud_send(groundspeed_m_s, groundspeed_m_s, int(heading_deg) % 360, 50, alt_amsl_m, climb_m_s)
+    def send_vfr_hud(
+        self, groundspeed_m_s: float, heading_deg: float, alt_amsl_m: float, climb_m_s: float
+    ) -> None:
+        self.mav.vfr_hud_send(
+            groundspeed_m_s, groundspeed_m_s, int(heading_deg) % 360, 50, alt_amsl_m, climb_m_s
+        )
 
     def send_home(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> None:
-        self.mav.home_position_send(int(round(lat_deg * 1e7)), int(round(lon_deg * 1e7)),
-                                    int(round(alt_amsl_m * 1000)), 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0],
-                                    0.0, 0.0, 0.0)
+        self.mav.home_position_send(
+            round(lat_deg * 1e7),
+            round(lon_deg * 1e7),
+            round(alt_amsl_m * 1000),
+            0.0,
+            0.0,
+            0.0,
+            [1.0, 0.0, 0.0, 0.0],
+            0.0,
+            0.0,
+            0.0,
+        )
 
     def poll(self) -> int:
         """Drain what the daemon sent (non-blocking); keeps only the daemon's own component."""

@@ -43,8 +43,11 @@ def _pct(values: Sequence[float], q: float) -> float | None:
     return float(np.percentile(np.asarray(values, dtype=float), q)) if values else None
 
 
-def score(frames: Sequence[SentFrame], received: Sequence[ReceivedMessage],
-          truth_at_unix: Callable[[float], tuple[float, float]]) -> dict[str, Any]:
+def score(
+    frames: Sequence[SentFrame],
+    received: Sequence[ReceivedMessage],
+    truth_at_unix: Callable[[float], tuple[float, float]],
+) -> dict[str, Any]:
     """Build the report dict. ``truth_at_unix(t)`` -> (lat_deg, lon_deg) of the truth at Unix time t."""
     gps: list[tuple[ReceivedMessage, str | None]] = []
     pending: ReceivedMessage | None = None
@@ -74,8 +77,14 @@ def score(frames: Sequence[SentFrame], received: Sequence[ReceivedMessage],
     avail_num = avail_den = 0
     for f in frames:
         t_exp = f.exposure_time_unix_usec / 1e6
-        row: dict[str, Any] = {"seq": f.seq, "t_s": round(f.t_s, 3), "exposure_time_unix_usec": f.exposure_time_unix_usec,
-                               "true_lat_deg": f.lat_deg, "true_lon_deg": f.lon_deg, "alt_agl_m": round(f.alt_agl_m, 2)}
+        row: dict[str, Any] = {
+            "seq": f.seq,
+            "t_s": round(f.t_s, 3),
+            "exposure_time_unix_usec": f.exposure_time_unix_usec,
+            "true_lat_deg": f.lat_deg,
+            "true_lon_deg": f.lon_deg,
+            "alt_agl_m": round(f.alt_agl_m, 2),
+        }
         hit = by_time.get(f.exposure_time_unix_usec)
         if hit is not None:
             m, prov = hit
@@ -83,28 +92,48 @@ def score(frames: Sequence[SentFrame], received: Sequence[ReceivedMessage],
             latencies.append(latency)
             prov_counts[prov or "unknown"] += 1
             fx = m.fields
-            row.update({
-                "est_lat_deg": fx["lat"] / 1e7, "est_lon_deg": fx["lon"] / 1e7, "fix_type": int(fx["fix_type"]),
-                "horiz_accuracy_m": float(fx["horiz_accuracy"]), "provenance": prov,
-                "latency_ms": round(latency, 1),
-                "horizontal_error_m": round(float(haversine_m(f.lat_deg, f.lon_deg, fx["lat"] / 1e7, fx["lon"] / 1e7)), 3),
-            })
+            row.update(
+                {
+                    "est_lat_deg": fx["lat"] / 1e7,
+                    "est_lon_deg": fx["lon"] / 1e7,
+                    "fix_type": int(fx["fix_type"]),
+                    "horiz_accuracy_m": float(fx["horiz_accuracy"]),
+                    "provenance": prov,
+                    "latency_ms": round(latency, 1),
+                    "horizontal_error_m": round(
+                        float(haversine_m(f.lat_deg, f.lon_deg, fx["lat"] / 1e7, fx["lon"] / 1e7)), 3
+                    ),
+                }
+            )
         else:
-            row.update({"est_lat_deg": None, "fix_type": None, "provenance": None, "horizontal_error_m": None})
+            row.update(
+                {"est_lat_deg": None, "fix_type": None, "provenance": None, "horizontal_error_m": None}
+            )
         if first_fix_unix is not None and t_exp >= first_fix_unix - AVAILABILITY_WINDOW_S:
             avail_den += 1
             lo, hi = np.searchsorted(fix_recv, [t_exp, t_exp + AVAILABILITY_WINDOW_S], side="left")
             avail_num += int(hi > lo)
         per_frame.append(row)
 
-    statustexts = [{"t_unix_s": round(m.recv_time_unix_s, 3), "severity": m.fields.get("severity"),
-                    "text": m.fields.get("text")} for m in received if m.type == "STATUSTEXT"]
+    statustexts = [
+        {
+            "t_unix_s": round(m.recv_time_unix_s, 3),
+            "severity": m.fields.get("severity"),
+            "text": m.fields.get("text"),
+        }
+        for m in received
+        if m.type == "STATUSTEXT"
+    ]
     return {
         "frames": len(frames),
         "frames_answered": len(latencies),
         "availability": (avail_num / avail_den) if avail_den else 0.0,
-        "horizontal_error_m": {"p50": _pct(errors, 50), "p95": _pct(errors, 95),
-                               "max": max(errors) if errors else None, "n": len(errors)},
+        "horizontal_error_m": {
+            "p50": _pct(errors, 50),
+            "p95": _pct(errors, 95),
+            "max": max(errors) if errors else None,
+            "n": len(errors),
+        },
         "latency_ms": {"p50": _pct(latencies, 50), "p95": _pct(latencies, 95)},
         "provenance_counts": dict(sorted(prov_counts.items())),
         "gps_input_received": len(gps),
@@ -131,14 +160,18 @@ def plot_report(report: dict[str, Any], path: Path, *, title: str) -> None:
         return (lat - lat0) * k_n, (lon - lon0) * k_e
 
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 6), gridspec_kw={"width_ratios": [1.2, 1]})
-    tn, te = zip(*(ne(r["true_lat_deg"], r["true_lon_deg"]) for r in rows))
+    tn, te = zip(*(ne(r["true_lat_deg"], r["true_lon_deg"]) for r in rows), strict=False)
     ax0.plot(te, tn, "-", color="0.3", lw=1.5, label="truth")
-    colors = {"satellite_anchored": "tab:green", "visual_propagated": "tab:orange",
-              "dead_reckoning": "tab:red", "no_estimate": "tab:gray"}
+    colors = {
+        "satellite_anchored": "tab:green",
+        "visual_propagated": "tab:orange",
+        "dead_reckoning": "tab:red",
+        "no_estimate": "tab:gray",
+    }
     for prov, color in colors.items():
         pts = [ne(r["est_lat_deg"], r["est_lon_deg"]) for r in rows if r.get("provenance") == prov]
         if pts:
-            en, ee = zip(*pts)
+            en, ee = zip(*pts, strict=False)
             ax0.scatter(ee, en, s=10, color=color, label=f"estimate: {prov}", zorder=3)
     ax0.set_xlabel("east [m]")
     ax0.set_ylabel("north [m]")
@@ -153,8 +186,10 @@ def plot_report(report: dict[str, Any], path: Path, *, title: str) -> None:
     ax1.set_xlabel("flight time [s]")
     ax1.set_ylabel("[m]")
     h = report["horizontal_error_m"]
-    ax1.set_title(f"p50 {h['p50'] or float('nan'):.2f} m, p95 {h['p95'] or float('nan'):.2f} m, "
-                  f"availability {report['availability']:.2f}")
+    ax1.set_title(
+        f"p50 {h['p50'] or float('nan'):.2f} m, p95 {h['p95'] or float('nan'):.2f} m, "
+        f"availability {report['availability']:.2f}"
+    )
     ax1.legend(fontsize=8)
     ax1.grid(alpha=0.3)
     fig.tight_layout()

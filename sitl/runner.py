@@ -88,8 +88,17 @@ def _intersect(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float
 
 
 class _Flight:
-    def __init__(self, opts: SitlOptions, scenario: Scenario, trajectory: Trajectory, renderer: MapRenderer,
-                 config_path: Path, cache_dir: Path, workdir: Path, ground_alt_amsl_m: float) -> None:
+    def __init__(
+        self,
+        opts: SitlOptions,
+        scenario: Scenario,
+        trajectory: Trajectory,
+        renderer: MapRenderer,
+        config_path: Path,
+        cache_dir: Path,
+        workdir: Path,
+        ground_alt_amsl_m: float,
+    ) -> None:
         self.opts = opts
         self.scenario = scenario
         self.traj = trajectory
@@ -135,8 +144,12 @@ class _Flight:
             alt_rel = truth.alt_agl_m  # home is on the flat ground
             ap.send_altitude(now, truth.alt_amsl_m, alt_rel, truth.alt_agl_m)
             speed = float(np.hypot(truth.vel_ned_m_s[0], truth.vel_ned_m_s[1]))
-            ap.send_vfr_hud(speed, float(np.degrees(truth.yaw_rad)) % 360.0, truth.alt_amsl_m,
-                            -float(truth.vel_ned_m_s[2]))
+            ap.send_vfr_hud(
+                speed,
+                float(np.degrees(truth.yaw_rad)) % 360.0,
+                truth.alt_amsl_m,
+                -float(truth.vel_ned_m_s[2]),
+            )
 
     async def _telemetry(self, ap: SimAutopilot, stop: asyncio.Event) -> None:
         home = self.traj.truth_at(0.0)
@@ -163,7 +176,7 @@ class _Flight:
         gap = self.scenario.gap_at(t_s)
         if gap is not None:
             img = degrade_for_gap(img, gap)
-        exposure_us = int(round((self.t0_unix_s + t_s) * 1e6))
+        exposure_us = round((self.t0_unix_s + t_s) * 1e6)
         return encode_frame(img, seq=index, exposure_time_unix_usec=exposure_us), truth
 
     async def _camera(self, server: FrameServer, stop: asyncio.Event) -> None:
@@ -174,8 +187,16 @@ class _Flight:
             await asyncio.sleep(max(0.0, self.t0_unix_s + float(t_s) - time.time()))
             message, truth = await loop.run_in_executor(None, self._render, index, float(t_s))
             await server.send(message)
-            self.frames.append(SentFrame(index, int(round((self.t0_unix_s + float(t_s)) * 1e6)), float(t_s),
-                                         truth.lat_deg, truth.lon_deg, truth.alt_agl_m))
+            self.frames.append(
+                SentFrame(
+                    index,
+                    round((self.t0_unix_s + float(t_s)) * 1e6),
+                    float(t_s),
+                    truth.lat_deg,
+                    truth.lon_deg,
+                    truth.alt_agl_m,
+                )
+            )
 
     async def fly(self) -> SimAutopilot:
         server = FrameServer()
@@ -185,24 +206,34 @@ class _Flight:
         log_path = self.workdir / "daemon.log"
         stop = asyncio.Event()
         with log_path.open("wb") as log_file:
-            proc = subprocess.Popen(self._daemon_cmd(mav_port, cam_port), stdout=log_file, stderr=log_file,
-                                    env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            proc = subprocess.Popen(
+                self._daemon_cmd(mav_port, cam_port),
+                stdout=log_file,
+                stderr=log_file,
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )
             try:
                 telemetry = asyncio.create_task(self._telemetry(ap, stop), name="sitl_telemetry")
                 self._say(f"daemon pid {proc.pid}; waiting for its HEARTBEAT (log: {log_path})")
                 deadline = time.time() + DAEMON_READY_TIMEOUT_S
                 while not ap.of_type("HEARTBEAT"):
                     if proc.poll() is not None:
-                        raise SitlError(f"daemon exited with code {proc.returncode} before its first HEARTBEAT; "
-                                        f"see {log_path}")
+                        raise SitlError(
+                            f"daemon exited with code {proc.returncode} before its first HEARTBEAT; "
+                            f"see {log_path}"
+                        )
                     if time.time() > deadline:
-                        raise SitlError(f"no HEARTBEAT from the daemon in {DAEMON_READY_TIMEOUT_S:.0f} s; see {log_path}")
+                        raise SitlError(
+                            f"no HEARTBEAT from the daemon in {DAEMON_READY_TIMEOUT_S:.0f} s; see {log_path}"
+                        )
                     await asyncio.sleep(0.1)
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(server.client_connected.wait(), 10.0)
                 self.t0_unix_s = time.time() + 0.2
-                self._say(f"flying '{self.scenario.name}': {self.traj.duration_s:.0f} s, "
-                          f"{len(self.traj.frame_times_s())} frames")
+                self._say(
+                    f"flying '{self.scenario.name}': {self.traj.duration_s:.0f} s, "
+                    f"{len(self.traj.frame_times_s())} frames"
+                )
                 await self._camera(server, stop)
                 await asyncio.sleep(_TAIL_S)
                 stop.set()
@@ -215,7 +246,8 @@ class _Flight:
                     proc.send_signal(signal.SIGTERM)
                 try:
                     self.daemon_exit_code = await asyncio.get_running_loop().run_in_executor(
-                        None, lambda: proc.wait(DAEMON_STOP_TIMEOUT_S))
+                        None, lambda: proc.wait(DAEMON_STOP_TIMEOUT_S)
+                    )
                     self.daemon_stop_s = time.monotonic() - t_term
                 except subprocess.TimeoutExpired:
                     proc.kill()
@@ -281,21 +313,27 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
 
     report = score(flight.frames, ap.received, truth_at_unix)
     ap.close()
-    report.update({
-        "scenario": scenario.name,
-        "map": str(map_path),
-        "appearance": str(opts.appearance_path) if opts.appearance_path else None,
-        "daemon_config": str(config_path),
-        "daemon_overrides": list(opts.overrides),
-        "matcher": daemon_cfg.matcher.strategy,
-        "daemon_exit_code": flight.daemon_exit_code,
-        "daemon_stop_s": flight.daemon_stop_s,
-        "cache_build_s": round(cache_s, 2),
-        "heartbeats_received": len(ap.of_type("HEARTBEAT")),
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
-        "daemon_log": str(workdir / "daemon.log"),
-        "fdr_dir": str(workdir / "fdr"),
-    })
+    report.update(
+        {
+            "scenario": scenario.name,
+            "map": str(map_path),
+            "appearance": str(opts.appearance_path) if opts.appearance_path else None,
+            "daemon_config": str(config_path),
+            "daemon_overrides": list(opts.overrides),
+            "matcher": daemon_cfg.matcher.strategy,
+            "daemon_exit_code": flight.daemon_exit_code,
+            "daemon_stop_s": flight.daemon_stop_s,
+            "cache_build_s": round(cache_s, 2),
+            "heartbeats_received": len(ap.of_type("HEARTBEAT")),
+            "machine": {
+                "platform": platform.platform(),
+                "cpus": os.cpu_count(),
+                "python": platform.python_version(),
+            },
+            "daemon_log": str(workdir / "daemon.log"),
+            "fdr_dir": str(workdir / "fdr"),
+        }
+    )
     opts.report_path.write_text(json.dumps(report, indent=2))
     plot_report(report, opts.report_path.with_suffix(".png"), title=f"{scenario.name} on {map_path.name}")
     return report
@@ -320,9 +358,15 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
 
 def run_sitl_cli(args: argparse.Namespace) -> int:
     opts = SitlOptions(
-        map_path=args.map, scenario=args.scenario, report_path=args.report, appearance_path=args.appearance,
-        config_path=args.config, overrides=tuple(args.set or ()), workdir=args.workdir,
-        duration_s=args.duration, quiet=args.quiet,
+        map_path=args.map,
+        scenario=args.scenario,
+        report_path=args.report,
+        appearance_path=args.appearance,
+        config_path=args.config,
+        overrides=tuple(args.set or ()),
+        workdir=args.workdir,
+        duration_s=args.duration,
+        quiet=args.quiet,
     )
     report = run_sitl(opts)
     for line in summary_lines(report):

@@ -59,14 +59,28 @@ class DaemonProcess:
             return self.proc.wait()
 
 
-def start_daemon(workdir: Path, cache: Path, *, extra_env: dict[str, str] | None = None,
-                 overrides: tuple[str, ...] = ()) -> DaemonProcess:
+def start_daemon(
+    workdir: Path, cache: Path, *, extra_env: dict[str, str] | None = None, overrides: tuple[str, ...] = ()
+) -> DaemonProcess:
     mav_port, cam_port = free_udp_port(), free_tcp_port()
     log_path = workdir / "daemon.log"
     fdr_dir = workdir / "fdr"
-    cmd = [sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", str(REPO / "config" / "sitl.yaml"),
-           "--set", f"camera.source=tcp://127.0.0.1:{cam_port}", "--set", f"mavlink.url=udpin:127.0.0.1:{mav_port}",
-           "--set", f"cache.dir={cache}", "--set", f"fdr.dir={fdr_dir}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "gps_denied_onboard.cli",
+        "run",
+        "--config",
+        str(REPO / "config" / "sitl.yaml"),
+        "--set",
+        f"camera.source=tcp://127.0.0.1:{cam_port}",
+        "--set",
+        f"mavlink.url=udpin:127.0.0.1:{mav_port}",
+        "--set",
+        f"cache.dir={cache}",
+        "--set",
+        f"fdr.dir={fdr_dir}",
+    ]
     for o in overrides:
         cmd += ["--set", o]
     with log_path.open("wb") as log:

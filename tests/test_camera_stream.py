@@ -34,7 +34,12 @@ def test_stream_round_trip_png_is_lossless() -> None:
     img = _image()
     msg = encode_frame(img, seq=7, exposure_time_unix_usec=1_700_000_000_123_456, encoding="png")
     frame = _read(msg)
-    assert (frame.seq, frame.exposure_time_unix_usec, frame.width_px, frame.height_px) == (7, 1_700_000_000_123_456, 64, 48)
+    assert (frame.seq, frame.exposure_time_unix_usec, frame.width_px, frame.height_px) == (
+        7,
+        1_700_000_000_123_456,
+        64,
+        48,
+    )
     np.testing.assert_array_equal(frame.decode(), img)
 
 
@@ -70,6 +75,7 @@ def test_stream_size_mismatch_is_refused() -> None:
 
 def test_latest_queue_newest_wins_and_counts_drops() -> None:
     """With depth 1, putting three items keeps the last and counts two drops."""
+
     async def go() -> tuple[int, int]:
         q: LatestQueue[int] = LatestQueue(1)
         q.put(1)

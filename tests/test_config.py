@@ -77,8 +77,12 @@ def test_config_missing_file_is_error(tmp_path: Path) -> None:
 def test_cli_run_bad_config_exits_2_with_one_line(tmp_path: Path) -> None:
     """`gdnav run` with an invalid profile exits 2 and prints one line naming the key path."""
     bad = _write(tmp_path, "estimator:\n  fix_gate_chi2: -1\n")
-    proc = subprocess.run([sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", str(bad)],
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1, proc.stderr
@@ -88,21 +92,43 @@ def test_cli_run_bad_config_exits_2_with_one_line(tmp_path: Path) -> None:
 def test_cli_run_refuses_missing_cache_with_exit_3(tmp_path: Path) -> None:
     """A valid profile pointing at a missing cache is refused at start-up (exit 3), naming the cache."""
     proc = subprocess.run(
-        [sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", str(REPO / "config" / "sitl.yaml"),
-         "--set", f"cache.dir={tmp_path / 'no-cache'}", "--set", f"fdr.dir={tmp_path / 'fdr'}"],
-        capture_output=True, text=True, timeout=60,
+        [
+            sys.executable,
+            "-m",
+            "gps_denied_onboard.cli",
+            "run",
+            "--config",
+            str(REPO / "config" / "sitl.yaml"),
+            "--set",
+            f"cache.dir={tmp_path / 'no-cache'}",
+            "--set",
+            f"fdr.dir={tmp_path / 'fdr'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert proc.returncode == 3
     assert "cache" in proc.stderr.splitlines()[-1]
 
 
-@pytest.mark.parametrize("argv", [
-    ["--help"], ["run", "--help"], ["cache", "--help"], ["cache", "build", "--help"], ["sitl", "--help"],
-    ["sitl", "run", "--help"], ["config", "--help"], ["config", "check", "--help"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--help"],
+        ["run", "--help"],
+        ["cache", "--help"],
+        ["cache", "build", "--help"],
+        ["sitl", "--help"],
+        ["sitl", "run", "--help"],
+        ["config", "--help"],
+        ["config", "check", "--help"],
+    ],
+)
 def test_cli_every_subcommand_has_help(argv: list[str]) -> None:
     """Every subcommand answers --help with usage text and exit 0."""
-    proc = subprocess.run([sys.executable, "-m", "gps_denied_onboard.cli", *argv], capture_output=True,
-                          text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-m", "gps_denied_onboard.cli", *argv], capture_output=True, text=True, timeout=60
+    )
     assert proc.returncode == 0, proc.stderr
     assert "usage: gdnav" in proc.stdout

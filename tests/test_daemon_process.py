@@ -81,8 +81,9 @@ def test_daemon_keeps_running_and_records_bad_frames(tmp_path: Path, small_cache
                 (hlen,) = struct.unpack(">I", good[4:8])
                 body = 8 + hlen + 4
                 corrupt[body : body + 64] = b"\x00" * 64  # valid header, JPEG payload destroyed
-                wrong_size = encode_frame(np.zeros((100, 100, 3), np.uint8), seq=2,
-                                          exposure_time_unix_usec=now_us)
+                wrong_size = encode_frame(
+                    np.zeros((100, 100, 3), np.uint8), seq=2, exposure_time_unix_usec=now_us
+                )
                 writer.write(bytes(corrupt))
                 writer.write(wrong_size)
                 await writer.drain()
@@ -103,5 +104,5 @@ def test_daemon_keeps_running_and_records_bad_frames(tmp_path: Path, small_cache
     stages = {r["stage"] for r in errors}
     assert {"decode", "size"} <= stages, errors
     assert any("100x100" in r["error"] for r in errors)
-    stopped = [json.loads(ln) for ln in d.log_text().splitlines() if '"daemon.stopped"' in ln][0]
+    stopped = next(json.loads(ln) for ln in d.log_text().splitlines() if '"daemon.stopped"' in ln)
     assert stopped["frames_bad"] == 2

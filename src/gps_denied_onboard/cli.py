@@ -34,7 +34,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
     configure_logging(config.logging.level, json=config.logging.json)
     log = structlog.get_logger("gdnav")
-    log.info(LogEvent.DAEMON_CONFIG, source=str(args.config), version=__version__, config=config_to_dict(config))
+    log.info(
+        LogEvent.DAEMON_CONFIG, source=str(args.config), version=__version__, config=config_to_dict(config)
+    )
 
     from gps_denied_onboard.daemon.service import NavDaemon
     from gps_denied_onboard.runtime_root import StartupError, compose_root
@@ -72,10 +74,21 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
         headers[name.strip()] = value.strip()
     try:
         manifest = build_cache(
-            args.source, Path(args.out), zoom=args.zoom, bbox_lonlat=bbox, tile_size_px=args.tile_size,
-            tms=args.tms, progress=not args.quiet, allow_failed_tiles=args.allow_failed_tiles,
-            downloader_options={"concurrency": args.concurrency, "rate_limit_per_s": args.rate_limit,
-                                "max_retries": args.max_retries, "timeout_s": args.timeout, "headers": headers},
+            args.source,
+            Path(args.out),
+            zoom=args.zoom,
+            bbox_lonlat=bbox,
+            tile_size_px=args.tile_size,
+            tms=args.tms,
+            progress=not args.quiet,
+            allow_failed_tiles=args.allow_failed_tiles,
+            downloader_options={
+                "concurrency": args.concurrency,
+                "rate_limit_per_s": args.rate_limit,
+                "max_retries": args.max_retries,
+                "timeout_s": args.timeout,
+                "headers": headers,
+            },
         )
     except (CacheBuildError, TileDownloadError) as exc:
         _err(str(exc))
@@ -110,11 +123,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"gdnav {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    run = sub.add_parser("run", help="run the navigation daemon",
-                         description="Run the navigation daemon until SIGTERM/SIGINT.")
+    run = sub.add_parser(
+        "run", help="run the navigation daemon", description="Run the navigation daemon until SIGTERM/SIGINT."
+    )
     run.add_argument("--config", required=True, type=Path, help="YAML profile, e.g. config/airborne.yaml")
-    run.add_argument("--set", action="append", metavar="KEY.PATH=VALUE",
-                     help="override one setting (repeatable), validated like the file")
+    run.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY.PATH=VALUE",
+        help="override one setting (repeatable), validated like the file",
+    )
     run.set_defaults(func=_cmd_run)
 
     cfg = sub.add_parser("config", help="configuration tools", description="Configuration tools.")
@@ -127,50 +145,102 @@ def build_parser() -> argparse.ArgumentParser:
     cache = sub.add_parser("cache", help="pre-flight map cache", description="Pre-flight map cache (F1).")
     cache_sub = cache.add_subparsers(dest="cache_command", required=True, metavar="SUBCOMMAND")
     build = cache_sub.add_parser(
-        "build", help="build a cache from a GeoTIFF, an XYZ tile directory or a tile server",
+        "build",
+        help="build a cache from a GeoTIFF, an XYZ tile directory or a tile server",
         description="Build a Web-Mercator tile cache (F1). Idempotent: re-running with the same inputs "
-                    "changes nothing; an interrupted download resumes.")
-    build.add_argument("--source", required=True,
-                       help="GeoTIFF file (any CRS), directory of {z}/{x}/{y} tiles, or http(s):// tile URL "
-                            "template with {z}/{x}/{y}")
+        "changes nothing; an interrupted download resumes.",
+    )
+    build.add_argument(
+        "--source",
+        required=True,
+        help="GeoTIFF file (any CRS), directory of {z}/{x}/{y} tiles, or http(s):// tile URL "
+        "template with {z}/{x}/{y}",
+    )
     build.add_argument("--out", required=True, help="cache directory to create or resume")
-    build.add_argument("--zoom", type=int, default=None,
-                       help="Web-Mercator zoom (default: matched to a GeoTIFF's GSD; required for a tile server)")
-    build.add_argument("--bbox", default=None,
-                       help="W,S,E,N in degrees (default: the whole source; required for a tile server)")
-    build.add_argument("--tile-size", type=int, default=None,
-                       help="tile size in px (default: 256 for a GeoTIFF, detected for XYZ tiles)")
+    build.add_argument(
+        "--zoom",
+        type=int,
+        default=None,
+        help="Web-Mercator zoom (default: matched to a GeoTIFF's GSD; required for a tile server)",
+    )
+    build.add_argument(
+        "--bbox",
+        default=None,
+        help="W,S,E,N in degrees (default: the whole source; required for a tile server)",
+    )
+    build.add_argument(
+        "--tile-size",
+        type=int,
+        default=None,
+        help="tile size in px (default: 256 for a GeoTIFF, detected for XYZ tiles)",
+    )
     build.add_argument("--tms", action="store_true", help="XYZ directory uses TMS rows (y from the south)")
-    build.add_argument("--concurrency", type=int, default=4, help="tile server: parallel downloads (default 4)")
-    build.add_argument("--rate-limit", type=float, default=10.0,
-                       help="tile server: max requests per second (default 10)")
-    build.add_argument("--max-retries", type=int, default=5,
-                       help="tile server: retries per tile on 429/5xx/timeouts (default 5)")
+    build.add_argument(
+        "--concurrency", type=int, default=4, help="tile server: parallel downloads (default 4)"
+    )
+    build.add_argument(
+        "--rate-limit", type=float, default=10.0, help="tile server: max requests per second (default 10)"
+    )
+    build.add_argument(
+        "--max-retries",
+        type=int,
+        default=5,
+        help="tile server: retries per tile on 429/5xx/timeouts (default 5)",
+    )
     build.add_argument("--timeout", type=float, default=20.0, help="tile server: per-request timeout, s")
-    build.add_argument("--header", action="append", default=[], metavar="NAME:VALUE",
-                       help="tile server: extra HTTP header (repeatable), e.g. Referer")
-    build.add_argument("--allow-failed-tiles", action="store_true",
-                       help="tile server: build with gaps where downloads still failed after retries")
+    build.add_argument(
+        "--header",
+        action="append",
+        default=[],
+        metavar="NAME:VALUE",
+        help="tile server: extra HTTP header (repeatable), e.g. Referer",
+    )
+    build.add_argument(
+        "--allow-failed-tiles",
+        action="store_true",
+        help="tile server: build with gaps where downloads still failed after retries",
+    )
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     build.set_defaults(func=_cmd_cache_build)
 
-    sitl = sub.add_parser("sitl", help="software-in-the-loop simulation",
-                          description="Simulated flight: renders the nav camera, plays the autopilot over "
-                                      "MAVLink/UDP, runs the daemon as its own process, scores it.")
+    sitl = sub.add_parser(
+        "sitl",
+        help="software-in-the-loop simulation",
+        description="Simulated flight: renders the nav camera, plays the autopilot over "
+        "MAVLink/UDP, runs the daemon as its own process, scores it.",
+    )
     sitl_sub = sitl.add_subparsers(dest="sitl_command", required=True, metavar="SUBCOMMAND")
-    srun = sitl_sub.add_parser("run", help="fly a scenario and write a report",
-                               description="Fly a scenario against the daemon and write a JSON + PNG report.")
-    srun.add_argument("--map", type=Path, default=None,
-                      help="GeoTIFF map (any CRS); default: the embedded procedural demo map")
-    srun.add_argument("--scenario", default="demo",
-                      help="scenario YAML path or the name of a bundled one (demo, smoke, nominal_real)")
+    srun = sitl_sub.add_parser(
+        "run",
+        help="fly a scenario and write a report",
+        description="Fly a scenario against the daemon and write a JSON + PNG report.",
+    )
+    srun.add_argument(
+        "--map",
+        type=Path,
+        default=None,
+        help="GeoTIFF map (any CRS); default: the embedded procedural demo map",
+    )
+    srun.add_argument(
+        "--scenario",
+        default="demo",
+        help="scenario YAML path or the name of a bundled one (demo, smoke, nominal_real)",
+    )
     srun.add_argument("--report", type=Path, default=Path("out/sitl/report.json"), help="report JSON path")
-    srun.add_argument("--appearance", type=Path, default=None,
-                      help="another image of the same area (e.g. another date) to render the frames from")
+    srun.add_argument(
+        "--appearance",
+        type=Path,
+        default=None,
+        help="another image of the same area (e.g. another date) to render the frames from",
+    )
     srun.add_argument("--config", type=Path, default=None, help="daemon profile (default: config/sitl.yaml)")
     srun.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="daemon config override")
-    srun.add_argument("--workdir", type=Path, default=None,
-                      help="where the cache, FDR and logs go (default: next to the report)")
+    srun.add_argument(
+        "--workdir",
+        type=Path,
+        default=None,
+        help="where the cache, FDR and logs go (default: next to the report)",
+    )
     srun.add_argument("--duration", type=float, default=None, help="cut the flight to this many seconds")
     srun.add_argument("--quiet", action="store_true", help="print only the summary")
     srun.set_defaults(func=_cmd_sitl_run)

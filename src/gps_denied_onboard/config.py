@@ -251,7 +251,9 @@ def _describe(err: Mapping[str, Any]) -> tuple[str, str]:
 
 def config_from_mapping(data: Mapping[str, Any], *, source: str | None = None) -> Config:
     if not isinstance(data, Mapping):
-        raise ConfigError("<root>", f"expected a mapping of sections, got {type(data).__name__}", source=source)
+        raise ConfigError(
+            "<root>", f"expected a mapping of sections, got {type(data).__name__}", source=source
+        )
     try:
         return _ADAPTER.validate_python(_tuples(dict(data)))
     except ValidationError as exc:

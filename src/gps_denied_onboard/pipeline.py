@@ -108,8 +108,13 @@ class NavigationPipeline:
         alt_agl_m = frame.alt_agl_m if frame.alt_agl_m is not None else 0.0
         pos = self._ltp.to_ned(prior.lat_deg, prior.lon_deg, self._ground_alt_amsl_m + alt_agl_m)
         self._est.initialise(pos, prior.sigma_m, frame.exposure_time_unix_usec)
-        log.info(LogEvent.ESTIMATOR_INITIALISED, source=prior.source, lat_deg=prior.lat_deg,
-                 lon_deg=prior.lon_deg, sigma_m=prior.sigma_m)
+        log.info(
+            LogEvent.ESTIMATOR_INITIALISED,
+            source=prior.source,
+            lat_deg=prior.lat_deg,
+            lon_deg=prior.lon_deg,
+            sigma_m=prior.sigma_m,
+        )
 
     def _search_region(self, state: EstimatorState, frame: NavCameraFrame) -> SearchRegion:
         cfg = self._vpr_cfg
@@ -155,19 +160,22 @@ class NavigationPipeline:
                 reason = f"gated:{decision.reason}"
         state = self._est.state(t)
         lap("estimator_update")
-        return self._outcome(frame, state, fix, accepted, inliers, residual, None if accepted else reason,
-                             motion, timings)
+        return self._outcome(
+            frame, state, fix, accepted, inliers, residual, None if accepted else reason, motion, timings
+        )
 
-    def _absolute_fix(self, frame: NavCameraFrame, timings: dict[str, float]
-                      ) -> tuple[PoseFix | None, bool, int, float | None, str | None]:
+    def _absolute_fix(
+        self, frame: NavCameraFrame, timings: dict[str, float]
+    ) -> tuple[PoseFix | None, bool, int, float | None, str | None]:
         if frame.attitude is None or frame.alt_agl_m is None:
             return None, False, 0, None, "no_attitude_or_altitude"
         prior_state = self._est.state(frame.exposure_time_unix_usec)
         t0 = self._clock_ns()
         try:
             query = self._vpr.embed_query(frame, self._calib)
-            vpr_result = self._vpr.retrieve_topk(query, self._vpr_cfg.top_k,
-                                                 region=self._search_region(prior_state, frame))
+            vpr_result = self._vpr.retrieve_topk(
+                query, self._vpr_cfg.top_k, region=self._search_region(prior_state, frame)
+            )
         except VprError as exc:
             log.error(LogEvent.VPR_ERROR, frame=frame.seq, error=str(exc))
             return None, False, 0, None, "vpr_error"
@@ -195,22 +203,60 @@ class NavigationPipeline:
             fix = self._pose.solve(frame, best, handle, self._calib)
         except PoseError as exc:
             timings["pose"] = (self._clock_ns() - t3) / 1e6
-            return None, False, best.inlier_count, match.reprojection_residual_px, f"pose_rejected:{exc.reason}"
+            return (
+                None,
+                False,
+                best.inlier_count,
+                match.reprojection_residual_px,
+                f"pose_rejected:{exc.reason}",
+            )
         timings["pose"] = (self._clock_ns() - t3) / 1e6
         return fix, True, best.inlier_count, match.reprojection_residual_px, None
 
-    def _outcome(self, frame: NavCameraFrame, state: EstimatorState | None, fix: PoseFix | None,
-                 accepted: bool, inliers: int, residual: float | None, reason: str | None,
-                 motion: VoMotion | None, timings: dict[str, float]) -> FrameOutcome:
-        outcome = FrameOutcome(frame.frame_id, frame.seq, frame.exposure_time_unix_usec, state, fix, accepted,
-                               inliers, residual, reason, motion is not None, timings)
-        self._fdr.record(FdrKind.FRAME, {
-            "frame_id": str(frame.frame_id), "seq": frame.seq, "exposure_time_unix_usec": frame.exposure_time_unix_usec,
-            "provenance": outcome.provenance.value, "fix_accepted": accepted, "inliers": inliers,
-            "residual_px": residual, "no_fix_reason": reason, "vo_ok": motion is not None,
-            "lat_deg": state.lat_deg if state else None, "lon_deg": state.lon_deg if state else None,
-            "horiz_sigma_m": state.horiz_sigma_m if state else None,
-            "fix_lat_deg": fix.lat_deg if fix else None, "fix_lon_deg": fix.lon_deg if fix else None,
-            "fix_sigma_m": fix.horiz_sigma_m if fix else None, "timings_ms": timings,
-        })
+    def _outcome(
+        self,
+        frame: NavCameraFrame,
+        state: EstimatorState | None,
+        fix: PoseFix | None,
+        accepted: bool,
+        inliers: int,
+        residual: float | None,
+        reason: str | None,
+        motion: VoMotion | None,
+        timings: dict[str, float],
+    ) -> FrameOutcome:
+        outcome = FrameOutcome(
+            frame.frame_id,
+            frame.seq,
+            frame.exposure_time_unix_usec,
+            state,
+            fix,
+            accepted,
+            inliers,
+            residual,
+            reason,
+            motion is not None,
+            timings,
+        )
+        self._fdr.record(
+            FdrKind.FRAME,
+            {
+                "frame_id": str(frame.frame_id),
+                "seq": frame.seq,
+                "exposure_time_unix_usec": frame.exposure_time_unix_usec,
+                "provenance": outcome.provenance.value,
+                "fix_accepted": accepted,
+                "inliers": inliers,
+                "residual_px": residual,
+                "no_fix_reason": reason,
+                "vo_ok": motion is not None,
+                "lat_deg": state.lat_deg if state else None,
+                "lon_deg": state.lon_deg if state else None,
+                "horiz_sigma_m": state.horiz_sigma_m if state else None,
+                "fix_lat_deg": fix.lat_deg if fix else None,
+                "fix_lon_deg": fix.lon_deg if fix else None,
+                "fix_sigma_m": fix.horiz_sigma_m if fix else None,
+                "timings_ms": timings,
+            },
+        )
         return outcome

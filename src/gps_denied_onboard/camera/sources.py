@@ -8,6 +8,7 @@ wait forever: every connect and read has a timeout.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import random
 import threading
 import time
@@ -69,8 +70,9 @@ class _Backoff:
 class TcpFrameSource:
     """Connects to ``tcp://HOST:PORT`` and reads the frame-stream format (see camera.stream)."""
 
-    def __init__(self, host: str, port: int, *, connect_timeout_s: float, frame_timeout_s: float,
-                 backoff_max_s: float) -> None:
+    def __init__(
+        self, host: str, port: int, *, connect_timeout_s: float, frame_timeout_s: float, backoff_max_s: float
+    ) -> None:
         self.name = f"tcp://{host}:{port}"
         self._host, self._port = host, port
         self._connect_timeout_s = connect_timeout_s
@@ -87,7 +89,9 @@ class TcpFrameSource:
                 )
             except (OSError, asyncio.TimeoutError) as exc:
                 delay = self._backoff.next_delay_s()
-                log.debug("camera.connect_failed", source=self.name, error=str(exc), retry_in_s=round(delay, 2))
+                log.debug(
+                    "camera.connect_failed", source=self.name, error=str(exc), retry_in_s=round(delay, 2)
+                )
                 await asyncio.sleep(delay)
                 continue
             self.connected = True
@@ -106,10 +110,8 @@ class TcpFrameSource:
             finally:
                 self.connected = False
                 writer.close()
-                try:
+                with contextlib.suppress(OSError, asyncio.TimeoutError):
                     await asyncio.wait_for(writer.wait_closed(), 1.0)
-                except (OSError, asyncio.TimeoutError):
-                    pass
             await asyncio.sleep(self._backoff.next_delay_s())
 
 
@@ -119,8 +121,15 @@ class OpenCvFrameSource:
     The exposure time is the host clock at grab time (V4L2/RTSP give no better portable stamp).
     """
 
-    def __init__(self, target: str | int, *, name: str, frame_timeout_s: float, backoff_max_s: float,
-                 clock: Callable[[], float] = time.time) -> None:
+    def __init__(
+        self,
+        target: str | int,
+        *,
+        name: str,
+        frame_timeout_s: float,
+        backoff_max_s: float,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
         self.name = name
         self._target = target
         self._frame_timeout_s = frame_timeout_s
@@ -180,25 +189,36 @@ def _offer(queue: asyncio.Queue[RawFrame | None], item: RawFrame | None) -> None
     queue.put_nowait(item)
 
 
-def open_frame_source(spec: str, *, connect_timeout_s: float, frame_timeout_s: float,
-                      backoff_max_s: float) -> FrameSource:
+def open_frame_source(
+    spec: str, *, connect_timeout_s: float, frame_timeout_s: float, backoff_max_s: float
+) -> FrameSource:
     """Build a source from ``camera.source``: ``tcp://HOST:PORT``, ``v4l2:/dev/videoN``,
     ``rtsp://...``, ``file:PATH``."""
     if spec.startswith("tcp://"):
         url = urlparse(spec)
         if not url.hostname or not url.port:
             raise CameraSourceError(f"camera.source {spec!r}: expected tcp://HOST:PORT")
-        return TcpFrameSource(url.hostname, url.port, connect_timeout_s=connect_timeout_s,
-                              frame_timeout_s=frame_timeout_s, backoff_max_s=backoff_max_s)
+        return TcpFrameSource(
+            url.hostname,
+            url.port,
+            connect_timeout_s=connect_timeout_s,
+            frame_timeout_s=frame_timeout_s,
+            backoff_max_s=backoff_max_s,
+        )
     if spec.startswith("v4l2:"):
-        dev = spec[len("v4l2:"):]
-        target: str | int = int(dev[len("/dev/video"):]) if dev.startswith("/dev/video") else dev
-        return OpenCvFrameSource(target, name=spec, frame_timeout_s=frame_timeout_s, backoff_max_s=backoff_max_s)
+        dev = spec[len("v4l2:") :]
+        target: str | int = int(dev[len("/dev/video") :]) if dev.startswith("/dev/video") else dev
+        return OpenCvFrameSource(
+            target, name=spec, frame_timeout_s=frame_timeout_s, backoff_max_s=backoff_max_s
+        )
     if spec.startswith(("rtsp://", "rtsps://")):
-        return OpenCvFrameSource(spec, name=spec, frame_timeout_s=frame_timeout_s, backoff_max_s=backoff_max_s)
+        return OpenCvFrameSource(
+            spec, name=spec, frame_timeout_s=frame_timeout_s, backoff_max_s=backoff_max_s
+        )
     if spec.startswith("file:"):
-        return OpenCvFrameSource(spec[len("file:"):], name=spec, frame_timeout_s=frame_timeout_s,
-                                 backoff_max_s=backoff_max_s)
+        return OpenCvFrameSource(
+            spec[len("file:") :], name=spec, frame_timeout_s=frame_timeout_s, backoff_max_s=backoff_max_s
+        )
     raise CameraSourceError(
         f"camera.source {spec!r}: expected tcp://HOST:PORT, v4l2:/dev/videoN, rtsp://URL or file:PATH"
     )

@@ -60,7 +60,12 @@ class EncodedFrame:
 
 
 def encode_frame(
-    image_bgr: np.ndarray, *, seq: int, exposure_time_unix_usec: int, encoding: str = "jpeg", quality: int = 92
+    image_bgr: np.ndarray,
+    *,
+    seq: int,
+    exposure_time_unix_usec: int,
+    encoding: str = "jpeg",
+    quality: int = 92,
 ) -> bytes:
     """Serialise one frame message."""
     if encoding not in _ENCODINGS:
@@ -92,10 +97,13 @@ def _parse_header(raw: bytes) -> dict[str, object]:
     for key in ("seq", "exposure_time_unix_usec", "width_px", "height_px"):
         value = header.get(key)
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-            raise FrameStreamError(f"frame header field {key!r}: expected a non-negative integer, got {value!r}")
-    if header.get("encoding") not in _ENCODINGS:
+            raise FrameStreamError(
+                f"frame header field {key!r}: expected a non-negative integer, got {value!r}"
+            )
+    encoding = header.get("encoding")
+    if encoding not in _ENCODINGS:
         raise FrameStreamError(
-            f"frame header field 'encoding': expected one of {sorted(_ENCODINGS)}, got {header.get('encoding')!r}"
+            f"frame header field 'encoding': expected one of {sorted(_ENCODINGS)}, got {encoding!r}"
         )
     return header
 

@@ -45,7 +45,7 @@ class CameraCalibration:
     dist_coeffs: tuple[float, ...] = ()
 
     @property
-    def K(self) -> np.ndarray:  # noqa: N802 - conventional name
+    def K(self) -> np.ndarray:
         """Camera matrix, (3, 3) float64."""
         return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
 
@@ -100,7 +100,7 @@ class Attitude:
     pitch_rad: float
     yaw_rad: float
 
-    def R_ned_body(self) -> np.ndarray:  # noqa: N802
+    def R_ned_body(self) -> np.ndarray:
         """Rotation body(FRD) -> NED, (3, 3) float64, ZYX order."""
         cr, sr = math.cos(self.roll_rad), math.sin(self.roll_rad)
         cp, sp = math.cos(self.pitch_rad), math.sin(self.pitch_rad)
@@ -113,7 +113,7 @@ class Attitude:
             ]
         )
 
-    def R_ned_cam(self) -> np.ndarray:  # noqa: N802
+    def R_ned_cam(self) -> np.ndarray:
         """Rotation camera -> NED for the nadir mount, (3, 3) float64."""
         return self.R_ned_body() @ R_BODY_CAM
 

@@ -74,12 +74,23 @@ def _calibration(config: Config) -> CameraCalibration:
     i = cam.intrinsics
     if i.fx_px is None:
         base = CameraCalibration.from_hfov(i.width_px, i.height_px, i.hfov_deg)
-        return CameraCalibration(base.width_px, base.height_px, base.fx_px, base.fy_px, base.cx_px, base.cy_px,
-                                 tuple(i.dist_coeffs))
+        return CameraCalibration(
+            base.width_px,
+            base.height_px,
+            base.fx_px,
+            base.fy_px,
+            base.cx_px,
+            base.cy_px,
+            tuple(i.dist_coeffs),
+        )
     return CameraCalibration(
-        i.width_px, i.height_px, i.fx_px, i.fy_px if i.fy_px is not None else i.fx_px,
+        i.width_px,
+        i.height_px,
+        i.fx_px,
+        i.fy_px if i.fy_px is not None else i.fx_px,
         i.cx_px if i.cx_px is not None else (i.width_px - 1) / 2.0,
-        i.cy_px if i.cy_px is not None else (i.height_px - 1) / 2.0, tuple(i.dist_coeffs),
+        i.cy_px if i.cy_px is not None else (i.height_px - 1) / 2.0,
+        tuple(i.dist_coeffs),
     )
 
 
@@ -100,19 +111,32 @@ RERANK_STRATEGIES: Mapping[str, Callable[[TileStore, Config], RerankStrategy]] =
 
 def _pick(kind: str, table: Mapping[str, Any], name: str) -> Any:
     if name not in table:
-        raise StartupError(f"{kind}.strategy", f"unknown strategy {name!r}; valid: {', '.join(sorted(table))}")
+        raise StartupError(
+            f"{kind}.strategy", f"unknown strategy {name!r}; valid: {', '.join(sorted(table))}"
+        )
     return table[name]
 
 
-def _matcher_deps(config: Config, pre: Mapping[str, Any], ransac: RansacFilter, fdr: FlightDataRecorder,
-                  health: RollingHealthWindow) -> dict[str, Any]:
+def _matcher_deps(
+    config: Config,
+    pre: Mapping[str, Any],
+    ransac: RansacFilter,
+    fdr: FlightDataRecorder,
+    health: RollingHealthWindow,
+) -> dict[str, Any]:
     """The superset of collaborators a C3 strategy may ask for; ONNX objects only for learned strategies
     (the weights-free default must start on a machine without any model file)."""
-    deps: dict[str, Any] = {"config": config.matcher, "ransac_filter": ransac, "fdr_client": fdr,
-                            "health_window": health}
+    deps: dict[str, Any] = {
+        "config": config.matcher,
+        "ransac_filter": ransac,
+        "fdr_client": fdr,
+        "health_window": health,
+    }
     if config.matcher.strategy in WEIGHTS_FREE_MATCHERS:
         return deps
-    runtime = pre.get("c7_inference") or OnnxInferenceRuntime(intra_op_threads=config.daemon.onnx_intra_op_threads)
+    runtime = pre.get("c7_inference") or OnnxInferenceRuntime(
+        intra_op_threads=config.daemon.onnx_intra_op_threads
+    )
     lightglue = pre.get("c3_lightglue_runtime")
     if lightglue is None:
         # Without a LightGlue model the helper matches by mutual nearest neighbour (logged by the helper).
@@ -136,18 +160,25 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         raise StartupError("cache", str(exc)) from exc
     center_lon, center_lat = tiles.center_lonlat
     ltp = LocalTangentPlane(center_lat, center_lon, config.terrain.ground_alt_amsl_m)
-    log.info(LogEvent.CACHE_OPENED, dir=config.cache.dir, tiles=len(tiles), zoom=tiles.zoom,
-             gsd_m_px=round(tiles.gsd_m_px, 3))
+    log.info(
+        LogEvent.CACHE_OPENED,
+        dir=config.cache.dir,
+        tiles=len(tiles),
+        zoom=tiles.zoom,
+        gsd_m_px=round(tiles.gsd_m_px, 3),
+    )
 
-    fdr = pre.get("fdr") or FlightDataRecorder(Path(config.fdr.dir), max_bytes=config.fdr.max_bytes,
-                                               segment_bytes=config.fdr.segment_bytes)
+    fdr = pre.get("fdr") or FlightDataRecorder(
+        Path(config.fdr.dir), max_bytes=config.fdr.max_bytes, segment_bytes=config.fdr.segment_bytes
+    )
     ransac = pre.get("c282_ransac_filter") or RansacFilter(
         confidence=config.matcher.ransac_confidence, max_iters=config.matcher.ransac_max_iters
     )
     health = RollingHealthWindow(low_inlier_threshold=config.matcher.min_inliers_threshold)
     try:
-        matcher = matcher_registry.create_matcher(config.matcher.strategy, **_matcher_deps(config, pre, ransac, fdr,
-                                                                                           health))
+        matcher = matcher_registry.create_matcher(
+            config.matcher.strategy, **_matcher_deps(config, pre, ransac, fdr, health)
+        )
     except StrategyNotLinkedError as exc:
         raise StartupError("matcher.strategy", str(exc)) from exc
     except EngineLoadError as exc:
@@ -156,10 +187,17 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
     pipeline = NavigationPipeline(
-        calibration=calibration, ltp=ltp, ground_alt_amsl_m=config.terrain.ground_alt_amsl_m,
-        vo=HomographyVo(calibration), vpr=vpr, vpr_config=config.vpr, rerank=rerank, matcher=matcher,
+        calibration=calibration,
+        ltp=ltp,
+        ground_alt_amsl_m=config.terrain.ground_alt_amsl_m,
+        vo=HomographyVo(calibration),
+        vpr=vpr,
+        vpr_config=config.vpr,
+        rerank=rerank,
+        matcher=matcher,
         pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
-        estimator=NavEstimator(config.estimator, ltp), fdr=fdr,
+        estimator=NavEstimator(config.estimator, ltp),
+        fdr=fdr,
     )
     tracker = VehicleStateTracker(
         autopilot_system_id=config.mavlink.autopilot_system_id,
@@ -169,9 +207,12 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     )
     link = MavlinkLink(config.mavlink, tracker, fdr)
     try:
-        camera = open_frame_source(config.camera.source, connect_timeout_s=config.camera.connect_timeout_s,
-                                   frame_timeout_s=config.camera.frame_timeout_s,
-                                   backoff_max_s=config.camera.reconnect_backoff_max_s)
+        camera = open_frame_source(
+            config.camera.source,
+            connect_timeout_s=config.camera.connect_timeout_s,
+            frame_timeout_s=config.camera.frame_timeout_s,
+            backoff_max_s=config.camera.reconnect_backoff_max_s,
+        )
     except CameraSourceError as exc:
         raise StartupError("camera.source", str(exc)) from exc
     return RuntimeRoot(config, calibration, ltp, tiles, fdr, tracker, link, camera, matcher, pipeline)

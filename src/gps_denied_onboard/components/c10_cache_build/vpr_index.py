@@ -97,13 +97,23 @@ def build_vlad_index(
     train_s = time.monotonic() - t0
     encoder = VladEncoder(vocab, model_sha256=sha256_file(vocab_path))
     return _describe_and_index(
-        store, encoder, params.chip_size_px, wanted, extra_artifacts=(VLAD_VOCABULARY_NAME,),
-        progress=progress, t_start=t0, extra_timing={"vocabulary_s": round(train_s, 2)},
+        store,
+        encoder,
+        params.chip_size_px,
+        wanted,
+        extra_artifacts=(VLAD_VOCABULARY_NAME,),
+        progress=progress,
+        t_start=t0,
+        extra_timing={"vocabulary_s": round(train_s, 2)},
     )
 
 
 def build_encoder_index(
-    cache_dir: Path, encoder: GlobalEncoder, *, chip_size_px: int = 512, force: bool = False,
+    cache_dir: Path,
+    encoder: GlobalEncoder,
+    *,
+    chip_size_px: int = 512,
+    force: bool = False,
     progress: bool = True,
 ) -> CacheManifest:
     """Describe every tile with a ready encoder (e.g. ``OnnxGlobalEncoder``) and build the HNSW index.
@@ -111,15 +121,27 @@ def build_encoder_index(
     The manifest records ``encoder.label`` and ``encoder.model_sha256``. Raises ``CacheBuildError``.
     """
     cache_dir = Path(cache_dir)
-    wanted = {"backbone": encoder.label, "model_sha256": encoder.model_sha256, "chip_size_px": int(chip_size_px),
-              "dim": encoder.dim}
+    wanted = {
+        "backbone": encoder.label,
+        "model_sha256": encoder.model_sha256,
+        "chip_size_px": int(chip_size_px),
+        "dim": encoder.dim,
+    }
     existing = _up_to_date(cache_dir, wanted)
     if existing is not None and not force:
         return existing
     t0 = time.monotonic()
     store = _open_base(cache_dir)
-    return _describe_and_index(store, encoder, chip_size_px, wanted, extra_artifacts=(), progress=progress,
-                               t_start=t0, extra_timing={})
+    return _describe_and_index(
+        store,
+        encoder,
+        chip_size_px,
+        wanted,
+        extra_artifacts=(),
+        progress=progress,
+        t_start=t0,
+        extra_timing={},
+    )
 
 
 def read_vpr_meta(cache_dir: Path) -> dict[str, Any]:
@@ -197,11 +219,15 @@ def _describe_and_index(
     descriptors = np.empty((n, encoder.dim), dtype=np.float32)
     t_desc = time.monotonic()
     show = progress and sys.stderr.isatty()
-    for i, tile_id in enumerate(tqdm(store.tile_ids, unit="tile", desc=f"vpr {encoder.label}", disable=not show)):
+    for i, tile_id in enumerate(
+        tqdm(store.tile_ids, unit="tile", desc=f"vpr {encoder.label}", disable=not show)
+    ):
         descriptors[i] = encoder.embed_image(np.asarray(store.chip(tile_id, chip_size_px).pixels()))
     describe_s = time.monotonic() - t_desc
     if not np.isfinite(descriptors).all():
-        raise CacheBuildError(f"backbone {encoder.label!r} produced non-finite descriptors", path=str(cache_dir))
+        raise CacheBuildError(
+            f"backbone {encoder.label!r} produced non-finite descriptors", path=str(cache_dir)
+        )
     t_index = time.monotonic()
     index = DescriptorIndex.build(descriptors)
     index_s = time.monotonic() - t_index
@@ -225,7 +251,9 @@ def _describe_and_index(
             path = cache_dir / name
             artifacts[name] = ArtifactInfo(sha256=sha256_file(path), bytes=path.stat().st_size)
         updated = dataclasses.replace(
-            manifest, vpr=VprInfo(backbone=encoder.label, model_sha256=encoder.model_sha256), artifacts=artifacts
+            manifest,
+            vpr=VprInfo(backbone=encoder.label, model_sha256=encoder.model_sha256),
+            artifacts=artifacts,
         )
         updated.save(cache_dir)
     except OSError as exc:

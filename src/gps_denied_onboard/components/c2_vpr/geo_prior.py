@@ -13,7 +13,12 @@ import numpy as np
 
 from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
-from gps_denied_onboard.components.c2_vpr.types import IndexUnavailableError, VprCandidate, VprQuery, VprResult
+from gps_denied_onboard.components.c2_vpr.types import (
+    IndexUnavailableError,
+    VprCandidate,
+    VprQuery,
+    VprResult,
+)
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 
 LABEL = "geo_prior"

@@ -59,7 +59,9 @@ class WebMercatorGrid:
 
     def px_to_merc(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = np.asarray(px, dtype=np.float64)
-        return p[..., 0] * self.merc_m_per_px - _ORIGIN_SHIFT_M, _ORIGIN_SHIFT_M - p[..., 1] * self.merc_m_per_px
+        return p[..., 0] * self.merc_m_per_px - _ORIGIN_SHIFT_M, _ORIGIN_SHIFT_M - p[
+            ..., 1
+        ] * self.merc_m_per_px
 
     def tile_center_lonlat(self, x: int, y: int) -> tuple[float, float]:
         lon, lat = self.px_to_lonlat(np.array([(x + 0.5) * self.tile_size_px, (y + 0.5) * self.tile_size_px]))
