@@ -429,7 +429,7 @@ class Trajectory:
         t = float(t_s)
         if not math.isfinite(t):
             raise ValueError(f"t_s must be finite, got {t_s!r}")
-        n, e, psi, moving = self._horizontal(t)
+        n, e, psi, _moving = self._horizontal(t)
         alt_agl, climb = self._altitude(max(t, 0.0))
         lat, lon, _alt = self.origin.to_geodetic(np.array([n, e, 0.0]))
         _s, speed = _profile_at(t - self.start_delay_s, self.path_length_m, self.speed_m_s, self.accel_m_s2)
@@ -578,9 +578,9 @@ class Scenario:
         turn_radius = self.speed_m_s / math.radians(self.turn_rate_deg_s)
         segments, passed_s, length = _build_path(points_ne, turn_radius)
         alts = [self.alt_agl_m if p.alt_agl_m is None else p.alt_agl_m for p in pts]
+        v, a = self.speed_m_s, self.accel_m_s2
         events = [
-            (self.start_delay_s + _time_at_distance_s(passed_s[i - 1], length, self.speed_m_s, self.accel_m_s2),
-             alts[i])
+            (self.start_delay_s + _time_at_distance_s(passed_s[i - 1], length, v, a), alts[i])
             for i in range(1, len(pts))
         ]
         knots_t, knots_z = _altitude_knots(alts[0], events, self.climb_rate_m_s)

@@ -12,6 +12,11 @@ import cv2
 import numpy as np
 import pytest
 import rasterio
+from rasterio.transform import Affine
+from rasterio.warp import transform as warp_transform
+
+from gps_denied_onboard.camera.types import Attitude, CameraCalibration
+from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.sitl.demo_map import generate_demo_map, render_demo_pixels
 from gps_denied_onboard.sitl.photometric import GapKind, PhotometricModel, PhotometricParams, degrade_for_gap
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
@@ -22,11 +27,6 @@ from gps_denied_onboard.sitl.scenario import (
     load_scenario,
     scenario_from_mapping,
 )
-from rasterio.transform import Affine
-from rasterio.warp import transform as warp_transform
-
-from gps_denied_onboard.camera.types import Attitude, CameraCalibration
-from gps_denied_onboard.geo import LocalTangentPlane
 
 
 def _from_origin(west: float, north: float, xsize: float, ysize: float) -> Affine:

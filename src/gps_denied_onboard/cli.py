@@ -56,15 +56,14 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
     from gps_denied_onboard.components.c11_tile_download import TileDownloadError
 
     configure_logging("info", json=False)
-    bbox = None
+    bbox: tuple[float, float, float, float] | None = None
     if args.bbox:
         try:
-            bbox = tuple(float(v) for v in args.bbox.split(","))
+            west, south, east, north = (float(v) for v in args.bbox.split(","))
         except ValueError:
-            bbox = ()
-        if len(bbox) != 4:
             _err(f"--bbox {args.bbox!r}: expected W,S,E,N in degrees")
             return EXIT_CONFIG
+        bbox = (west, south, east, north)
     headers = {}
     for h in args.header:
         name, sep, value = h.partition(":")

@@ -12,12 +12,13 @@ import dataclasses
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import yaml
 from pydantic import ConfigDict, Field, Strict, TypeAdapter, ValidationError
 
-# Sections accept mappings; every scalar is Strict, so "3" is not an int and "yes" is not a bool.
+# Every section is a frozen stdlib dataclass that pydantic validates with this config (extra keys
+# forbidden); every scalar is Strict, so "3" is not an int and "yes" is not a bool.
 _STRICT = ConfigDict(extra="forbid", frozen=True)
 
 Float = Annotated[float, Strict()]
@@ -29,35 +30,38 @@ PosInt = Annotated[int, Strict(), Field(ge=1)]
 Fraction = Annotated[float, Strict(), Field(ge=0, le=1)]
 
 
-def _section(cls: type) -> type:
-    """Frozen dataclass whose construction is validated by pydantic (strict, extra keys forbidden)."""
-    cls.__pydantic_config__ = _STRICT  # type: ignore[attr-defined]
-    return dataclasses.dataclass(frozen=True)(cls)
-
-
-@_section
+@dataclasses.dataclass(frozen=True)
 class IntrinsicsConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: Image size the intrinsics are for; frames of another size are refused (recorded, not used).
     width_px: PosInt = 640
     height_px: PosInt = 480
     #: Horizontal field of view; used when fx_px is not given.
     hfov_deg: Annotated[float, Strict(), Field(gt=1, lt=179)] = 70.0
+    #: Focal lengths and principal point, px (fy defaults to fx; cx, cy to the image centre).
     fx_px: PosFloat | None = None
     fy_px: PosFloat | None = None
     cx_px: Float | None = None
     cy_px: Float | None = None
+    #: OpenCV distortion coefficients (k1, k2, p1, p2[, k3...]).
     dist_coeffs: tuple[Float, ...] = ()
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class CameraConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
     #: ``tcp://HOST:PORT`` (SITL/network frame stream), ``file:PATH`` (video), ``v4l2:/dev/videoN``,
     #: ``rtsp://...``.
     source: Str = "tcp://127.0.0.1:5600"
     #: OpenCV calibration YAML; when null the ``intrinsics`` block is used.
     calibration_file: Str | None = None
     intrinsics: IntrinsicsConfig = dataclasses.field(default_factory=IntrinsicsConfig)
+    #: Timeouts for connecting to the source and for waiting for the next frame, s.
     connect_timeout_s: PosFloat = 5.0
     frame_timeout_s: PosFloat = 3.0
+    #: Cap of the jittered exponential backoff between reconnects, s.
     reconnect_backoff_max_s: PosFloat = 5.0
     #: Frames waiting for the pipeline; when full the oldest is dropped (newest frame wins).
     queue_depth: PosInt = 1
@@ -66,17 +70,24 @@ class CameraConfig:
 OutputKind = Literal["gps_input", "global_position_sensor", "vision_position_estimate"]
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class MavlinkConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
     #: pymavlink connection string: ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT``,
     #: ``/dev/ttyACM0`` (serial, with ``baud``).
     url: Str = "udpin:127.0.0.1:14560"
+    #: Serial baud rate (serial URLs only).
     baud: PosInt = 921600
+    #: This daemon's MAVLink identity: the vehicle's system id, component 197 (VISUAL_INERTIAL_ODOMETRY).
     system_id: Annotated[int, Strict(), Field(ge=1, le=255)] = 1
     component_id: Annotated[int, Strict(), Field(ge=1, le=255)] = 197
     #: System id of the autopilot whose messages are used (others are ignored).
     autopilot_system_id: Annotated[int, Strict(), Field(ge=1, le=255)] = 1
+    #: What is sent per estimate: GPS_INPUT (ArduPilot, GPS1_TYPE=14), GLOBAL_POSITION_SENSOR (PX4 1.18+),
+    #: VISION_POSITION_ESTIMATE (ArduPilot VISO_TYPE=1). NAMED_VALUE_* status is always sent.
     outputs: tuple[OutputKind, ...] = ("gps_input",)
+    #: Rate of this daemon's own HEARTBEAT, Hz.
     heartbeat_hz: PosFloat = 1.0
     #: Attitude/altitude older than this at a frame's exposure make the frame invalid for fixes.
     attitude_max_age_s: PosFloat = 0.3
@@ -87,72 +98,103 @@ class MavlinkConfig:
     signing_key_file: Str | None = None
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class CacheConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: Cache directory built by ``gdnav cache build``.
     dir: Str = "cache"
     #: Verify sha256 of every artifact against the manifest at start (D-C10-3 gate).
     verify_hashes: Bool = True
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class TerrainConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
     #: Flat-ground model: ground height above mean sea level, metres.
     ground_alt_amsl_m: Float = 0.0
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class InitConfig:
     """Where the estimator starts when the autopilot gives no HOME_POSITION."""
 
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: Starting position when known (e.g. the last GNSS fix before denial); null = use HOME_POSITION.
     lat_deg: Annotated[float, Strict(), Field(ge=-90, le=90)] | None = None
     lon_deg: Annotated[float, Strict(), Field(ge=-180, le=180)] | None = None
+    #: 1-sigma horizontal uncertainty of the starting position, m.
     sigma_m: PosFloat = 50.0
     #: Use the autopilot's HOME_POSITION as the initial prior when no lat/lon is configured.
     use_home_position: Bool = True
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class VprConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: C2 strategy (see README: geo_prior needs no index; appearance strategies need one in the cache).
     strategy: Str = "geo_prior"
+    #: Candidates retrieved per frame (K).
     top_k: PosInt = 10
     #: Search radius = clamp(sigma_scale x horizontal sigma, min, max) around the prior.
     prior_sigma_scale: PosFloat = 3.0
     prior_radius_min_m: PosFloat = 60.0
     prior_radius_max_m: PosFloat = 2000.0
+    #: WARN when the best candidate's descriptor distance exceeds this (possible false retrieval).
     top1_distance_warn: PosFloat = 0.5
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class RerankConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: C2.5 strategy: passthrough (keep C2's order) or inliers (re-rank by cheap inlier counts).
     strategy: Str = "passthrough"
+    #: Candidates handed to the matcher (N).
     top_n: Annotated[int, Strict(), Field(ge=1, le=10)] = 3
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class MatcherConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: C3 strategy: classical (weights-free), disk_lightglue, aliked_lightglue, xfeat.
     strategy: Str = "classical"
+    #: Below this many RANSAC inliers on every candidate: InsufficientInliersError, VIO-only fallback.
     min_inliers_threshold: PosInt = 25
+    #: Best candidate's median residual above this is logged as a WARN (C3.5 refinement trigger).
     residual_warn_threshold_px: PosFloat = 2.5
+    #: RANSAC (USAC MAGSAC) inlier threshold, confidence and iteration cap.
     ransac_threshold_px: PosFloat = 3.0
     ransac_confidence: Annotated[float, Strict(), Field(gt=0.5, lt=1.0)] = 0.999
     ransac_max_iters: PosInt = 5000
     #: Side of the map chip matched per candidate, px (the chip is centred on the tile).
     chip_size_px: Annotated[int, Strict(), Field(ge=128, le=4096)] = 512
     #: Classical (weights-free) strategy.
-    classical_detector: Literal["sift", "orb", "akaze"] = "sift"
+    classical_detector: Literal["sift", "orb"] = "sift"
+    #: Features per image and Lowe's ratio for the classical strategy.
     max_features: PosInt = 1500
     ratio_test: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.8
-    #: Learned strategies (ONNX, LightGlue-ONNX layouts).
+    #: Learned strategies: ONNX extractor files in the LightGlue-ONNX layout (see README "Models").
     disk_weights_path: Str | None = None
     aliked_weights_path: Str | None = None
     xfeat_weights_path: Str | None = None
+    #: LightGlue-ONNX matcher file; null = mutual nearest neighbour on the descriptors.
     lightglue_weights_path: Str | None = None
+    #: Long side of the image given to a dynamic-size extractor, px (fixed-size models use their own).
     input_long_side_px: Annotated[int, Strict(), Field(ge=64, le=4096)] = 640
+    #: Keypoints kept per image by learned extractors (top scores).
     max_keypoints: PosInt = 2048
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class PoseConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: Fewer inliers than this: no pose (degenerate).
     min_inliers: Annotated[int, Strict(), Field(ge=4)] = 12
     #: Solved camera axis vs autopilot camera axis: larger = implausible, rejected.
     max_attitude_disagreement_deg: PosFloat = 15.0
@@ -162,8 +204,10 @@ class PoseConfig:
     min_sigma_m: PosFloat = 1.0
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class EstimatorConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
     #: White-noise acceleration spectral density for the constant-velocity model, m/s^2/sqrt(Hz).
     accel_noise_m_s2: PosFloat = 1.5
     #: Chi-square gate on absolute fixes (2 dof); 13.8 = 99.9 %.
@@ -172,33 +216,46 @@ class EstimatorConfig:
     reacquire_sigma_m: PosFloat = 150.0
     #: Above this horizontal sigma the output is labelled no_estimate (fix_type 0).
     max_output_sigma_m: PosFloat = 500.0
+    #: Multiplies the visual-odometry covariance (tune for a real camera; 1 = as measured).
     vo_noise_scale: PosFloat = 1.0
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class FdrConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: Flight data recorder directory; total size bounded by max_bytes (oldest segments deleted).
     dir: Str = "fdr"
     max_bytes: Annotated[int, Strict(), Field(ge=1 << 16)] = 256 << 20
     segment_bytes: Annotated[int, Strict(), Field(ge=1 << 14)] = 16 << 20
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class LoggingConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: Structured-log level and format (JSON lines on stderr; false = human-readable).
     level: Literal["debug", "info", "warning", "error"] = "info"
     json: Bool = True
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class DaemonConfig:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: Rate of the status log line and systemd STATUS, Hz.
     status_hz: PosFloat = 1.0
     #: Frames older than this when the pipeline gets to them are dropped, s.
     max_frame_age_s: PosFloat = 1.0
-    pipeline_threads: PosInt = 1
+    #: ONNX Runtime intra-op threads for learned strategies.
     onnx_intra_op_threads: PosInt = 2
 
 
-@_section
+@dataclasses.dataclass(frozen=True)
 class Config:
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: Name of the profile (logged and recorded; no behaviour depends on it).
     profile: Str = "default"
     camera: CameraConfig = dataclasses.field(default_factory=CameraConfig)
     mavlink: MavlinkConfig = dataclasses.field(default_factory=MavlinkConfig)
