@@ -259,3 +259,31 @@ def test_estimator_consecutive_gated_fixes_inflate_covariance() -> None:
     assert gated == [False] * CONSECUTIVE_GATED_INFLATE
     assert decisions[-1].accepted
     assert np.linalg.norm(est.state(T0_USEC + S // 2).pos_ned_m[:2] - moved[:2]) < 5.0
+
+
+def test_estimator_consecutive_gated_fixes_stay_rejected_while_vo_fused() -> None:
+    """With visual odometry corroborating the state, a run of fixes 40 m off (a look-alike area) is
+    rejected every time and the stated sigma does not absorb them."""
+    est = _estimator()
+    start = np.array([0.0, 0.0, -120.0])
+    est.initialise(start, 1.0, T0_USEC)
+    decisions = []
+    for k in range(1, 9):
+        t = T0_USEC + k * S // 3
+        est.update_vo(_vo(np.zeros(2), 0.05, 1 / 3), time_unix_usec=t)
+        decisions.append(est.update_fix(_fix(start + np.array([40.0, 0.0, 0.0]), 1.0, t)))
+    assert not any(d.accepted for d in decisions)
+    assert est.state(T0_USEC + 3 * S).horiz_sigma_m < 5.0
+
+
+def test_estimator_provenance_switches_on_first_frame_without_fix() -> None:
+    """Frame k fuses VO + a fix (anchored); frame k+1 fuses only VO: visual_propagated at once."""
+    est = _estimator()
+    start = np.array([0.0, 0.0, -120.0])
+    est.initialise(start, 5.0, T0_USEC)
+    t1, t2 = T0_USEC + S // 3, T0_USEC + 2 * S // 3
+    est.update_vo(_vo(np.zeros(2), 0.1, 1 / 3), time_unix_usec=t1)
+    assert est.update_fix(_fix(start, 1.0, t1)).accepted
+    assert est.state(t1).provenance is Provenance.SATELLITE_ANCHORED
+    est.update_vo(_vo(np.zeros(2), 0.1, 1 / 3), time_unix_usec=t2)
+    assert est.state(t2).provenance is Provenance.VISUAL_PROPAGATED

@@ -23,7 +23,8 @@ Measurements
 
 Provenance (what was actually fused, see :meth:`NavEstimator.provenance_at`)
 ---------------------------------------------------------------------------
-``satellite_anchored`` while the last accepted fix is at most ``fix_recent_s`` old;
+``satellite_anchored`` while the latest measurement fused was an accepted fix (no VO update after it)
+and it is at most ``fix_recent_s`` old, so the label switches on the first frame without a fix;
 ``visual_propagated`` when, since that fix, VO updates keep being fused (the last at most
 ``vo_recent_s`` old); ``dead_reckoning`` when neither (prediction only); ``no_estimate`` when not
 initialised or when the horizontal sigma exceeds ``max_output_sigma_m``.
@@ -49,7 +50,7 @@ from gps_denied_onboard.geo import LocalTangentPlane
 _log = structlog.get_logger(__name__)
 
 #: An accepted fix younger than this keeps the output ``satellite_anchored``, seconds.
-DEFAULT_FIX_RECENT_S: Final[float] = 3.0
+DEFAULT_FIX_RECENT_S: Final[float] = 1.0
 #: A VO update younger than this (and newer than the last fix) makes the output ``visual_propagated``.
 DEFAULT_VO_RECENT_S: Final[float] = 2.0
 #: Fixes whose exposure is older than the filter time by more than this are dropped (out of order).
@@ -270,10 +271,16 @@ class NavEstimator:
                 tile_id=tuple(fix.tile_id),
                 consecutive=self._consecutive_gated,
             )
-            if self._consecutive_gated >= CONSECUTIVE_GATED_INFLATE:
-                # Several fixes in a row disagree with the state: either they are all wrong or the state
-                # is (an unmodelled manoeuvre). Either way the stated accuracy is no longer honest, so the
-                # disagreement is added to the position covariance; a single wrong tile never gets here.
+            vo_corroborates = (
+                self._last_vo_usec is not None
+                and (self._time_usec - self._last_vo_usec) / 1e6 <= self._vo_recent_s
+            )
+            if self._consecutive_gated >= CONSECUTIVE_GATED_INFLATE and not vo_corroborates:
+                # Several fixes in a row disagree with a state that nothing corroborates (no recent VO):
+                # an unmodelled manoeuvre is as likely as a wrong match, so the stated accuracy is no
+                # longer honest and the disagreement is added to the position covariance. While VO is
+                # being fused the state's motion is measured, and a run of disagreeing fixes is far more
+                # likely a look-alike area: those stay rejected (the wrong-tile trap).
                 self._kf.P[:2, :2] += np.outer(innov, innov)
                 self._consecutive_gated = 0
                 _log.warning(LogEvent.ESTIMATOR_COVARIANCE_INFLATED, innovation_m=float(np.hypot(*innov)),
@@ -371,7 +378,14 @@ class NavEstimator:
     def _label(self, p_mat: np.ndarray, t: int) -> Provenance:
         if _horiz_sigma_m(p_mat) > self._config.max_output_sigma_m:
             return Provenance.NO_ESTIMATE
-        if self._last_fix_usec is not None and (t - self._last_fix_usec) / 1e6 <= self._fix_recent_s:
+        fix_is_latest = self._last_vo_usec is None or (
+            self._last_fix_usec is not None and self._last_vo_usec <= self._last_fix_usec
+        )
+        if (
+            self._last_fix_usec is not None
+            and fix_is_latest
+            and (t - self._last_fix_usec) / 1e6 <= self._fix_recent_s
+        ):
             return Provenance.SATELLITE_ANCHORED
         if (
             self._last_vo_usec is not None
