@@ -139,7 +139,16 @@ class NavDaemon:
                 self._process, captured, received_ns, attitude, alt_agl_m, prior
             )
             if outcome is not None:
-                self._publish(outcome)
+                try:
+                    self._publish(outcome)
+                except Exception as exc:  # one frame's output failing must not stop the daemon; recorded
+                    self.counters.frame_errors += 1
+                    log.exception(
+                        LogEvent.PIPELINE_FRAME_ERROR, seq=outcome.seq, stage="publish", error=repr(exc)
+                    )
+                    self._root.fdr.record(
+                        FdrKind.FRAME_ERROR, {"seq": outcome.seq, "stage": "publish", "error": repr(exc)}
+                    )
 
     def _prior(self) -> InitialPrior | None:
         init = self._cfg.init

@@ -533,3 +533,19 @@ def test_link_rejects_unknown_url_scheme() -> None:
     link = MavlinkLink(MavlinkConfig(url="http://127.0.0.1:80"), _tracker())
     with pytest.raises(MavlinkConfigError, match=re.escape("http://127.0.0.1:80")):
         link.open()
+
+
+def test_named_values_without_residual_send_nan() -> None:
+    """A frame with no match has no residual: GDN_RES goes out as NaN instead of failing the send."""
+    import math as _math
+
+    from pymavlink.dialects.v20 import common
+
+    from gps_denied_onboard.components.c8_mavlink.messages import named_values
+    from gps_denied_onboard.constants import NV_RESIDUAL_PX, Provenance
+
+    mav = common.MAVLink(None, srcSystem=1, srcComponent=197)
+    msgs = named_values(mav, time_boot_ms=1, provenance=Provenance.VISUAL_PROPAGATED, inliers=16,
+                        residual_px=None, horiz_sigma_m=2.0, frame_drops=0)
+    res = [m for m in msgs if m.get_type() == "NAMED_VALUE_FLOAT" and m.name == NV_RESIDUAL_PX]
+    assert len(res) == 1 and _math.isnan(res[0].value)

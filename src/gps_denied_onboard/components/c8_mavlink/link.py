@@ -421,7 +421,7 @@ class MavlinkLink:
         *,
         time_unix_usec: int,
         inliers: int,
-        residual_px: float,
+        residual_px: float | None,
         frame_drops: int,
     ) -> int:
         """Send ``config.outputs`` for ``state`` plus the NAMED_VALUE set; returns the number of messages

@@ -281,12 +281,13 @@ def named_values(
     time_boot_ms: int,
     provenance: Provenance,
     inliers: int,
-    residual_px: float,
+    residual_px: float | None,
     horiz_sigma_m: float,
     frame_drops: int,
 ) -> list[MavlinkMessage]:
     """NAMED_VALUE_INT/FLOAT set shown by ground stations: GDN_PROV (provenance code), GDN_INL, GDN_RES,
-    GDN_HSIG, GDN_DROP. Non-finite floats are sent as NaN (the GCS shows "nan", i.e. unknown)."""
+    GDN_HSIG, GDN_DROP. A residual of None (no match this frame) and non-finite floats are sent as NaN
+    (the GCS shows "nan", i.e. unknown)."""
     t = int(time_boot_ms) & 0xFFFFFFFF
 
     def _i32(v: int) -> int:
@@ -295,7 +296,9 @@ def named_values(
     return [
         mav.named_value_int_encode(t, NV_PROVENANCE.encode(), provenance.code),
         mav.named_value_int_encode(t, NV_INLIERS.encode(), _i32(inliers)),
-        mav.named_value_float_encode(t, NV_RESIDUAL_PX.encode(), float(residual_px)),
+        mav.named_value_float_encode(
+            t, NV_RESIDUAL_PX.encode(), math.nan if residual_px is None else float(residual_px)
+        ),
         mav.named_value_float_encode(t, NV_HORIZ_SIGMA_M.encode(), float(horiz_sigma_m)),
         mav.named_value_int_encode(t, NV_FRAME_DROPS.encode(), _i32(frame_drops)),
     ]
