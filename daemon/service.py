@@ -147,7 +147,8 @@ class NavDaemon:
                         LogEvent.PIPELINE_FRAME_ERROR, seq=outcome.seq, stage="publish", error=repr(exc)
                     )
                     self._root.fdr.record(
-                        FdrKind.FRAME_ERROR, {"seq": outcome.seq, "stage": "publish", "error": repr(exc)}
+                        FdrKind.FRAME_ERROR,
+                        {"frame_seq": outcome.seq, "stage": "publish", "error": repr(exc)},
                     )
 
     def _prior(self) -> InitialPrior | None:
@@ -174,7 +175,7 @@ class NavDaemon:
             self.counters.frames_bad += 1
             log.warning(LogEvent.CAMERA_BAD_FRAME, seq=captured.seq, error=str(exc))
             self._root.fdr.record(
-                FdrKind.FRAME_ERROR, {"seq": captured.seq, "stage": "decode", "error": str(exc)}
+                FdrKind.FRAME_ERROR, {"frame_seq": captured.seq, "stage": "decode", "error": str(exc)}
             )
             return None
         cal = self._root.calibration
@@ -183,7 +184,9 @@ class NavDaemon:
             got, want = f"{image.shape[1]}x{image.shape[0]}", f"{cal.width_px}x{cal.height_px}"
             msg = f"frame is {got}, calibration is for {want}"
             log.warning(LogEvent.CAMERA_BAD_FRAME, seq=captured.seq, error=msg)
-            self._root.fdr.record(FdrKind.FRAME_ERROR, {"seq": captured.seq, "stage": "size", "error": msg})
+            self._root.fdr.record(
+                FdrKind.FRAME_ERROR, {"frame_seq": captured.seq, "stage": "size", "error": msg}
+            )
             return None
         frame = NavCameraFrame(
             uuid.uuid4(),
@@ -200,7 +203,7 @@ class NavDaemon:
             self.counters.frame_errors += 1
             log.exception(LogEvent.PIPELINE_FRAME_ERROR, seq=captured.seq, error=repr(exc))
             self._root.fdr.record(
-                FdrKind.FRAME_ERROR, {"seq": captured.seq, "stage": "pipeline", "error": repr(exc)}
+                FdrKind.FRAME_ERROR, {"frame_seq": captured.seq, "stage": "pipeline", "error": repr(exc)}
             )
             return None
 

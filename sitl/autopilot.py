@@ -102,14 +102,15 @@ class SimAutopilot:
             0.0,
         )
 
-    def poll(self) -> int:
-        """Drain what the daemon sent (non-blocking); keeps only the daemon's own component."""
+    def poll(self, *, discard: bool = False) -> int:
+        """Drain what the daemon sent (non-blocking); keeps only the daemon's own component.
+        ``discard``: drop everything (a simulated link cut)."""
         n = 0
         while True:
             msg = self._conn.recv_match(blocking=False)
             if msg is None:
                 return n
-            if msg.get_type() == "BAD_DATA" or msg.get_srcComponent() != MAV_COMPONENT_ID:
+            if discard or msg.get_type() == "BAD_DATA" or msg.get_srcComponent() != MAV_COMPONENT_ID:
                 continue
             n += 1
             self.received.append(ReceivedMessage(time.time(), msg.get_type(), msg.to_dict()))

@@ -12,6 +12,7 @@ Definitions (also in the README):
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -195,3 +196,117 @@ def plot_report(report: dict[str, Any], path: Path, *, title: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _run_segments(seqs: Sequence[int], labels: Sequence[str], label: str) -> list[tuple[int, int]]:
+    """(first_index, last_index) of maximal runs of ``label`` in ``labels``."""
+    runs, start = [], None
+    for i, lab in enumerate(labels):
+        if lab == label and start is None:
+            start = i
+        elif lab != label and start is not None:
+            runs.append((start, i - 1))
+            start = None
+    if start is not None:
+        runs.append((start, len(labels) - 1))
+    return runs
+
+
+def analyse(
+    report: dict[str, Any],
+    fdr_records: Sequence[dict[str, Any]],
+    truth_at_unix: Callable[[float], tuple[float, float]],
+) -> dict[str, Any]:
+    """What the daemon did, from its own flight data recorder, checked against the truth:
+
+    - ``accepted_fixes_beyond_3sigma``: accepted absolute fixes farther from the truth than 3 of their
+      own stated sigmas (the wrong-tile trap must keep this at 0);
+    - ``provenance_switch_lag_frames``: frames from the first insufficient-inliers frame to the first
+      ``visual_propagated`` output (the issue asks for <= 1);
+    - ``vio_segments``: each VIO-only stretch with the distance flown, the error growth and the drift as
+      a percentage of that distance, and how many fixes it took afterwards to get back under the
+      nominal p95 error (measured on the anchored frames before the first stretch).
+    """
+    frames = sorted(
+        (r for r in fdr_records if r.get("kind") == "pipeline.frame"), key=lambda r: r["frame_seq"]
+    )
+    rows = {r["seq"]: r for r in report["per_frame"]}
+    fix_errors_sigma = []
+    for r in frames:
+        if r.get("fix_accepted") and r.get("fix_lat_deg") is not None and r.get("fix_sigma_m"):
+            lat_t, lon_t = truth_at_unix(r["exposure_time_unix_usec"] / 1e6)
+            err = float(haversine_m(lat_t, lon_t, r["fix_lat_deg"], r["fix_lon_deg"]))
+            fix_errors_sigma.append(err / float(r["fix_sigma_m"]))
+    reasons = Counter(str(r.get("no_fix_reason")).split(":")[0] for r in frames if not r.get("fix_accepted"))
+
+    seqs = [r["frame_seq"] for r in frames]
+    labels = [r.get("provenance", "unknown") for r in frames]
+    transitions = [
+        {"seq": seqs[i], "from": labels[i - 1], "to": labels[i]}
+        for i in range(1, len(labels))
+        if labels[i] != labels[i - 1]
+    ]
+    first_ii = next(
+        (i for i, r in enumerate(frames) if r.get("no_fix_reason") == "insufficient_inliers"), None
+    )
+    switch_lag = None
+    if first_ii is not None:
+        vp = next((i for i in range(first_ii, len(labels)) if labels[i] == "visual_propagated"), None)
+        switch_lag = None if vp is None else seqs[vp] - seqs[first_ii]
+
+    def err(seq: int) -> float | None:
+        row = rows.get(seq)
+        return None if row is None else row.get("horizontal_error_m")
+
+    segments = _run_segments(seqs, labels, "visual_propagated")
+    before = [
+        err(seqs[i])
+        for i in range(segments[0][0] if segments else len(seqs))
+        if labels[i] == "satellite_anchored" and err(seqs[i]) is not None
+    ]
+    nominal_p95 = _pct([e for e in before if e is not None], 95)
+    vio = []
+    for a, b in segments:
+        path = [rows[s] for s in seqs[max(a - 1, 0) : b + 1] if s in rows]
+        dist = sum(
+            float(haversine_m(p["true_lat_deg"], p["true_lon_deg"], q["true_lat_deg"], q["true_lon_deg"]))
+            for p, q in itertools.pairwise(path)
+        )
+        e0 = err(seqs[a - 1]) if a > 0 else None
+        during = [e for e in (err(seqs[i]) for i in range(a, b + 1)) if e is not None]
+        growth = (max(during) - (e0 or 0.0)) if during else None
+        recover = None
+        if nominal_p95 is not None:
+            fixes = 0
+            for i in range(b + 1, len(seqs)):
+                if labels[i] == "satellite_anchored":
+                    fixes += 1
+                    e = err(seqs[i])
+                    if e is not None and e <= nominal_p95:
+                        recover = fixes
+                        break
+        vio.append(
+            {
+                "from_seq": seqs[a],
+                "to_seq": seqs[b],
+                "frames": b - a + 1,
+                "distance_m": round(dist, 1),
+                "error_before_m": e0,
+                "max_error_m": max(during) if during else None,
+                "drift_pct_of_distance": round(100.0 * growth / dist, 2)
+                if growth is not None and dist > 0
+                else None,
+                "fixes_to_recover_nominal_p95": recover,
+            }
+        )
+    return {
+        "fdr_frames": len(frames),
+        "accepted_fixes": len(fix_errors_sigma),
+        "accepted_fixes_beyond_3sigma": sum(e > 3.0 for e in fix_errors_sigma),
+        "max_accepted_fix_error_sigma": max(fix_errors_sigma) if fix_errors_sigma else None,
+        "no_fix_reasons": dict(sorted(reasons.items())),
+        "transitions": transitions,
+        "provenance_switch_lag_frames": switch_lag,
+        "nominal_p95_m": nominal_p95,
+        "vio_segments": vio,
+    }

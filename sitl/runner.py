@@ -20,6 +20,7 @@ import hashlib
 import json
 import os
 import platform
+import shutil
 import signal
 import socket
 import subprocess
@@ -32,12 +33,13 @@ from typing import Any
 import numpy as np
 
 from gps_denied_onboard.camera.stream import encode_frame
+from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import ConfigError, load_config
 from gps_denied_onboard.sitl.autopilot import SimAutopilot
 from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.photometric import PhotometricModel, degrade_for_gap
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
-from gps_denied_onboard.sitl.report import SentFrame, plot_report, score
+from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, score
 from gps_denied_onboard.sitl.scenario import Scenario, ScenarioError, Trajectory, load_scenario
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -157,14 +159,17 @@ class _Flight:
         next_t = time.time()
         while not stop.is_set():
             now = time.time()
-            full = k % int(ATTITUDE_HZ / ALTITUDE_HZ) == 0
-            self._send_telemetry(ap, now, full=full)
-            if k % int(ATTITUDE_HZ) == 0:
-                ap.send_heartbeat()
-                ap.send_system_time(now)
-            if k % int(2 * ATTITUDE_HZ) == 0:
-                ap.send_home(home.lat_deg, home.lon_deg, self.ground_alt_amsl_m)
-            ap.poll()
+            if self.t0_unix_s and self.scenario.link_down_at(now - self.t0_unix_s):
+                ap.poll(discard=True)  # the link is cut: nothing sent, nothing of the daemon's arrives
+            else:
+                full = k % int(ATTITUDE_HZ / ALTITUDE_HZ) == 0
+                self._send_telemetry(ap, now, full=full)
+                if k % int(ATTITUDE_HZ) == 0:
+                    ap.send_heartbeat()
+                    ap.send_system_time(now)
+                if k % int(2 * ATTITUDE_HZ) == 0:
+                    ap.send_home(home.lat_deg, home.lon_deg, self.ground_alt_amsl_m)
+                ap.poll()
             k += 1
             next_t += 1.0 / ATTITUDE_HZ
             await asyncio.sleep(max(0.0, next_t - time.time()))
@@ -296,14 +301,26 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     if opts.duration_s is not None:
         trajectory = dataclasses.replace(trajectory, duration_s=min(trajectory.duration_s, opts.duration_s))
 
-    cache_dir = workdir / f"cache-{_sha_prefix(map_path)}"
+    cache_source = map_path
+    if scenario.map_edits:
+        from gps_denied_onboard.sitl.map_edit import MapEditError, apply_map_edits
+
+        edited = workdir / f"map-{_sha_prefix(map_path)}-{scenario.name}.tif"
+        try:
+            cache_source = apply_map_edits(
+                map_path, edited, trajectory, scenario.map_edits, map_renderer.ground_gsd_m
+            )
+        except MapEditError as exc:
+            raise SitlError(str(exc)) from exc
+    cache_dir = workdir / f"cache-{_sha_prefix(cache_source)}"
     t_cache = time.monotonic()
     try:
-        build_cache_from_geotiff(map_path, cache_dir, progress=not opts.quiet)
+        build_cache_from_geotiff(cache_source, cache_dir, progress=not opts.quiet)
     except CacheBuildError as exc:
         raise SitlError(f"cannot build the cache from {map_path}: {exc}") from exc
     cache_s = time.monotonic() - t_cache
 
+    shutil.rmtree(workdir / "fdr", ignore_errors=True)  # this run's records only
     flight = _Flight(opts, scenario, trajectory, renderer, config_path, cache_dir, workdir, ground_alt)
     ap = asyncio.run(flight.fly())
 
@@ -313,6 +330,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
 
     report = score(flight.frames, ap.received, truth_at_unix)
     ap.close()
+    report["analysis"] = analyse(report, list(read_records(workdir / "fdr")), truth_at_unix)
     report.update(
         {
             "scenario": scenario.name,

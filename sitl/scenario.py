@@ -65,6 +65,18 @@ number is expected.
     map's lon/lat box shrunk by this on every side, so that the camera footprint stays on the map.
     ``auto`` = the footprint radius at the highest waypoint altitude with the largest wobble tilt
     (``Scenario.footprint_radius_m``) + 5 m.
+``map_edits`` (list, default [])
+    Changes made to the daemon's MAP (the cache is built from the edited copy) while the nav frames are
+    still rendered from the unedited world, laid out along the flight path so they work over any map:
+    ``{kind: featureless, path_from: f0, path_to: f1}`` flattens the map in a corridor over the path
+    between fractions f0 < f1 of its length (a map gap: the matcher finds no inliers there, visual
+    odometry still works); ``{kind: lookalike, path_from, path_to, offset_m: [north, east]}`` moves the
+    corridor's content by the offset and flattens the true place (a wrong-tile trap: the only match is
+    wrong by ``offset_m``). ``half_width_m`` (> 0, default: the camera footprint radius + 10 m) sets
+    the corridor's half width.
+``link_drops`` (list, default [])
+    ``{from_s, to_s}``: the autopilot link is cut in ``[from_s, to_s)``: the simulated autopilot sends
+    nothing and everything the daemon sends is lost.
 ``map_gaps`` (list, default [])
     Time windows in which the nav image is degraded (``sitl.photometric.degrade_for_gap``):
     ``{from_s: number >= 0, to_s: number > from_s, kind: featureless | blackout}``.
@@ -167,6 +179,30 @@ class WaypointLayout:
     frame: WaypointFrame
     points: tuple[Waypoint, ...]
     margin_m: float | None = None
+
+
+class MapEditKind(str, Enum):
+    FEATURELESS = "featureless"
+    LOOKALIKE = "lookalike"
+
+
+@dataclass(frozen=True)
+class MapEdit:
+    """A change to the daemon's map along the path fractions [path_from, path_to] (see ``map_edits``)."""
+
+    kind: MapEditKind
+    path_from: float
+    path_to: float
+    offset_m: tuple[float, float] = (0.0, 0.0)
+    half_width_m: float | None = None
+
+
+@dataclass(frozen=True)
+class LinkDrop:
+    """The autopilot link is cut for ``[from_s, to_s)``."""
+
+    from_s: float
+    to_s: float
 
 
 @dataclass(frozen=True)
@@ -395,6 +431,18 @@ class Trajectory:
         """Time at which the aircraft reaches the last waypoint, s."""
         return self.start_delay_s + _profile_duration_s(self.path_length_m, self.speed_m_s, self.accel_m_s2)
 
+    def point_at_distance(self, s_m: float) -> tuple[float, float]:
+        """(lat_deg, lon_deg) of the path point ``s_m`` metres from its start (clamped to the path)."""
+        s_m = min(max(s_m, 0.0), self.path_length_m)
+        seg = self._segments[-1]
+        for candidate in self._segments:
+            if s_m <= candidate.s0_m + candidate.length_m:
+                seg = candidate
+                break
+        n, e, _psi = seg.at(min(max(s_m - seg.s0_m, 0.0), seg.length_m))
+        lat, lon, _alt = self.origin.to_geodetic(np.array([n, e, 0.0]))
+        return float(lat), float(lon)
+
     def frame_times_s(self) -> np.ndarray:
         """Exposure times of the run's frames, s: (n,) float64, ``k / frame_rate_hz`` < ``duration_s``."""
         n = math.ceil(self.duration_s * self.frame_rate_hz - 1e-9)
@@ -473,12 +521,18 @@ class Scenario:
     attitude_wobble: WobbleSpec = field(default_factory=WobbleSpec)
     photometric: PhotometricParams = field(default_factory=PhotometricParams)
     map_gaps: tuple[MapGap, ...] = ()
+    map_edits: tuple[MapEdit, ...] = ()
+    link_drops: tuple[LinkDrop, ...] = ()
     #: File the scenario was read from (None when built from a mapping).
     source: str | None = field(default=None, compare=False)
 
     def calibration(self) -> CameraCalibration:
         """The nav camera's calibration."""
         return self.camera.calibration()
+
+    def link_down_at(self, t_s: float) -> bool:
+        """Whether the autopilot link is cut at ``t_s``."""
+        return any(d.from_s <= t_s < d.to_s for d in self.link_drops)
 
     def gap_at(self, t_s: float) -> GapKind | None:
         """The map-gap degradation for a frame exposed at ``t_s``, or None."""
@@ -776,6 +830,51 @@ def _read_waypoints(block: _Block) -> WaypointLayout:
     return WaypointLayout(frame, tuple(points), margin)
 
 
+def _read_map_edits(value: object, source: str | None) -> tuple[MapEdit, ...]:
+    if not isinstance(value, list):
+        raise ScenarioError("map_edits", f"expected a list, got {_type_name(value)}", source=source)
+    edits = []
+    for i, raw in enumerate(value):
+        b = _Block(raw, f"map_edits[{i}]", source)
+        kind_raw = b.string("kind")
+        try:
+            kind = MapEditKind(kind_raw)
+        except ValueError as exc:
+            valid = ", ".join(k.value for k in MapEditKind)
+            raise b.error("kind", f"expected one of: {valid}; got {kind_raw!r}") from exc
+        start = b.number("path_from", ge=0.0, lt=1.0)
+        end = b.number("path_to", gt=start, le=1.0)
+        half = b.number("half_width_m", None, gt=0.0, nullable=True)
+        offset: tuple[float, float] = (0.0, 0.0)
+        if kind is MapEditKind.LOOKALIKE:
+            raw_off = b.get("offset_m")
+            path = b.key_path("offset_m")
+            if not isinstance(raw_off, (list, tuple)) or len(raw_off) != 2:
+                raise ScenarioError(path, f"expected [north_m, east_m], got {raw_off!r}", source=source)
+            offset = (
+                _check_number(raw_off[0], f"{path}[0]", source),
+                _check_number(raw_off[1], f"{path}[1]", source),
+            )
+            if offset == (0.0, 0.0):
+                raise ScenarioError(path, "a look-alike needs a non-zero offset", source=source)
+        b.finish()
+        edits.append(MapEdit(kind, start, end, offset, half))
+    return tuple(edits)
+
+
+def _read_link_drops(value: object, source: str | None) -> tuple[LinkDrop, ...]:
+    if not isinstance(value, list):
+        raise ScenarioError("link_drops", f"expected a list, got {_type_name(value)}", source=source)
+    drops = []
+    for i, raw in enumerate(value):
+        b = _Block(raw, f"link_drops[{i}]", source)
+        start = b.number("from_s", ge=0.0)
+        end = b.number("to_s", gt=start)
+        b.finish()
+        drops.append(LinkDrop(start, end))
+    return tuple(drops)
+
+
 def _read_gaps(value: object, source: str | None) -> tuple[MapGap, ...]:
     if not isinstance(value, list):
         raise ScenarioError("map_gaps", f"expected a list, got {_type_name(value)}", source=source)
@@ -840,6 +939,8 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
 
     waypoints = _read_waypoints(root.block("waypoints"))
     gaps = _read_gaps(root.get("map_gaps", []), source)
+    edits = _read_map_edits(root.get("map_edits", []), source)
+    drops = _read_link_drops(root.get("link_drops", []), source)
     root.finish()
     scenario = Scenario(
         name=name,
@@ -858,6 +959,8 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         attitude_wobble=wobble,
         photometric=photometric,
         map_gaps=gaps,
+        map_edits=edits,
+        link_drops=drops,
         source=source,
     )
     scenario.footprint_radius_m()  # rejects a camera + wobble that would see the horizon

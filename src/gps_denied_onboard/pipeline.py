@@ -242,7 +242,7 @@ class NavigationPipeline:
             FdrKind.FRAME,
             {
                 "frame_id": str(frame.frame_id),
-                "seq": frame.seq,
+                "frame_seq": frame.seq,
                 "exposure_time_unix_usec": frame.exposure_time_unix_usec,
                 "provenance": outcome.provenance.value,
                 "fix_accepted": accepted,
