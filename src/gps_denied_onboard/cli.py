@@ -243,6 +243,11 @@ def build_parser() -> argparse.ArgumentParser:
     srun.add_argument("--duration", type=float, default=None, help="cut the flight to this many seconds")
     srun.add_argument("--quiet", action="store_true", help="print only the summary")
     srun.set_defaults(func=_cmd_sitl_run)
+
+    from gps_denied_onboard import cli_match, cli_models
+
+    cli_models.register(sub)
+    cli_match.register(sub)
     return parser
 
 

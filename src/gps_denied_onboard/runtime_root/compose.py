@@ -17,6 +17,7 @@ from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
 from gps_denied_onboard.components.c2_vpr.geo_prior import GeoPriorVpr
 from gps_denied_onboard.components.c2_vpr.protocol import VprStrategy
 from gps_denied_onboard.components.c3_matcher import registry as matcher_registry
+from gps_denied_onboard.components.c3_matcher.aliked_lightglue import ALIKED_MNN_MIN_SIMILARITY
 from gps_denied_onboard.components.c3_matcher.errors import StrategyNotLinkedError
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
@@ -140,7 +141,10 @@ def _matcher_deps(
     lightglue = pre.get("c3_lightglue_runtime")
     if lightglue is None:
         # Without a LightGlue model the helper matches by mutual nearest neighbour (logged by the helper).
-        lightglue = LightGlueRuntime(runtime, config.matcher.lightglue_weights_path)
+        # Cross-date ALIKED descriptors have cosine similarities of ~0.5-0.8: the generic 0.75 threshold
+        # kept 3/30 NAIP cross-date trials, 0.5 kept 30/30 (tests/test_c3_aliked.py).
+        mnn = ALIKED_MNN_MIN_SIMILARITY if config.matcher.strategy == "aliked_lightglue" else 0.75
+        lightglue = LightGlueRuntime(runtime, config.matcher.lightglue_weights_path, mnn_min_similarity=mnn)
     deps.update(inference_runtime=runtime, lightglue_runtime=lightglue)
     return deps
 

@@ -1,7 +1,7 @@
 """C3 strategy registry: config ``matcher.strategy`` name -> factory (the composition root's only way
 to build a matcher).
 
-Built-in: ``classical`` and ``disk_lightglue``. Others (``aliked_lightglue``, ``xfeat``) join through
+Built-in: ``classical``, ``disk_lightglue`` and ``aliked_lightglue``. Others (``xfeat``) join through
 ``register_strategy``. ``create_matcher`` passes each factory only the dependencies its signature
 names, so the composition root can hand every strategy the same superset of shared helpers.
 """
@@ -14,7 +14,7 @@ from typing import Any
 
 import structlog
 
-from gps_denied_onboard.components.c3_matcher import classical, disk_lightglue
+from gps_denied_onboard.components.c3_matcher import aliked_lightglue, classical, disk_lightglue
 from gps_denied_onboard.components.c3_matcher.errors import StrategyNotLinkedError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.constants import LogEvent
@@ -26,6 +26,7 @@ MatcherFactory = Callable[..., CrossDomainMatcher]
 _STRATEGY_REGISTRY: dict[str, MatcherFactory] = {
     classical.LABEL: classical.create,
     disk_lightglue.LABEL: disk_lightglue.create,
+    aliked_lightglue.LABEL: aliked_lightglue.create,
 }
 
 

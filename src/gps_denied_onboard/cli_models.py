@@ -1,0 +1,165 @@
+"""``gdnav models``: obtain pinned weights (import/fetch), export them to ONNX, verify a model directory.
+
+Exit codes: 0 success; 2 bad input, missing or refused weights, no internet, failed export (one clear
+line on stderr, never a traceback). ``register(subparsers)`` adds the ``models`` command to ``gdnav``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import urllib.request
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Final
+
+EXIT_OK: Final[int] = 0
+EXIT_BAD_INPUT: Final[int] = 2
+
+
+def _err(message: str) -> int:
+    print(f"gdnav models: {message}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.models import WeightsError, import_weights
+
+    src = Path(args.src)
+    if not src.is_dir():
+        return _err(f"{src}: not a directory (expected the folder holding aliked-*.pth)")
+    try:
+        paths = import_weights(src, Path(args.dest))
+    except (WeightsError, OSError) as exc:
+        return _err(str(exc))
+    for path in paths:
+        print(f"imported {path}")
+    return EXIT_OK
+
+
+def _mirror_urlopen(base_url: str) -> Callable[..., Any]:
+    """``urlopen`` that downloads each file by name from ``base_url`` instead of its official URL."""
+    base = base_url.rstrip("/")
+
+    def urlopen(url: str, timeout: float) -> Any:
+        return urllib.request.urlopen(f"{base}/{url.rsplit('/', 1)[-1]}", timeout=timeout)
+
+    return urlopen
+
+
+def _cmd_fetch(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.models import WeightsError, fetch_weights
+
+    names = args.name or None
+    kwargs: dict[str, Any] = {"timeout_s": args.timeout}
+    if args.mirror:
+        kwargs["urlopen"] = _mirror_urlopen(args.mirror)
+    try:
+        paths = fetch_weights(Path(args.dest), names, **kwargs)
+    except KeyError as exc:  # unknown registry name
+        return _err(str(exc.args[0]) if exc.args else str(exc))
+    except (WeightsError, OSError) as exc:
+        return _err(str(exc))
+    for path in paths:
+        print(f"fetched {path}")
+    return EXIT_OK
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.models import ExportError, WeightsError, default_onnx_name, export_aliked_onnx
+
+    if (args.height is None) != (args.width is None):
+        return _err("give both --height and --width, or neither for a dynamic-size model")
+    weights = Path(args.weights_dir) / f"aliked-{args.variant}.pth"
+    if not weights.is_file():
+        return _err(
+            f"{weights}: weights file not found (run 'gdnav models import' or 'gdnav models fetch' first)"
+        )
+    out = Path(args.out) / default_onnx_name(args.variant, args.top_k, args.height, args.width)
+    try:
+        path = export_aliked_onnx(
+            weights, out, variant=args.variant, top_k=args.top_k, height=args.height, width=args.width
+        )
+    except ImportError as exc:
+        return _err(f"exporting needs torch and onnx (install the 'export' extra): {exc}")
+    except (ValueError, WeightsError, ExportError, OSError) as exc:
+        return _err(str(exc))
+    print(f"exported {path}")
+    print(f"  set matcher.aliked_weights_path: {path}")
+    return EXIT_OK
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.models import ModelDirError, verify_model_dir
+
+    try:
+        entries = verify_model_dir(Path(args.dir))
+    except ModelDirError as exc:
+        return _err(str(exc))
+    for entry in entries:
+        print(f"ok {entry.file} sha256={entry.sha256[:12]} from {entry.source.name} ({entry.source.licence})")
+    return EXIT_OK
+
+
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+    """Add ``models`` (import, fetch, export, verify) to ``gdnav``'s subcommands; returns its parser."""
+    models = subparsers.add_parser(
+        "models",
+        help="pretrained model files: import, fetch, export, verify",
+        description="Obtain the pinned ALIKED weights, export them to ONNX, and verify a model directory.",
+    )
+    sub = models.add_subparsers(dest="models_command", required=True, metavar="SUBCOMMAND")
+
+    imp = sub.add_parser(
+        "import",
+        help="copy pinned weights from a local folder",
+        description="Copy aliked-*.pth from DIR into the model directory; files not matching the pinned "
+        "sha256 are refused.",
+    )
+    imp.add_argument("--from", dest="src", required=True, metavar="DIR", help="folder holding aliked-*.pth")
+    imp.add_argument("--dest", required=True, metavar="DIR", help="model directory (created if needed)")
+    imp.set_defaults(func=_cmd_import)
+
+    fetch = sub.add_parser(
+        "fetch",
+        help="download pinned weights from the official source",
+        description="Download the pinned ALIKED weights (commit-pinned GitHub URLs) and check their sha256.",
+    )
+    fetch.add_argument("--dest", required=True, metavar="DIR", help="model directory (created if needed)")
+    fetch.add_argument(
+        "--name", action="append", metavar="NAME", help="aliked-t16 or aliked-n16 (repeatable; default: all)"
+    )
+    fetch.add_argument(
+        "--mirror", default=None, metavar="URL", help="download FILE from URL/FILE instead (local mirror)"
+    )
+    fetch.add_argument("--timeout", type=float, default=60.0, metavar="S", help="socket timeout, s")
+    fetch.set_defaults(func=_cmd_fetch)
+
+    export = sub.add_parser(
+        "export",
+        help="export weights to an ONNX extractor (needs torch)",
+        description="Export ALIKED weights to an ONNX extractor (LightGlue-ONNX layout) verified in ONNX "
+        "Runtime, and record it in OUT/manifest.json.",
+    )
+    export.add_argument("--weights-dir", required=True, metavar="DIR", help="folder holding aliked-*.pth")
+    export.add_argument("--out", required=True, metavar="DIR", help="model directory to write into")
+    export.add_argument(
+        "--variant", choices=("t16", "n16"), default="t16", help="ALIKED variant (default t16)"
+    )
+    export.add_argument("--top-k", type=int, default=1024, metavar="K", help="keypoints per image (1024)")
+    export.add_argument(
+        "--height", type=int, default=None, metavar="H", help="fixed input height, multiple of 32"
+    )
+    export.add_argument(
+        "--width", type=int, default=None, metavar="W", help="fixed input width, multiple of 32"
+    )
+    export.set_defaults(func=_cmd_export)
+
+    verify = sub.add_parser(
+        "verify",
+        help="check a model directory against its manifest",
+        description="Check that every file in DIR/manifest.json exists and matches its sha256 and pins.",
+    )
+    verify.add_argument("--dir", required=True, metavar="DIR", help="model directory")
+    verify.set_defaults(func=_cmd_verify)
+    return models

@@ -1,0 +1,310 @@
+"""ALIKED + LightGlue strategy (seed: secondary learned matcher), label ``aliked_lightglue``.
+
+ALIKED runs through the C7 ``InferenceRuntime`` as an ONNX extractor in the LightGlue-ONNX layout
+(exported by ``gdnav models export`` from the pinned official weights); matching goes through the
+shared ``LightGlueRuntime`` (a LightGlue-ONNX matcher model when ``lightglue_weights_path`` is set, else
+its weights-free mutual-nearest-neighbour fallback); RANSAC, ranking, health, FDR and logs are the shared
+loop in ``base.CandidateLoopMatcher``, and tile features come from its ``TileFeatureCache`` (steady
+state: one extraction per frame + N matches).
+
+Input size: the exported model normally has a fixed input ``(1, 3, H, W)`` (read from the loaded model);
+every image is resized to fit inside it keeping its aspect ratio and zero-padded at the bottom/right
+(letterbox), and keypoints are mapped back to the original image's pixels. A model with dynamic H/W
+gets images resized to ``input_long_side_px`` and padded to multiples of 32. ALIKED is not rotation
+invariant: the query is rectified north-up at the map GSD by the base class when attitude and altitude
+are known (``rectify_query``), which is what lets it match the north-up map.
+
+Scale: every image is fitted on its own. A 640x480 frame and a 512 px chip then meet at 0.8 vs 0.75 in a
+512x384 model. Resizing the query by the chips' factor instead was measured on the NAIP cross-date trials
+(5 m/px, 320x240 frames, 384 px chips) and did worse (28/30 vs 30/30): upsampling coarse imagery gives
+ALIKED more usable keypoints than an exact scale match does.
+
+Mutual-NN fallback: ALIKED descriptors of the same ground across dates have cosine ~0.5-0.8, so the
+helper's generic 0.75 floor keeps too few matches (3/30 NAIP trials vs 30/30 at 0.5): build the
+``LightGlueRuntime`` with ``mnn_min_similarity=ALIKED_MNN_MIN_SIMILARITY`` for this strategy.
+
+Failure phases: ``aliked_forward`` (a chip's forward pass) and ``lightglue_match`` (a pair's match) drop
+that candidate; ``aliked_forward_query`` (the nav frame's forward pass) fails the whole frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Final
+
+import cv2
+import numpy as np
+
+from gps_denied_onboard.components.c3_matcher.base import CandidateLoopMatcher, Features, no_features
+from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
+from gps_denied_onboard.components.c7_inference.protocol import (
+    EngineLoadError,
+    EngineSignature,
+    InferenceRuntime,
+)
+from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
+from gps_denied_onboard.config import MatcherConfig
+from gps_denied_onboard.helpers.lightglue_runtime_protocol import LightGluePairMatcher
+from gps_denied_onboard.helpers.onnx_signatures import extractor_signature
+from gps_denied_onboard.helpers.ransac_filter import RansacFilter
+
+LABEL: Final[str] = "aliked_lightglue"
+
+#: The ALIKED encoder pools by 2, 4 and 4: input sides must be multiples of 32.
+ALIKED_SIDE_MULTIPLE: Final[int] = 32
+#: Descriptor sizes of the official variants (t16/n16: 64/128; n32: 128).
+ALIKED_DESCRIPTOR_DIMS: Final[tuple[int, ...]] = (64, 128)
+
+#: LightGlue-ONNX ALIKED extractor layout (``models.export``): ``image`` (1, 3, H, W) float32 RGB in
+#: [0, 1] -> ``keypoints`` (1, N, 2) float32 (x, y) px of the input tensor, ``scores`` (1, N) float32,
+#: ``descriptors`` (1, N, D) float32 L2-normalised, D in ``ALIKED_DESCRIPTOR_DIMS``.
+ALIKED_SIGNATURE: Final[EngineSignature] = extractor_signature("aliked", channels=3, descriptor_dim=None)
+
+#: Cosine floor for the helper's mutual-NN fallback with ALIKED descriptors (measured, see above).
+ALIKED_MNN_MIN_SIMILARITY: Final[float] = 0.5
+
+#: Keypoints closer than this to the black outside of a rectified query (or to the letterbox padding)
+#: sit on an artificial edge, not on ground texture: dropped.
+_INVALID_BORDER_PX: Final[int] = 4
+
+
+class AlikedOutputError(ValueError):
+    """The ALIKED engine returned tensors that do not follow ``ALIKED_SIGNATURE``."""
+
+
+@dataclass(frozen=True)
+class Letterbox:
+    """How an image was placed into the model's input tensor.
+
+    ``tensor``: (1, 3, H, W) float32 RGB in [0, 1]; ``scale``: tensor px per original px (same on both
+    axes, so the aspect ratio and angles are kept); ``content_wh``: (w, h) px of the resized image in the
+    tensor's top-left corner (the rest is zero padding).
+    """
+
+    tensor: np.ndarray
+    scale: float
+    content_wh: tuple[int, int]
+
+
+def fit_scale(image_hw: tuple[int, int], input_hw: tuple[int, int]) -> float:
+    """Largest scale at which an image of ``image_hw`` = (h, w) fits in ``input_hw`` = (H, W)."""
+    return min(input_hw[1] / float(image_hw[1]), input_hw[0] / float(image_hw[0]))
+
+
+def letterbox(image_bgr: np.ndarray, input_hw: tuple[int, int], scale: float | None = None) -> Letterbox:
+    """BGR (h, w, 3) uint8 -> the model input of size ``input_hw`` = (H, W) (see ``Letterbox``).
+
+    ``scale``: tensor px per image px; None or a scale at which the image would not fit = ``fit_scale``.
+    """
+    h, w = image_bgr.shape[:2]
+    in_h, in_w = input_hw
+    largest = fit_scale((h, w), input_hw)
+    scale = largest if scale is None or scale > largest else float(scale)
+    new_w = min(in_w, max(1, round(w * scale)))
+    new_h = min(in_h, max(1, round(h * scale)))
+    interp = cv2.INTER_AREA if scale < 1.0 else cv2.INTER_LINEAR
+    resized = (
+        cv2.resize(image_bgr, (new_w, new_h), interpolation=interp) if (new_w, new_h) != (w, h) else image_bgr
+    )
+    rgb = cv2.cvtColor(resized, cv2.COLOR_BGR2RGB)
+    tensor = np.zeros((1, 3, in_h, in_w), dtype=np.float32)
+    tensor[0, :, :new_h, :new_w] = rgb.transpose(2, 0, 1).astype(np.float32) * np.float32(1.0 / 255.0)
+    return Letterbox(tensor, scale, (new_w, new_h))
+
+
+def dynamic_input_hw(image_hw: tuple[int, int], long_side_px: int) -> tuple[int, int]:
+    """Input (H, W) for a dynamic-size model: long side ``long_side_px``, both sides rounded up to 32."""
+    h, w = image_hw
+    scale = long_side_px / float(max(h, w))
+
+    def up(v: float) -> int:
+        return max(ALIKED_SIDE_MULTIPLE, -(-round(v) // ALIKED_SIDE_MULTIPLE) * ALIKED_SIDE_MULTIPLE)
+
+    return up(h * scale), up(w * scale)
+
+
+def _valid_image_mask(image_bgr: np.ndarray) -> np.ndarray | None:
+    """(h, w) bool of pixels away from a black no-data region, or None when the image has none.
+
+    A rectified query is black outside the camera footprint (recognised by black image corners, as in
+    the classical strategy); its boundary is a strong artificial edge that would attract keypoints.
+    """
+    gray = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
+    if gray[[0, 0, -1, -1], [0, -1, 0, -1]].all():
+        return None
+    k = 2 * _INVALID_BORDER_PX + 1
+    return cv2.erode((gray > 0).astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+
+
+class AlikedLightGlueMatcher(CandidateLoopMatcher):
+    """ALIKED features via C7 + shared LightGlue + shared RANSAC (see module docstring)."""
+
+    label = LABEL
+    query_phase = "aliked_forward_query"
+    tile_phase = "aliked_forward"
+    match_phase = "lightglue_match"
+
+    def __init__(
+        self,
+        runtime: InferenceRuntime,
+        lightglue_runtime: LightGluePairMatcher,
+        ransac_filter: RansacFilter,
+        fdr_client: FdrClient | None,
+        health_window: RollingHealthWindow,
+        config: MatcherConfig,
+    ) -> None:
+        """Loads the ALIKED engine from ``config.aliked_weights_path`` (raises C7's ``EngineLoadError``)."""
+        super().__init__(
+            ransac_filter=ransac_filter, fdr_client=fdr_client, health_window=health_window, config=config
+        )
+        if not config.aliked_weights_path:
+            raise EngineLoadError(
+                "not set; the aliked_lightglue strategy needs an ALIKED ONNX model "
+                "(gdnav models export --weights-dir DIR --out DIR)",
+                path="matcher.aliked_weights_path",
+            )
+        self._runtime = runtime
+        self._lightglue_runtime = lightglue_runtime
+        self._model_path = str(config.aliked_weights_path)
+        self._engine_id = runtime.load_engine(self._model_path, ALIKED_SIGNATURE)
+        self._input_hw, self._descriptor_dim = self._model_layout()
+        self._long_side_px = int(config.input_long_side_px)
+        self._max_keypoints = int(config.max_keypoints)
+
+    @property
+    def engine_id(self) -> str:
+        return self._engine_id
+
+    @property
+    def input_hw(self) -> tuple[int, int] | None:
+        """The model's fixed input (H, W) px, or None for a dynamic-size model."""
+        return self._input_hw
+
+    # --- hooks ---------------------------------------------------------------------------------------
+    def extract_query(self, image_bgr: np.ndarray) -> Features:
+        return self._forward(image_bgr)
+
+    def extract_tile(self, chip_bgr: np.ndarray) -> Features:
+        return self._forward(chip_bgr)
+
+    def match_features(self, query: Features, tile: Features) -> np.ndarray:
+        if query.count == 0 or tile.count == 0:
+            return np.empty((0, 4), dtype=np.float32)
+        matches, _scores = self._lightglue_runtime.match_pair(
+            query.keypoints_px,
+            query.descriptors,
+            tile.keypoints_px,
+            tile.descriptors,
+            image_size0=query.image_size,
+            image_size1=tile.image_size,
+        )
+        idx = np.asarray(matches)
+        if idx.size == 0:
+            return np.empty((0, 4), dtype=np.float32)
+        if idx.ndim != 2 or idx.shape[1] != 2:
+            raise ValueError(f"LightGlue returned matches of shape {idx.shape}, expected (M, 2)")
+        idx = idx.astype(np.int64, copy=False)
+        if (idx < 0).any() or (idx[:, 0] >= query.count).any() or (idx[:, 1] >= tile.count).any():
+            raise ValueError(
+                f"LightGlue returned indices outside the keypoint sets ({query.count}, {tile.count})"
+            )
+        return np.hstack([query.keypoints_px[idx[:, 0]], tile.keypoints_px[idx[:, 1]]]).astype(np.float32)
+
+    # --- internals -----------------------------------------------------------------------------------
+    def _model_layout(self) -> tuple[tuple[int, int] | None, int | None]:
+        """The loaded model's fixed input (H, W) (None when dynamic) and descriptor size D.
+
+        Read from the model itself when the runtime exposes ``engine_info`` (ONNX Runtime does); a
+        runtime without it is treated as dynamic-size. A fixed size that is not a multiple of 32 cannot
+        be an ALIKED export: refused at load time, naming the file.
+        """
+        info_of = getattr(self._runtime, "engine_info", None)
+        if info_of is None:
+            return None, None
+        info = info_of(self._engine_id)
+        image = next((s for s in info.inputs if s.name == "image"), None)
+        desc = next((s for s in info.outputs if s.name == "descriptors"), None)
+        dim = desc.shape[2] if desc is not None and desc.shape is not None else None
+        if isinstance(dim, int) and dim not in ALIKED_DESCRIPTOR_DIMS:
+            raise EngineLoadError(
+                f"descriptors have D={dim}; an ALIKED export has D in {ALIKED_DESCRIPTOR_DIMS}",
+                path=self._model_path,
+            )
+        if image is None or image.shape is None:
+            return None, dim
+        h, w = image.shape[2], image.shape[3]
+        if not (isinstance(h, int) and isinstance(w, int)):
+            return None, dim
+        if h % ALIKED_SIDE_MULTIPLE or w % ALIKED_SIDE_MULTIPLE:
+            raise EngineLoadError(
+                f"input is {h}x{w}; ALIKED needs sides that are multiples of {ALIKED_SIDE_MULTIPLE}",
+                path=self._model_path,
+            )
+        return (h, w), dim
+
+    def _forward(self, image_bgr: np.ndarray) -> Features:
+        h, w = image_bgr.shape[:2]
+        input_hw = self._input_hw or dynamic_input_hw((h, w), self._long_side_px)
+        box = letterbox(image_bgr, input_hw)
+        outputs = self._runtime.run(self._engine_id, {"image": box.tensor})
+        try:
+            kpts = np.asarray(outputs["keypoints"])
+            scores = np.asarray(outputs["scores"])
+            desc = np.asarray(outputs["descriptors"])
+        except KeyError as exc:
+            raise AlikedOutputError(f"ALIKED output {exc} missing; got {sorted(outputs)}") from exc
+        if kpts.ndim != 3 or kpts.shape[0] != 1 or kpts.shape[2] != 2:
+            raise AlikedOutputError(f"keypoints must be (1, N, 2), got {kpts.shape}")
+        n = kpts.shape[1]
+        if scores.shape != (1, n) or desc.ndim != 3 or desc.shape[:2] != (1, n):
+            raise AlikedOutputError(
+                f"scores {scores.shape} / descriptors {desc.shape} do not match {n} keypoints"
+            )
+        dim = int(desc.shape[2])
+        pts = kpts[0].astype(np.float32)
+        sc = scores[0].astype(np.float32)
+        d = desc[0].astype(np.float32)
+        # Back to the original image's pixels (pixel centres: (u + 0.5) / s - 0.5).
+        orig = (pts + np.float32(0.5)) / np.float32(box.scale) - np.float32(0.5)
+        # Keypoints in (or at the edge of) the letterbox padding are not on the image; fixed-top-k
+        # models always return N points, so a small image fills the rest with these.
+        cw, ch = box.content_wh
+        b = float(_INVALID_BORDER_PX)
+        keep = (pts[:, 0] < cw - b) & (pts[:, 1] < ch - b) & (pts[:, 0] >= 0) & (pts[:, 1] >= 0)
+        keep &= (orig[:, 0] > -0.5) & (orig[:, 1] > -0.5) & (orig[:, 0] < w - 0.5) & (orig[:, 1] < h - 0.5)
+        valid = _valid_image_mask(image_bgr)
+        if valid is not None:
+            xi = np.clip(np.rint(orig[:, 0]).astype(np.int64), 0, w - 1)
+            yi = np.clip(np.rint(orig[:, 1]).astype(np.int64), 0, h - 1)
+            keep &= valid[yi, xi]
+        orig, sc, d = orig[keep], sc[keep], d[keep]
+        if orig.shape[0] == 0:
+            return no_features((w, h), dim)
+        if orig.shape[0] > self._max_keypoints:
+            order = np.argsort(-sc, kind="stable")[: self._max_keypoints]
+            orig, d = orig[order], d[order]
+        return Features(
+            np.ascontiguousarray(orig, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32), (w, h)
+        )
+
+
+def create(
+    config: MatcherConfig,
+    lightglue_runtime: LightGluePairMatcher,
+    ransac_filter: RansacFilter,
+    inference_runtime: InferenceRuntime,
+    health_window: RollingHealthWindow,
+    fdr_client: FdrClient | None = None,
+) -> AlikedLightGlueMatcher:
+    """Registry factory for ``aliked_lightglue``: builds the strategy, which loads the ALIKED engine now
+    (``inference_runtime.load_engine(config.aliked_weights_path, ALIKED_SIGNATURE)``)."""
+    missing = [
+        n
+        for n, v in (("inference_runtime", inference_runtime), ("lightglue_runtime", lightglue_runtime))
+        if v is None
+    ]
+    if missing:
+        raise ValueError(f"the aliked_lightglue strategy needs {missing} (not wired by the composition root)")
+    return AlikedLightGlueMatcher(
+        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config
+    )
