@@ -161,8 +161,12 @@ class RerankConfig:
 class MatcherConfig:
     __pydantic_config__: ClassVar[ConfigDict] = _STRICT
 
-    #: C3 strategy: classical (weights-free), disk_lightglue, aliked_lightglue, xfeat.
+    #: C3 strategy: classical (weights-free), disk_lightglue, aliked_lightglue, xfeat, or auto
+    #: (aliked_lightglue when model_dir holds a verified ALIKED export, else classical; logged).
     strategy: Str = "classical"
+    #: Model directory made by `gdnav models export` (its manifest is verified at start-up); learned
+    #: strategies whose weights path is null take their model from it.
+    model_dir: Str | None = None
     #: Below this many RANSAC inliers on every candidate: InsufficientInliersError, VIO-only fallback.
     min_inliers_threshold: PosInt = 25
     #: Best candidate's median residual above this is logged as a WARN (C3.5 refinement trigger).

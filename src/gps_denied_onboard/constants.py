@@ -107,6 +107,7 @@ class LogEvent:
     TILE_DOWNLOAD_FATAL: Final = "c11.download.fatal"
     TILE_DOWNLOAD_DONE: Final = "c11.download.done"
     C3_READY: Final = "c3.matcher.ready"
+    C3_AUTO_SELECTED: Final = "c3.matcher.auto_selected"
     C3_BACKBONE_ERROR: Final = "c3.matcher.backbone_error"
     C3_INSUFFICIENT_INLIERS: Final = "c3.matcher.insufficient_inliers"
     C3_RESIDUAL_ABOVE_THRESHOLD: Final = "c3.matcher.residual_above_threshold"

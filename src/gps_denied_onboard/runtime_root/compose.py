@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +35,7 @@ from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
+from gps_denied_onboard.models.manifest import ModelDirError, verify_model_dir
 from gps_denied_onboard.pipeline import NavigationPipeline
 
 log = structlog.get_logger(__name__)
@@ -149,6 +151,46 @@ def _matcher_deps(
     return deps
 
 
+def _resolve_matcher(config: Config) -> Config:
+    """Apply ``matcher.model_dir`` and ``matcher.strategy: auto`` (see MatcherConfig).
+
+    The model directory's manifest is verified here, at start-up. With ``auto`` an unusable or
+    model-less directory falls back to the weights-free strategy and says so; with an explicitly
+    learned strategy it refuses to start.
+    """
+    m = config.matcher
+    if m.model_dir is None:
+        if m.strategy == "auto":
+            log.info(LogEvent.C3_AUTO_SELECTED, strategy="classical", reason="matcher.model_dir is not set")
+            return dataclasses.replace(config, matcher=dataclasses.replace(m, strategy="classical"))
+        return config
+    try:
+        entries = verify_model_dir(m.model_dir)
+    except (ModelDirError, OSError, ValueError) as exc:
+        if m.strategy == "auto":
+            log.warning(
+                LogEvent.C3_AUTO_SELECTED, strategy="classical", reason=f"model directory unusable: {exc}"
+            )
+            return dataclasses.replace(config, matcher=dataclasses.replace(m, strategy="classical"))
+        raise StartupError("matcher.model_dir", str(exc)) from exc
+    aliked = [e for e in entries if e.source.name.startswith("aliked")]
+    strategy = m.strategy
+    if strategy == "auto":
+        strategy = "aliked_lightglue" if aliked else "classical"
+        log.info(
+            LogEvent.C3_AUTO_SELECTED,
+            strategy=strategy,
+            model_dir=m.model_dir,
+            reason="verified ALIKED export found" if aliked else "no ALIKED model in the directory",
+        )
+    aliked_path = m.aliked_weights_path
+    if aliked_path is None and aliked:
+        aliked_path = str(Path(m.model_dir) / aliked[0].file)
+    return dataclasses.replace(
+        config, matcher=dataclasses.replace(m, strategy=strategy, aliked_weights_path=aliked_path)
+    )
+
+
 def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = None) -> RuntimeRoot:
     """Build every object the daemon needs from ``config``.
 
@@ -156,6 +198,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     them built here: ``c7_inference``, ``c3_lightglue_runtime``, ``c282_ransac_filter``, ``fdr``.
     """
     pre = dict(pre_constructed or {})
+    config = _resolve_matcher(config)
     calibration = _calibration(config)
     try:
         tiles = TileStore.open(Path(config.cache.dir), verify_hashes=config.cache.verify_hashes)

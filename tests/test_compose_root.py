@@ -1,0 +1,94 @@
+"""compose_root: strategy selection from config, the model-directory gate, start-up refusals."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import structlog
+
+from aliked_fixture import aliked_t16_onnx  # noqa: F401 - session fixture
+from daemon_harness import build_small_cache
+from gps_denied_onboard.components.c3_matcher.aliked_lightglue import AlikedLightGlueMatcher
+from gps_denied_onboard.components.c3_matcher.classical import ClassicalMatcher
+from gps_denied_onboard.config import load_config
+from gps_denied_onboard.runtime_root import StartupError, compose_root
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return build_small_cache(tmp_path_factory.mktemp("compose"))[1]
+
+
+def _config(tmp_path: Path, cache: Path, *sets: str):  # type: ignore[no-untyped-def]
+    return load_config(
+        REPO / "config" / "sitl.yaml", [f"cache.dir={cache}", f"fdr.dir={tmp_path / 'fdr'}", *sets]
+    )
+
+
+def test_compose_auto_without_model_dir_runs_classical(tmp_path: Path, cache_dir: Path) -> None:
+    """strategy auto with no model directory builds the weights-free matcher and says why."""
+    with structlog.testing.capture_logs() as logs:
+        root = compose_root(_config(tmp_path, cache_dir, "matcher.strategy=auto", "matcher.model_dir=null"))
+    root.close()
+    assert isinstance(root.matcher, ClassicalMatcher)
+    picked = [e for e in logs if e["event"] == "c3.matcher.auto_selected"]
+    assert picked and picked[0]["strategy"] == "classical" and "model_dir" in picked[0]["reason"]
+
+
+def test_compose_auto_with_verified_aliked_export_runs_aliked(
+    tmp_path: Path,
+    cache_dir: Path,
+    aliked_t16_onnx: Path,  # noqa: F811
+) -> None:
+    """strategy auto with a verified ALIKED model directory builds aliked_lightglue from it."""
+    root = compose_root(
+        _config(tmp_path, cache_dir, "matcher.strategy=auto", f"matcher.model_dir={aliked_t16_onnx.parent}")
+    )
+    root.close()
+    assert isinstance(root.matcher, AlikedLightGlueMatcher)
+
+
+def test_compose_tampered_model_dir_refuses_explicit_strategy_but_auto_falls_back(
+    tmp_path: Path,
+    cache_dir: Path,
+    aliked_t16_onnx: Path,  # noqa: F811
+) -> None:
+    """A model directory whose manifest does not match its files: an explicit learned strategy is
+    refused at start-up naming the file; auto falls back to classical and says why."""
+    bad = tmp_path / "models"
+    bad.mkdir()
+    (bad / aliked_t16_onnx.name).write_bytes(aliked_t16_onnx.read_bytes()[:-16] + b"\0" * 16)
+    (bad / "manifest.json").write_text((aliked_t16_onnx.parent / "manifest.json").read_text())
+    with pytest.raises(StartupError) as err:
+        compose_root(
+            _config(tmp_path, cache_dir, "matcher.strategy=aliked_lightglue", f"matcher.model_dir={bad}")
+        )
+    assert err.value.what == "matcher.model_dir" and aliked_t16_onnx.name in str(err.value)
+    with structlog.testing.capture_logs() as logs:
+        root = compose_root(_config(tmp_path, cache_dir, "matcher.strategy=auto", f"matcher.model_dir={bad}"))
+    root.close()
+    assert isinstance(root.matcher, ClassicalMatcher)
+    assert any(e["event"] == "c3.matcher.auto_selected" and "unusable" in e["reason"] for e in logs)
+
+
+def test_compose_missing_disk_model_refuses_start(tmp_path: Path, cache_dir: Path) -> None:
+    """The airborne default (disk_lightglue) with no model file stops start-up naming the file."""
+    missing = tmp_path / "disk.onnx"
+    with pytest.raises(StartupError) as err:
+        compose_root(
+            _config(
+                tmp_path, cache_dir, "matcher.strategy=disk_lightglue", f"matcher.disk_weights_path={missing}"
+            )
+        )
+    assert "disk.onnx" in str(err.value)
+
+
+def test_compose_unknown_strategy_lists_valid_names(tmp_path: Path, cache_dir: Path) -> None:
+    """An unknown matcher name is refused with the list of linked strategies."""
+    with pytest.raises(StartupError) as err:
+        compose_root(_config(tmp_path, cache_dir, "matcher.strategy=superglue"))
+    assert "classical" in str(err.value) and "aliked_lightglue" in str(err.value)
+    assert err.value.what == "matcher.strategy"
