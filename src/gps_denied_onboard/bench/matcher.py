@@ -1,0 +1,754 @@
+"""C3 matcher benchmark: latency, memory and inlier counts of each strategy, side by side with classical.
+
+``run_matcher_benchmark(...)``:
+
+1. renders ``n_frames`` nav frames from a real orthophoto with the SITL renderer
+   (``sitl.render.MapRenderer``): camera ``frame_size`` px, ``hfov_deg`` HFOV, ``alt_agl_m`` above
+   ground, heading uniform in [0, 360), roll/pitch uniform in +-3 deg, position uniform over the map
+   shrunk so that the frame and its chip stay on it;
+2. cuts ``n_candidates`` square chips of ``chip_size_px`` from the same raster per frame - the true
+   chip (around the ground point under the principal point, offset by up to 15 % of the chip like a
+   prior with tens of metres of error) first, then chips that see none of the frame's footprint - each
+   wrapped in ``RasterChip``, an in-memory ``TilePixelsHandle``;
+3. builds each strategy through the real registry (``create_matcher``) with the real
+   ``OnnxInferenceRuntime`` (CPU provider unless told otherwise), ``LightGlueRuntime`` and
+   ``RansacFilter``; ``classical`` always runs, the learned ones when their model files are given;
+4. per frame, strategy after strategy (interleaved, so that every strategy sees the same machine
+   load and the ratios to classical are side by side):
+
+   - **frame cold**: ``match()`` with an empty tile-feature cache = query extraction (rectified query)
+     + N x (tile extraction + match + RANSAC) + the shared loop's bookkeeping;
+   - **frame warm**: ``match()`` again on the same frame: the tile features come from the cache, as
+     they mostly do when consecutive frames see the same tiles;
+   - **candidate cold**: one chip's tile extraction + match + RANSAC, timed around the strategy's
+     hooks (``extract_tile``, ``match_features``) and the shared ``RansacFilter``;
+   - **candidate warm**: match + RANSAC only (tile features cached);
+   - **query**: the query extraction alone;
+   - inliers: RANSAC inliers of the true chip and the best wrong chip, and whether ``match()`` ranked
+     the true chip first (so a broken matcher cannot hide behind a good latency);
+
+5. memory: the process's current RSS (``/proc/self/statm``) before and after each strategy is built
+   (model sessions), its peak RSS (``getrusage`` ``ru_maxrss``, the whole process's high-water mark,
+   all strategies together), and per strategy the peak of ``tracemalloc`` over one cold frame, in a
+   separate pass so that tracing does not slow the timed ones. tracemalloc sees Python objects and
+   numpy buffers only: ONNX Runtime's arena and OpenCV's internal buffers are not in it (they are in
+   RSS).
+
+Prints a table (``format_report``) and returns every figure as a JSON-serialisable dict.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import gc
+import math
+import os
+import platform
+import resource
+import time
+import tracemalloc
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from gps_denied_onboard.camera.types import Attitude, CameraCalibration, NavCameraFrame
+from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
+from gps_denied_onboard.components.c3_matcher.base import CandidateLoopMatcher
+from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
+from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
+from gps_denied_onboard.components.c3_matcher.registry import available_strategies, create_matcher
+from gps_denied_onboard.components.c6_tiles.types import TileId
+from gps_denied_onboard.config import MatcherConfig
+from gps_denied_onboard.helpers.frame_rectifier import (
+    RectificationError,
+    frame_to_ground_homography,
+    rectify_to_map_frame,
+)
+from gps_denied_onboard.helpers.ransac_filter import RansacFilter
+
+#: The real orthophoto the benchmark renders from by default (read-only shared data).
+DEFAULT_MAP_PATH: Final[Path] = (
+    Path(os.environ.get("GDNAV_SHARED_DIR", "/work/shared"))
+    / "data"
+    / "geovision_india"
+    / "geovision_india_z18.tif"
+)
+
+#: The weights-free baseline every other strategy is compared to.
+BASELINE: Final[str] = "classical"
+
+#: Learned strategy -> (model key of its extractor, MatcherConfig field, descriptor size for LightGlue).
+LEARNED: Final[dict[str, tuple[str, str, int | None]]] = {
+    "disk_lightglue": ("disk", "disk_weights_path", 128),
+    "aliked_lightglue": ("aliked", "aliked_weights_path", None),  # 64 (t16) or 128 (n16/n32)
+    "xfeat": ("xfeat", "xfeat_weights_path", 64),
+}
+
+#: Model keys accepted in ``model_paths`` (``lightglue`` = the LightGlue matcher for every learned one).
+MODEL_KEYS: Final[tuple[str, ...]] = ("disk", "aliked", "xfeat", "lightglue")
+
+#: Targets (seed C3-PT-01 on the Jetson; the CPU budget for classical on a 2-core dev box).
+JETSON_FRAME_P95_MS: Final[float] = 180.0
+JETSON_CANDIDATE_P95_MS: Final[float] = 60.0
+CPU_CLASSICAL_FRAME_P95_MS: Final[float] = 250.0
+
+_EARTH_M_PER_DEG_LAT: Final[float] = 111_320.0
+_MAX_TILT_DEG: Final[float] = 3.0
+_TRUE_CHIP_JITTER: Final[float] = 0.15
+
+
+class BenchmarkError(RuntimeError):
+    """The benchmark cannot run (map unusable, too small, bad arguments)."""
+
+
+# --- map chips ---------------------------------------------------------------------------------------------
+class RasterChip:
+    """In-memory ``TilePixelsHandle``: a read-only view of a window of an in-memory raster.
+
+    ``raster``: (H, W, 3) uint8 BGR; the window is ``size_px`` square at (``x0``, ``y0``) raster px.
+    ``px_to_lonlat``: (3, 3) affine chip px (x, y, 1) -> (lon_deg, lat_deg, 1), fitted once per chip
+    (over a chip of a few hundred metres a Web-Mercator or UTM raster is affine in lon/lat to far below
+    a pixel; a per-call reprojection would put PROJ on the hot path the benchmark measures).
+    """
+
+    def __init__(
+        self,
+        raster: np.ndarray,
+        x0: int,
+        y0: int,
+        size_px: int,
+        gsd_m_px: float,
+        px_to_lonlat: np.ndarray,
+        zoom: int = 18,
+    ) -> None:
+        view = raster[y0 : y0 + size_px, x0 : x0 + size_px]
+        if view.shape[:2] != (size_px, size_px):
+            raise BenchmarkError(f"chip at ({x0}, {y0}) size {size_px} leaves the {raster.shape[:2]} raster")
+        view.setflags(write=False)
+        self._view = view
+        self.origin_px = (int(x0), int(y0))
+        self._gsd = float(gsd_m_px)
+        self._px_to_lonlat = np.asarray(px_to_lonlat, dtype=np.float64)
+        self._lonlat_to_px = np.linalg.inv(self._px_to_lonlat)
+        lon_c, lat_c = self._apply(self._px_to_lonlat, np.array([[size_px / 2.0, size_px / 2.0]]))
+        self._tile_id = TileId.of(zoom, float(lat_c[0]), float(lon_c[0]))
+
+    @staticmethod
+    def _apply(affine: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        out = p @ affine[:2, :2].T + affine[:2, 2]
+        return out[:, 0], out[:, 1]
+
+    @property
+    def tile_id(self) -> TileId:
+        return self._tile_id
+
+    @property
+    def gsd_m_px(self) -> float:
+        return self._gsd
+
+    def pixels(self) -> np.ndarray:
+        return self._view
+
+    def chip_px_to_lonlat(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._apply(self._px_to_lonlat, px)
+
+    def lonlat_to_chip_px(self, lon_deg: np.ndarray, lat_deg: np.ndarray) -> np.ndarray:
+        lonlat = np.column_stack([np.ravel(lon_deg), np.ravel(lat_deg)]).astype(np.float64)
+        x, y = self._apply(self._lonlat_to_px, lonlat)
+        return np.column_stack([x, y])
+
+
+class _Georef:
+    """lon/lat <-> raster px (OpenCV convention: integer px at pixel centres) of a GeoTIFF."""
+
+    def __init__(self, path: Path) -> None:
+        import rasterio  # only the benchmark and the cache builder read GeoTIFFs
+
+        with rasterio.open(path) as ds:
+            self._crs = ds.crs
+            self._transform = ds.transform
+
+    def lonlat_to_px(self, lon_deg: Sequence[float], lat_deg: Sequence[float]) -> np.ndarray:
+        from rasterio.warp import transform as warp_transform
+
+        xs, ys = warp_transform("EPSG:4326", self._crs, list(lon_deg), list(lat_deg))
+        cols, rows = ~self._transform @ (np.asarray(xs), np.asarray(ys))
+        return np.column_stack([np.asarray(cols) - 0.5, np.asarray(rows) - 0.5])
+
+    def px_to_lonlat_affine(self, x0: float, y0: float, size_px: float) -> np.ndarray:
+        """(3, 3) affine chip px -> (lon, lat) for the chip whose px (0, 0) is raster px (x0, y0)."""
+        from rasterio.warp import transform as warp_transform
+
+        chip = np.array([[0.0, 0.0], [size_px, 0.0], [0.0, size_px], [size_px, size_px]])
+        cols, rows = chip[:, 0] + x0 + 0.5, chip[:, 1] + y0 + 0.5
+        xs, ys = self._transform @ (cols, rows)
+        lons, lats = warp_transform(self._crs, "EPSG:4326", list(xs), list(ys))
+        design = np.column_stack([chip, np.ones(len(chip))])
+        coef, *_ = np.linalg.lstsq(design, np.column_stack([lons, lats]), rcond=None)
+        return np.vstack([coef.T, [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class BenchFrame:
+    """One rendered frame with its candidates (true chip first) and its truth.
+
+    ``footprint_px``: (4, 2) float64 raster px of the frame corners on the ground.
+    """
+
+    frame: NavCameraFrame
+    candidates: tuple[RasterChip, ...]
+    footprint_px: np.ndarray
+
+    def rerank_result(self) -> RerankResult:
+        cands = [RerankCandidate(c.tile_id, c, -1, float(i)) for i, c in enumerate(self.candidates)]
+        return RerankResult(self.frame.frame_id, cands, 0)
+
+
+def render_bench_frames(
+    map_path: Path,
+    calib: CameraCalibration,
+    *,
+    n_frames: int,
+    n_candidates: int,
+    chip_size_px: int,
+    alt_agl_m: float,
+    seed: int,
+) -> list[BenchFrame]:
+    """Frames and chips as described in the module docstring (deterministic for a seed)."""
+    from gps_denied_onboard.sitl.render import MapRenderer, RenderError  # SITL-only dependency
+
+    try:
+        renderer = MapRenderer(map_path)
+    except RenderError as exc:
+        raise BenchmarkError(f"cannot use the benchmark map: {exc}") from exc
+    georef = _Georef(map_path)
+    raster = renderer.pixels_bgr
+    h_px, w_px = raster.shape[:2]
+    gsd = float(renderer.ground_gsd_m)
+    rng = np.random.default_rng(seed)
+    west, south, east, north = renderer.bbox_lonlat
+    lat_mid = (south + north) / 2.0
+    m_per_deg_lon = _EARTH_M_PER_DEG_LAT * math.cos(math.radians(lat_mid))
+    half_fp_m = alt_agl_m * math.tan(calib.hfov_rad / 2.0) * 1.3
+    margin_m = max(half_fp_m, chip_size_px * gsd * (0.5 + _TRUE_CHIP_JITTER)) + 5.0
+    lon_lo, lon_hi = west + margin_m / m_per_deg_lon, east - margin_m / m_per_deg_lon
+    lat_lo, lat_hi = south + margin_m / _EARTH_M_PER_DEG_LAT, north - margin_m / _EARTH_M_PER_DEG_LAT
+    if lon_lo >= lon_hi or lat_lo >= lat_hi or min(h_px, w_px) < chip_size_px:
+        raise BenchmarkError(
+            f"{map_path}: map too small for {alt_agl_m} m AGL frames and {chip_size_px} px chips"
+        )
+    w, h = calib.width_px, calib.height_px
+    corners = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [w - 1.0, h - 1.0, 1.0], [0.0, h - 1.0, 1.0]])
+    centre = np.array([calib.cx_px, calib.cy_px, 1.0])
+    out: list[BenchFrame] = []
+    for i in range(n_frames):
+        lat = float(rng.uniform(lat_lo, lat_hi))
+        lon = float(rng.uniform(lon_lo, lon_hi))
+        att = Attitude(
+            math.radians(rng.uniform(-_MAX_TILT_DEG, _MAX_TILT_DEG)),
+            math.radians(rng.uniform(-_MAX_TILT_DEG, _MAX_TILT_DEG)),
+            math.radians(rng.uniform(0.0, 360.0)),
+        )
+        image = renderer.render(calib, lat, lon, alt_agl_m, att)
+        to_ground = frame_to_ground_homography(calib, att, alt_agl_m)
+        ground = np.vstack([corners, centre]) @ to_ground.T
+        d_north, d_east = ground[:, 0] / ground[:, 2], ground[:, 1] / ground[:, 2]
+        lats = lat + d_north / _EARTH_M_PER_DEG_LAT
+        lons = lon + d_east / m_per_deg_lon
+        px = georef.lonlat_to_px(list(lons), list(lats))
+        footprint, (cx, cy) = px[:4], px[4]
+        jx, jy = rng.uniform(-_TRUE_CHIP_JITTER, _TRUE_CHIP_JITTER, 2) * chip_size_px
+        tx = int(np.clip(round(cx + jx - chip_size_px / 2), 0, w_px - chip_size_px))
+        ty = int(np.clip(round(cy + jy - chip_size_px / 2), 0, h_px - chip_size_px))
+        origins = [(tx, ty)]
+        (fx0, fy0), (fx1, fy1) = footprint.min(axis=0), footprint.max(axis=0)
+        for _ in range(10_000):
+            if len(origins) >= n_candidates:
+                break
+            wx, wy = (
+                int(rng.integers(0, w_px - chip_size_px + 1)),
+                int(rng.integers(0, h_px - chip_size_px + 1)),
+            )
+            if wx > fx1 or wx + chip_size_px < fx0 or wy > fy1 or wy + chip_size_px < fy0:
+                origins.append((wx, wy))
+        if len(origins) < n_candidates:
+            raise BenchmarkError(f"{map_path}: no room for {n_candidates - 1} chips away from frame {i}")
+        chips = tuple(
+            RasterChip(raster, x0, y0, chip_size_px, gsd, georef.px_to_lonlat_affine(x0, y0, chip_size_px))
+            for x0, y0 in origins
+        )
+        frame = NavCameraFrame(uuid.uuid4(), i, 0, image, att, alt_agl_m, time.monotonic_ns())
+        out.append(BenchFrame(frame, chips, footprint))
+    return out
+
+
+# --- strategies --------------------------------------------------------------------------------------------
+@dataclass
+class _Strategy:
+    name: str
+    matcher: CandidateLoopMatcher
+    ransac: RansacFilter
+    config: MatcherConfig
+    rss_load_mb: float | None
+    lightglue_mode: str | None
+    samples: dict[str, list[float]] = field(default_factory=dict)
+
+    def add(self, key: str, value: float) -> None:
+        self.samples.setdefault(key, []).append(float(value))
+
+
+def resolve_model_paths(
+    model_paths: Mapping[str, str | Path | None] | None, model_dir: Path | None
+) -> dict[str, Path]:
+    """Explicit paths first; then, for keys still missing, the first ``{key}*.onnx`` in ``model_dir``
+    (``lightglue*.onnx`` / ``lighterglue*.onnx`` for the matcher; extractor names containing
+    ``glue`` are not taken as extractors)."""
+    out: dict[str, Path] = {}
+    for key, value in (model_paths or {}).items():
+        if key not in MODEL_KEYS:
+            raise BenchmarkError(f"unknown model key {key!r}; expected one of {list(MODEL_KEYS)}")
+        if value is not None:
+            out[key] = Path(value)
+    if model_dir is not None:
+        files = sorted(Path(model_dir).glob("*.onnx"))
+        for key in MODEL_KEYS:
+            if key in out:
+                continue
+            for f in files:
+                name = f.name.lower()
+                hit = (
+                    name.startswith(("lightglue", "lighterglue"))
+                    if key == "lightglue"
+                    else name.startswith(key) and "glue" not in name
+                )
+                if hit:
+                    out[key] = f
+                    break
+    return out
+
+
+def _rss_mb() -> float | None:
+    try:
+        with open("/proc/self/statm", encoding="ascii") as fh:
+            resident_pages = int(fh.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None  # not Linux: only the peak (getrusage) is reported
+    return resident_pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _peak_rss_mb() -> float:
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    # Linux reports KiB, macOS bytes.
+    return peak / 2**20 if platform.system() == "Darwin" else peak / 2**10
+
+
+def _build_strategies(
+    names: Sequence[str],
+    models: Mapping[str, Path],
+    *,
+    chip_size_px: int,
+    intra_op_threads: int,
+    providers: Sequence[str] | None,
+    config_overrides: Mapping[str, Any],
+) -> tuple[list[_Strategy], dict[str, str]]:
+    """Build what can be built; the rest goes to ``skipped`` with the reason."""
+    from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
+    from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
+    from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
+
+    registered = set(available_strategies())
+    runtime = None
+    built: list[_Strategy] = []
+    skipped: dict[str, str] = {}
+    for name in names:
+        if name not in registered:
+            skipped[name] = f"not registered in the C3 registry (available: {', '.join(sorted(registered))})"
+            continue
+        fields: dict[str, Any] = {"strategy": name, "chip_size_px": chip_size_px, **config_overrides}
+        lightglue = None
+        if name in LEARNED:
+            key, field_name, _dim = LEARNED[name]
+            if key not in models:
+                skipped[name] = f"no {key} model given"
+                continue
+            fields[field_name] = str(models[key])
+            if "lightglue" in models:
+                fields["lightglue_weights_path"] = str(models["lightglue"])
+        config = MatcherConfig(**fields)
+        ransac = RansacFilter("usac_magsac", config.ransac_confidence, config.ransac_max_iters)
+        rss_before = _rss_mb()
+        try:
+            if name in LEARNED:
+                if runtime is None:
+                    runtime = OnnxInferenceRuntime(intra_op_threads=intra_op_threads, providers=providers)
+                lightglue = LightGlueRuntime(
+                    runtime, config.lightglue_weights_path, descriptor_dim=LEARNED[name][2]
+                )
+            matcher = create_matcher(
+                name,
+                config=config,
+                ransac_filter=ransac,
+                health_window=RollingHealthWindow(config.min_inliers_threshold),
+                inference_runtime=runtime,
+                lightglue_runtime=lightglue,
+                fdr_client=None,
+            )
+        except (EngineLoadError, ValueError, TypeError) as exc:
+            skipped[name] = f"cannot be built: {exc}"
+            continue
+        if not isinstance(matcher, CandidateLoopMatcher):
+            skipped[name] = f"{type(matcher).__name__} does not expose the CandidateLoopMatcher hooks"
+            continue
+        rss_after = _rss_mb()
+        rss_load = None if rss_before is None or rss_after is None else rss_after - rss_before
+        built.append(
+            _Strategy(name, matcher, ransac, config, rss_load, None if lightglue is None else lightglue.mode)
+        )
+    return built, skipped
+
+
+# --- measurement -------------------------------------------------------------------------------------------
+def _timed_match(
+    strategy: _Strategy, bf: BenchFrame, calib: CameraCalibration
+) -> tuple[float, float, int, bool]:
+    """(wall ms, process CPU ms, best inliers or 0, best == true chip) of one ``match()`` call.
+
+    CPU time counts every thread of the process (ORT and OpenCV workers): well below wall time means
+    the call waited for a core, i.e. the machine was busy with other work.
+    """
+    rerank = bf.rerank_result()
+    c0, t0 = time.process_time(), time.perf_counter()
+    try:
+        result = strategy.matcher.match(bf.frame, rerank, calib)
+    except InsufficientInliersError:
+        return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3, 0, False
+    ms, cpu_ms = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+    return ms, cpu_ms, result.best.inlier_count, result.best.tile_id == bf.candidates[0].tile_id
+
+
+def _query_image(strategy: _Strategy, bf: BenchFrame, calib: CameraCalibration) -> np.ndarray:
+    """The image ``match()`` extracts query features from (rectified when the strategy rectifies)."""
+    frame = bf.frame
+    if not strategy.matcher.rectify_query or frame.attitude is None or frame.alt_agl_m is None:
+        return frame.image_bgr
+    try:
+        gsd = bf.candidates[0].gsd_m_px
+        return rectify_to_map_frame(frame.image_bgr, calib, frame.attitude, frame.alt_agl_m, gsd).image
+    except RectificationError:
+        return frame.image_bgr
+
+
+def _measure_candidates(strategy: _Strategy, bf: BenchFrame, calib: CameraCalibration) -> None:
+    """Per-candidate figures, timed around the hooks ``match()`` itself calls."""
+    m = strategy.matcher
+    image = _query_image(strategy, bf, calib)
+    t0 = time.perf_counter()
+    query = m.extract_query(image)
+    strategy.add("query_ms", (time.perf_counter() - t0) * 1e3)
+    wrong_best = 0
+    for i, chip in enumerate(bf.candidates):
+        t0 = time.perf_counter()
+        tile = m.extract_tile(chip.pixels())
+        t1 = time.perf_counter()
+        corr = m.match_features(query, tile)
+        result = strategy.ransac.filter(
+            np.asarray(corr, dtype=np.float32), threshold_px=strategy.config.ransac_threshold_px
+        )
+        t2 = time.perf_counter()
+        strategy.add("candidate_cold_ms", (t2 - t0) * 1e3)
+        strategy.add("candidate_warm_ms", (t2 - t1) * 1e3)
+        if i == 0:
+            strategy.add("true_chip_inliers", result.inlier_count)
+        else:
+            wrong_best = max(wrong_best, result.inlier_count)
+    strategy.add("wrong_chip_max_inliers", wrong_best)
+
+
+def _python_heap_peak_mb(strategy: _Strategy, bf: BenchFrame, calib: CameraCalibration) -> float:
+    strategy.matcher.tile_cache.clear()
+    tracemalloc.start()
+    try:
+        _timed_match(strategy, bf, calib)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return peak / 2**20
+
+
+def _pct(values: Sequence[float]) -> dict[str, float]:
+    if not values:
+        return {}
+    arr = np.asarray(values, dtype=np.float64)
+    return {
+        "p50": round(float(np.percentile(arr, 50)), 2),
+        "p95": round(float(np.percentile(arr, 95)), 2),
+        "mean": round(float(arr.mean()), 2),
+        "n": len(values),
+    }
+
+
+def _ratio(value: Mapping[str, float], baseline: Mapping[str, float]) -> dict[str, float]:
+    """p50/p95 of ``value`` over the baseline's (missing where the baseline has none or is 0)."""
+    return {
+        q: round(value[q] / baseline[q], 2)
+        for q in ("p50", "p95")
+        if value.get(q) is not None and baseline.get(q)
+    }
+
+
+_LATENCY_KEYS: Final[tuple[str, ...]] = (
+    "frame_cold_ms",
+    "frame_warm_ms",
+    "candidate_cold_ms",
+    "candidate_warm_ms",
+    "query_ms",
+)
+
+
+def _machine() -> dict[str, Any]:
+    import cv2
+    import onnxruntime
+
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            for line in fh:
+                if line.lower().startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass  # non-Linux: keep platform's answer
+    return {
+        "cpu_model": model,
+        "cpu_count": os.cpu_count(),
+        "affinity_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "python": platform.python_version(),
+        "opencv": cv2.__version__,
+        "onnxruntime": onnxruntime.__version__,
+        # Other work on a shared box inflates every figure alike; the ratios to classical survive it.
+        "load_avg_1_5_15": [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None,
+    }
+
+
+def run_matcher_benchmark(
+    *,
+    strategies: Sequence[str] | None = None,
+    map_path: Path | str = DEFAULT_MAP_PATH,
+    model_paths: Mapping[str, str | Path | None] | None = None,
+    model_dir: Path | str | None = None,
+    n_frames: int = 30,
+    n_candidates: int = 3,
+    chip_size_px: int = 512,
+    frame_size: tuple[int, int] = (640, 480),
+    alt_agl_m: float = 120.0,
+    hfov_deg: float = 70.0,
+    seed: int = 0,
+    intra_op_threads: int = 2,
+    providers: Sequence[str] | None = ("CPUExecutionProvider",),
+    config_overrides: Mapping[str, Any] | None = None,
+    echo: Callable[[str], None] | None = print,
+) -> dict[str, Any]:
+    """Run the benchmark described in the module docstring; returns the figures (JSON-serialisable).
+
+    ``strategies``: names to run besides ``classical`` (which always runs as the baseline); None = every
+    strategy whose model files are given. ``model_paths``: ``{"disk"|"aliked"|"xfeat"|"lightglue": path}``;
+    ``model_dir``: where to look for models not given explicitly (``resolve_model_paths``).
+    ``config_overrides``: extra ``MatcherConfig`` fields for every strategy. ``echo``: where the table
+    goes (None = silent). A strategy that cannot be built is reported under ``skipped`` with the reason.
+    Raises ``BenchmarkError`` for an unusable map or bad arguments.
+    """
+    if n_frames < 1 or n_candidates < 1:
+        raise BenchmarkError(f"n_frames and n_candidates must be >= 1, got {n_frames}, {n_candidates}")
+    models = resolve_model_paths(model_paths, None if model_dir is None else Path(model_dir))
+    if strategies is None:
+        wanted = [BASELINE] + [s for s, (key, _, _) in LEARNED.items() if key in models]
+    else:
+        wanted = [BASELINE] + [s for s in dict.fromkeys(strategies) if s != BASELINE]
+    machine = _machine()
+    width, height = frame_size
+    calib = CameraCalibration.from_hfov(int(width), int(height), float(hfov_deg))
+    t_render = time.perf_counter()
+    frames = render_bench_frames(
+        Path(map_path),
+        calib,
+        n_frames=n_frames,
+        n_candidates=n_candidates,
+        chip_size_px=chip_size_px,
+        alt_agl_m=alt_agl_m,
+        seed=seed,
+    )
+    render_s = time.perf_counter() - t_render
+    rss_start = _rss_mb()
+    built, skipped = _build_strategies(
+        wanted,
+        models,
+        chip_size_px=chip_size_px,
+        intra_op_threads=intra_op_threads,
+        providers=providers,
+        config_overrides=dict(config_overrides or {}),
+    )
+    if not built or built[0].name != BASELINE:
+        raise BenchmarkError(f"the {BASELINE} baseline could not be built: {skipped.get(BASELINE)}")
+
+    # One untimed frame per strategy: first-call costs (lazy allocations, ORT arenas) are start-up, not
+    # steady state.
+    for s in built:
+        _timed_match(s, frames[0], calib)
+    for bf in frames:
+        for s in built:
+            s.matcher.tile_cache.clear()
+            gc.collect()
+            cold_ms, cold_cpu_ms, best_inliers, best_is_true = _timed_match(s, bf, calib)
+            warm_ms, _, _, _ = _timed_match(s, bf, calib)
+            s.add("frame_cold_ms", cold_ms)
+            s.add("frame_cold_cpu_ms", cold_cpu_ms)
+            s.add("frame_warm_ms", warm_ms)
+            s.add("best_inliers", best_inliers)
+            s.add("best_is_true_chip", float(best_is_true))
+            _measure_candidates(s, bf, calib)
+    heap = {s.name: round(_python_heap_peak_mb(s, frames[0], calib), 2) for s in built}
+
+    base = built[0]
+    results: dict[str, Any] = {}
+    for s in built:
+        entry: dict[str, Any] = {k: _pct(s.samples.get(k, [])) for k in _LATENCY_KEYS}
+        entry["frame_cold_cpu_ms"] = _pct(s.samples["frame_cold_cpu_ms"])
+        entry["inliers"] = {
+            "best": _pct(s.samples["best_inliers"]),
+            "true_chip": _pct(s.samples["true_chip_inliers"]),
+            "wrong_chip_max": _pct(s.samples["wrong_chip_max_inliers"]),
+            "true_chip_ranked_first": round(float(np.mean(s.samples["best_is_true_chip"])), 3),
+            "frames_failed": int(sum(1 for v in s.samples["best_inliers"] if v == 0)),
+        }
+        entry["ratio_to_classical"] = {
+            k: _ratio(entry[k], _pct(base.samples.get(k, []))) for k in _LATENCY_KEYS
+        }
+        entry["memory"] = {
+            "rss_on_build_mb": None if s.rss_load_mb is None else round(s.rss_load_mb, 1),
+            "python_heap_peak_cold_frame_mb": heap[s.name],
+        }
+        entry["lightglue_mode"] = s.lightglue_mode
+        results[s.name] = entry
+
+    frame_p95 = results[BASELINE]["frame_cold_ms"]["p95"]
+    targets = {
+        "cpu_classical_frame_p95_le_250ms": {
+            "target_ms": CPU_CLASSICAL_FRAME_P95_MS,
+            "measured_ms": frame_p95,
+            "met": frame_p95 <= CPU_CLASSICAL_FRAME_P95_MS,
+        },
+        "jetson_c3_pt_01": {
+            "note": "seed C3-PT-01 targets the Jetson (GPU); these are this machine's CPU figures",
+            **{
+                name: {
+                    "frame_cold_p95_ms": r["frame_cold_ms"]["p95"],
+                    "frame_p95_le_180ms": r["frame_cold_ms"]["p95"] <= JETSON_FRAME_P95_MS,
+                    "candidate_cold_p95_ms": r["candidate_cold_ms"]["p95"],
+                    "candidate_p95_le_60ms": r["candidate_cold_ms"]["p95"] <= JETSON_CANDIDATE_P95_MS,
+                }
+                for name, r in results.items()
+            },
+        },
+    }
+    report: dict[str, Any] = {
+        "date_utc": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {
+            **machine,
+            "load_avg_1_5_15_end": [round(v, 2) for v in os.getloadavg()]
+            if hasattr(os, "getloadavg")
+            else None,
+        },
+        "setup": {
+            "map": str(map_path),
+            "n_frames": n_frames,
+            "n_candidates": n_candidates,
+            "chip_size_px": chip_size_px,
+            "frame_size": [int(width), int(height)],
+            "alt_agl_m": alt_agl_m,
+            "hfov_deg": hfov_deg,
+            "seed": seed,
+            "intra_op_threads": intra_op_threads,
+            "providers": None if providers is None else list(providers),
+            "models": {k: str(v) for k, v in models.items()},
+            "render_s": round(render_s, 2),
+        },
+        "strategies": results,
+        "skipped": skipped,
+        "memory": {
+            "rss_before_build_mb": None if rss_start is None else round(rss_start, 1),
+            "rss_end_mb": None if (r := _rss_mb()) is None else round(r, 1),
+            "peak_rss_process_mb": round(_peak_rss_mb(), 1),
+        },
+        "targets": targets,
+    }
+    if echo is not None:
+        echo(format_report(report))
+    return report
+
+
+def format_report(report: Mapping[str, Any]) -> str:
+    """The benchmark's printed table (latencies in ms, p50/p95)."""
+    setup, machine = report["setup"], report["machine"]
+    w, h = setup["frame_size"]
+    lines = [
+        f"C3 matcher benchmark - {report['date_utc']} - {machine['cpu_model']}, {machine['cpu_count']} CPUs "
+        f"(load avg {machine['load_avg_1_5_15']} at start), onnxruntime {machine['onnxruntime']}, "
+        f"OpenCV {machine['opencv']}",
+        f"{setup['n_frames']} frames {w}x{h} rendered at {setup['alt_agl_m']:g} m AGL (random heading) from "
+        f"{Path(setup['map']).name}; N={setup['n_candidates']} chips of {setup['chip_size_px']} px (true + "
+        f"{setup['n_candidates'] - 1} wrong)",
+        "",
+    ]
+    header = (
+        f"{'strategy':<17}{'frame cold':>15}{'frame warm':>15}{'cand cold':>15}{'cand warm':>15}{'query':>13}"
+        f"{'x classical':>13}{'inl true':>10}{'inl wrong':>10}{'true 1st':>9}{'py heap':>9}{'rss load':>9}"
+    )
+    lines += [header + "   (ms p50/p95; x classical = frame cold p95; inliers p50; MB)", "-" * len(header)]
+
+    def pair(d: Mapping[str, float]) -> str:
+        return f"{d['p50']:.1f}/{d['p95']:.1f}" if d else "-"
+
+    for name, r in report["strategies"].items():
+        ratio = r["ratio_to_classical"]["frame_cold_ms"].get("p95")
+        rss = r["memory"]["rss_on_build_mb"]
+        lines.append(
+            f"{name:<17}{pair(r['frame_cold_ms']):>15}{pair(r['frame_warm_ms']):>15}"
+            f"{pair(r['candidate_cold_ms']):>15}{pair(r['candidate_warm_ms']):>15}{pair(r['query_ms']):>13}"
+            f"{'-' if ratio is None else f'{ratio:.2f}':>13}"
+            f"{r['inliers']['true_chip']['p50']:>10.0f}{r['inliers']['wrong_chip_max']['p50']:>10.0f}"
+            f"{r['inliers']['true_chip_ranked_first']:>9.2f}{r['memory']['python_heap_peak_cold_frame_mb']:>9.1f}"
+            f"{'-' if rss is None else f'{rss:.1f}':>9}"
+        )
+    mem = report["memory"]
+    lines += [
+        "",
+        f"process peak RSS {mem['peak_rss_process_mb']:.0f} MB (getrusage, all strategies + map); "
+        "py heap = tracemalloc peak over one cold frame (Python + numpy, not ORT/OpenCV internals)",
+    ]
+    lines += [
+        f"{name}: frame cold process CPU time p50/p95 {pair(r['frame_cold_cpu_ms'])} ms "
+        f"(all threads) vs wall {pair(r['frame_cold_ms'])} ms"
+        for name, r in report["strategies"].items()
+    ]
+    tgt = report["targets"]["cpu_classical_frame_p95_le_250ms"]
+    lines.append(
+        f"target classical frame p95 <= {tgt['target_ms']:.0f} ms here: {tgt['measured_ms']:.1f} ms -> "
+        f"{'MET' if tgt['met'] else 'NOT MET'}"
+    )
+    for name, j in report["targets"]["jetson_c3_pt_01"].items():
+        if name == "note":
+            continue
+        lines.append(
+            f"C3-PT-01 (Jetson) {name}: frame p95 {j['frame_cold_p95_ms']:.1f} ms <= 180: "
+            f"{'yes' if j['frame_p95_le_180ms'] else 'no'}; "
+            f"candidate p95 {j['candidate_cold_p95_ms']:.1f} ms <= 60: "
+            f"{'yes' if j['candidate_p95_le_60ms'] else 'no'} (measured on this CPU)"
+        )
+    for name, reason in report["skipped"].items():
+        lines.append(f"skipped {name}: {reason}")
+    return "\n".join(lines)
