@@ -14,7 +14,7 @@ from typing import Any
 
 import structlog
 
-from gps_denied_onboard.components.c3_matcher import aliked_lightglue, classical, disk_lightglue
+from gps_denied_onboard.components.c3_matcher import aliked_lightglue, classical, disk_lightglue, xfeat
 from gps_denied_onboard.components.c3_matcher.errors import StrategyNotLinkedError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.constants import LogEvent
@@ -26,6 +26,7 @@ MatcherFactory = Callable[..., CrossDomainMatcher]
 _STRATEGY_REGISTRY: dict[str, MatcherFactory] = {
     classical.LABEL: classical.create,
     disk_lightglue.LABEL: disk_lightglue.create,
+    xfeat.LABEL: xfeat.create,
     aliked_lightglue.LABEL: aliked_lightglue.create,
 }
 

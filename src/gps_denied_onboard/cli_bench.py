@@ -1,0 +1,229 @@
+"""``gdnav bench ...``: benchmarks that print measured figures (and optionally write them as JSON).
+
+``register(subparsers)`` adds the ``bench`` command with one subcommand per entry of ``BENCH_COMMANDS``.
+Adding a benchmark = one ``BenchCommand`` (name, help, an argument adder and a runner) appended to that
+tuple; the benchmark modules themselves are imported only when their subcommand runs, so ``gdnav --help``
+stays light.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+# Same values as ``cli``'s (not imported: ``cli`` imports this module).
+EXIT_OK, EXIT_FAILURE, EXIT_CONFIG, EXIT_RESOURCE = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class BenchCommand:
+    """One ``gdnav bench <name>`` subcommand.
+
+    ``add_arguments`` fills the subcommand's parser; ``run`` executes it and returns the exit code.
+    """
+
+    name: str
+    help: str
+    description: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+def _err(message: str) -> None:
+    print(f"gdnav: {message}", file=sys.stderr)
+
+
+def write_json(path: Path, figures: dict[str, Any]) -> None:
+    """Write ``figures`` to ``path`` (parents created), pretty-printed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(figures, indent=2, sort_keys=False) + "\n", encoding="utf-8")
+
+
+# --- bench matcher ---------------------------------------------------------------------------------------
+def _add_matcher_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--strategies",
+        default=None,
+        metavar="A,B",
+        help="strategies besides classical (always run, the baseline); default: every strategy "
+        "whose model files are given",
+    )
+    p.add_argument("--frames", type=int, default=30, help="rendered frames (default 30)")
+    p.add_argument("--candidates", type=int, default=3, help="chips per frame, true one first (default 3)")
+    p.add_argument(
+        "--map",
+        type=Path,
+        default=None,
+        help="GeoTIFF orthophoto (default: the shared GeoVision India z18 ortho)",
+    )
+    p.add_argument(
+        "--disk-model", type=Path, default=None, help="DISK extractor ONNX (LightGlue-ONNX layout)"
+    )
+    p.add_argument(
+        "--aliked-model", type=Path, default=None, help="ALIKED extractor ONNX (gdnav models export)"
+    )
+    p.add_argument(
+        "--xfeat-model", type=Path, default=None, help="XFeat extractor ONNX (LightGlue-ONNX layout)"
+    )
+    p.add_argument(
+        "--lightglue-model",
+        type=Path,
+        default=None,
+        help="LightGlue matcher ONNX for the learned strategies (default: mutual nearest neighbour)",
+    )
+    p.add_argument("--model-dir", type=Path, default=None, help="look here for models not given explicitly")
+    p.add_argument("--threads", type=int, default=2, help="ONNX Runtime intra-op threads (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="poses and chips (default 0)")
+    p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every figure to OUT")
+
+
+def _run_matcher(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.bench.matcher import BenchmarkError, run_matcher_benchmark
+    from gps_denied_onboard.logging_setup import configure_logging
+
+    configure_logging("warning", json=False)  # per-frame debug/info logs would bury the table
+    strategies = None
+    if args.strategies:
+        strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
+    models = {
+        "disk": args.disk_model,
+        "aliked": args.aliked_model,
+        "xfeat": args.xfeat_model,
+        "lightglue": args.lightglue_model,
+    }
+    try:
+        figures = run_matcher_benchmark(
+            strategies=strategies,
+            **({} if args.map is None else {"map_path": args.map}),
+            model_paths=models,
+            model_dir=args.model_dir,
+            n_frames=args.frames,
+            n_candidates=args.candidates,
+            intra_op_threads=args.threads,
+            seed=args.seed,
+        )
+    except BenchmarkError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    if args.json is not None:
+        write_json(args.json, figures)
+        print(f"figures written to {args.json}")
+    # A strategy the user asked for (by name or by giving its model) that did not run is a failure to
+    # benchmark it, not a detail to scroll past.
+    if figures["skipped"]:
+        _err("not benchmarked: " + "; ".join(f"{k} ({v})" for k, v in figures["skipped"].items()))
+        return EXIT_RESOURCE
+    return EXIT_OK
+
+
+MATCHER_COMMAND: Final[BenchCommand] = BenchCommand(
+    name="matcher",
+    help="C3 matcher latency, memory and inliers vs classical",
+    description="Per-candidate and per-frame latency (cold/warm tile-feature cache), memory and inlier "
+    "counts of each C3 strategy on frames rendered from a real orthophoto, side by side with classical.",
+    add_arguments=_add_matcher_arguments,
+    run=_run_matcher,
+)
+
+
+# --- bench vpr -------------------------------------------------------------------------------------------
+def _add_vpr_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--map", type=Path, required=True, help="GeoTIFF the cache and index are built from")
+    p.add_argument(
+        "--frames-from",
+        type=Path,
+        default=None,
+        help="render the query frames from this image of the same area (e.g. another date)",
+    )
+    p.add_argument("--queries", type=int, default=60, help="rendered query frames (default 60)")
+    p.add_argument("--zoom", type=int, default=None, help="cache zoom (default: matched to the map)")
+    p.add_argument("--tile-size", type=int, default=256, help="cache tile size, px (default 256)")
+    p.add_argument(
+        "--alt",
+        default="100,150",
+        metavar="LO,HI",
+        help="query altitude range above ground, m (default 100,150; ~1500,2000 for 5 m/px maps)",
+    )
+    p.add_argument(
+        "--synthetic",
+        type=int,
+        default=100_000,
+        help="descriptors in the synthetic HNSW latency test (default 100000; 0 = skip)",
+    )
+    p.add_argument("--no-rerank", action="store_true", help="skip the C2.5 rerank measurement")
+    p.add_argument("--seed", type=int, default=0, help="query poses (default 0)")
+    p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every figure to OUT")
+
+
+def _run_vpr(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.bench.vpr import run_vpr_benchmark
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.logging_setup import configure_logging
+
+    configure_logging("warning", json=False)
+    try:
+        lo, hi = (float(v) for v in args.alt.split(","))
+    except ValueError:
+        _err(f"--alt {args.alt!r}: expected LO,HI in metres")
+        return EXIT_CONFIG
+    try:
+        figures = run_vpr_benchmark(
+            args.map,
+            zoom=args.zoom,
+            n_queries=args.queries,
+            seed=args.seed,
+            out=args.json,
+            frames_path=args.frames_from,
+            alt_range_m=(lo, hi),
+            tile_size_px=args.tile_size,
+            synthetic_n=args.synthetic,
+            rerank=not args.no_rerank,
+        )
+    except (CacheBuildError, OSError) as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    if args.json is not None:
+        write_json(args.json, figures)
+    return EXIT_OK
+
+
+VPR_COMMAND: Final[BenchCommand] = BenchCommand(
+    name="vpr",
+    help="C2 place-recognition recall and HNSW latency",
+    description="Recall@1/5/10 of the true tile (corpus-wide and prior-gated) and post-rerank Recall@1/3 "
+    "on frames rendered from a real orthophoto, and HNSW top-10 latency over synthetic descriptors.",
+    add_arguments=_add_vpr_arguments,
+    run=_run_vpr,
+)
+
+#: Subcommands of ``gdnav bench``; append a ``BenchCommand`` to add one.
+BENCH_COMMANDS: tuple[BenchCommand, ...] = (MATCHER_COMMAND, VPR_COMMAND)
+
+
+def register(
+    subparsers: argparse._SubParsersAction, commands: Sequence[BenchCommand] | None = None
+) -> argparse.ArgumentParser:
+    """Add ``bench`` with one subcommand per entry of ``commands`` (default ``BENCH_COMMANDS``).
+
+    Each subcommand's ``func`` is its ``run``, as ``cli.main`` expects. Returns the ``bench`` parser.
+    """
+    chosen = BENCH_COMMANDS if commands is None else tuple(commands)
+    names = [c.name for c in chosen]
+    if len(set(names)) != len(names):
+        raise ValueError(f"duplicate bench subcommand names: {names}")
+    bench = subparsers.add_parser(
+        "bench",
+        help="benchmarks (print measured figures)",
+        description="Benchmarks that print measured figures.",
+    )
+    bench_sub = bench.add_subparsers(dest="bench_command", required=True, metavar="SUBCOMMAND")
+    for command in chosen:
+        p = bench_sub.add_parser(command.name, help=command.help, description=command.description)
+        command.add_arguments(p)
+        p.set_defaults(func=command.run)
+    return bench

@@ -1,0 +1,206 @@
+"""``gdnav bench matcher`` on the real GeoVision ortho: result structure and inliers (no latency checks)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import structlog
+
+from conftest import shared_path
+from gps_denied_onboard.bench.matcher import (
+    BenchmarkError,
+    RasterChip,
+    format_report,
+    resolve_model_paths,
+    run_matcher_benchmark,
+)
+from gps_denied_onboard.cli_bench import BENCH_COMMANDS, BenchCommand, register
+from gps_denied_onboard.components.c6_tiles.types import TilePixelsHandle
+
+pytestmark = pytest.mark.realdata
+
+LATENCY_KEYS = ("frame_cold_ms", "frame_warm_ms", "candidate_cold_ms", "candidate_warm_ms", "query_ms")
+
+
+@pytest.fixture(autouse=True)
+def _restore_structlog() -> Iterator[None]:
+    """The CLI configures logging for the process; give the next test the configuration it had."""
+    saved = structlog.get_config()
+    yield
+    structlog.configure(**saved)
+
+
+@pytest.fixture(scope="module")
+def geovision() -> Path:
+    return shared_path("data", "geovision_india", "geovision_india_z18.tif")
+
+
+@pytest.fixture(scope="module")
+def classical_report(geovision: Path) -> dict:
+    return run_matcher_benchmark(strategies=["classical"], map_path=geovision, n_frames=3, echo=None)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gdnav")
+    register(parser.add_subparsers(dest="command", required=True))
+    return parser
+
+
+def test_bench_matcher_classical_result_structure(classical_report: dict) -> None:
+    """Classical on 3 frames: every latency block has p50/p95 over the right sample counts."""
+    r = classical_report["strategies"]["classical"]
+    for key in LATENCY_KEYS:
+        assert set(r[key]) >= {"p50", "p95", "mean", "n"}
+        assert 0 < r[key]["p50"] <= r[key]["p95"]
+    assert r["frame_cold_ms"]["n"] == 3 and r["frame_warm_ms"]["n"] == 3
+    assert r["frame_cold_cpu_ms"]["p50"] > 0
+    assert r["candidate_cold_ms"]["n"] == 9  # 3 frames x N=3
+    assert r["ratio_to_classical"]["frame_cold_ms"] == {"p50": 1.0, "p95": 1.0}
+    assert r["memory"]["python_heap_peak_cold_frame_mb"] > 0
+    assert classical_report["memory"]["peak_rss_process_mb"] > 0
+    assert classical_report["skipped"] == {}
+    assert classical_report["setup"]["frame_size"] == [640, 480]
+    assert classical_report["machine"]["cpu_count"] >= 1
+    assert "met" in classical_report["targets"]["cpu_classical_frame_p95_le_250ms"]
+    json.dumps(classical_report)  # JSON-serialisable as the CLI writes it
+
+
+def test_bench_matcher_classical_finds_the_true_chip(classical_report: dict) -> None:
+    """Same-source imagery: the true chip gets many inliers, the wrong ones few, and it ranks first."""
+    inl = classical_report["strategies"]["classical"]["inliers"]
+    assert inl["true_chip"]["p50"] > 0
+    assert inl["true_chip"]["p50"] > 4 * max(inl["wrong_chip_max"]["p50"], 1)
+    assert inl["true_chip_ranked_first"] >= 2 / 3
+    assert inl["best"]["p50"] >= 80  # C3-IT-01 floor
+
+
+def test_bench_matcher_table_lists_strategy_and_target(classical_report: dict) -> None:
+    """The printed table names the strategy, the machine and the CPU target verdict."""
+    text = format_report(classical_report)
+    assert "classical" in text and classical_report["machine"]["cpu_model"] in text
+    assert "target classical frame p95 <= 250 ms" in text
+
+
+def test_bench_matcher_learned_strategy_with_self_built_models(geovision: Path, tmp_path: Path) -> None:
+    """disk_lightglue with self-built ONNX models runs beside classical and gets a ratio to it."""
+    pytest.importorskip("onnx")
+    from onnx_builders import build_fake_extractor, build_fake_lightglue
+
+    disk = build_fake_extractor(tmp_path / "disk.onnx", dim=128, num_keypoints=256)
+    lightglue = build_fake_lightglue(tmp_path / "lightglue.onnx", dim=128, min_similarity=0.9)
+    report = run_matcher_benchmark(
+        map_path=geovision,
+        model_paths={"disk": disk, "lightglue": lightglue},
+        n_frames=1,
+        intra_op_threads=1,
+        echo=None,
+    )
+    assert list(report["strategies"]) == ["classical", "disk_lightglue"]
+    learned = report["strategies"]["disk_lightglue"]
+    assert learned["lightglue_mode"] == "lightglue"
+    assert learned["candidate_cold_ms"]["n"] == 3
+    assert learned["ratio_to_classical"]["frame_cold_ms"]["p95"] > 0
+
+
+def test_bench_matcher_missing_model_file_is_skipped_with_reason(geovision: Path, tmp_path: Path) -> None:
+    """A model path that does not exist: classical still runs, the strategy is skipped with the path."""
+    missing = tmp_path / "nope.onnx"
+    report = run_matcher_benchmark(
+        strategies=["disk_lightglue", "no_such_strategy"],
+        map_path=geovision,
+        model_paths={"disk": missing},
+        n_frames=1,
+        echo=None,
+    )
+    assert list(report["strategies"]) == ["classical"]
+    assert str(missing) in report["skipped"]["disk_lightglue"]
+    assert "not registered" in report["skipped"]["no_such_strategy"]
+
+
+def test_bench_matcher_cli_writes_json(
+    geovision: Path, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """``bench matcher --frames 1 --json OUT`` prints the table, writes the figures, exits 0."""
+    out = tmp_path / "bench" / "matcher.json"
+    args = _parser().parse_args(
+        ["bench", "matcher", "--frames", "1", "--map", str(geovision), "--json", str(out)]
+    )
+    assert args.func(args) == 0
+    assert "classical" in capsys.readouterr().out
+    assert json.loads(out.read_text())["strategies"]["classical"]["frame_cold_ms"]["n"] == 1
+
+
+def test_bench_matcher_cli_missing_model_exits_3(geovision: Path, tmp_path: Path) -> None:
+    """An explicitly given model that cannot be loaded makes the command exit 3 (resource refused)."""
+    args = _parser().parse_args(
+        [
+            "bench",
+            "matcher",
+            "--frames",
+            "1",
+            "--map",
+            str(geovision),
+            "--xfeat-model",
+            str(tmp_path / "x.onnx"),
+        ]
+    )
+    assert args.func(args) == 3
+
+
+def test_bench_matcher_unusable_map_raises(tmp_path: Path) -> None:
+    """A map file that does not exist is a BenchmarkError naming it."""
+    with pytest.raises(BenchmarkError, match=r"nope\.tif"):
+        run_matcher_benchmark(map_path=tmp_path / "nope.tif", n_frames=1, echo=None)
+
+
+def test_bench_register_takes_a_list_of_subcommands() -> None:
+    """``register`` adds every given BenchCommand; duplicates are refused."""
+    ran: list[str] = []
+
+    def add_arguments(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--x", type=int)
+
+    def run(args: argparse.Namespace) -> int:
+        ran.append("extra")
+        return 0
+
+    extra = BenchCommand("extra", "h", "d", add_arguments, run)
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers(dest="command"), [*BENCH_COMMANDS, extra])
+    args = parser.parse_args(["bench", "extra", "--x", "2"])
+    assert args.func(args) == 0 and ran == ["extra"] and args.x == 2
+    with pytest.raises(ValueError, match="duplicate"):
+        register(argparse.ArgumentParser().add_subparsers(), [extra, extra])
+
+
+def test_bench_raster_chip_is_a_tile_handle_and_round_trips() -> None:
+    """RasterChip satisfies TilePixelsHandle; lon/lat <-> chip px round-trips; pixels are read-only."""
+    raster = np.zeros((100, 120, 3), dtype=np.uint8)
+    affine = np.array([[1e-5, 0.0, 78.0], [0.0, -1e-5, 17.0], [0.0, 0.0, 1.0]])
+    chip = RasterChip(raster, 10, 20, 64, 0.3, affine)
+    assert isinstance(chip, TilePixelsHandle)
+    assert chip.pixels().shape == (64, 64, 3) and not chip.pixels().flags.writeable
+    px = np.array([[0.0, 0.0], [63.0, 10.5]])
+    lon, lat = chip.chip_px_to_lonlat(px)
+    np.testing.assert_allclose(chip.lonlat_to_chip_px(lon, lat), px, atol=1e-6)
+    with pytest.raises(BenchmarkError):
+        RasterChip(raster, 100, 0, 64, 0.3, affine)
+
+
+def test_bench_resolve_model_paths_from_dir(tmp_path: Path) -> None:
+    """Explicit paths win; the rest come from ``{key}*.onnx`` in the model dir; unknown keys are refused."""
+    for name in ("aliked-t16.onnx", "disk_lightglue.onnx", "lightglue_disk.onnx", "xfeat.onnx"):
+        (tmp_path / name).write_bytes(b"")
+    got = resolve_model_paths({"xfeat": "/elsewhere/x.onnx"}, tmp_path)
+    assert got == {
+        "xfeat": Path("/elsewhere/x.onnx"),
+        "aliked": tmp_path / "aliked-t16.onnx",
+        "lightglue": tmp_path / "lightglue_disk.onnx",
+    }
+    with pytest.raises(BenchmarkError, match="unknown model key"):
+        resolve_model_paths({"superpoint": "a.onnx"}, None)
