@@ -96,6 +96,20 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_cache_vpr(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
+
+    configure_logging("info", json=False)
+    try:
+        manifest = build_vlad_index(Path(args.cache), force=args.force, progress=not args.quiet)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    print(f"cache: {args.cache}: VPR index {manifest.vpr.backbone} over {manifest.tile_count} tiles")
+    return EXIT_OK
+
+
 def _cmd_sitl_run(args: argparse.Namespace) -> int:
     from gps_denied_onboard.sitl.runner import SitlError, run_sitl_cli
 
@@ -201,6 +215,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     build.set_defaults(func=_cmd_cache_build)
+    vpr = cache_sub.add_parser(
+        "vpr",
+        help="add the weights-free VLAD place-recognition index to a cache",
+        description="Train a VLAD vocabulary on the cache's own tiles, describe every tile and build the "
+        "FAISS HNSW index (needed by vpr.strategy: vlad). Idempotent.",
+    )
+    vpr.add_argument("--cache", required=True, help="cache directory made by `gdnav cache build`")
+    vpr.add_argument("--force", action="store_true", help="rebuild even when the index is up to date")
+    vpr.add_argument("--quiet", action="store_true", help="no progress bar")
+    vpr.set_defaults(func=_cmd_cache_vpr)
 
     sitl = sub.add_parser(
         "sitl",
@@ -244,10 +268,11 @@ def build_parser() -> argparse.ArgumentParser:
     srun.add_argument("--quiet", action="store_true", help="print only the summary")
     srun.set_defaults(func=_cmd_sitl_run)
 
-    from gps_denied_onboard import cli_match, cli_models
+    from gps_denied_onboard import cli_bench, cli_match, cli_models
 
     cli_models.register(sub)
     cli_match.register(sub)
+    cli_bench.register(sub)
     return parser
 
 

@@ -13,15 +13,18 @@ import structlog
 from gps_denied_onboard.camera.sources import CameraSourceError, FrameSource, open_frame_source
 from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration
 from gps_denied_onboard.components.c1_vio import HomographyVo
+from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
 from gps_denied_onboard.components.c2_5_rerank.passthrough import PassthroughRerank
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
 from gps_denied_onboard.components.c2_vpr.geo_prior import GeoPriorVpr
 from gps_denied_onboard.components.c2_vpr.protocol import VprStrategy
+from gps_denied_onboard.components.c2_vpr.vlad import VladVpr
 from gps_denied_onboard.components.c3_matcher import registry as matcher_registry
 from gps_denied_onboard.components.c3_matcher.aliked_lightglue import ALIKED_MNN_MIN_SIMILARITY
 from gps_denied_onboard.components.c3_matcher.errors import StrategyNotLinkedError
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
+from gps_denied_onboard.components.c3_matcher.xfeat import XFEAT_DESCRIPTOR_DIM
 from gps_denied_onboard.components.c4_pose import PoseSolver
 from gps_denied_onboard.components.c5_estimator import NavEstimator
 from gps_denied_onboard.components.c6_tiles.store import TileStore
@@ -103,11 +106,21 @@ WEIGHTS_FREE_MATCHERS = frozenset({"classical"})
 #: C2 strategies by config name.
 VPR_STRATEGIES: Mapping[str, Callable[[TileStore, Config], VprStrategy]] = {
     "geo_prior": lambda tiles, cfg: GeoPriorVpr(tiles),
+    "vlad": lambda tiles, cfg: VladVpr.from_cache(tiles, top1_distance_warn=cfg.vpr.top1_distance_warn),
 }
 #: C2.5 strategies by config name.
 RERANK_STRATEGIES: Mapping[str, Callable[[TileStore, Config], RerankStrategy]] = {
     "passthrough": lambda tiles, cfg: PassthroughRerank(
         tiles, top_n=cfg.rerank.top_n, chip_size_px=cfg.matcher.chip_size_px
+    ),
+    "inliers": lambda tiles, cfg: InlierRerank(
+        tiles,
+        calibration=_calibration(cfg),
+        ransac_filter=RansacFilter(
+            confidence=cfg.matcher.ransac_confidence, max_iters=cfg.matcher.ransac_max_iters
+        ),
+        top_n=cfg.rerank.top_n,
+        chip_size_px=cfg.matcher.chip_size_px,
     ),
 }
 
@@ -146,7 +159,10 @@ def _matcher_deps(
         # Cross-date ALIKED descriptors have cosine similarities of ~0.5-0.8: the generic 0.75 threshold
         # kept 3/30 NAIP cross-date trials, 0.5 kept 30/30 (tests/test_c3_aliked.py).
         mnn = ALIKED_MNN_MIN_SIMILARITY if config.matcher.strategy == "aliked_lightglue" else 0.75
-        lightglue = LightGlueRuntime(runtime, config.matcher.lightglue_weights_path, mnn_min_similarity=mnn)
+        dim = XFEAT_DESCRIPTOR_DIM if config.matcher.strategy == "xfeat" else None
+        lightglue = LightGlueRuntime(
+            runtime, config.matcher.lightglue_weights_path, mnn_min_similarity=mnn, descriptor_dim=dim
+        )
     deps.update(inference_runtime=runtime, lightglue_runtime=lightglue)
     return deps
 
