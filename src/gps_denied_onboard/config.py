@@ -144,6 +144,9 @@ class VprConfig:
     prior_sigma_scale: PosFloat = 3.0
     prior_radius_min_m: PosFloat = 60.0
     prior_radius_max_m: PosFloat = 2000.0
+    #: F6 re-localisation: above this horizontal sigma, search the whole corpus instead of the prior's
+    #: region (only with an appearance strategy; geo_prior keeps searching the widest region).
+    corpus_wide_sigma_m: PosFloat = 300.0
     #: WARN when the best candidate's descriptor distance exceeds this (possible false retrieval). For
     #: vlad, correct top-1 distances measured p50 1.09 / p95 1.25 (wrong ones p50 1.16: a weak signal).
     top1_distance_warn: PosFloat = 1.25

@@ -92,6 +92,8 @@ class LogEvent:
     VPR_FAR_TOP1: Final = "c2.vpr.top1_distance_above_threshold"
     VPR_ERROR: Final = "c2.vpr.error"
     VPR_TOPK: Final = "c2.vpr.topk"
+    VPR_CORPUS_WIDE: Final = "c2.vpr.corpus_wide_search"
+    VPR_PRIOR_GATED: Final = "c2.vpr.prior_gated_search"
     VPR_INDEX_BUILT: Final = "c10.cache.vpr_index_built"
     VPR_INDEX_UP_TO_DATE: Final = "c10.cache.vpr_index_up_to_date"
     RERANK_DONE: Final = "c2_5.rerank.done"

@@ -99,6 +99,8 @@ class NavigationPipeline:
         self._est = estimator
         self._fdr = fdr
         self._clock_ns = clock_ns
+        #: F6 re-localisation (corpus-wide VPR) currently active; logged on transitions only.
+        self._corpus_wide = False
 
     @property
     def estimator(self):  # type: ignore[no-untyped-def]
@@ -116,8 +118,20 @@ class NavigationPipeline:
             sigma_m=prior.sigma_m,
         )
 
-    def _search_region(self, state: EstimatorState, frame: NavCameraFrame) -> SearchRegion:
+    def _search_region(self, state: EstimatorState, frame: NavCameraFrame) -> SearchRegion | None:
+        """The prior's uncertainty region, or None (corpus-wide, F6) once the uncertainty is so large
+        that the region says little and the VPR strategy can search by appearance."""
         cfg = self._vpr_cfg
+        corpus_wide = state.horiz_sigma_m > cfg.corpus_wide_sigma_m and self._vpr.descriptor_dim() > 0
+        if corpus_wide != self._corpus_wide:
+            self._corpus_wide = corpus_wide
+            log.warning(
+                LogEvent.VPR_CORPUS_WIDE if corpus_wide else LogEvent.VPR_PRIOR_GATED,
+                horiz_sigma_m=round(state.horiz_sigma_m, 1),
+                threshold_m=cfg.corpus_wide_sigma_m,
+            )
+        if corpus_wide:
+            return None
         # The tile centre can be up to the frame's half-footprint away from the camera and still overlap.
         half_footprint_m = (frame.alt_agl_m or 0.0) * math.tan(self._calib.hfov_rad / 2.0)
         radius = cfg.prior_sigma_scale * state.horiz_sigma_m + half_footprint_m

@@ -1,0 +1,133 @@
+"""The per-frame pipeline: search region choice (prior-gated vs F6 corpus-wide) and no-fix reasons.
+
+Fakes stand in for C1/C2/C2.5/C3/C4 at their component boundaries; the estimator is the real one.
+"""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+
+from gps_denied_onboard.camera.types import Attitude, CameraCalibration, NavCameraFrame
+from gps_denied_onboard.components.c1_vio.types import VoError
+from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
+from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
+from gps_denied_onboard.components.c2_vpr.types import VprQuery, VprResult
+from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
+from gps_denied_onboard.components.c5_estimator import NavEstimator
+from gps_denied_onboard.config import EstimatorConfig, VprConfig
+from gps_denied_onboard.constants import Provenance
+from gps_denied_onboard.geo import LocalTangentPlane
+from gps_denied_onboard.pipeline import InitialPrior, NavigationPipeline
+
+LTP = LocalTangentPlane(47.0, 8.0, 400.0)
+T0 = 1_700_000_000_000_000
+
+
+class _NoVo:
+    def process(self, frame: NavCameraFrame) -> None:
+        raise VoError("no motion in a unit test", reason="test")
+
+
+@dataclass
+class _Vpr:
+    dim: int
+    regions: list[SearchRegion | None] = field(default_factory=list)
+
+    def descriptor_dim(self) -> int:
+        return self.dim
+
+    def embed_query(self, frame, calibration):  # type: ignore[no-untyped-def]
+        return VprQuery(frame.frame_id, np.zeros(self.dim, np.float32), 0)
+
+    def retrieve_topk(self, query, k, *, region=None):  # type: ignore[no-untyped-def]
+        self.regions.append(region)
+        return VprResult(query.frame_id, [], 0, "fake")
+
+
+class _Unused:
+    def rerank(self, frame, vpr_result):  # type: ignore[no-untyped-def]
+        return RerankResult(frame.frame_id, [], 0)
+
+    def match(self, frame, rerank_result, calibration):  # type: ignore[no-untyped-def]
+        raise InsufficientInliersError(
+            "none",
+            frame_id=frame.frame_id,
+            best_inlier_count=0,
+            threshold=25,
+            candidates_input=0,
+            candidates_dropped=0,
+        )
+
+
+class _Fdr:
+    def __init__(self) -> None:
+        self.records: list[tuple[str, dict]] = []
+
+    def record(self, kind, fields):  # type: ignore[no-untyped-def]
+        self.records.append((kind, dict(fields)))
+
+
+def _pipeline(vpr: _Vpr, fdr: _Fdr) -> NavigationPipeline:
+    calib = CameraCalibration.from_hfov(640, 480, 70.0)
+    return NavigationPipeline(
+        calibration=calib,
+        ltp=LTP,
+        ground_alt_amsl_m=400.0,
+        vo=_NoVo(),
+        vpr=vpr,
+        vpr_config=VprConfig(corpus_wide_sigma_m=300.0),
+        rerank=_Unused(),
+        matcher=_Unused(),  # type: ignore[arg-type]
+        pose_solver=None,
+        estimator=NavEstimator(EstimatorConfig(), LTP),
+        fdr=fdr,
+    )
+
+
+def _frame(seq: int, t_us: int) -> NavCameraFrame:
+    return NavCameraFrame(
+        uuid.uuid4(), seq, t_us, np.zeros((480, 640, 3), np.uint8), Attitude(0, 0, 0), 120.0, 0
+    )
+
+
+def test_pipeline_searches_prior_region_when_uncertainty_is_small() -> None:
+    """With a 30 m prior the VPR search is gated to a region around the estimate."""
+    vpr, fdr = _Vpr(dim=256), _Fdr()
+    p = _pipeline(vpr, fdr)
+    out = p.process(_frame(0, T0), InitialPrior(47.0, 8.0, 30.0, "test"))
+    assert isinstance(vpr.regions[0], SearchRegion)
+    assert 60.0 <= vpr.regions[0].radius_m <= 2000.0
+    assert out.no_fix_reason == "no_tiles_in_region"
+    assert fdr.records[-1][0] == "pipeline.frame" and fdr.records[-1][1]["frame_seq"] == 0
+
+
+def test_pipeline_goes_corpus_wide_when_uncertainty_is_large() -> None:
+    """F6: with a 500 m prior and an appearance strategy, the search is corpus-wide (region None)."""
+    vpr = _Vpr(dim=256)
+    p = _pipeline(vpr, _Fdr())
+    p.process(_frame(0, T0), InitialPrior(47.0, 8.0, 500.0, "test"))
+    assert vpr.regions == [None]
+
+
+def test_pipeline_geo_prior_never_searches_corpus_wide() -> None:
+    """A strategy with no appearance index keeps a region (3 sigma + half footprint) with a 500 m prior."""
+    vpr = _Vpr(dim=0)
+    p = _pipeline(vpr, _Fdr())
+    p.process(_frame(0, T0), InitialPrior(47.0, 8.0, 500.0, "test"))
+    region = vpr.regions[0]
+    assert isinstance(region, SearchRegion)
+    assert region.radius_m == pytest.approx(3 * 500.0 + 120.0 * np.tan(np.radians(35.0)), rel=1e-3)
+
+
+def test_pipeline_without_attitude_makes_no_fix_and_says_why() -> None:
+    """A frame without attitude/altitude produces no absolute fix; the reason is recorded."""
+    vpr, fdr = _Vpr(dim=256), _Fdr()
+    p = _pipeline(vpr, fdr)
+    frame = NavCameraFrame(uuid.uuid4(), 3, T0, np.zeros((480, 640, 3), np.uint8), None, None, 0)
+    out = p.process(frame, InitialPrior(47.0, 8.0, 30.0, "test"))
+    assert vpr.regions == [] and out.no_fix_reason == "no_attitude_or_altitude"
+    assert out.provenance in (Provenance.DEAD_RECKONING, Provenance.NO_ESTIMATE)
