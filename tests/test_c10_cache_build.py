@@ -87,20 +87,20 @@ def test_build_square_lands_at_its_lonlat_in_each_crs(tmp_path: Path, crs: str) 
 
 
 def test_build_auto_zoom_matches_source_gsd(tmp_path: Path) -> None:
-    """zoom=None on a 4 m UTM source at 48.2 N picks zoom 15 (3.2 m), not 14 (6.4 m > 1.5 x 4 m)."""
+    """zoom=None on a 4 m UTM source at 48.2 N picks zoom 15 (3.2 m), not 14 (6.4 m, coarser than 4 m)."""
     src = _square_source(tmp_path / "src.tif", "EPSG:32633", size_px=300)
     manifest = build_cache_from_geotiff(src, tmp_path / "cache", progress=False)
     assert manifest.zoom == 15
 
 
-def test_choose_zoom_never_coarser_than_1_5x_source() -> None:
-    """choose_zoom returns the ratio-closest zoom whose GSD is at most 1.5x the source GSD."""
-    for gsd in (0.3, 1.0, 2.5, 4.0, 7.0, 30.0):
+def test_choose_zoom_is_coarsest_not_coarser_than_source() -> None:
+    """choose_zoom returns the coarsest zoom whose GSD is at most the source GSD (+5 %); NAIP's 5 m at
+    47 N gets zoom 15 (3.3 m), not 14 (6.5 m)."""
+    for gsd in (0.2846, 0.5, 1.0, 2.5, 4.0, 5.0, 7.0, 30.0):
         z = choose_zoom(gsd, 47.0)
-        chosen = WebMercatorGrid(z).gsd_m_px(47.0)
-        assert chosen <= 1.5 * gsd
-        finer = WebMercatorGrid(z + 1).gsd_m_px(47.0)
-        assert abs(math.log(chosen / gsd)) <= abs(math.log(finer / gsd))
+        assert WebMercatorGrid(z).gsd_m_px(47.0) <= 1.05 * gsd
+        assert WebMercatorGrid(z - 1).gsd_m_px(47.0) > 1.05 * gsd
+    assert choose_zoom(5.0, 47.0) == 15
 
 
 def test_build_manifest_records_every_artifact_hash(tmp_path: Path) -> None:
