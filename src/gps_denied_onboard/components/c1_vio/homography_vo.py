@@ -13,10 +13,13 @@ Per frame
    gives ``camera_cur - camera_prev = g_prev - g_cur``; the displacement is the per-axis median of
    these offsets (robust to residual mismatches).
 4. Covariance: ``(pi/2) * cov(offsets) / n`` (the variance of a median of n Gaussian samples is pi/2
-   that of the mean) plus ``(floor_frac_agl * AGL)^2`` per axis. The floor stands for errors common to
-   all points, which their spread cannot reveal: attitude noise between the two exposures (0.2 deg at
-   120 m shifts every ground point by ~0.4 m), AGL error (a scale error on the displacement) and
-   terrain that is not flat. Default 0.5 % of AGL.
+   that of the mean) plus, per axis, the errors common to all points that their spread cannot reveal:
+   the attitude error *between* the two exposures, ``(sqrt(2) * AGL * rel_attitude_sigma_rad)^2`` (the
+   autopilot's attitude is smooth, so consecutive errors are strongly correlated: 0.05 deg default,
+   not its absolute accuracy), and the AGL scale error, ``(scale_sigma_frac * |displacement|)^2``
+   (1 % default). A flat 0.5 %-of-AGL floor used before made VO almost worthless at high altitude
+   (6 m per frame at 1200 m AGL for a 13 m displacement): the filter could not follow a turn and then
+   rejected every correct fix.
 
 Only the previous frame's keypoints, descriptors, attitude, altitude and time are kept (never images).
 A frame that cannot serve as a reference (no attitude/altitude, no texture) leaves the previous
@@ -92,8 +95,8 @@ class HomographyVo:
     ``calibration``: the nav camera's intrinsics (frames must have its size). ``detector``: ``orb``
     (default, fastest) or ``sift``. ``min_inliers``: fewest homography inliers accepted.
     ``ratio_test``: Lowe ratio for matches. ``ransac_threshold_px``: homography reprojection threshold.
-    ``max_gap_s``: longest interval measured (older references are dropped). ``floor_frac_agl``: the
-    per-axis sigma floor as a fraction of AGL (see module docstring).
+    ``max_gap_s``: longest interval measured (older references are dropped). ``rel_attitude_sigma_rad``,
+    ``scale_sigma_frac``: the common-error terms of the covariance (module docstring).
     """
 
     def __init__(
@@ -106,7 +109,8 @@ class HomographyVo:
         ratio_test: float = 0.8,
         ransac_threshold_px: float = 3.0,
         max_gap_s: float = 2.0,
-        floor_frac_agl: float = 0.005,
+        rel_attitude_sigma_rad: float = math.radians(0.05),
+        scale_sigma_frac: float = 0.01,
     ) -> None:
         if detector not in _DETECTORS:
             raise ValueError(f"unknown VO detector {detector!r}; valid: {sorted(_DETECTORS)}")
@@ -114,9 +118,16 @@ class HomographyVo:
             raise ValueError(
                 f"need max_features >= 8 and min_inliers >= 4, got {max_features}, {min_inliers}"
             )
-        if not (0 < ratio_test <= 1 and ransac_threshold_px > 0 and max_gap_s > 0 and floor_frac_agl > 0):
+        if not (
+            0 < ratio_test <= 1
+            and ransac_threshold_px > 0
+            and max_gap_s > 0
+            and rel_attitude_sigma_rad > 0
+            and scale_sigma_frac > 0
+        ):
             raise ValueError(
-                "ratio_test must be in (0, 1]; ransac_threshold_px, max_gap_s, floor_frac_agl must be > 0"
+                "ratio_test must be in (0, 1]; ransac_threshold_px, max_gap_s, rel_attitude_sigma_rad and "
+                "scale_sigma_frac must be > 0"
             )
         factory, norm = _DETECTORS[detector]
         self._calibration = calibration
@@ -126,7 +137,8 @@ class HomographyVo:
         self._ratio = ratio_test
         self._ransac_px = ransac_threshold_px
         self._max_gap_usec = int(max_gap_s * 1e6)
-        self._floor_frac_agl = floor_frac_agl
+        self._rel_attitude_sigma_rad = rel_attitude_sigma_rad
+        self._scale_sigma_frac = scale_sigma_frac
         self._ref: _Reference | None = None
 
     def reset(self) -> None:
@@ -188,8 +200,11 @@ class HomographyVo:
             raise VoError(f"{n} usable ground points < {self._min_inliers}", reason=VoFailure.TOO_FEW_INLIERS)
         delta_ne = np.median(offsets, axis=0)
         cov = (math.pi / 2.0) * np.cov(offsets.T) / n
-        floor_m = self._floor_frac_agl * 0.5 * (previous.alt_agl_m + current.alt_agl_m)
-        cov = cov + np.eye(2) * floor_m**2
+        agl_m = 0.5 * (previous.alt_agl_m + current.alt_agl_m)
+        common_var = (math.sqrt(2.0) * agl_m * self._rel_attitude_sigma_rad) ** 2 + (
+            self._scale_sigma_frac * float(np.hypot(*delta_ne))
+        ) ** 2
+        cov = cov + np.eye(2) * common_var
         return VoMotion(
             frame_id=frame.frame_id,
             prev_frame_id=previous.frame_id,
