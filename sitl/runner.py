@@ -316,6 +316,10 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     t_cache = time.monotonic()
     try:
         build_cache_from_geotiff(cache_source, cache_dir, progress=not opts.quiet)
+        if daemon_cfg.vpr.strategy == "vlad":  # the appearance index the daemon's VPR will search
+            from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
+
+            build_vlad_index(cache_dir, progress=not opts.quiet)
     except CacheBuildError as exc:
         raise SitlError(f"cannot build the cache from {map_path}: {exc}") from exc
     cache_s = time.monotonic() - t_cache

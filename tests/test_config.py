@@ -20,11 +20,12 @@ def _write(tmp_path: Path, text: str) -> Path:
 
 
 def test_config_profiles_load_with_expected_strategies() -> None:
-    """Both shipped profiles validate; airborne defaults to disk_lightglue, sitl to the weights-free one."""
+    """Both shipped profiles validate; airborne defaults to disk_lightglue, sitl to auto (ALIKED when an
+    export is in models/, else the weights-free classical matcher)."""
     airborne = load_config(REPO / "config" / "airborne.yaml")
     sitl = load_config(REPO / "config" / "sitl.yaml")
     assert airborne.matcher.strategy == "disk_lightglue"
-    assert sitl.matcher.strategy == "classical"
+    assert sitl.matcher.strategy == "auto" and sitl.matcher.model_dir == "models"
     assert sitl.mavlink.outputs == ("gps_input",)
 
 

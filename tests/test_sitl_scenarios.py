@@ -23,6 +23,7 @@ def _fly(tmp_path_factory: pytest.TempPathFactory, scenario: str) -> dict:
             scenario=scenario,
             report_path=root / "report.json",
             workdir=root / "work",
+            overrides=("matcher.strategy=classical",),
             quiet=True,
         )
     )
