@@ -342,7 +342,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
             "appearance": str(opts.appearance_path) if opts.appearance_path else None,
             "daemon_config": str(config_path),
             "daemon_overrides": list(opts.overrides),
-            "matcher": daemon_cfg.matcher.strategy,
+            "matcher": _matcher_in_use(workdir / "daemon.log") or daemon_cfg.matcher.strategy,
             "daemon_exit_code": flight.daemon_exit_code,
             "daemon_stop_s": flight.daemon_stop_s,
             "cache_build_s": round(cache_s, 2),
@@ -359,6 +359,17 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     opts.report_path.write_text(json.dumps(report, indent=2))
     plot_report(report, opts.report_path.with_suffix(".png"), title=f"{scenario.name} on {map_path.name}")
     return report
+
+
+def _matcher_in_use(log_path: Path) -> str | None:
+    """The C3 strategy the daemon actually built (its c3.matcher.ready event), e.g. what 'auto' chose."""
+    try:
+        for line in log_path.read_text(errors="replace").splitlines():
+            if '"c3.matcher.ready"' in line:
+                return str(json.loads(line).get("strategy"))
+    except (OSError, ValueError):
+        return None
+    return None
 
 
 def summary_lines(report: dict[str, Any]) -> list[str]:

@@ -74,6 +74,24 @@ def test_compose_tampered_model_dir_refuses_explicit_strategy_but_auto_falls_bac
     assert any(e["event"] == "c3.matcher.auto_selected" and "unusable" in e["reason"] for e in logs)
 
 
+def test_compose_auto_with_absent_model_dir_runs_classical(tmp_path: Path, cache_dir: Path) -> None:
+    """A fresh machine: sitl.yaml's model directory does not exist; auto runs classical and says why,
+    and an explicit classical strategy never looks at the directory."""
+    absent = tmp_path / "no-models"
+    with structlog.testing.capture_logs() as logs:
+        root = compose_root(
+            _config(tmp_path, cache_dir, "matcher.strategy=auto", f"matcher.model_dir={absent}")
+        )
+    root.close()
+    assert isinstance(root.matcher, ClassicalMatcher)
+    assert any(e["event"] == "c3.matcher.auto_selected" and "unusable" in e["reason"] for e in logs)
+    root = compose_root(
+        _config(tmp_path, cache_dir, "matcher.strategy=classical", f"matcher.model_dir={absent}")
+    )
+    root.close()
+    assert isinstance(root.matcher, ClassicalMatcher)
+
+
 def test_compose_missing_disk_model_refuses_start(tmp_path: Path, cache_dir: Path) -> None:
     """The airborne default (disk_lightglue) with no model file stops start-up naming the file."""
     missing = tmp_path / "disk.onnx"

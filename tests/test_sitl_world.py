@@ -75,7 +75,15 @@ def _ne(lat: float, lon: float, ltp: LocalTangentPlane) -> np.ndarray:
 def test_scenario_builtin_files_load() -> None:
     """The three shipped scenarios load, by path and by bare name, with the documented shape."""
     names = sorted(p.stem for p in BUILTIN_SCENARIOS_DIR.glob("*.yaml"))
-    assert names == ["demo", "nominal_real", "smoke"]
+    assert names == [
+        "demo",
+        "link_drop",
+        "map_gap",
+        "naip_cross_date",
+        "nominal_real",
+        "smoke",
+        "wrong_tile_trap",
+    ]
     demo = load_scenario(BUILTIN_SCENARIOS_DIR / "demo.yaml")
     assert demo == load_scenario("demo")
     assert demo.frame_rate_hz == 3.0 and demo.alt_agl_m == 120.0 and demo.max_alt_agl_m == 150.0
@@ -167,7 +175,7 @@ def test_scenario_map_gaps_parse_and_validate() -> None:
 
 def test_scenario_file_errors_name_the_file(tmp_path: Path) -> None:
     """A missing file lists the built-ins; broken YAML is a ScenarioError naming the file."""
-    with pytest.raises(ScenarioError, match="built-in scenarios: demo, nominal_real, smoke"):
+    with pytest.raises(ScenarioError, match=r"built-in scenarios: demo, link_drop, map_gap, .*, smoke"):
         load_scenario(tmp_path / "nope.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: [unclosed\n", encoding="utf-8")

@@ -170,40 +170,47 @@ def _matcher_deps(
 def _resolve_matcher(config: Config) -> Config:
     """Apply ``matcher.model_dir`` and ``matcher.strategy: auto`` (see MatcherConfig).
 
-    The model directory's manifest is verified here, at start-up. With ``auto`` an unusable or
-    model-less directory falls back to the weights-free strategy and says so; with an explicitly
-    learned strategy it refuses to start.
+    The model directory is verified at start-up, and only where it is used: by ``auto``, and by
+    ``aliked_lightglue`` when no explicit ``aliked_weights_path`` is given. With ``auto`` an unusable or
+    model-less directory falls back to the weights-free strategy and says so; a learned strategy that
+    needs the directory refuses to start.
     """
     m = config.matcher
+    uses_dir = m.strategy == "auto" or (m.strategy == "aliked_lightglue" and m.aliked_weights_path is None)
+    if not uses_dir:
+        return config
+
+    def fallback(reason: str) -> Config:
+        log.warning(LogEvent.C3_AUTO_SELECTED, strategy="classical", reason=reason)
+        return dataclasses.replace(config, matcher=dataclasses.replace(m, strategy="classical"))
+
     if m.model_dir is None:
         if m.strategy == "auto":
-            log.info(LogEvent.C3_AUTO_SELECTED, strategy="classical", reason="matcher.model_dir is not set")
-            return dataclasses.replace(config, matcher=dataclasses.replace(m, strategy="classical"))
-        return config
+            return fallback("matcher.model_dir is not set")
+        return config  # the strategy's own factory names the missing weights path
     try:
         entries = verify_model_dir(m.model_dir)
     except (ModelDirError, OSError, ValueError) as exc:
         if m.strategy == "auto":
-            log.warning(
-                LogEvent.C3_AUTO_SELECTED, strategy="classical", reason=f"model directory unusable: {exc}"
-            )
-            return dataclasses.replace(config, matcher=dataclasses.replace(m, strategy="classical"))
+            return fallback(f"model directory unusable: {exc}")
         raise StartupError("matcher.model_dir", str(exc)) from exc
     aliked = [e for e in entries if e.source.name.startswith("aliked")]
     strategy = m.strategy
     if strategy == "auto":
-        strategy = "aliked_lightglue" if aliked else "classical"
+        if not aliked:
+            return fallback(f"no ALIKED model in {m.model_dir}")
+        strategy = "aliked_lightglue"
         log.info(
             LogEvent.C3_AUTO_SELECTED,
             strategy=strategy,
             model_dir=m.model_dir,
-            reason="verified ALIKED export found" if aliked else "no ALIKED model in the directory",
+            reason="verified ALIKED export found",
         )
-    aliked_path = m.aliked_weights_path
-    if aliked_path is None and aliked:
-        aliked_path = str(Path(m.model_dir) / aliked[0].file)
+    if not aliked:
+        raise StartupError("matcher.model_dir", f"{m.model_dir}: no ALIKED model in the manifest")
+    path = str(Path(m.model_dir) / aliked[0].file)
     return dataclasses.replace(
-        config, matcher=dataclasses.replace(m, strategy=strategy, aliked_weights_path=aliked_path)
+        config, matcher=dataclasses.replace(m, strategy=strategy, aliked_weights_path=path)
     )
 
 
