@@ -15,7 +15,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
-from typing import ClassVar, Final, NoReturn
+from typing import Any, ClassVar, Final, NoReturn
 
 import numpy as np
 import structlog
@@ -446,3 +446,31 @@ def no_features(image_size: tuple[int, int], descriptor_dim: int, dtype: type = 
     return Features(
         np.empty((0, 2), dtype=np.float32), np.empty((0, descriptor_dim), dtype=dtype), image_size
     )
+
+
+def match_with_lightglue(lightglue_runtime: Any, query: Features, tile: Features) -> np.ndarray:
+    """Correspondences (M, 4) float32 (query x, y, tile x, y in original pixels) from the shared LightGlue
+    helper's index pairs; the learned strategies' common ``match_features``. Malformed output from the
+    helper (wrong shape, indices outside either keypoint set) is a ValueError, which the candidate loop
+    treats as a backbone failure of that candidate (drop-and-continue)."""
+    if query.count == 0 or tile.count == 0:
+        return np.empty((0, 4), dtype=np.float32)
+    matches, _scores = lightglue_runtime.match_pair(
+        query.keypoints_px,
+        query.descriptors,
+        tile.keypoints_px,
+        tile.descriptors,
+        image_size0=query.image_size,
+        image_size1=tile.image_size,
+    )
+    idx = np.asarray(matches)
+    if idx.size == 0:
+        return np.empty((0, 4), dtype=np.float32)
+    if idx.ndim != 2 or idx.shape[1] != 2:
+        raise ValueError(f"LightGlue returned matches of shape {idx.shape}, expected (M, 2)")
+    idx = idx.astype(np.int64, copy=False)
+    if (idx < 0).any() or (idx[:, 0] >= query.count).any() or (idx[:, 1] >= tile.count).any():
+        raise ValueError(
+            f"LightGlue returned indices outside the keypoint sets ({query.count}, {tile.count})"
+        )
+    return np.hstack([query.keypoints_px[idx[:, 0]], tile.keypoints_px[idx[:, 1]]]).astype(np.float32)

@@ -17,7 +17,7 @@ from typing import Final
 import cv2
 import numpy as np
 
-from gps_denied_onboard.components.c3_matcher.base import CandidateLoopMatcher, Features
+from gps_denied_onboard.components.c3_matcher.base import CandidateLoopMatcher, Features, match_with_lightglue
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c7_inference.protocol import (
     EngineLoadError,
@@ -116,27 +116,7 @@ class DiskLightGlueMatcher(CandidateLoopMatcher):
         return self._forward(chip_bgr)
 
     def match_features(self, query: Features, tile: Features) -> np.ndarray:
-        if query.count == 0 or tile.count == 0:
-            return np.empty((0, 4), dtype=np.float32)
-        matches, _scores = self._lightglue_runtime.match_pair(
-            query.keypoints_px,
-            query.descriptors,
-            tile.keypoints_px,
-            tile.descriptors,
-            image_size0=query.image_size,
-            image_size1=tile.image_size,
-        )
-        idx = np.asarray(matches)
-        if idx.size == 0:
-            return np.empty((0, 4), dtype=np.float32)
-        if idx.ndim != 2 or idx.shape[1] != 2:
-            raise ValueError(f"LightGlue returned matches of shape {idx.shape}, expected (M, 2)")
-        idx = idx.astype(np.int64, copy=False)
-        if (idx < 0).any() or (idx[:, 0] >= query.count).any() or (idx[:, 1] >= tile.count).any():
-            raise ValueError(
-                f"LightGlue returned indices outside the keypoint sets ({query.count}, {tile.count})"
-            )
-        return np.hstack([query.keypoints_px[idx[:, 0]], tile.keypoints_px[idx[:, 1]]]).astype(np.float32)
+        return match_with_lightglue(self._lightglue_runtime, query, tile)
 
     # --- internals -----------------------------------------------------------------------------------
     def _forward(self, image_bgr: np.ndarray) -> Features:
