@@ -36,7 +36,7 @@ def _path_px(traj: Trajectory, edit: MapEdit, ds: rasterio.io.DatasetReader) -> 
     lat, lon = zip(*(traj.point_at_distance(float(v)) for v in s), strict=True)
     xs, ys = warp_transform("EPSG:4326", ds.crs, list(lon), list(lat))
     inv = ~ds.transform
-    cols, rows = inv * (np.asarray(xs), np.asarray(ys))
+    cols, rows = inv @ (np.asarray(xs), np.asarray(ys))
     return np.column_stack([cols, rows])
 
 
@@ -50,8 +50,8 @@ def _metres_to_px(
         "EPSG:4326", ds.crs, [lon_deg, lon_deg + east_m / k_e], [lat_deg, lat_deg + north_m / k_n]
     )
     inv = ~ds.transform
-    c0, r0 = inv * (xs[0], ys[0])
-    c1, r1 = inv * (xs[1], ys[1])
+    c0, r0 = inv @ (xs[0], ys[0])
+    c1, r1 = inv @ (xs[1], ys[1])
     return c1 - c0, r1 - r0
 
 
