@@ -158,6 +158,12 @@ def _add_vpr_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-rerank", action="store_true", help="skip the C2.5 rerank measurement")
     p.add_argument("--seed", type=int, default=0, help="query poses (default 0)")
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every figure to OUT")
+    p.add_argument(
+        "--workdir",
+        type=Path,
+        default=None,
+        help="keep the benchmark's cache here (default: a temporary directory)",
+    )
 
 
 def _run_vpr(args: argparse.Namespace) -> int:
@@ -177,7 +183,7 @@ def _run_vpr(args: argparse.Namespace) -> int:
             zoom=args.zoom,
             n_queries=args.queries,
             seed=args.seed,
-            out=args.json,
+            out=args.workdir,
             frames_path=args.frames_from,
             alt_range_m=(lo, hi),
             tile_size_px=args.tile_size,
