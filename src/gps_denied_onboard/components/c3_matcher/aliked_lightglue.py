@@ -40,6 +40,7 @@ from gps_denied_onboard.components.c3_matcher.base import (
     Features,
     match_with_lightglue,
     no_features,
+    require_runtimes,
 )
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c7_inference.protocol import (
@@ -283,13 +284,9 @@ def create(
 ) -> AlikedLightGlueMatcher:
     """Registry factory for ``aliked_lightglue``: builds the strategy, which loads the ALIKED engine now
     (``inference_runtime.load_engine(config.aliked_weights_path, ALIKED_SIGNATURE)``)."""
-    missing = [
-        n
-        for n, v in (("inference_runtime", inference_runtime), ("lightglue_runtime", lightglue_runtime))
-        if v is None
-    ]
-    if missing:
-        raise ValueError(f"the aliked_lightglue strategy needs {missing} (not wired by the composition root)")
+    require_runtimes(
+        "aliked_lightglue", inference_runtime=inference_runtime, lightglue_runtime=lightglue_runtime
+    )
     return AlikedLightGlueMatcher(
         inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config
     )

@@ -474,3 +474,11 @@ def match_with_lightglue(lightglue_runtime: Any, query: Features, tile: Features
             f"LightGlue returned indices outside the keypoint sets ({query.count}, {tile.count})"
         )
     return np.hstack([query.keypoints_px[idx[:, 0]], tile.keypoints_px[idx[:, 1]]]).astype(np.float32)
+
+
+def require_runtimes(label: str, **runtimes: object) -> None:
+    """Refuse to build a learned strategy whose ONNX collaborators the composition root did not wire
+    (ValueError naming the strategy and the missing ones)."""
+    missing = [name for name, value in runtimes.items() if value is None]
+    if missing:
+        raise ValueError(f"the {label} strategy needs {missing} (not wired by the composition root)")

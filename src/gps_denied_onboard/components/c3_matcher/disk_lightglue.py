@@ -17,7 +17,12 @@ from typing import Final
 import cv2
 import numpy as np
 
-from gps_denied_onboard.components.c3_matcher.base import CandidateLoopMatcher, Features, match_with_lightglue
+from gps_denied_onboard.components.c3_matcher.base import (
+    CandidateLoopMatcher,
+    Features,
+    match_with_lightglue,
+    require_runtimes,
+)
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c7_inference.protocol import (
     EngineLoadError,
@@ -161,13 +166,9 @@ def create(
 ) -> DiskLightGlueMatcher:
     """Registry factory for ``disk_lightglue``: builds the strategy, which loads the DISK engine now
     (``inference_runtime.load_engine(config.disk_weights_path, DISK_SIGNATURE)``)."""
-    missing = [
-        n
-        for n, v in (("inference_runtime", inference_runtime), ("lightglue_runtime", lightglue_runtime))
-        if v is None
-    ]
-    if missing:
-        raise ValueError(f"the disk_lightglue strategy needs {missing} (not wired by the composition root)")
+    require_runtimes(
+        "disk_lightglue", inference_runtime=inference_runtime, lightglue_runtime=lightglue_runtime
+    )
     return DiskLightGlueMatcher(
         inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config
     )

@@ -33,6 +33,7 @@ from gps_denied_onboard.components.c3_matcher.base import (
     Features,
     match_with_lightglue,
     no_features,
+    require_runtimes,
 )
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c7_inference.protocol import (
@@ -276,13 +277,7 @@ def create(
     fdr_client: FdrClient | None = None,
 ) -> XFeatMatcher:
     """Registry factory for ``xfeat``: builds the strategy, which loads the XFeat engine now."""
-    missing = [
-        n
-        for n, v in (("inference_runtime", inference_runtime), ("lightglue_runtime", lightglue_runtime))
-        if v is None
-    ]
-    if missing:
-        raise ValueError(f"the xfeat strategy needs {missing} (not wired by the composition root)")
+    require_runtimes("xfeat", inference_runtime=inference_runtime, lightglue_runtime=lightglue_runtime)
     matcher = XFeatMatcher(
         inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config
     )
