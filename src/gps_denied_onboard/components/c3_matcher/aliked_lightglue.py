@@ -36,9 +36,8 @@ import cv2
 import numpy as np
 
 from gps_denied_onboard.components.c3_matcher.base import (
-    CandidateLoopMatcher,
     Features,
-    match_with_lightglue,
+    LearnedPairMatcher,
     no_features,
     require_runtimes,
 )
@@ -142,7 +141,7 @@ def _valid_image_mask(image_bgr: np.ndarray) -> np.ndarray | None:
     return cv2.erode((gray > 0).astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
 
 
-class AlikedLightGlueMatcher(CandidateLoopMatcher):
+class AlikedLightGlueMatcher(LearnedPairMatcher):
     """ALIKED features via C7 + shared LightGlue + shared RANSAC (see module docstring)."""
 
     label = LABEL
@@ -185,16 +184,6 @@ class AlikedLightGlueMatcher(CandidateLoopMatcher):
     def input_hw(self) -> tuple[int, int] | None:
         """The model's fixed input (H, W) px, or None for a dynamic-size model."""
         return self._input_hw
-
-    # --- hooks ---------------------------------------------------------------------------------------
-    def extract_query(self, image_bgr: np.ndarray) -> Features:
-        return self._forward(image_bgr)
-
-    def extract_tile(self, chip_bgr: np.ndarray) -> Features:
-        return self._forward(chip_bgr)
-
-    def match_features(self, query: Features, tile: Features) -> np.ndarray:
-        return match_with_lightglue(self._lightglue_runtime, query, tile)
 
     # --- internals -----------------------------------------------------------------------------------
     def _model_layout(self) -> tuple[tuple[int, int] | None, int | None]:

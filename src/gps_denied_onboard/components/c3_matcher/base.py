@@ -426,6 +426,26 @@ class CandidateLoopMatcher(abc.ABC):
         ) from cause
 
 
+class LearnedPairMatcher(CandidateLoopMatcher):
+    """A learned extractor run the same way on the query and on tiles (``_forward``), whose features
+    are matched by the shared LightGlue helper (``self._lightglue_runtime``): DISK, ALIKED, XFeat."""
+
+    _lightglue_runtime: Any
+
+    @abc.abstractmethod
+    def _forward(self, image_bgr: np.ndarray) -> Features:
+        """Features of one image in its original pixel coordinates."""
+
+    def extract_query(self, image_bgr: np.ndarray) -> Features:
+        return self._forward(image_bgr)
+
+    def extract_tile(self, chip_bgr: np.ndarray) -> Features:
+        return self._forward(chip_bgr)
+
+    def match_features(self, query: Features, tile: Features) -> np.ndarray:
+        return match_with_lightglue(self._lightglue_runtime, query, tile)
+
+
 @dataclass
 class _FrameState:
     """Mutable per-frame bookkeeping shared by ``match`` and its ``finally``."""

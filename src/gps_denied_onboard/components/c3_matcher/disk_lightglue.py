@@ -18,9 +18,8 @@ import cv2
 import numpy as np
 
 from gps_denied_onboard.components.c3_matcher.base import (
-    CandidateLoopMatcher,
     Features,
-    match_with_lightglue,
+    LearnedPairMatcher,
     require_runtimes,
 )
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
@@ -77,7 +76,7 @@ def preprocess_disk(image_bgr: np.ndarray, long_side_px: int) -> tuple[np.ndarra
     return tensor, (new_w / w, new_h / h)
 
 
-class DiskLightGlueMatcher(CandidateLoopMatcher):
+class DiskLightGlueMatcher(LearnedPairMatcher):
     """DISK features via C7 + shared LightGlue + shared RANSAC (see module docstring)."""
 
     label = LABEL
@@ -112,16 +111,6 @@ class DiskLightGlueMatcher(CandidateLoopMatcher):
     @property
     def engine_id(self) -> str:
         return self._engine_id
-
-    # --- hooks ---------------------------------------------------------------------------------------
-    def extract_query(self, image_bgr: np.ndarray) -> Features:
-        return self._forward(image_bgr)
-
-    def extract_tile(self, chip_bgr: np.ndarray) -> Features:
-        return self._forward(chip_bgr)
-
-    def match_features(self, query: Features, tile: Features) -> np.ndarray:
-        return match_with_lightglue(self._lightglue_runtime, query, tile)
 
     # --- internals -----------------------------------------------------------------------------------
     def _forward(self, image_bgr: np.ndarray) -> Features:

@@ -29,9 +29,8 @@ import numpy as np
 import structlog
 
 from gps_denied_onboard.components.c3_matcher.base import (
-    CandidateLoopMatcher,
     Features,
-    match_with_lightglue,
+    LearnedPairMatcher,
     no_features,
     require_runtimes,
 )
@@ -166,7 +165,7 @@ def _check_lightglue_descriptor_dim(
         )
 
 
-class XFeatMatcher(CandidateLoopMatcher):
+class XFeatMatcher(LearnedPairMatcher):
     """XFeat features via C7 + shared LightGlue helper + shared RANSAC (see module docstring)."""
 
     label = LABEL
@@ -212,16 +211,6 @@ class XFeatMatcher(CandidateLoopMatcher):
     def input_channels(self) -> int:
         """C fed to the model: 1 (grey) or 3 (RGB)."""
         return self._channels
-
-    # --- hooks ---------------------------------------------------------------------------------------
-    def extract_query(self, image_bgr: np.ndarray) -> Features:
-        return self._forward(image_bgr)
-
-    def extract_tile(self, chip_bgr: np.ndarray) -> Features:
-        return self._forward(chip_bgr)
-
-    def match_features(self, query: Features, tile: Features) -> np.ndarray:
-        return match_with_lightglue(self._lightglue_runtime, query, tile)
 
     # --- internals -----------------------------------------------------------------------------------
     def _forward(self, image_bgr: np.ndarray) -> Features:
