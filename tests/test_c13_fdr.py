@@ -59,7 +59,7 @@ def test_fdr_rotation_and_size_bound(tmp_path: Path) -> None:
     fdr = FlightDataRecorder(tmp_path, cap, seg, clock=_FakeClock())
     payload = "x" * 500
     for i in range(1000):
-        fdr.record(FdrKind.ESTIMATE, {"i": i, "pad": payload})
+        fdr.record(FdrKind.FRAME, {"i": i, "pad": payload})
         on_disk = sum(p.stat().st_size for p in list_segments(tmp_path))
         assert on_disk <= cap
     fdr.close()

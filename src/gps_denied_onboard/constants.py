@@ -13,10 +13,6 @@ from typing import Final
 # --- MAVLink identity -------------------------------------------------------------------------------
 #: Component id of this daemon (MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197).
 MAV_COMPONENT_ID: Final[int] = 197
-#: Default system id: the vehicle's (companion computers share the autopilot's system id).
-MAV_SYSTEM_ID_DEFAULT: Final[int] = 1
-#: HEARTBEAT rate of the daemon, Hz.
-HEARTBEAT_RATE_HZ: Final[float] = 1.0
 #: Minimum spacing between two STATUSTEXT messages about provenance, s (rate limit).
 STATUSTEXT_MIN_INTERVAL_S: Final[float] = 1.0
 #: GPS_INPUT.gps_id for GPS1 (ArduPilot silently ignores other ids for the first GPS).
@@ -128,9 +124,7 @@ class FdrKind:
     CONFIG: Final = "daemon.config"
     FRAME: Final = "pipeline.frame"
     FRAME_ERROR: Final = "pipeline.frame_error"
-    ESTIMATE: Final = "estimator.state"
     PROVENANCE_CHANGED: Final = "estimator.provenance_changed"
-    FIX_REJECTED: Final = "estimator.fix_rejected"
     MATCHER_FRAME_DONE: Final = "matcher.frame_done"
     MATCHER_BACKBONE_ERROR: Final = "matcher.backbone_error"
     MATCHER_INSUFFICIENT_INLIERS: Final = "matcher.insufficient_inliers"
