@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import re
@@ -549,3 +550,40 @@ def test_named_values_without_residual_send_nan() -> None:
                         residual_px=None, horiz_sigma_m=2.0, frame_drops=0)
     res = [m for m in msgs if m.get_type() == "NAMED_VALUE_FLOAT" and m.name == NV_RESIDUAL_PX]
     assert len(res) == 1 and _math.isnan(res[0].value)
+
+
+def _reuseaddr_udp_socket() -> socket.socket:
+    """A UDP socket set up the way pymavlink's udpin sets up its own (SO_REUSEADDR)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    return s
+
+
+def test_link_open_refuses_udpin_port_bound_by_another_socket() -> None:
+    """open() on a udpin port another socket holds (even with SO_REUSEADDR) raises MavlinkConfigError
+    naming the port, and binds nothing."""
+    with _reuseaddr_udp_socket() as other:
+        other.bind(("127.0.0.1", 0))
+        port = other.getsockname()[1]
+        link = MavlinkLink(MavlinkConfig(url=f"udpin:127.0.0.1:{port}"), _tracker())
+        with pytest.raises(MavlinkConfigError, match=rf"UDP port {port} on 127\.0\.0\.1 is already bound"):
+            link.open()
+        assert not link.connected
+
+
+def test_link_udpin_port_cannot_be_shared_after_open() -> None:
+    """Once a link listens on a udpin port, a second link is refused and a later SO_REUSEADDR bind (another
+    pymavlink program) fails instead of silently taking the autopilot's datagrams."""
+    port = _free_udp_port()
+    first = MavlinkLink(MavlinkConfig(url=f"udpin:127.0.0.1:{port}"), _tracker())
+    first.open()
+    try:
+        assert first.connected
+        second = MavlinkLink(MavlinkConfig(url=f"udp:127.0.0.1:{port}"), _tracker())
+        with pytest.raises(MavlinkConfigError, match="already bound"):
+            second.open()
+        with _reuseaddr_udp_socket() as late, pytest.raises(OSError) as err:
+            late.bind(("127.0.0.1", port))
+        assert err.value.errno == errno.EADDRINUSE
+    finally:
+        first.close()

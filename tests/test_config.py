@@ -133,3 +133,72 @@ def test_cli_every_subcommand_has_help(argv: list[str]) -> None:
     )
     assert proc.returncode == 0, proc.stderr
     assert "usage: gdnav" in proc.stdout
+
+
+@pytest.mark.parametrize(
+    ("override", "key_path"),
+    [
+        ("terrain.ground_alt_amsl_m=.nan", "terrain.ground_alt_amsl_m"),
+        ("estimator.max_output_sigma_m=.inf", "estimator.max_output_sigma_m"),
+        ("init.lat_deg=-.inf", "init.lat_deg"),
+        ("camera.intrinsics.dist_coeffs=[0.1, .nan]", "camera.intrinsics.dist_coeffs"),
+    ],
+)
+def test_config_non_finite_float_is_refused_with_key_path(override: str, key_path: str) -> None:
+    """NaN and infinity are refused in every float setting (plain, optional, bounded, in a list)."""
+    with pytest.raises(ConfigError) as err:
+        load_config(None, [override])
+    assert err.value.key_path == key_path
+    assert "finite" in str(err.value)
+
+
+def test_config_fdr_max_bytes_below_segment_bytes_is_refused() -> None:
+    """A recorder bound smaller than one segment is refused, naming fdr.max_bytes and both values."""
+    with pytest.raises(ConfigError) as err:
+        load_config(None, ["fdr.max_bytes=65536", "fdr.segment_bytes=1048576"])
+    assert err.value.key_path == "fdr.max_bytes"
+    assert "1048576" in str(err.value) and "65536" in str(err.value)
+    assert load_config(None, ["fdr.max_bytes=1048576", "fdr.segment_bytes=1048576"]).fdr.max_bytes == 1048576
+
+
+@pytest.mark.parametrize(
+    "url",
+    [
+        "udpin:nohostport",
+        "udpin::14550",
+        "udpin:127.0.0.1:0",
+        "udpin:127.0.0.1:70000",
+        "tcp:host:x1",
+        "http://127.0.0.1:80",
+        "ttyACM0",
+    ],
+)
+def test_config_invalid_mavlink_url_is_refused(url: str) -> None:
+    """mavlink.url must be SCHEME:HOST:PORT (PORT 1..65535) or a serial device path."""
+    with pytest.raises(ConfigError) as err:
+        load_config(None, [f"mavlink.url={url}"])
+    assert err.value.key_path == "mavlink.url" and repr(url) in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "url", ["udpin:0.0.0.0:14550", "udp:127.0.0.1:14560", "tcp:10.0.0.2:5760", "/dev/ttyTHS1"]
+)
+def test_config_valid_mavlink_urls_are_accepted(url: str) -> None:
+    """The documented connection strings validate."""
+    assert load_config(None, [f"mavlink.url={url}"]).mavlink.url == url
+
+
+def test_config_non_utf8_file_is_refused(tmp_path: Path) -> None:
+    """A profile that is not UTF-8 text is a ConfigError naming the file, not a UnicodeDecodeError."""
+    p = tmp_path / "latin1.yaml"
+    p.write_bytes("profile: caf\xe9\n".encode("latin-1"))
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    assert str(p) in str(err.value) and "UTF-8" in str(err.value)
+
+
+def test_config_override_that_is_not_yaml_is_refused() -> None:
+    """An override whose value does not parse as YAML is a ConfigError naming the key."""
+    with pytest.raises(ConfigError) as err:
+        load_config(None, ["camera.source=[unclosed"])
+    assert err.value.key_path == "camera.source"

@@ -1,7 +1,8 @@
 """``gdnav``: the daemon, the simulator, and the pre-flight tools.
 
 Exit codes: 0 success; 1 runtime failure; 2 bad configuration or arguments; 3 a resource the daemon
-needs is missing or refused (cache, model, calibration).
+needs is missing or refused (cache, model, calibration, signing key file, a UDP port another process
+holds). A refusal (2 or 3) is one line on stderr, never a traceback; ``main`` maps the error types.
 """
 
 from __future__ import annotations
@@ -26,29 +27,35 @@ def _err(message: str) -> None:
     print(f"gdnav: {message}", file=sys.stderr)
 
 
+def _resource_refusals() -> tuple[type[Exception], ...]:
+    """Errors meaning that a file or resource the daemon needs is refused (exit 3). Imported only while an
+    error is being handled: these modules take a second to import and most commands never need them."""
+    from gps_denied_onboard.components.c8_mavlink import MavlinkConfigError
+    from gps_denied_onboard.runtime_root import StartupError
+
+    return (StartupError, MavlinkConfigError)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
-    try:
-        config = load_config(args.config, args.set or ())
-    except ConfigError as exc:
-        _err(str(exc))
-        return EXIT_CONFIG
+    config = load_config(args.config, args.set or ())
     configure_logging(config.logging.level, json=config.logging.json)
     log = structlog.get_logger("gdnav")
     log.info(
         LogEvent.DAEMON_CONFIG, source=str(args.config), version=__version__, config=config_to_dict(config)
     )
 
+    from gps_denied_onboard.components.c8_mavlink import MavlinkConfigError
     from gps_denied_onboard.daemon.service import NavDaemon
     from gps_denied_onboard.runtime_root import StartupError, compose_root
 
     try:
         root = compose_root(config)
-    except StartupError as exc:
-        log.error("daemon.startup_refused", what=exc.what, error=str(exc))
-        _err(str(exc))
-        return EXIT_RESOURCE
-    root.fdr.record(FdrKind.CONFIG, {"version": __version__, "config": config_to_dict(config)})
-    return asyncio.run(NavDaemon(root).run())
+        root.fdr.record(FdrKind.CONFIG, {"version": __version__, "config": config_to_dict(config)})
+        # The daemon opens its MAVLink link before READY: a UDP port another process holds is refused there.
+        return asyncio.run(NavDaemon(root).run())
+    except (StartupError, MavlinkConfigError) as exc:
+        log.error("daemon.startup_refused", what=getattr(exc, "what", "mavlink.url"), error=str(exc))
+        raise  # main() prints the one line and exits 3
 
 
 def _cmd_cache_build(args: argparse.Namespace) -> int:
@@ -122,11 +129,13 @@ def _cmd_sitl_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_config_check(args: argparse.Namespace) -> int:
-    try:
-        load_config(args.config, args.set or ())
-    except ConfigError as exc:
-        _err(str(exc))
-        return EXIT_CONFIG
+    config = load_config(args.config, args.set or ())
+    from gps_denied_onboard.runtime_root import preflight
+
+    # As the unit's ExecStartPre this runs as the service user: the calibration and the signing key file
+    # are refused here (exit 3) exactly as `gdnav run` would refuse them. The cache and models are not
+    # checked (hashing the cache takes seconds); `gdnav run` verifies them.
+    preflight(config)
     print(f"{args.config}: ok")
     return EXIT_OK
 
@@ -279,7 +288,16 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    return int(args.func(args))
+    # The one place where typed refusals become exit codes. Any other exception is a bug: it keeps its
+    # traceback and exits 1. (An except clause's types are evaluated only when an exception reaches it.)
+    try:
+        return int(args.func(args))
+    except ConfigError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    except _resource_refusals() as exc:
+        _err(str(exc))
+        return EXIT_RESOURCE
 
 
 if __name__ == "__main__":

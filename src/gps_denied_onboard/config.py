@@ -12,14 +12,16 @@ import dataclasses
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Final, Literal
 
 import yaml
-from pydantic import ConfigDict, Field, Strict, TypeAdapter, ValidationError
+from pydantic import AfterValidator, ConfigDict, Field, Strict, TypeAdapter, ValidationError
 
 # Every section is a frozen stdlib dataclass that pydantic validates with this config (extra keys
-# forbidden); every scalar is Strict, so "3" is not an int and "yes" is not a bool.
-_STRICT = ConfigDict(extra="forbid", frozen=True)
+# forbidden); every scalar is Strict, so "3" is not an int and "yes" is not a bool. No setting has a
+# meaning for NaN or infinity (YAML's .nan/.inf): they would pass range checks such as gt=0 and poison
+# the maths downstream, so every float must be finite.
+_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 Float = Annotated[float, Strict()]
 Int = Annotated[int, Strict()]
@@ -28,6 +30,38 @@ Bool = Annotated[bool, Strict()]
 PosFloat = Annotated[float, Strict(), Field(gt=0)]
 PosInt = Annotated[int, Strict(), Field(ge=1)]
 Fraction = Annotated[float, Strict(), Field(ge=0, le=1)]
+
+#: pymavlink connection schemes that take HOST:PORT (anything else must be a serial device path).
+MAVLINK_URL_SCHEMES: Final[tuple[str, ...]] = ("udpin:", "udpout:", "udp:", "tcp:", "tcpin:")
+
+
+def check_mavlink_url(url: str) -> str:
+    """Return ``url`` when it is ``SCHEME:HOST:PORT`` (PORT 1..65535) or a serial device path; otherwise
+    raise ValueError saying what was expected. The one grammar for ``mavlink.url``: the config validates
+    with it and ``MavlinkLink.open()`` re-checks a config built without validation."""
+    if url.startswith(MAVLINK_URL_SCHEMES):
+        host, sep, port = url.split(":", 1)[1].rpartition(":")
+        if not sep or not host or not (port.isascii() and port.isdigit()) or not 1 <= int(port) <= 65535:
+            raise ValueError("expected SCHEME:HOST:PORT with PORT 1..65535 (e.g. udpin:0.0.0.0:14550)")
+        return url
+    if url.startswith("/") or url.upper().startswith("COM"):
+        return url  # serial device
+    raise ValueError(
+        f"unsupported connection string; expected one of {', '.join(MAVLINK_URL_SCHEMES)} "
+        "or a serial device path"
+    )
+
+
+MavlinkUrl = Annotated[str, Strict(), AfterValidator(check_mavlink_url)]
+
+
+class SettingError(ValueError):
+    """A rule between settings of one section is broken (raised from a section's ``__post_init__``);
+    ``key`` is the setting to change, so the ConfigError can name its full path."""
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(message)
+        self.key = key
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,7 +110,7 @@ class MavlinkConfig:
 
     #: pymavlink connection string: ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT``,
     #: ``/dev/ttyACM0`` (serial, with ``baud``).
-    url: Str = "udpin:127.0.0.1:14560"
+    url: MavlinkUrl = "udpin:127.0.0.1:14560"
     #: Serial baud rate (serial URLs only).
     baud: PosInt = 921600
     #: This daemon's MAVLink identity: the vehicle's system id, component 197 (VISUAL_INERTIAL_ODOMETRY).
@@ -238,6 +272,13 @@ class FdrConfig:
     max_bytes: Annotated[int, Strict(), Field(ge=1 << 16)] = 256 << 20
     segment_bytes: Annotated[int, Strict(), Field(ge=1 << 14)] = 16 << 20
 
+    def __post_init__(self) -> None:
+        # The recorder deletes whole segments to stay under max_bytes: the bound must hold one segment.
+        if self.max_bytes < self.segment_bytes:
+            raise SettingError(
+                "max_bytes", f"must be at least segment_bytes ({self.segment_bytes}), got {self.max_bytes}"
+            )
+
 
 @dataclasses.dataclass(frozen=True)
 class LoggingConfig:
@@ -309,6 +350,11 @@ def _describe(err: Mapping[str, Any]) -> tuple[str, str]:
     got = err.get("input")
     if typ in ("extra_forbidden", "unexpected_keyword_argument"):
         return loc, "unknown key (not a setting; check the spelling against config/airborne.yaml)"
+    if typ == "value_error":  # raised by our own checks (check_mavlink_url, __post_init__ rules)
+        cause = err.get("ctx", {}).get("error")
+        if isinstance(cause, SettingError):
+            return f"{loc}.{cause.key}", str(cause)
+        return loc, f"{cause}, got {got!r}"
     msg = str(err.get("msg", "invalid value"))
     if msg.startswith("Input should be"):
         msg = "expected" + msg[len("Input should be") :]
@@ -338,7 +384,10 @@ def _apply_override(data: dict[str, Any], assignment: str) -> None:
         if not isinstance(nxt, dict):
             raise ConfigError(key, f"'{part}' is not a section")
         node = nxt
-    node[parts[-1]] = yaml.safe_load(raw) if raw.strip() else None
+    try:
+        node[parts[-1]] = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError as exc:
+        raise ConfigError(key, f"override value is not valid YAML: {exc}".replace("\n", " ")) from exc
 
 
 def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Config:
@@ -356,6 +405,12 @@ def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Confi
             raise ConfigError("<file>", "config file not found", source=source)
         try:
             loaded = yaml.safe_load(p.read_text(encoding="utf-8"))
+        except UnicodeDecodeError as exc:
+            raise ConfigError(
+                "<file>", f"not UTF-8 text (byte {exc.start}: {exc.reason})", source=source
+            ) from exc
+        except OSError as exc:
+            raise ConfigError("<file>", f"cannot be read: {exc.strerror}", source=source) from exc
         except yaml.YAMLError as exc:
             raise ConfigError("<file>", f"not valid YAML: {exc}".replace("\n", " "), source=source) from exc
         if loaded is None:

@@ -73,23 +73,39 @@ class CameraCalibration:
         p = Path(path)
         if not p.is_file():
             raise CalibrationError("calibration file not found", path=str(p))
-        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
         try:
-            k_node = fs.getNode("camera_matrix")
-            if k_node.empty():
-                raise CalibrationError("missing 'camera_matrix' (expected a 3x3 matrix)", path=str(p))
-            k = k_node.mat()
-            if k is None or k.shape != (3, 3):
-                raise CalibrationError("'camera_matrix' must be 3x3", path=str(p))
-            d_node = fs.getNode("distortion_coefficients")
-            d = () if d_node.empty() else tuple(float(v) for v in d_node.mat().ravel())
-            w = int(fs.getNode("image_width").real())
-            h = int(fs.getNode("image_height").real())
-        finally:
-            fs.release()
+            fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+            try:
+                k_node = fs.getNode("camera_matrix")
+                if k_node.empty():
+                    raise CalibrationError("missing 'camera_matrix' (expected a 3x3 matrix)", path=str(p))
+                k = k_node.mat()
+                if k is None or k.shape != (3, 3):
+                    raise CalibrationError("'camera_matrix' must be 3x3", path=str(p))
+                d_node = fs.getNode("distortion_coefficients")
+                d_mat = None if d_node.empty() else d_node.mat()
+                if not d_node.empty() and d_mat is None:
+                    raise CalibrationError("'distortion_coefficients' must be a matrix", path=str(p))
+                d = () if d_mat is None else tuple(float(v) for v in d_mat.ravel())
+                w = int(fs.getNode("image_width").real())
+                h = int(fs.getNode("image_height").real())
+            finally:
+                fs.release()
+        except (cv2.error, SystemError) as exc:
+            # A file OpenCV cannot parse: its YAML parser raises cv2.error, which OpenCV 5's binding
+            # re-raises from FileStorage's constructor as a SystemError chained to it.
+            reason = exc.__cause__ if isinstance(exc, SystemError) and exc.__cause__ is not None else exc
+            raise CalibrationError(
+                f"not an OpenCV calibration file: {' '.join(str(reason).split())}", path=str(p)
+            ) from exc
         if w <= 0 or h <= 0:
             raise CalibrationError("missing or non-positive 'image_width'/'image_height'", path=str(p))
-        return cls(w, h, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), d)
+        fx, fy, cx, cy = float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
+        if not all(math.isfinite(v) for v in (fx, fy, cx, cy, *d)) or fx <= 0 or fy <= 0:
+            raise CalibrationError(
+                "'camera_matrix' and 'distortion_coefficients' must be finite, with fx, fy > 0", path=str(p)
+            )
+        return cls(w, h, fx, fy, cx, cy, d)
 
 
 @dataclass(frozen=True)

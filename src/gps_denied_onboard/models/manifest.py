@@ -105,7 +105,7 @@ def read_manifest(model_dir: str | Path) -> tuple[ModelEntry, ...]:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ModelDirError("no model manifest; export or import the models first", path=str(path)) from None
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: not UTF-8 (UnicodeDecodeError) or not JSON
         raise ModelDirError(f"unreadable manifest: {exc}", path=str(path)) from exc
     if not isinstance(data, dict) or data.get("format") != MANIFEST_FORMAT:
         raise ModelDirError(f"expected manifest format {MANIFEST_FORMAT}", path=str(path))

@@ -8,6 +8,6 @@ start-up here with a ``StartupError`` naming it: the daemon refuses to fly on a 
 
 from __future__ import annotations
 
-from gps_denied_onboard.runtime_root.compose import RuntimeRoot, StartupError, compose_root
+from gps_denied_onboard.runtime_root.compose import RuntimeRoot, StartupError, compose_root, preflight
 
-__all__ = ["RuntimeRoot", "StartupError", "compose_root"]
+__all__ = ["RuntimeRoot", "StartupError", "compose_root", "preflight"]

@@ -31,7 +31,12 @@ from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
 from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
 from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
-from gps_denied_onboard.components.c8_mavlink import MavlinkLink, VehicleStateTracker
+from gps_denied_onboard.components.c8_mavlink import (
+    MavlinkConfigError,
+    MavlinkLink,
+    VehicleStateTracker,
+    load_signing_key,
+)
 from gps_denied_onboard.components.c13_fdr import FlightDataRecorder
 from gps_denied_onboard.config import Config
 from gps_denied_onboard.constants import LogEvent
@@ -98,6 +103,25 @@ def _calibration(config: Config) -> CameraCalibration:
         i.cy_px if i.cy_px is not None else (i.height_px - 1) / 2.0,
         tuple(i.dist_coeffs),
     )
+
+
+def _check_signing_key(config: Config) -> None:
+    """Refuse an unusable MAVLink signing key file here, with the other refused files; the link reads it
+    again when it opens."""
+    if config.mavlink.signing_key_file is None:
+        return
+    try:
+        load_signing_key(config.mavlink.signing_key_file)
+    except MavlinkConfigError as exc:
+        raise StartupError("mavlink.signing_key_file", str(exc)) from exc
+
+
+def preflight(config: Config) -> None:
+    """The start-up checks that are cheap and need no cache, model or network: the calibration file and
+    the signing key file (``gdnav config check``, the unit's ExecStartPre, runs them as the service
+    user). Raises ``StartupError`` naming the file; ``compose_root`` runs the same checks."""
+    _calibration(config)
+    _check_signing_key(config)
 
 
 #: C3 strategies that need no model file (and so no ONNX runtime objects).
@@ -223,6 +247,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     pre = dict(pre_constructed or {})
     config = _resolve_matcher(config)
     calibration = _calibration(config)
+    _check_signing_key(config)
     try:
         tiles = TileStore.open(Path(config.cache.dir), verify_hashes=config.cache.verify_hashes)
     except TileStoreError as exc:

@@ -213,6 +213,10 @@ class CacheManifest:
             ) from exc
         except OSError as exc:
             raise CacheManifestError(f"cannot read cache manifest: {exc}", path=str(path)) from exc
+        except UnicodeDecodeError as exc:
+            raise CacheManifestError(
+                f"cache manifest is not UTF-8 text (byte {exc.start}: {exc.reason})", path=str(path)
+            ) from exc
         try:
             payload = json.loads(text)
         except json.JSONDecodeError as exc:

@@ -21,7 +21,9 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import random
+import socket
 import stat
 import threading
 import time
@@ -37,7 +39,7 @@ from gps_denied_onboard.components.c8_mavlink import messages
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT, mavutil
 from gps_denied_onboard.components.c8_mavlink.vehicle_state import VehicleStateTracker
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
-from gps_denied_onboard.config import MavlinkConfig
+from gps_denied_onboard.config import MavlinkConfig, check_mavlink_url
 from gps_denied_onboard.constants import (
     NV_FRAME_DROPS,
     NV_HORIZ_SIGMA_M,
@@ -70,7 +72,8 @@ _NAMED_VALUE_NAMES: Final[tuple[str, ...]] = (
     NV_HORIZ_SIGMA_M,
     NV_FRAME_DROPS,
 )
-_URL_PREFIXES: Final[tuple[str, ...]] = ("udpin:", "udpout:", "udp:", "tcp:", "tcpin:")
+#: pymavlink schemes that bind a UDP port to listen on (``udp:`` is pymavlink's alias of ``udpin:``).
+_UDP_LISTEN_SCHEMES: Final[tuple[str, ...]] = ("udpin:", "udp:")
 
 
 class MavlinkError(RuntimeError):
@@ -82,7 +85,8 @@ class MavlinkError(RuntimeError):
 
 
 class MavlinkConfigError(MavlinkError):
-    """The MAVLink configuration cannot be used (bad URL, unusable signing key file)."""
+    """The MAVLink configuration cannot be used (bad URL, unusable signing key file, a UDP port that
+    another process already listens on)."""
 
     def __init__(self, message: str, *, url: str | None = None, path: str | None = None) -> None:
         super().__init__(f"{path}: {message}" if path else message, url=url)
@@ -131,18 +135,34 @@ def load_signing_key(path: str | Path) -> bytes:
 
 
 def _validate_url(url: str) -> None:
-    if url.startswith(_URL_PREFIXES):
-        host_port = url.split(":", 1)[1]
-        host, sep, port = host_port.rpartition(":")
-        if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-            raise MavlinkConfigError("expected SCHEME:HOST:PORT (e.g. udpin:0.0.0.0:14550)", url=url)
+    try:
+        check_mavlink_url(url)
+    except ValueError as exc:
+        raise MavlinkConfigError(str(exc), url=url) from exc
+
+
+def _refuse_taken_udp_port(url: str) -> None:
+    """Refuse a ``udpin:``/``udp:`` address that another socket on this machine has bound.
+
+    pymavlink binds UDP inputs with SO_REUSEADDR, so a second daemon on the same port starts without an
+    error and Linux then delivers each datagram from the autopilot to only one of the two sockets (the
+    newest): the second process silently takes the first one's input. A probe bind without SO_REUSEADDR
+    fails with EADDRINUSE whenever any socket holds the port. Other bind errors (an address not up yet)
+    are left to the connect, which retries them like any transport failure.
+    """
+    if not url.startswith(_UDP_LISTEN_SCHEMES):
         return
-    if url.startswith("/") or url.upper().startswith("COM"):
-        return  # serial device
-    raise MavlinkConfigError(
-        f"unsupported connection string; expected one of {', '.join(_URL_PREFIXES)} or a serial device path",
-        url=url,
-    )
+    host, _, port = url.split(":", 1)[1].rpartition(":")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((host, int(port)))
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise MavlinkConfigError(
+                    f"UDP port {port} on {host} is already bound by another process (another gdnav, or a "
+                    "MAVLink router/ground station listening there); refusing to share the autopilot's input",
+                    url=url,
+                ) from exc
 
 
 @dataclass(frozen=True)
@@ -223,11 +243,13 @@ class MavlinkLink:
 
     # --- lifecycle ----------------------------------------------------------------------------------
     def open(self) -> None:
-        """Validate the config (URL, signing key) and connect. Raises ``MavlinkConfigError`` for a
-        configuration that can never work; a transport failure only schedules a reconnect."""
+        """Validate the config (URL, signing key, a UDP listen port nobody else holds) and connect.
+        Raises ``MavlinkConfigError`` for a configuration that cannot work; a transport failure only
+        schedules a reconnect."""
         _validate_url(self._config.url)
         if self._config.signing_key_file is not None:
             self._signing_key = load_signing_key(self._config.signing_key_file)
+        _refuse_taken_udp_port(self._config.url)
         with self._lock:
             self._opened = True
             self._connect(self._clock())
@@ -250,6 +272,11 @@ class MavlinkLink:
             # pymavlink prints and swallows EOF/reset on TCP; turn them into an exception poll() sees.
             conn.handle_eof = _raise_peer_closed
             conn.handle_disconnect = _raise_peer_closed
+        if isinstance(conn, mavutil.mavudp) and conn.udp_server:
+            # pymavlink bound with SO_REUSEADDR; clearing it now makes any later bind of this port fail
+            # (EADDRINUSE) instead of silently taking the autopilot's datagrams from us.
+            with contextlib.suppress(OSError):
+                conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
         if self._signing_key is not None:
             conn.setup_signing(
                 self._signing_key,
