@@ -219,12 +219,13 @@ def test_estimator_ignores_time_going_backwards() -> None:
     assert any(e["event"] == LogEvent.ESTIMATOR_TIME_BACKWARDS for e in logs)
 
 
-def test_estimator_stale_fix_refused() -> None:
-    """A fix more than max_fix_lag_s older than the filter time is refused as stale."""
+def test_estimator_refuses_fix_behind_its_time() -> None:
+    """A fix older than the filter's time is refused (behind_filter): only the time axis may rewind."""
     est = _estimator()
     est.initialise(np.zeros(3), 5.0, T0_USEC)
     est.predict_to(T0_USEC + 5 * S)
-    assert est.update_fix(_fix(np.zeros(3), 3.0, T0_USEC + 2 * S)).reason == FixReason.STALE
+    assert est.update_fix(_fix(np.zeros(3), 3.0, T0_USEC + 2 * S)).reason == FixReason.BEHIND_FILTER
+    assert est.time_unix_usec == T0_USEC + 5 * S
 
 
 def test_estimator_altitude_update_sets_down() -> None:
@@ -277,7 +278,8 @@ def test_estimator_consecutive_gated_fixes_stay_rejected_while_vo_fused() -> Non
 
 
 def test_estimator_provenance_switches_on_first_frame_without_fix() -> None:
-    """Frame k fuses VO + a fix (anchored); frame k+1 fuses only VO: visual_propagated at once."""
+    """Frame k: VO + an accepted fix (anchored). Frame k+1: VO while its fix is still being computed
+    stays anchored; the moment its fix attempt gives no fix, visual_propagated."""
     est = _estimator()
     start = np.array([0.0, 0.0, -120.0])
     est.initialise(start, 5.0, T0_USEC)
@@ -286,4 +288,6 @@ def test_estimator_provenance_switches_on_first_frame_without_fix() -> None:
     assert est.update_fix(_fix(start, 1.0, t1)).accepted
     assert est.state(t1).provenance is Provenance.SATELLITE_ANCHORED
     est.update_vo(_vo(np.zeros(2), 0.1, 1 / 3), time_unix_usec=t2)
+    assert est.state(t2).provenance is Provenance.SATELLITE_ANCHORED
+    est.note_no_fix(t2)
     assert est.state(t2).provenance is Provenance.VISUAL_PROPAGATED

@@ -251,8 +251,12 @@ class PoseConfig:
 class EstimatorConfig:
     __pydantic_config__: ClassVar[ConfigDict] = _STRICT
 
-    #: White-noise acceleration spectral density for the constant-velocity model, m/s^2/sqrt(Hz).
+    #: White-noise acceleration spectral density for the constant-velocity model (used while the
+    #: autopilot's IMU is not available), m/s^2/sqrt(Hz).
     accel_noise_m_s2: PosFloat = 1.5
+    #: The same while the prediction is driven by the autopilot's IMU and attitude: what the IMU leaves
+    #: unexplained (accelerometer bias, attitude error, vibration), m/s^2/sqrt(Hz).
+    imu_accel_noise_m_s2: PosFloat = 0.5
     #: Chi-square gate on absolute fixes (2 dof); 13.8 = 99.9 %.
     fix_gate_chi2: PosFloat = 13.8
     #: Accept an ungated fix once the horizontal sigma exceeds this (re-acquisition after a gap).
@@ -261,6 +265,11 @@ class EstimatorConfig:
     max_output_sigma_m: PosFloat = 500.0
     #: Multiplies the visual-odometry covariance (tune for a real camera; 1 = as measured).
     vo_noise_scale: PosFloat = 1.0
+    #: Time axis: an input stamped more than this ahead of the daemon's clock is refused, s.
+    max_future_s: Annotated[float, Strict(), Field(gt=0, le=5)] = 0.25
+    #: Time axis: how far behind the newest input a late one (a slow absolute fix) may still be fused
+    #: at its own exposure time; older ones are refused as too late, s.
+    max_fix_delay_s: Annotated[float, Strict(), Field(gt=0, le=60)] = 5.0
 
 
 @dataclasses.dataclass(frozen=True)

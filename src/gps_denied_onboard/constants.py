@@ -83,6 +83,8 @@ class LogEvent:
     ESTIMATOR_TIME_BACKWARDS: Final = "c5.estimator.time_backwards"
     ESTIMATOR_VO_REJECTED: Final = "c5.estimator.vo_rejected"
     ESTIMATOR_REACQUIRED: Final = "c5.estimator.reacquired"
+    TIME_AXIS_REFUSED: Final = "c5.time_axis.refused"
+    TIME_AXIS_REWOUND: Final = "c5.time_axis.rewound"
     POSE_REJECTED: Final = "c4.pose.rejected"
     VPR_READY: Final = "c2.vpr.ready"
     VPR_FAR_TOP1: Final = "c2.vpr.top1_distance_above_threshold"

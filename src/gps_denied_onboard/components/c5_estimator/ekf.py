@@ -1,13 +1,27 @@
-"""C5 navigation estimator: constant-velocity Kalman filter (filterpy) over absolute fixes and VO.
+"""C5 navigation estimator: a Kalman filter (filterpy) over absolute fixes, VO, altitude and the IMU.
+
+This is the filter *math* at one instant. When each input is fused, and whether its timestamp is
+admitted at all, is decided by :mod:`~gps_denied_onboard.components.c5_estimator.time_axis`, which
+owns one of these and is the only thing that calls its update methods in a running daemon.
 
 State and units
 ---------------
 ``x = [n, e, d, vn, ve, vd]`` in the flight's local NED frame: metres and metres per second. Time is
-Unix microseconds (the frames' exposure times). The motion model is constant velocity driven by
-continuous white-noise acceleration with spectral density ``q = accel_noise_m_s2**2`` (m^2/s^3, i.e.
-``accel_noise_m_s2`` is in m/s^2/sqrt(Hz)); per axis over ``dt`` seconds the discrete process noise is
-``q * [[dt^3/3, dt^2/2], [dt^2/2, dt]]`` (filterpy's ``Q_continuous_white_noise``). The model is linear,
-so the "EKF" is a plain Kalman filter; geodetic output goes through the tangent plane.
+Unix microseconds (the time each input describes: a frame's exposure time, never its arrival time).
+
+Prediction
+----------
+Piecewise over steps of at most ``PREDICT_STEP_S``. For each step the optional
+:class:`~gps_denied_onboard.components.c5_estimator.protocol.AccelerationSource` (the autopilot's IMU
+rotated by its attitude) is asked for the mean NED acceleration ``a``:
+
+- known: ``p += v dt + a dt^2 / 2``, ``v += a dt``, with white-noise acceleration of spectral density
+  ``imu_accel_noise_m_s2**2`` (what the IMU leaves unexplained: bias, attitude error, vibration);
+- unknown: constant velocity with the larger ``accel_noise_m_s2**2`` (the manoeuvre is not measured).
+
+Per axis over ``dt`` the discrete process noise is ``q * [[dt^3/3, dt^2/2], [dt^2/2, dt]]``
+(filterpy's ``Q_continuous_white_noise``). The model is linear, so the "EKF" is a plain Kalman filter;
+geodetic output goes through the tangent plane.
 
 Measurements
 ------------
@@ -15,25 +29,28 @@ Measurements
   distance of its horizontal part (chi-square, 2 dof, ``fix_gate_chi2``) so one wrong tile match
   cannot teleport the estimate. Re-acquisition: once the horizontal sigma exceeds
   ``reacquire_sigma_m`` the gate is bypassed (see :meth:`NavEstimator.update_fix`).
-- Visual odometry (C1 ``VoMotion``): the horizontal displacement over ``dt`` used as a measurement of
-  the average velocity ``delta / dt`` on ``[vn, ve]``, with covariance ``vo_noise_scale * cov / dt^2``.
-  Treating the interval's mean velocity as the current one is the usual approximation at a few Hz
-  for a vehicle that does not change speed much within one frame interval.
+- Visual odometry (C1 ``VoMotion``): the horizontal displacement over ``dt`` is the interval's *mean*
+  velocity ``delta / dt``. It is turned into the velocity at the end of the interval with the IMU's
+  mean acceleration over the interval (``v_end = delta / dt + a dt / 2``; exact for constant
+  acceleration) when known, and used as is otherwise (the usual approximation for a vehicle that does
+  not change speed much within one frame interval), with covariance ``vo_noise_scale * cov / dt^2``.
 - Altitude: the autopilot's AGL plus the flat-ground height, as a scalar update on ``d``.
 
 Provenance (what was actually fused, see :meth:`NavEstimator.provenance_at`)
 ---------------------------------------------------------------------------
-``satellite_anchored`` while the latest measurement fused was an accepted fix (no VO update after it)
-and it is at most ``fix_recent_s`` old, so the label switches on the first frame without a fix;
-``visual_propagated`` when, since that fix, VO updates keep being fused (the last at most
-``vo_recent_s`` old); ``dead_reckoning`` when neither (prediction only); ``no_estimate`` when not
-initialised or when the horizontal sigma exceeds ``max_output_sigma_m``.
+``satellite_anchored`` while the newest absolute-fix attempt was accepted and that fix's exposure is
+at most ``fix_recent_s`` old (an attempt that gave no fix, :meth:`NavEstimator.note_no_fix`, ends it
+at once); ``visual_propagated`` while VO updates are being fused (the last at most ``vo_recent_s``
+old); ``dead_reckoning`` when neither (prediction only); ``no_estimate`` when not initialised or when
+the horizontal sigma exceeds ``max_output_sigma_m``. Propagating the state to a later time changes the
+label only through these ages and the sigma, never by itself.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Final
+from dataclasses import dataclass
+from typing import Any, Final
 
 import numpy as np
 import structlog
@@ -42,6 +59,7 @@ from filterpy.kalman import KalmanFilter
 
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
+from gps_denied_onboard.components.c5_estimator.protocol import AccelerationSource
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState, FixDecision
 from gps_denied_onboard.config import EstimatorConfig
 from gps_denied_onboard.constants import LogEvent, Provenance
@@ -51,10 +69,10 @@ _log = structlog.get_logger(__name__)
 
 #: An accepted fix younger than this keeps the output ``satellite_anchored``, seconds.
 DEFAULT_FIX_RECENT_S: Final[float] = 1.0
-#: A VO update younger than this (and newer than the last fix) makes the output ``visual_propagated``.
+#: A VO update younger than this makes the output ``visual_propagated``, seconds.
 DEFAULT_VO_RECENT_S: Final[float] = 2.0
-#: Fixes whose exposure is older than the filter time by more than this are dropped (out of order).
-DEFAULT_MAX_FIX_LAG_S: Final[float] = 1.0
+#: Longest prediction step; each step asks the acceleration source for its own mean acceleration, s.
+PREDICT_STEP_S: Final[float] = 0.1
 
 #: Consecutive gated fixes after which their disagreement is added to the position covariance.
 CONSECUTIVE_GATED_INFLATE: Final[int] = 3
@@ -64,7 +82,7 @@ _H_D = np.array([[0.0, 0.0, 1.0, 0.0, 0.0, 0.0]])
 
 
 class FixReason:
-    """Values of ``FixDecision.reason``."""
+    """Values of ``FixDecision.reason`` (the time axis adds its own refusals, see ``time_axis``)."""
 
     ACCEPTED: Final = "accepted"
     ACCEPTED_REACQUIRE: Final = "accepted_reacquire"
@@ -72,7 +90,8 @@ class FixReason:
     FIX_SIGMA_TOO_LARGE: Final = "fix_sigma_too_large"
     INVALID_MEASUREMENT: Final = "invalid_measurement"
     NOT_INITIALISED: Final = "not_initialised"
-    STALE: Final = "stale"
+    #: The measurement is older than the filter's time: only the time axis may fuse it (by rewinding).
+    BEHIND_FILTER: Final = "behind_filter"
 
 
 def _is_covariance(cov: np.ndarray, dim: int) -> bool:
@@ -88,13 +107,34 @@ def _horiz_sigma_m(p_mat: np.ndarray) -> float:
     return float(np.sqrt(np.max(np.linalg.eigvalsh(p_mat[:2, :2]))))
 
 
+def _valid_accel(a: np.ndarray | None) -> np.ndarray | None:
+    if a is None:
+        return None
+    arr = np.asarray(a, dtype=np.float64).reshape(-1)
+    return arr if arr.shape == (3,) and np.all(np.isfinite(arr)) else None
+
+
+@dataclass(frozen=True)
+class EstimatorCheckpoint:
+    """Everything :meth:`NavEstimator.restore` needs to put the filter back exactly (copies)."""
+
+    x: np.ndarray
+    p_mat: np.ndarray
+    time_usec: int | None
+    last_fix_usec: int | None
+    last_no_fix_usec: int | None
+    last_vo_usec: int | None
+    consecutive_gated: int
+    yaw_rad: float | None
+
+
 class NavEstimator:
-    """Fuses C4 fixes, C1 motion and the autopilot's altitude into the navigation state.
+    """Fuses C4 fixes, C1 motion, the autopilot's altitude and (through ``accel_source``) its IMU.
 
     ``config``: the ``estimator`` section; ``ltp``: the flight's NED frame (geodetic output).
-    ``fix_recent_s`` / ``vo_recent_s``: provenance windows (see the module docstring);
-    ``max_fix_lag_s``: how late a fix may arrive and still be fused (at the filter's current time).
-    Not thread-safe: one pipeline worker owns it.
+    ``accel_source``: measured acceleration for the prediction (None: constant velocity only).
+    ``fix_recent_s`` / ``vo_recent_s``: provenance windows (see the module docstring).
+    Not thread-safe: the time axis owns it and serialises every call.
     """
 
     def __init__(
@@ -102,29 +142,36 @@ class NavEstimator:
         config: EstimatorConfig,
         ltp: LocalTangentPlane,
         *,
+        accel_source: AccelerationSource | None = None,
         fix_recent_s: float = DEFAULT_FIX_RECENT_S,
         vo_recent_s: float = DEFAULT_VO_RECENT_S,
-        max_fix_lag_s: float = DEFAULT_MAX_FIX_LAG_S,
     ) -> None:
-        for name, value in (
-            ("fix_recent_s", fix_recent_s),
-            ("vo_recent_s", vo_recent_s),
-            ("max_fix_lag_s", max_fix_lag_s),
-        ):
+        for name, value in (("fix_recent_s", fix_recent_s), ("vo_recent_s", vo_recent_s)):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number of seconds, got {value!r}")
         self._config = config
         self._ltp = ltp
+        self._accel = accel_source
         self._fix_recent_s = fix_recent_s
         self._vo_recent_s = vo_recent_s
-        self._max_fix_lag_s = max_fix_lag_s
         self._kf = KalmanFilter(dim_x=6, dim_z=3)
         self._time_usec: int | None = None
         self._last_fix_usec: int | None = None
+        self._last_no_fix_usec: int | None = None
         self._consecutive_gated = 0
         self._last_vo_usec: int | None = None
         self._yaw_rad: float | None = None
         self._provenance = Provenance.NO_ESTIMATE
+        #: False while the time axis re-applies measurements after a rewind: their events were logged
+        #: when they first arrived, so a replay must not log them again.
+        self.logging_enabled = True
+        #: False during a whole rewind: the label is only re-derived (and a change logged) at its end,
+        #: so the intermediate states of a rewind never show as provenance transitions.
+        self.provenance_live = True
+
+    def _emit(self, level: str, event: str, **fields: Any) -> None:
+        if self.logging_enabled:
+            getattr(_log, level)(event, **fields)
 
     # -- lifecycle ----------------------------------------------------------------------------------------
 
@@ -162,10 +209,12 @@ class NavEstimator:
         self._kf.P = np.diag([sigma_m**2] * 3 + [vel_sigma_m_s**2] * 3)
         self._time_usec = int(time_unix_usec)
         self._last_fix_usec = None
+        self._last_no_fix_usec = None
         self._consecutive_gated = 0
         self._last_vo_usec = None
         self._yaw_rad = None
-        _log.info(
+        self._emit(
+            "info",
             LogEvent.ESTIMATOR_INITIALISED,
             pos_ned_m=pos.tolist(),
             sigma_m=sigma_m,
@@ -174,28 +223,66 @@ class NavEstimator:
         )
         self._refresh_provenance()
 
+    def checkpoint(self) -> EstimatorCheckpoint:
+        """A copy of the whole filter state (for the time axis to rewind to)."""
+        return EstimatorCheckpoint(
+            self._kf.x.copy(),
+            self._kf.P.copy(),
+            self._time_usec,
+            self._last_fix_usec,
+            self._last_no_fix_usec,
+            self._last_vo_usec,
+            self._consecutive_gated,
+            self._yaw_rad,
+        )
+
+    def restore(self, cp: EstimatorCheckpoint) -> None:
+        """Put the filter back to ``cp`` exactly (the provenance label is re-derived, not logged)."""
+        self._kf.x = cp.x.copy()
+        self._kf.P = cp.p_mat.copy()
+        self._time_usec = cp.time_usec
+        self._last_fix_usec = cp.last_fix_usec
+        self._last_no_fix_usec = cp.last_no_fix_usec
+        self._last_vo_usec = cp.last_vo_usec
+        self._consecutive_gated = cp.consecutive_gated
+        self._yaw_rad = cp.yaw_rad
+
     # -- prediction ---------------------------------------------------------------------------------------
 
-    def _transition(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def _step(self, x: np.ndarray, p_mat: np.ndarray, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray]:
+        """One prediction step ``t0 -> t1`` (t1 > t0) on copies; returns (x, P)."""
+        dt = (t1 - t0) / 1e6
+        accel = _valid_accel(self._accel.accel_ned_mean(t0, t1)) if self._accel is not None else None
         f_mat = np.eye(6)
-        f_mat[0:3, 3:6] = dt_s * np.eye(3)
+        f_mat[0:3, 3:6] = dt * np.eye(3)
+        density = self._config.accel_noise_m_s2 if accel is None else self._config.imu_accel_noise_m_s2
         q_mat = Q_continuous_white_noise(
-            dim=2,
-            dt=dt_s,
-            spectral_density=self._config.accel_noise_m_s2**2,
-            block_size=3,
-            order_by_dim=False,
+            dim=2, dt=dt, spectral_density=density**2, block_size=3, order_by_dim=False
         )
-        return f_mat, q_mat
+        x_new = f_mat @ x
+        if accel is not None:
+            x_new[0:3] += 0.5 * dt * dt * accel
+            x_new[3:6] += dt * accel
+        return x_new, f_mat @ p_mat @ f_mat.T + q_mat
+
+    def _propagate(self, x: np.ndarray, p_mat: np.ndarray, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray]:
+        step_usec = int(PREDICT_STEP_S * 1e6)
+        t = t0
+        while t < t1:
+            t_next = min(t1, t + step_usec)
+            x, p_mat = self._step(x, p_mat, t, t_next)
+            t = t_next
+        return x, p_mat
 
     def predict_to(self, time_unix_usec: int) -> None:
         """Propagate the state to ``time_unix_usec``. Earlier times are logged and ignored (the filter
-        never runs backwards); no-op before :meth:`initialise`."""
+        never runs backwards; rewinding is the time axis' job); no-op before :meth:`initialise`."""
         if self._time_usec is None:
             return
         t = int(time_unix_usec)
         if t < self._time_usec:
-            _log.warning(
+            self._emit(
+                "warning",
                 LogEvent.ESTIMATOR_TIME_BACKWARDS,
                 requested_unix_usec=t,
                 filter_unix_usec=self._time_usec,
@@ -204,15 +291,22 @@ class NavEstimator:
             return
         if t == self._time_usec:
             return
-        f_mat, q_mat = self._transition((t - self._time_usec) / 1e6)
-        self._kf.predict(F=f_mat, Q=q_mat)
+        x, p_mat = self._propagate(self._kf.x.reshape(-1), self._kf.P, self._time_usec, t)
+        self._kf.x = x.reshape(6, 1)
+        self._kf.P = p_mat
         self._time_usec = t
         self._refresh_provenance()
 
     # -- updates ------------------------------------------------------------------------------------------
 
+    def _behind(self, t_usec: int) -> FixDecision | None:
+        if self._time_usec is not None and t_usec < self._time_usec:
+            return FixDecision(False, math.nan, FixReason.BEHIND_FILTER)
+        return None
+
     def update_fix(self, fix: PoseFix) -> FixDecision:
-        """Fuse an absolute fix (after predicting to its exposure time).
+        """Fuse an absolute fix at its exposure time (the filter is predicted to it first; a fix older
+        than the filter's time is refused with ``behind_filter``: the time axis rewinds for those).
 
         Gate: the horizontal innovation's NIS must be <= ``fix_gate_chi2``. Re-acquisition: when the
         prior horizontal sigma exceeds ``reacquire_sigma_m`` the gate is bypassed, because after a long
@@ -220,20 +314,19 @@ class NavEstimator:
         would reject every correct fix from then on and the estimator could never recover. The risk is
         bounded: C2 already searched around the prior, and a fix whose own horizontal sigma exceeds
         ``reacquire_sigma_m`` is still refused (it would not re-anchor anything).
-        Fixes older than ``max_fix_lag_s`` relative to the filter are refused as stale; younger late
-        fixes are applied at the filter's time.
         """
         if self._time_usec is None:
             return FixDecision(False, math.nan, FixReason.NOT_INITIALISED)
         pos = np.asarray(fix.pos_ned_m, dtype=np.float64).reshape(-1)
         cov = np.asarray(fix.cov_ned_m2, dtype=np.float64)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not _is_covariance(cov, 3):
-            _log.warning(LogEvent.ESTIMATOR_FIX_REJECTED, reason=FixReason.INVALID_MEASUREMENT, nis=None)
+            self._emit(
+                "warning", LogEvent.ESTIMATOR_FIX_REJECTED, reason=FixReason.INVALID_MEASUREMENT, nis=None
+            )
             return FixDecision(False, math.nan, FixReason.INVALID_MEASUREMENT)
-        lag_s = (self._time_usec - fix.exposure_time_unix_usec) / 1e6
-        if lag_s > self._max_fix_lag_s:
-            _log.warning(LogEvent.ESTIMATOR_FIX_REJECTED, reason=FixReason.STALE, lag_s=lag_s, nis=None)
-            return FixDecision(False, math.nan, FixReason.STALE)
+        behind = self._behind(fix.exposure_time_unix_usec)
+        if behind is not None:
+            return behind
         self.predict_to(fix.exposure_time_unix_usec)
 
         x = self._kf.x.reshape(-1)
@@ -245,16 +338,19 @@ class NavEstimator:
         gate = self._config.fix_gate_chi2
         if prior_sigma > self._config.reacquire_sigma_m:
             if fix.horiz_sigma_m > self._config.reacquire_sigma_m:
-                _log.warning(
+                self._emit(
+                    "warning",
                     LogEvent.ESTIMATOR_FIX_REJECTED,
                     reason=FixReason.FIX_SIGMA_TOO_LARGE,
                     nis=nis,
                     gate=gate,
                     fix_sigma_m=fix.horiz_sigma_m,
                 )
+                self._note_no_fix_at(self._time_usec)
                 return FixDecision(False, nis, FixReason.FIX_SIGMA_TOO_LARGE)
             reason = FixReason.ACCEPTED_REACQUIRE
-            _log.info(
+            self._emit(
+                "info",
                 LogEvent.ESTIMATOR_REACQUIRED,
                 nis=nis,
                 prior_sigma_m=prior_sigma,
@@ -262,7 +358,8 @@ class NavEstimator:
             )
         elif nis > gate:
             self._consecutive_gated += 1
-            _log.warning(
+            self._emit(
+                "warning",
                 LogEvent.ESTIMATOR_FIX_REJECTED,
                 reason=FixReason.GATED,
                 nis=nis,
@@ -283,8 +380,13 @@ class NavEstimator:
                 # likely a look-alike area: those stay rejected (the wrong-tile trap).
                 self._kf.P[:2, :2] += np.outer(innov, innov)
                 self._consecutive_gated = 0
-                _log.warning(LogEvent.ESTIMATOR_COVARIANCE_INFLATED, innovation_m=float(np.hypot(*innov)),
-                             horiz_sigma_m=_horiz_sigma_m(self._kf.P))
+                self._emit(
+                    "warning",
+                    LogEvent.ESTIMATOR_COVARIANCE_INFLATED,
+                    innovation_m=float(np.hypot(*innov)),
+                    horiz_sigma_m=_horiz_sigma_m(self._kf.P),
+                )
+            self._note_no_fix_at(self._time_usec)
             return FixDecision(False, nis, FixReason.GATED)
         else:
             reason = FixReason.ACCEPTED
@@ -297,12 +399,24 @@ class NavEstimator:
         self._refresh_provenance()
         return FixDecision(True, nis, reason)
 
-    def update_vo(self, motion: VoMotion, *, time_unix_usec: int | None = None) -> FixDecision:
-        """Fuse VO motion as the average horizontal velocity ``delta / dt`` at the filter's time.
+    def _note_no_fix_at(self, t_usec: int) -> None:
+        if self._last_no_fix_usec is None or t_usec > self._last_no_fix_usec:
+            self._last_no_fix_usec = t_usec
 
-        ``VoMotion`` carries no timestamp: pass the current frame's exposure time as
-        ``time_unix_usec`` to predict to it first (or call :meth:`predict_to` before). The velocity
-        innovation is gated with ``fix_gate_chi2`` (2 dof) so a VO blunder cannot corrupt the velocity.
+    def note_no_fix(self, time_unix_usec: int) -> None:
+        """An absolute-fix attempt on the frame exposed at ``time_unix_usec`` gave no fix (too few
+        inliers, pose rejected, no tiles...): ``satellite_anchored`` ends at the filter's time. Does not
+        move the filter's clock."""
+        if self._time_usec is None:
+            return
+        self._note_no_fix_at(int(time_unix_usec))
+        self._refresh_provenance()
+
+    def update_vo(self, motion: VoMotion, *, time_unix_usec: int) -> FixDecision:
+        """Fuse VO motion over ``[time_unix_usec - dt, time_unix_usec]`` (``time_unix_usec``: the exposure
+        of the frame that ends the interval) as the horizontal velocity at that time (see the module
+        docstring). The velocity innovation is gated with ``fix_gate_chi2`` (2 dof) so a VO blunder
+        cannot corrupt the velocity.
         """
         if self._time_usec is None:
             return FixDecision(False, math.nan, FixReason.NOT_INITIALISED)
@@ -315,18 +429,28 @@ class NavEstimator:
             or not np.all(np.isfinite(delta))
             or not _is_covariance(cov, 2)
         ):
-            _log.warning(LogEvent.ESTIMATOR_VO_REJECTED, reason=FixReason.INVALID_MEASUREMENT, dt_s=dt)
+            self._emit(
+                "warning", LogEvent.ESTIMATOR_VO_REJECTED, reason=FixReason.INVALID_MEASUREMENT, dt_s=dt
+            )
             return FixDecision(False, math.nan, FixReason.INVALID_MEASUREMENT)
-        if time_unix_usec is not None:
-            self.predict_to(time_unix_usec)
+        t = int(time_unix_usec)
+        behind = self._behind(t)
+        if behind is not None:
+            return behind
+        self.predict_to(t)
         vel = delta / dt
+        if self._accel is not None:
+            accel = _valid_accel(self._accel.accel_ned_mean(t - round(dt * 1e6), t))
+            if accel is not None:
+                vel = vel + accel[:2] * (dt / 2.0)
         r_mat = self._config.vo_noise_scale * cov / dt**2
         x = self._kf.x.reshape(-1)
         innov = vel - x[3:5]
         s_mat = self._kf.P[3:5, 3:5] + r_mat
         nis = float(innov @ np.linalg.solve(s_mat, innov))
         if nis > self._config.fix_gate_chi2:
-            _log.warning(
+            self._emit(
+                "warning",
                 LogEvent.ESTIMATOR_VO_REJECTED,
                 reason=FixReason.GATED,
                 nis=nis,
@@ -338,13 +462,21 @@ class NavEstimator:
         self._refresh_provenance()
         return FixDecision(True, nis, FixReason.ACCEPTED)
 
-    def update_altitude(self, alt_agl_m: float, ground_alt_amsl_m: float, sigma_m: float) -> FixDecision:
-        """Fuse the autopilot's height above ground (flat ground at ``ground_alt_amsl_m``) on ``d``, at
-        the filter's current time. Not gated: the autopilot's altitude is the more trusted source."""
+    def update_altitude(
+        self, alt_agl_m: float, ground_alt_amsl_m: float, sigma_m: float, *, time_unix_usec: int | None = None
+    ) -> FixDecision:
+        """Fuse the autopilot's height above ground (flat ground at ``ground_alt_amsl_m``) on ``d`` at
+        ``time_unix_usec`` (default: the filter's time). Not gated: the autopilot's altitude is the
+        more trusted source."""
         if self._time_usec is None:
             return FixDecision(False, math.nan, FixReason.NOT_INITIALISED)
         if not (math.isfinite(alt_agl_m) and math.isfinite(ground_alt_amsl_m) and sigma_m > 0):
             return FixDecision(False, math.nan, FixReason.INVALID_MEASUREMENT)
+        if time_unix_usec is not None:
+            behind = self._behind(int(time_unix_usec))
+            if behind is not None:
+                return behind
+            self.predict_to(int(time_unix_usec))
         x = self._kf.x.reshape(-1)
         lat, lon, _ = self._ltp.to_geodetic(x[:3])
         d_meas = float(self._ltp.to_ned(lat, lon, ground_alt_amsl_m + alt_agl_m)[2])
@@ -364,8 +496,8 @@ class NavEstimator:
         p_mat = self._kf.P.copy()
         if time_unix_usec <= self._time_usec:
             return x, p_mat, self._time_usec
-        f_mat, q_mat = self._transition((time_unix_usec - self._time_usec) / 1e6)
-        return f_mat @ x, f_mat @ p_mat @ f_mat.T + q_mat, int(time_unix_usec)
+        x, p_mat = self._propagate(x, p_mat, self._time_usec, int(time_unix_usec))
+        return x, p_mat, int(time_unix_usec)
 
     def provenance_at(self, time_unix_usec: int | None = None) -> Provenance:
         """The provenance label at ``time_unix_usec`` (default: the filter's time), without side effects."""
@@ -378,27 +510,24 @@ class NavEstimator:
     def _label(self, p_mat: np.ndarray, t: int) -> Provenance:
         if _horiz_sigma_m(p_mat) > self._config.max_output_sigma_m:
             return Provenance.NO_ESTIMATE
-        fix_is_latest = self._last_vo_usec is None or (
-            self._last_fix_usec is not None and self._last_vo_usec <= self._last_fix_usec
-        )
         if (
             self._last_fix_usec is not None
-            and fix_is_latest
+            and (self._last_no_fix_usec is None or self._last_fix_usec >= self._last_no_fix_usec)
             and (t - self._last_fix_usec) / 1e6 <= self._fix_recent_s
         ):
             return Provenance.SATELLITE_ANCHORED
-        if (
-            self._last_vo_usec is not None
-            and (self._last_fix_usec is None or self._last_vo_usec >= self._last_fix_usec)
-            and (t - self._last_vo_usec) / 1e6 <= self._vo_recent_s
-        ):
+        if self._last_vo_usec is not None and (t - self._last_vo_usec) / 1e6 <= self._vo_recent_s:
             return Provenance.VISUAL_PROPAGATED
         return Provenance.DEAD_RECKONING
 
     def _refresh_provenance(self, label: Provenance | None = None) -> None:
+        if not self.provenance_live:
+            return
         new = self.provenance_at() if label is None else label
         if new is not self._provenance:
-            _log.info(LogEvent.PROVENANCE_CHANGED, **{"from": self._provenance.value, "to": new.value})
+            self._emit(
+                "info", LogEvent.PROVENANCE_CHANGED, **{"from": self._provenance.value, "to": new.value}
+            )
             self._provenance = new
 
     def state(self, time_unix_usec: int | None = None) -> EstimatorState:

@@ -1,0 +1,312 @@
+"""C5 time axis: the one place that decides what time it is for the estimator.
+
+Every input carries the time it describes (a frame's exposure, an IMU sample's time), never the time it
+arrived, and every input goes through here. Three jobs, one mechanism:
+
+1. **Admission** (refused inputs are counted by reason, logged, and never move the filter's clock):
+
+   ``future``
+       stamped more than ``max_future_s`` ahead of the daemon's clock. A frame from the future would
+       drag the filter ahead of every correct measurement after it; it is refused, whatever it is.
+   ``stale``
+       a frame older than ``max_frame_age_s`` when the daemon gets to it (its attitude is history).
+   ``out_of_order``
+       a frame whose exposure is not after the previous admitted frame's (VO needs dt > 0).
+   ``too_late``
+       a measurement older than what the filter can still be rewound to: more than ``max_delay_s``
+       behind the newest measurement fused, or before the filter was (re)initialised.
+
+2. **Delayed fusion**: the filter keeps a checkpoint before each fused input of the last
+   ``max_delay_s``. An input older than the newest one (a slow absolute fix, the F3 "parallel" path)
+   rewinds the filter to the checkpoint just before its time, is fused *at its own time*, and every
+   later input is fused again on top, in time order (their events are not logged twice). Fusing it at
+   its arrival time instead would put a position measured seconds ago at today's state: a bias the
+   size of the distance flown meanwhile.
+
+3. **Output at any time**: :meth:`TimeAxis.state_at` predicts from the newest fused input to the
+   requested time (default: now) without changing the filter, through the estimator's IMU-driven
+   prediction. This is what the steady MAVLink stream sends between frames.
+
+Thread-safe: the VO worker, the fix worker and the output task share one axis (one lock; each call is a
+few 6x6 matrix operations, a rewind a few dozen).
+"""
+
+from __future__ import annotations
+
+import bisect
+import itertools
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Final
+
+import numpy as np
+import structlog
+
+from gps_denied_onboard.components.c1_vio.types import VoMotion
+from gps_denied_onboard.components.c4_pose.types import PoseFix
+from gps_denied_onboard.components.c5_estimator.ekf import EstimatorCheckpoint, FixReason, NavEstimator
+from gps_denied_onboard.components.c5_estimator.types import EstimatorState, FixDecision
+from gps_denied_onboard.constants import LogEvent
+
+_log = structlog.get_logger(__name__)
+
+#: Default tolerance for a timestamp ahead of the daemon's clock (camera and clock jitter), s.
+DEFAULT_MAX_FUTURE_S: Final[float] = 0.25
+
+
+class Refusal(str, Enum):
+    """Why the time axis refused an input's timestamp (also ``FixDecision.reason``)."""
+
+    FUTURE = "future"
+    STALE = "stale"
+    OUT_OF_ORDER = "out_of_order"
+    TOO_LATE = "too_late"
+
+
+@dataclass(frozen=True)
+class Admission:
+    """The verdict on one frame's exposure time. ``ahead_s``: exposure minus the clock (> 0: future)."""
+
+    admitted: bool
+    reason: Refusal | None
+    ahead_s: float
+
+
+@dataclass(frozen=True)
+class TimeAxisStats:
+    """Counters since start, for the status line and the FDR."""
+
+    refused: dict[str, int]
+    frames_admitted: int
+    measurements_fused: int
+    #: Inputs that arrived behind the newest one and were fused at their own time by rewinding.
+    rewinds: int
+    #: Largest ``newest - input`` time of a rewound input, s.
+    max_rewind_s: float
+
+
+@dataclass
+class _Entry:
+    time_usec: int
+    seq: int
+    kind: str
+    apply: Callable[[NavEstimator], FixDecision]
+    #: The filter just before this entry was (last) applied.
+    before: EstimatorCheckpoint | None = field(default=None, repr=False)
+
+    @property
+    def key(self) -> tuple[int, int]:
+        return self.time_usec, self.seq
+
+
+def _clock_unix_usec() -> int:
+    return time.time_ns() // 1000
+
+
+class TimeAxis:
+    """The estimator's time axis (see the module docstring).
+
+    ``estimator``: the filter it owns (nothing else may call its update methods). ``clock_unix_usec``:
+    the daemon's clock (injected for tests and replay). ``max_future_s``, ``max_frame_age_s``,
+    ``max_delay_s``: the admission bounds, seconds.
+    """
+
+    def __init__(
+        self,
+        estimator: NavEstimator,
+        *,
+        max_delay_s: float,
+        max_frame_age_s: float,
+        max_future_s: float = DEFAULT_MAX_FUTURE_S,
+        clock_unix_usec: Callable[[], int] = _clock_unix_usec,
+    ) -> None:
+        for name, value in (
+            ("max_delay_s", max_delay_s),
+            ("max_frame_age_s", max_frame_age_s),
+            ("max_future_s", max_future_s),
+        ):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number of seconds, got {value!r}")
+        self._est = estimator
+        self._clock = clock_unix_usec
+        self._max_future_usec = round(max_future_s * 1e6)
+        self._max_frame_age_usec = round(max_frame_age_s * 1e6)
+        self._max_delay_usec = round(max_delay_s * 1e6)
+        self._lock = threading.RLock()
+        self._entries: list[_Entry] = []
+        self._seq = itertools.count()
+        self._last_frame_usec: int | None = None
+        self._refused: dict[str, int] = {r.value: 0 for r in Refusal}
+        self._frames_admitted = 0
+        self._fused = 0
+        self._rewinds = 0
+        self._max_rewind_usec = 0
+
+    # -- frames ---------------------------------------------------------------------------------------
+
+    def admit_frame(self, exposure_time_unix_usec: int) -> Admission:
+        """Admit or refuse a frame by its exposure time (see the module docstring). An admitted frame's
+        time becomes the bound for the next one; a refused one changes nothing but the counters."""
+        t = int(exposure_time_unix_usec)
+        with self._lock:
+            now = self._clock()
+            ahead_usec = t - now
+            reason: Refusal | None = None
+            if ahead_usec > self._max_future_usec:
+                reason = Refusal.FUTURE
+            elif -ahead_usec > self._max_frame_age_usec:
+                reason = Refusal.STALE
+            elif self._last_frame_usec is not None and t <= self._last_frame_usec:
+                reason = Refusal.OUT_OF_ORDER
+            if reason is not None:
+                self._refuse("frame", reason, t, now)
+                return Admission(False, reason, ahead_usec / 1e6)
+            self._last_frame_usec = t
+            self._frames_admitted += 1
+            return Admission(True, None, ahead_usec / 1e6)
+
+    def _refuse(self, kind: str, reason: Refusal, t: int, now: int) -> None:
+        self._refused[reason.value] += 1
+        head = self._est.time_unix_usec
+        _log.warning(
+            LogEvent.TIME_AXIS_REFUSED,
+            input=kind,
+            reason=reason.value,
+            time_unix_usec=t,
+            ahead_of_clock_s=round((t - now) / 1e6, 3),
+            behind_filter_s=None if head is None else round((head - t) / 1e6, 3),
+            refused_total=self._refused[reason.value],
+        )
+
+    # -- lifecycle ------------------------------------------------------------------------------------
+
+    @property
+    def is_initialised(self) -> bool:
+        with self._lock:
+            return self._est.is_initialised
+
+    @property
+    def head_unix_usec(self) -> int | None:
+        """Time of the newest fused input (or of the initialisation); None before it."""
+        with self._lock:
+            return self._est.time_unix_usec
+
+    def initialise(self, pos_ned_m: np.ndarray, sigma_m: float, time_unix_usec: int) -> None:
+        """(Re)start the filter at ``time_unix_usec``; nothing earlier can be fused afterwards."""
+        with self._lock:
+            self._est.initialise(pos_ned_m, sigma_m, int(time_unix_usec))
+            self._entries.clear()
+
+    # -- measurements ---------------------------------------------------------------------------------
+
+    def fuse_vo(self, motion: VoMotion, time_unix_usec: int) -> FixDecision:
+        """VO motion over the interval ending at ``time_unix_usec`` (that frame's exposure)."""
+        t = int(time_unix_usec)
+        return self._fuse("vo", t, lambda est: est.update_vo(motion, time_unix_usec=t))
+
+    def fuse_altitude(
+        self, alt_agl_m: float, ground_alt_amsl_m: float, sigma_m: float, time_unix_usec: int
+    ) -> FixDecision:
+        """The autopilot's height above ground at ``time_unix_usec``."""
+        t = int(time_unix_usec)
+        return self._fuse(
+            "altitude",
+            t,
+            lambda est: est.update_altitude(alt_agl_m, ground_alt_amsl_m, sigma_m, time_unix_usec=t),
+        )
+
+    def fuse_fix(self, fix: PoseFix) -> FixDecision:
+        """An absolute fix, at its frame's exposure time however late it arrives (or refused)."""
+        return self._fuse("fix", int(fix.exposure_time_unix_usec), lambda est: est.update_fix(fix))
+
+    def note_no_fix(self, time_unix_usec: int) -> None:
+        """The absolute-fix attempt on the frame exposed at ``time_unix_usec`` gave no fix."""
+        t = int(time_unix_usec)
+
+        def apply(est: NavEstimator) -> FixDecision:
+            est.note_no_fix(t)
+            return FixDecision(True, math.nan, FixReason.ACCEPTED)
+
+        self._fuse("no_fix", t, apply)
+
+    def _fuse(self, kind: str, t: int, apply: Callable[[NavEstimator], FixDecision]) -> FixDecision:
+        with self._lock:
+            head = self._est.time_unix_usec
+            if head is None:
+                return FixDecision(False, math.nan, FixReason.NOT_INITIALISED)
+            now = self._clock()
+            if t - now > self._max_future_usec:
+                self._refuse(kind, Refusal.FUTURE, t, now)
+                return FixDecision(False, math.nan, Refusal.FUTURE.value)
+            entry = _Entry(t, next(self._seq), kind, apply)
+            idx = bisect.bisect_right([e.key for e in self._entries], entry.key)
+            rewind_to = self._entries[idx].before if idx < len(self._entries) else None
+            floor = rewind_to.time_usec if rewind_to is not None else head
+            if head - t > self._max_delay_usec or floor is None or t < floor:
+                self._refuse(kind, Refusal.TOO_LATE, t, now)
+                return FixDecision(False, math.nan, Refusal.TOO_LATE.value)
+            later = self._entries[idx:]
+            if rewind_to is not None:
+                self._est.restore(rewind_to)
+                self._est.provenance_live = False
+            try:
+                entry.before = self._est.checkpoint()
+                decision = entry.apply(self._est)
+                self._entries.insert(idx, entry)
+                self._replay(later)
+            finally:
+                self._est.provenance_live = True
+            self._fused += 1
+            if later:
+                self._est.state()  # re-derive (and log, once) the provenance after the rewind
+                self._rewinds += 1
+                self._max_rewind_usec = max(self._max_rewind_usec, head - t)
+                _log.debug(
+                    LogEvent.TIME_AXIS_REWOUND, input=kind, behind_s=(head - t) / 1e6, replayed=len(later)
+                )
+            self._prune()
+            return decision
+
+    def _replay(self, entries: list[_Entry]) -> None:
+        self._est.logging_enabled = False
+        try:
+            for e in entries:
+                e.before = self._est.checkpoint()
+                e.apply(self._est)
+        finally:
+            self._est.logging_enabled = True
+
+    def _prune(self) -> None:
+        head = self._est.time_unix_usec
+        if head is None:
+            return
+        keep_from = bisect.bisect_left([e.time_usec for e in self._entries], head - self._max_delay_usec)
+        if keep_from:
+            del self._entries[:keep_from]
+
+    # -- output ---------------------------------------------------------------------------------------
+
+    def state_at(self, time_unix_usec: int | None = None) -> EstimatorState:
+        """The estimate predicted to ``time_unix_usec`` (default: the clock's now); the filter is not
+        changed. A time before the newest fused input is answered with that input's estimate (no
+        retrodiction), stamped with its own time."""
+        with self._lock:
+            t = self._clock() if time_unix_usec is None else int(time_unix_usec)
+            return self._est.state(t)
+
+    def now_unix_usec(self) -> int:
+        return self._clock()
+
+    def stats(self) -> TimeAxisStats:
+        with self._lock:
+            return TimeAxisStats(
+                dict(self._refused),
+                self._frames_admitted,
+                self._fused,
+                self._rewinds,
+                self._max_rewind_usec / 1e6,
+            )
