@@ -1,16 +1,26 @@
 """The navigation daemon: one asyncio service owning named tasks.
 
-Tasks: ``camera_ingest`` (frames into a newest-wins queue), ``pipeline_worker`` (runs the OpenCV/ONNX
-pipeline on a worker thread, sends the estimate), ``mavlink_rx`` (drains the link whenever its socket
-is readable), ``mavlink_tx`` (own HEARTBEAT), ``status`` (status log, ground-station values, systemd
-watchdog). Leaving ``run`` cancels and awaits every task; only CancelledError is swallowed. A failing
-task is logged with its name and stops the daemon (systemd restarts it: F8).
+Tasks:
+- ``camera_ingest``: frames into a newest-wins queue;
+- ``track_worker``: each frame's exposure time is admitted or refused by the C5 time axis (future,
+  stale, out of order: counted, recorded, never processed), then decoded and tracked (C1 VO fused at the
+  exposure time) on the ``track`` thread, and handed to the fix path;
+- ``fix_worker``: the absolute-fix path (C2 -> C2.5 -> C3 -> C4) on the newest tracked frame, on the ``fix``
+  thread, fused at that frame's exposure time (F3 "in parallel": a slow matcher never holds up VO or the
+  output; frames it has no time for are skipped and counted);
+- ``estimate_output``: the estimate propagated to the send time, at ``mavlink.estimate_rate_hz`` on
+  absolute deadlines, whatever the frames do (ArduPilot needs >= 5 Hz with little jitter);
+- ``mavlink_rx`` (drains the link whenever its socket is readable), ``mavlink_tx`` (own HEARTBEAT),
+  ``status`` (status log, ground-station values, systemd watchdog).
+Leaving ``run`` cancels and awaits every task; only CancelledError is swallowed. A failing task is
+logged with its name and stops the daemon (systemd restarts it: F8).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import signal
 import time
 import uuid
@@ -22,16 +32,18 @@ from pymavlink import mavutil
 from gps_denied_onboard.camera.sources import CapturedFrame
 from gps_denied_onboard.camera.stream import FrameStreamError
 from gps_denied_onboard.camera.types import NavCameraFrame
+from gps_denied_onboard.components.c5_estimator.types import EstimatorState
+from gps_denied_onboard.components.c8_mavlink.messages import fix_type_for
 from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.worker import WorkerThread
-from gps_denied_onboard.pipeline import FrameOutcome, InitialPrior
+from gps_denied_onboard.pipeline import FixOutcome, InitialPrior, TrackOutcome
 from gps_denied_onboard.runtime_root import RuntimeRoot
 
 log = structlog.get_logger(__name__)
 
-#: Seconds allowed for cancelled tasks, then for the in-flight frame, when stopping (2 s budget in all).
+#: Seconds allowed for cancelled tasks, then for the in-flight frames, when stopping (2 s budget in all).
 _STOP_GRACE_S = 0.5
 _FRAME_GRACE_S = 0.5
 
@@ -39,11 +51,16 @@ _FRAME_GRACE_S = 0.5
 @dataclass
 class DaemonCounters:
     frames_received: int = 0
+    #: Refused by the time axis before any processing (future, stale, out of order).
+    frames_refused: int = 0
     frames_processed: int = 0
-    frames_stale: int = 0
     frames_bad: int = 0
     frame_errors: int = 0
+    fix_attempts: int = 0
     fixes_accepted: int = 0
+    #: Tracked frames the fix path had no time for (a newer frame replaced them).
+    fix_frames_skipped: int = 0
+    estimates_sent: int = 0
     last_latency_ms: float | None = None
 
 
@@ -51,11 +68,16 @@ class NavDaemon:
     def __init__(self, root: RuntimeRoot, *, notifier: SdNotifier | None = None) -> None:
         self._root = root
         self._cfg = root.config
+        self._axis = root.time_axis
         self._notifier = notifier or SdNotifier()
         self._queue: LatestQueue[tuple[CapturedFrame, int]] = LatestQueue(self._cfg.camera.queue_depth)
-        self._worker = WorkerThread("pipeline")
+        self._fix_mailbox: LatestQueue[NavCameraFrame] = LatestQueue(1)
+        self._track_thread = WorkerThread("track")
+        self._fix_thread = WorkerThread("fix")
         self._provenance = Provenance.NO_ESTIMATE
-        self._last_outcome: FrameOutcome | None = None
+        self._last_state: EstimatorState | None = None
+        self._last_fix: FixOutcome | None = None
+        self._last_fix_reason: str | None = None
         #: Set before the tasks are cancelled. asyncio.wait_for can swallow a cancellation that lands as its
         #: inner wait completes (CPython 3.10/3.11), so the I/O loop also checks this flag.
         self._stopping = False
@@ -72,7 +94,9 @@ class NavDaemon:
         self._root.link.open()
         bodies = {
             "camera_ingest": self._camera_ingest(),
-            "pipeline_worker": self._pipeline_worker(),
+            "track_worker": self._track_worker(),
+            "fix_worker": self._fix_worker(),
+            "estimate_output": self._estimate_output(),
             "mavlink_rx": self._mavlink_rx(),
             "mavlink_tx": self._mavlink_tx(),
             "status": self._status(),
@@ -104,9 +128,13 @@ class NavDaemon:
                     task=task.get_name(),
                     stack=[f"{f.f_code.co_filename}:{f.f_lineno}" for f in task.get_stack()],
                 )
-            # The worker may be inside one frame: a bounded grace, then it is abandoned (daemon thread).
-            if not await self._worker.stop(_FRAME_GRACE_S):
-                log.warning(LogEvent.DAEMON_TASK_STUCK, task="pipeline_thread", grace_s=_FRAME_GRACE_S)
+            # The workers may be inside a frame: a bounded grace, then they are abandoned (daemon threads).
+            finished = await asyncio.gather(
+                self._track_thread.stop(_FRAME_GRACE_S), self._fix_thread.stop(_FRAME_GRACE_S)
+            )
+            for name, ok in zip(("track_thread", "fix_thread"), finished, strict=True):
+                if not ok:
+                    log.warning(LogEvent.DAEMON_TASK_STUCK, task=name, grace_s=_FRAME_GRACE_S)
             self._root.close()
             self._notifier.close()
             log.info(LogEvent.DAEMON_STOPPED, exit_code=exit_code, **vars(self.counters))
@@ -119,37 +147,51 @@ class NavDaemon:
             if not self._queue.put((frame, time.monotonic_ns())):
                 log.debug(LogEvent.CAMERA_FRAME_DROPPED, seq=frame.seq, dropped_total=self._queue.dropped)
 
-    async def _pipeline_worker(self) -> None:
+    async def _track_worker(self) -> None:
         tracker = self._root.tracker
         while True:
             captured, received_ns = await self._queue.get()
             t_us = captured.exposure_time_unix_usec
-            age_s = time.time() - t_us / 1e6
-            if age_s > self._cfg.daemon.max_frame_age_s:
-                self.counters.frames_stale += 1
+            admission = self._axis.admit_frame(t_us)
+            if not admission.admitted:
+                self.counters.frames_refused += 1
+                reason = admission.reason.value if admission.reason is not None else "unknown"
                 log.warning(
-                    LogEvent.PIPELINE_FRAME_INVALID, seq=captured.seq, reason="stale", age_s=round(age_s, 3)
+                    LogEvent.PIPELINE_FRAME_INVALID,
+                    seq=captured.seq,
+                    reason=reason,
+                    ahead_of_clock_s=round(admission.ahead_s, 3),
+                )
+                self._root.fdr.record(
+                    FdrKind.FRAME_REFUSED,
+                    {
+                        "frame_seq": captured.seq,
+                        "exposure_time_unix_usec": t_us,
+                        "reason": reason,
+                        "ahead_of_clock_s": admission.ahead_s,
+                    },
                 )
                 continue
-            # Vehicle state is sampled on the loop (single owner); the pipeline thread gets values only.
+            # Vehicle state is sampled on the loop (single owner); the worker threads get values only.
             attitude = tracker.attitude_at(t_us)
             alt_agl_m = tracker.alt_agl_at(t_us)
             prior = self._prior()
-            outcome = await self._worker.submit(
-                self._process, captured, received_ns, attitude, alt_agl_m, prior
+            result = await self._track_thread.submit(
+                self._track, captured, received_ns, attitude, alt_agl_m, prior
             )
+            if result is None:
+                continue
+            frame, outcome = result
+            self._note_tracked(outcome)
+            if self._axis.is_initialised and not self._fix_mailbox.put(frame):
+                self.counters.fix_frames_skipped += 1
+
+    async def _fix_worker(self) -> None:
+        while True:
+            frame = await self._fix_mailbox.get()
+            outcome = await self._fix_thread.submit(self._localise, frame)
             if outcome is not None:
-                try:
-                    self._publish(outcome)
-                except Exception as exc:  # one frame's output failing must not stop the daemon; recorded
-                    self.counters.frame_errors += 1
-                    log.exception(
-                        LogEvent.PIPELINE_FRAME_ERROR, seq=outcome.seq, stage="publish", error=repr(exc)
-                    )
-                    self._root.fdr.record(
-                        FdrKind.FRAME_ERROR,
-                        {"frame_seq": outcome.seq, "stage": "publish", "error": repr(exc)},
-                    )
+                self._note_fix(outcome)
 
     def _prior(self) -> InitialPrior | None:
         init = self._cfg.init
@@ -160,33 +202,34 @@ class NavDaemon:
             return InitialPrior(home[0], home[1], init.sigma_m, "home_position")
         return None
 
-    def _process(
+    def _frame_error(self, seq: int, stage: str, error: str, *, bad_input: bool) -> None:
+        if bad_input:
+            self.counters.frames_bad += 1
+        else:
+            self.counters.frame_errors += 1
+        self._root.fdr.record(FdrKind.FRAME_ERROR, {"frame_seq": seq, "stage": stage, "error": error})
+
+    def _track(
         self,
         captured: CapturedFrame,
         received_ns: int,
         attitude,
         alt_agl_m,  # type: ignore[no-untyped-def]
         prior: InitialPrior | None,
-    ) -> FrameOutcome | None:
-        """Runs on the pipeline thread. A per-frame error is recorded and the daemon keeps flying."""
+    ) -> tuple[NavCameraFrame, TrackOutcome] | None:
+        """Runs on the track thread. A per-frame error is recorded and the daemon keeps flying."""
         try:
             image = captured.decode()
         except FrameStreamError as exc:
-            self.counters.frames_bad += 1
             log.warning(LogEvent.CAMERA_BAD_FRAME, seq=captured.seq, error=str(exc))
-            self._root.fdr.record(
-                FdrKind.FRAME_ERROR, {"frame_seq": captured.seq, "stage": "decode", "error": str(exc)}
-            )
+            self._frame_error(captured.seq, "decode", str(exc), bad_input=True)
             return None
         cal = self._root.calibration
         if image.shape[1] != cal.width_px or image.shape[0] != cal.height_px:
-            self.counters.frames_bad += 1
             got, want = f"{image.shape[1]}x{image.shape[0]}", f"{cal.width_px}x{cal.height_px}"
             msg = f"frame is {got}, calibration is for {want}"
             log.warning(LogEvent.CAMERA_BAD_FRAME, seq=captured.seq, error=msg)
-            self._root.fdr.record(
-                FdrKind.FRAME_ERROR, {"frame_seq": captured.seq, "stage": "size", "error": msg}
-            )
+            self._frame_error(captured.seq, "size", msg, bad_input=True)
             return None
         frame = NavCameraFrame(
             uuid.uuid4(),
@@ -198,51 +241,102 @@ class NavDaemon:
             received_ns,
         )
         try:
-            return self._root.pipeline.process(frame, prior)
+            return frame, self._root.pipeline.track(frame, prior)
         except Exception as exc:  # keep flying on any per-frame failure; it is recorded
-            self.counters.frame_errors += 1
-            log.exception(LogEvent.PIPELINE_FRAME_ERROR, seq=captured.seq, error=repr(exc))
-            self._root.fdr.record(
-                FdrKind.FRAME_ERROR, {"frame_seq": captured.seq, "stage": "pipeline", "error": repr(exc)}
-            )
+            log.exception(LogEvent.PIPELINE_FRAME_ERROR, seq=captured.seq, stage="track", error=repr(exc))
+            self._frame_error(captured.seq, "track", repr(exc), bad_input=False)
             return None
 
-    def _publish(self, outcome: FrameOutcome) -> None:
+    def _localise(self, frame: NavCameraFrame) -> FixOutcome | None:
+        """Runs on the fix thread. A per-frame error is recorded and the daemon keeps flying."""
+        try:
+            return self._root.pipeline.localise(frame)
+        except Exception as exc:  # keep flying on any per-frame failure; it is recorded
+            log.exception(LogEvent.PIPELINE_FRAME_ERROR, seq=frame.seq, stage="localise", error=repr(exc))
+            self._frame_error(frame.seq, "localise", repr(exc), bad_input=False)
+            return None
+
+    def _note_tracked(self, outcome: TrackOutcome) -> None:
         self.counters.frames_processed += 1
-        self.counters.fixes_accepted += int(outcome.fix_accepted)
-        self._last_outcome = outcome
         latency_ms = (time.time() * 1e6 - outcome.exposure_time_unix_usec) / 1e3
         self.counters.last_latency_ms = latency_ms
         log.info(
             LogEvent.PIPELINE_FRAME,
             seq=outcome.seq,
             provenance=outcome.provenance.value,
-            inliers=outcome.inliers,
-            fix=outcome.fix_accepted,
-            reason=outcome.no_fix_reason,
+            vo=outcome.vo_ok,
+            vo_reason=outcome.vo_reason,
             sigma_m=round(outcome.state.horiz_sigma_m, 2) if outcome.state else None,
             latency_ms=round(latency_ms, 1),
             timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()},
         )
-        new = outcome.provenance
+
+    def _note_fix(self, outcome: FixOutcome) -> None:
+        self.counters.fix_attempts += 1
+        self.counters.fixes_accepted += int(outcome.fix_accepted)
+        self._last_fix = outcome
+        self._last_fix_reason = outcome.no_fix_reason
+        log.info(
+            LogEvent.PIPELINE_FIX,
+            seq=outcome.seq,
+            accepted=outcome.fix_accepted,
+            inliers=outcome.inliers,
+            reason=outcome.no_fix_reason,
+            fused_behind_s=round(outcome.fused_behind_s, 3),
+            age_ms=round((time.time() * 1e6 - outcome.exposure_time_unix_usec) / 1e3, 1),
+            timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()},
+        )
+
+    async def _estimate_output(self) -> None:
+        """The steady estimate stream: on absolute deadlines (no drift, bounded jitter), the state
+        propagated to the send time, whatever the frames do. A deadline missed by more than a period
+        (the loop was blocked) is skipped, not sent in a burst."""
+        period_s = 1.0 / self._cfg.mavlink.estimate_rate_hz
+        loop = asyncio.get_running_loop()
+        deadline = loop.time()
+        while True:
+            try:
+                self._send_estimate()
+            except Exception as exc:  # one estimate failing must not stop the stream; recorded
+                self.counters.frame_errors += 1
+                log.exception(LogEvent.PIPELINE_FRAME_ERROR, stage="estimate_output", error=repr(exc))
+                self._root.fdr.record(
+                    FdrKind.FRAME_ERROR, {"frame_seq": None, "stage": "estimate_output", "error": repr(exc)}
+                )
+            deadline += period_s
+            now = loop.time()
+            if now - deadline > period_s:
+                deadline = now
+            await asyncio.sleep(max(0.0, deadline - now))
+
+    def _send_estimate(self) -> None:
+        state = self._axis.state_at()
+        self._last_state = state
+        sent = self._root.link.send_estimate(state, time_unix_usec=state.time_unix_usec)
+        self.counters.estimates_sent += int(sent > 0)
+        new = state.provenance
         if new is not self._provenance:
             old, self._provenance = self._provenance, new
-            log.warning(
-                LogEvent.PROVENANCE_CHANGED, old=old.value, new=new.value, reason=outcome.no_fix_reason
-            )
+            reason = self._last_fix_reason if new is not Provenance.SATELLITE_ANCHORED else None
+            log.warning(LogEvent.PROVENANCE_CHANGED, old=old.value, new=new.value, reason=reason)
             self._root.fdr.record(
-                FdrKind.PROVENANCE_CHANGED,
-                {"old": old.value, "new": new.value, "reason": outcome.no_fix_reason},
+                FdrKind.PROVENANCE_CHANGED, {"old": old.value, "new": new.value, "reason": reason}
             )
-            self._root.link.notify_provenance(old, new, outcome.no_fix_reason)
-        if outcome.state is not None:
-            self._root.link.send_estimate(
-                outcome.state,
-                time_unix_usec=outcome.exposure_time_unix_usec,
-                inliers=outcome.inliers,
-                residual_px=outcome.residual_px,
-                frame_drops=self._queue.dropped,
-            )
+            self._root.link.notify_provenance(old, new, reason)
+        horiz = state.horiz_sigma_m if math.isfinite(state.lat_deg) else None
+        self._root.fdr.record(
+            FdrKind.ESTIMATE_SENT,
+            {
+                "time_unix_usec": state.time_unix_usec,
+                "provenance": new.value,
+                "fix_type": fix_type_for(new, horiz if horiz is not None else math.inf),
+                "lat_deg": state.lat_deg if horiz is not None else None,
+                "lon_deg": state.lon_deg if horiz is not None else None,
+                "horiz_sigma_m": horiz,
+                "last_fix_age_s": state.last_fix_age_s if math.isfinite(state.last_fix_age_s) else None,
+                "sent": sent,
+            },
+        )
 
     async def _mavlink_rx(self) -> None:
         loop = asyncio.get_running_loop()
@@ -274,34 +368,53 @@ class NavDaemon:
             await asyncio.sleep(period)
 
     def _system_status(self) -> int:
-        if self._last_outcome is None:
+        if self._last_state is None or not self._axis.is_initialised:
             return mavutil.mavlink.MAV_STATE_STANDBY
         if self._provenance in (Provenance.SATELLITE_ANCHORED, Provenance.VISUAL_PROPAGATED):
             return mavutil.mavlink.MAV_STATE_ACTIVE
         return mavutil.mavlink.MAV_STATE_CRITICAL
 
+    def _send_status_values(self) -> None:
+        state = self._last_state
+        fix = self._last_fix
+        self._root.link.send_status_values(
+            provenance=self._provenance,
+            inliers=fix.inliers if fix is not None else 0,
+            residual_px=fix.residual_px if fix is not None else None,
+            horiz_sigma_m=state.horiz_sigma_m if state is not None else math.inf,
+            frame_drops=self._queue.dropped,
+        )
+
     async def _status(self) -> None:
         period = 1.0 / self._cfg.daemon.status_hz
+        nv_period = 1.0 / self._cfg.mavlink.named_value_hz
         watchdog_s = self._notifier.watchdog_interval_s
-        tick = min(period, watchdog_s) if watchdog_s else period
-        last_status = 0.0
+        tick = min(period, nv_period, watchdog_s) if watchdog_s else min(period, nv_period)
+        last_status = last_nv = 0.0
         while True:
             self._notifier.watchdog()
             now = time.monotonic()
+            if now - last_nv >= nv_period:
+                last_nv = now
+                self._send_status_values()
             if now - last_status >= period:
                 last_status = now
                 c = self.counters
                 alive = self._root.tracker.link_alive(time.time())
+                axis = self._axis.stats()
                 log.info(
                     LogEvent.DAEMON_STATUS,
                     provenance=self._provenance.value,
                     link_alive=alive,
                     dropped=self._queue.dropped,
                     bad_frames=c.frames_bad + self._root.camera.bad_frames,
+                    time_axis_refused=axis.refused,
+                    time_axis_rewinds=axis.rewinds,
                     **{k: v for k, v in vars(c).items() if k != "frames_bad"},
                 )
                 self._notifier.status(
                     f"{self._provenance.value} frames={c.frames_processed} "
-                    f"fixes={c.fixes_accepted} drops={self._queue.dropped}"
+                    f"fixes={c.fixes_accepted}/{c.fix_attempts} refused={c.frames_refused} "
+                    f"drops={self._queue.dropped}"
                 )
             await asyncio.sleep(tick)

@@ -1,7 +1,7 @@
 """The simulated autopilot: plays ArduPilot's side of the MAVLink link over real UDP.
 
-Sends what a flight controller sends a companion computer (HEARTBEAT, SYSTEM_TIME, ATTITUDE, ALTITUDE,
-VFR_HUD, HOME_POSITION) from the scenario's truth, and records everything the daemon sends back with
+Sends what a flight controller sends a companion computer (HEARTBEAT, SYSTEM_TIME, ATTITUDE, HIGHRES_IMU,
+ALTITUDE, VFR_HUD, HOME_POSITION) from the scenario's truth, and records everything the daemon sends back with
 its receive time, for scoring.
 """
 
@@ -69,6 +69,28 @@ class SimAutopilot:
     ) -> None:
         yaw = math.atan2(math.sin(yaw_rad), math.cos(yaw_rad))  # ArduPilot sends -pi..pi
         self.mav.attitude_send(self._boot_ms(now_unix_s), roll_rad, pitch_rad, yaw, *rates_rad_s)
+
+    def send_highres_imu(
+        self,
+        now_unix_s: float,
+        accel_body_m_s2: tuple[float, float, float],
+        gyro_body_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> None:
+        """HIGHRES_IMU: specific force and rates in body FRD, time since boot (as ArduPilot stamps it)."""
+        boot_usec = max(0, int((now_unix_s - self.boot_time_unix_s) * 1e6))
+        self.mav.highres_imu_send(
+            boot_usec,
+            *accel_body_m_s2,
+            *gyro_body_rad_s,
+            0.0,
+            0.0,
+            0.0,  # magnetometer (not simulated)
+            1013.25,
+            0.0,
+            0.0,
+            20.0,
+            0b111111,  # fields_updated: accelerometer and gyro only
+        )
 
     def send_altitude(self, now_unix_s: float, alt_amsl_m: float, alt_rel_m: float, alt_agl_m: float) -> None:
         self.mav.altitude_send(

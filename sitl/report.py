@@ -1,33 +1,45 @@
 """Scoring a SITL flight: what the autopilot side received, against the scenario's truth.
 
-Definitions (also in the README):
+The daemon sends a steady estimate stream (``mavlink.estimate_rate_hz``), each GPS_INPUT stamped with
+the time its state was propagated to. Definitions (also in the README):
+
 - ``horizontal_error_m``: great-circle distance between each GPS_INPUT with fix_type >= 3 and the
-  truth at the GPS_INPUT's ``time_usec`` (the daemon stamps the exposure time of the frame it used).
-- ``latency_ms``: per frame, GPS_INPUT receive time minus the frame's exposure time.
+  truth at that GPS_INPUT's ``time_usec``.
+- ``consistency``: over the same messages, the share whose error is within 1, 2 and 3 times the stated
+  ``horiz_accuracy``, and the count beyond 3 (a "confident lie": the autopilot follows it).
+- ``per_frame``: each nav frame against the first GPS_INPUT received after the daemon recorded the frame
+  as tracked (its FDR ``pipeline.frame`` record), i.e. the first estimate that includes the frame.
+  ``latency_ms`` is that GPS_INPUT's receive time minus the frame's exposure time.
 - ``availability``: over frames exposed after the first fix was received, the fraction for which
   the autopilot side received a GPS_INPUT with fix_type >= 3 within 1 s after the exposure.
-- ``provenance_counts``: the daemon's provenance (NAMED_VALUE_INT GDN_PROV, sent right after each
-  GPS_INPUT) per answered frame.
+- ``provenance_counts``: the provenance of the per-frame estimates, from the daemon's FDR
+  ``mavlink.estimate`` record of the same ``time_usec``.
+- ``stream``: the GPS_INPUT stream replayed through the ArduPilot rules test double
+  (``sitl.ardupilot_rules``): intervals, the 215/245 ms health rule, NO_FIX and EKF failsafe.
+- ``fix_age_ms``: for accepted absolute fixes, when the daemon fused them minus their exposure time.
 """
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import math
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gps_denied_onboard.constants import NV_PROVENANCE, Provenance
+from gps_denied_onboard.constants import FdrKind
 from gps_denied_onboard.geo import haversine_m
+from gps_denied_onboard.sitl.ardupilot_rules import evaluate_gps_stream, gps_input_accepted
 from gps_denied_onboard.sitl.autopilot import ReceivedMessage
 
 AVAILABILITY_WINDOW_S = 1.0
-_PROV_BY_CODE = {p.code: p.value for p in Provenance}
+#: GPSn_TYPE parameters of the autopilot the stream is judged against (GPS1_TYPE=14, MAVLink).
+STREAM_GPS_TYPES: dict[int, int] = {0: 14}
 
 
 @dataclass(frozen=True)
@@ -44,34 +56,41 @@ def _pct(values: Sequence[float], q: float) -> float | None:
     return float(np.percentile(np.asarray(values, dtype=float), q)) if values else None
 
 
+def _of_kind(records: Sequence[Mapping[str, Any]], kind: str) -> list[Mapping[str, Any]]:
+    return [r for r in records if r.get("kind") == kind]
+
+
 def score(
     frames: Sequence[SentFrame],
     received: Sequence[ReceivedMessage],
     truth_at_unix: Callable[[float], tuple[float, float]],
+    fdr_records: Sequence[Mapping[str, Any]] = (),
+    *,
+    end_unix_s: float | None = None,
 ) -> dict[str, Any]:
-    """Build the report dict. ``truth_at_unix(t)`` -> (lat_deg, lon_deg) of the truth at Unix time t."""
-    gps: list[tuple[ReceivedMessage, str | None]] = []
-    pending: ReceivedMessage | None = None
-    for m in received:
-        if m.type == "GPS_INPUT":
-            if pending is not None:
-                gps.append((pending, None))
-            pending = m
-        elif m.type == "NAMED_VALUE_INT" and m.fields.get("name") == NV_PROVENANCE and pending is not None:
-            gps.append((pending, _PROV_BY_CODE.get(int(m.fields["value"]), "unknown")))
-            pending = None
-    if pending is not None:
-        gps.append((pending, None))
+    """Build the report dict. ``truth_at_unix(t)`` -> (lat_deg, lon_deg) of the truth at Unix time t;
+    ``fdr_records``: the daemon's flight data recorder (provenance and per-frame timing);
+    ``end_unix_s``: end of the flight, for judging silence after the last message."""
+    gps = sorted((m for m in received if m.type == "GPS_INPUT"), key=lambda m: m.recv_time_unix_s)
+    prov_by_time = {
+        int(r["time_unix_usec"]): str(r.get("provenance"))
+        for r in _of_kind(fdr_records, FdrKind.ESTIMATE_SENT)
+    }
+    tracked_at = {
+        int(r["frame_seq"]): float(r["t_unix_s"]) for r in _of_kind(fdr_records, FdrKind.FRAME)
+    }
 
-    by_time = {int(m.fields["time_usec"]): (m, prov) for m, prov in gps}
-    fixes = [(m, prov) for m, prov in gps if int(m.fields["fix_type"]) >= 3]
-    errors = []
-    for m, _ in fixes:
+    def err_m(m: ReceivedMessage) -> float:
         lat_t, lon_t = truth_at_unix(int(m.fields["time_usec"]) / 1e6)
-        errors.append(float(haversine_m(lat_t, lon_t, m.fields["lat"] / 1e7, m.fields["lon"] / 1e7)))
+        return float(haversine_m(lat_t, lon_t, m.fields["lat"] / 1e7, m.fields["lon"] / 1e7))
 
-    first_fix_unix = min((m.recv_time_unix_s for m, _ in fixes), default=None)
-    fix_recv = np.array(sorted(m.recv_time_unix_s for m, _ in fixes))
+    fixes = [m for m in gps if int(m.fields["fix_type"]) >= 3]
+    errors = [err_m(m) for m in fixes]
+    ratios = [e / max(float(m.fields["horiz_accuracy"]), 1e-3) for e, m in zip(errors, fixes, strict=True)]
+
+    first_fix_unix = min((m.recv_time_unix_s for m in fixes), default=None)
+    fix_recv = np.array([m.recv_time_unix_s for m in fixes])
+    gps_recv = [m.recv_time_unix_s for m in gps]
     per_frame: list[dict[str, Any]] = []
     latencies: list[float] = []
     prov_counts: Counter[str] = Counter()
@@ -85,30 +104,31 @@ def score(
             "true_lat_deg": f.lat_deg,
             "true_lon_deg": f.lon_deg,
             "alt_agl_m": round(f.alt_agl_m, 2),
+            "est_lat_deg": None,
+            "fix_type": None,
+            "provenance": None,
+            "horizontal_error_m": None,
         }
-        hit = by_time.get(f.exposure_time_unix_usec)
-        if hit is not None:
-            m, prov = hit
+        done = tracked_at.get(f.seq)
+        i = bisect.bisect_left(gps_recv, done) if done is not None else len(gps)
+        if i < len(gps) and gps_recv[i] - t_exp <= AVAILABILITY_WINDOW_S:
+            m = gps[i]
+            fx = m.fields
             latency = (m.recv_time_unix_s - t_exp) * 1000.0
             latencies.append(latency)
-            prov_counts[prov or "unknown"] += 1
-            fx = m.fields
+            prov = prov_by_time.get(int(fx["time_usec"]), "unknown")
+            prov_counts[prov] += 1
             row.update(
                 {
                     "est_lat_deg": fx["lat"] / 1e7,
                     "est_lon_deg": fx["lon"] / 1e7,
+                    "est_time_usec": int(fx["time_usec"]),
                     "fix_type": int(fx["fix_type"]),
                     "horiz_accuracy_m": float(fx["horiz_accuracy"]),
                     "provenance": prov,
                     "latency_ms": round(latency, 1),
-                    "horizontal_error_m": round(
-                        float(haversine_m(f.lat_deg, f.lon_deg, fx["lat"] / 1e7, fx["lon"] / 1e7)), 3
-                    ),
+                    "horizontal_error_m": round(err_m(m), 3),
                 }
-            )
-        else:
-            row.update(
-                {"est_lat_deg": None, "fix_type": None, "provenance": None, "horizontal_error_m": None}
             )
         if first_fix_unix is not None and t_exp >= first_fix_unix - AVAILABILITY_WINDOW_S:
             avail_den += 1
@@ -125,6 +145,18 @@ def score(
         for m in received
         if m.type == "STATUSTEXT"
     ]
+    t_ref = gps_recv[0] if gps_recv else 0.0
+    stream = evaluate_gps_stream(
+        [t - t_ref for t in gps_recv],
+        [gps_input_accepted(m.fields, STREAM_GPS_TYPES) for m in gps],
+        end_s=None if end_unix_s is None or not gps else max(end_unix_s - t_ref, gps_recv[-1] - t_ref),
+    )
+    fix_ages = [
+        (float(r["t_unix_s"]) - int(r["exposure_time_unix_usec"]) / 1e6) * 1000.0
+        for r in _of_kind(fdr_records, FdrKind.FIX)
+        if r.get("fix_accepted")
+    ]
+    n = len(ratios)
     return {
         "frames": len(frames),
         "frames_answered": len(latencies),
@@ -135,9 +167,18 @@ def score(
             "max": max(errors) if errors else None,
             "n": len(errors),
         },
+        "consistency": {
+            "within_1sigma": sum(r <= 1.0 for r in ratios) / n if n else None,
+            "within_2sigma": sum(r <= 2.0 for r in ratios) / n if n else None,
+            "within_3sigma": sum(r <= 3.0 for r in ratios) / n if n else None,
+            "beyond_3sigma": sum(r > 3.0 for r in ratios),
+            "max_error_sigma": max(ratios) if ratios else None,
+        },
         "latency_ms": {"p50": _pct(latencies, 50), "p95": _pct(latencies, 95)},
+        "fix_age_ms": {"p50": _pct(fix_ages, 50), "p95": _pct(fix_ages, 95), "n": len(fix_ages)},
         "provenance_counts": dict(sorted(prov_counts.items())),
         "gps_input_received": len(gps),
+        "stream": stream.to_dict(),
         "statustext": statustexts,
         "per_frame": per_frame,
     }
@@ -222,22 +263,24 @@ def analyse(
     - ``accepted_fixes_beyond_3sigma``: accepted absolute fixes farther from the truth than 3 of their
       own stated sigmas (the wrong-tile trap must keep this at 0);
     - ``provenance_switch_lag_frames``: frames from the first insufficient-inliers frame to the first
-      ``visual_propagated`` output (the issue asks for <= 1);
+      frame tracked as ``visual_propagated`` (the issue asks for <= 1; the fix path runs beside VO, so
+      the frame whose fix failed was tracked before its fix finished);
+    - ``frames_refused``: frames the time axis refused, by reason (future, stale, out of order);
     - ``vio_segments``: each VIO-only stretch with the distance flown, the error growth and the drift as
       a percentage of that distance, and how many fixes it took afterwards to get back under the
       nominal p95 error (measured on the anchored frames before the first stretch).
     """
-    frames = sorted(
-        (r for r in fdr_records if r.get("kind") == "pipeline.frame"), key=lambda r: r["frame_seq"]
-    )
+    frames = sorted(_of_kind(fdr_records, FdrKind.FRAME), key=lambda r: r["frame_seq"])
+    fixes = sorted(_of_kind(fdr_records, FdrKind.FIX), key=lambda r: r["frame_seq"])
     rows = {r["seq"]: r for r in report["per_frame"]}
     fix_errors_sigma = []
-    for r in frames:
+    for r in fixes:
         if r.get("fix_accepted") and r.get("fix_lat_deg") is not None and r.get("fix_sigma_m"):
             lat_t, lon_t = truth_at_unix(r["exposure_time_unix_usec"] / 1e6)
             err = float(haversine_m(lat_t, lon_t, r["fix_lat_deg"], r["fix_lon_deg"]))
             fix_errors_sigma.append(err / float(r["fix_sigma_m"]))
-    reasons = Counter(str(r.get("no_fix_reason")).split(":")[0] for r in frames if not r.get("fix_accepted"))
+    reasons = Counter(str(r.get("no_fix_reason")).split(":")[0] for r in fixes if not r.get("fix_accepted"))
+    refused = Counter(str(r.get("reason")) for r in _of_kind(fdr_records, FdrKind.FRAME_REFUSED))
 
     seqs = [r["frame_seq"] for r in frames]
     labels = [r.get("provenance", "unknown") for r in frames]
@@ -246,13 +289,14 @@ def analyse(
         for i in range(1, len(labels))
         if labels[i] != labels[i - 1]
     ]
-    first_ii = next(
-        (i for i, r in enumerate(frames) if r.get("no_fix_reason") == "insufficient_inliers"), None
-    )
+    first_ii = next((r["frame_seq"] for r in fixes if r.get("no_fix_reason") == "insufficient_inliers"), None)
     switch_lag = None
     if first_ii is not None:
-        vp = next((i for i in range(first_ii, len(labels)) if labels[i] == "visual_propagated"), None)
-        switch_lag = None if vp is None else seqs[vp] - seqs[first_ii]
+        vp = next(
+            (s for s, lab in zip(seqs, labels, strict=True) if s >= first_ii and lab == "visual_propagated"),
+            None,
+        )
+        switch_lag = None if vp is None else vp - first_ii
 
     def err(seq: int) -> float | None:
         row = rows.get(seq)
@@ -301,6 +345,8 @@ def analyse(
         )
     return {
         "fdr_frames": len(frames),
+        "fdr_fix_attempts": len(fixes),
+        "frames_refused": dict(sorted(refused.items())),
         "accepted_fixes": len(fix_errors_sigma),
         "accepted_fixes_beyond_3sigma": sum(e > 3.0 for e in fix_errors_sigma),
         "max_accepted_fix_error_sigma": max(fix_errors_sigma) if fix_errors_sigma else None,

@@ -47,6 +47,10 @@ DEFAULT_CONFIG = REPO_ROOT / "config" / "sitl.yaml"
 DAEMON_READY_TIMEOUT_S = 90.0
 DAEMON_STOP_TIMEOUT_S = 10.0
 ATTITUDE_HZ = 50.0
+GRAVITY_M_S2 = 9.80665
+#: The simulated accelerometer's fixed bias and white noise (1-sigma per sample), body FRD, m/s^2.
+IMU_BIAS_M_S2 = np.array([0.02, -0.02, 0.03])
+IMU_NOISE_M_S2 = 0.05
 ALTITUDE_HZ = 10.0
 _TAIL_S = 1.5
 
@@ -114,6 +118,8 @@ class _Flight:
         self.frames: list[SentFrame] = []
         self.t0_unix_s = 0.0
         self.daemon_exit_code: int | None = None
+        self.end_unix_s: float | None = None
+        self._imu_rng = np.random.default_rng(11)
         self.daemon_stop_s: float | None = None
 
     def _say(self, msg: str) -> None:
@@ -139,9 +145,24 @@ class _Flight:
             cmd += ["--set", s]
         return cmd
 
+    def _specific_force_body(self, t_s: float, truth: Any) -> tuple[float, float, float]:
+        """What an accelerometer on the vehicle reads at ``t_s``: the truth's acceleration (central
+        difference of its velocity) minus gravity, in body FRD, with a fixed bias and white noise."""
+        h = 0.01
+        t_lo = max(0.0, t_s - h)
+        accel_ned = (self.traj.truth_at(t_s + h).vel_ned_m_s - self.traj.truth_at(t_lo).vel_ned_m_s) / (
+            t_s + h - t_lo
+        )
+        specific_ned = accel_ned - np.array([0.0, 0.0, GRAVITY_M_S2])
+        body = truth.attitude.R_ned_body().T @ specific_ned
+        body = body + IMU_BIAS_M_S2 + self._imu_rng.normal(0.0, IMU_NOISE_M_S2, 3)
+        return float(body[0]), float(body[1]), float(body[2])
+
     def _send_telemetry(self, ap: SimAutopilot, now: float, *, full: bool) -> None:
-        truth = self.traj.truth_at(max(0.0, now - self.t0_unix_s) if self.t0_unix_s else 0.0)
+        t_s = max(0.0, now - self.t0_unix_s) if self.t0_unix_s else 0.0
+        truth = self.traj.truth_at(t_s)
         ap.send_attitude(now, truth.roll_rad, truth.pitch_rad, truth.yaw_rad)
+        ap.send_highres_imu(now, self._specific_force_body(t_s, truth))
         if full:
             alt_rel = truth.alt_agl_m  # home is on the flat ground
             ap.send_altitude(now, truth.alt_amsl_m, alt_rel, truth.alt_agl_m)
@@ -241,6 +262,7 @@ class _Flight:
                 )
                 await self._camera(server, stop)
                 await asyncio.sleep(_TAIL_S)
+                self.end_unix_s = time.time()
                 stop.set()
                 await telemetry
                 ap.poll()
@@ -332,9 +354,10 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
         s = trajectory.truth_at(min(max(0.0, t_unix_s - flight.t0_unix_s), trajectory.duration_s))
         return s.lat_deg, s.lon_deg
 
-    report = score(flight.frames, ap.received, truth_at_unix)
+    records = list(read_records(workdir / "fdr"))
+    report = score(flight.frames, ap.received, truth_at_unix, records, end_unix_s=flight.end_unix_s)
     ap.close()
-    report["analysis"] = analyse(report, list(read_records(workdir / "fdr")), truth_at_unix)
+    report["analysis"] = analyse(report, records, truth_at_unix)
     report.update(
         {
             "scenario": scenario.name,
@@ -378,12 +401,20 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
     def f(v: float | None, unit: str) -> str:
         return "n/a" if v is None else f"{v:.2f} {unit}"
 
+    stream, cons = report["stream"], report["consistency"]
+    iv = stream.get("interval_ms") or {}
     return [
         f"scenario      {report['scenario']}  (map {Path(report['map']).name}, matcher {report['matcher']})",
         f"frames        {report['frames']} sent, {report['frames_answered']} answered with GPS_INPUT",
         f"availability  {report['availability']:.3f}",
         f"horiz error   p50 {f(h['p50'], 'm')}  p95 {f(h['p95'], 'm')}  max {f(h['max'], 'm')}",
-        f"latency       p50 {f(lat['p50'], 'ms')}  p95 {f(lat['p95'], 'ms')}",
+        f"latency       p50 {f(lat['p50'], 'ms')}  p95 {f(lat['p95'], 'ms')}  "
+        f"(fix age p50 {f(report['fix_age_ms']['p50'], 'ms')})",
+        f"consistency   {f(cons['within_2sigma'], '')} within 2 sigma, "
+        f"{cons['beyond_3sigma']} beyond 3 sigma",
+        f"GPS_INPUT     {report['gps_input_received']} msgs, interval mean {f(iv.get('mean_ms'), 'ms')} "
+        f"p99 {f(iv.get('p99_ms'), 'ms')} max {f(iv.get('max_ms'), 'ms')}; ArduPilot health tripped: "
+        f"{stream['health']['tripped']}, failsafe: {stream.get('ekf_failsafe_land_s')}",
         f"provenance    {report['provenance_counts']}",
         f"daemon exit   code {report['daemon_exit_code']} after SIGTERM in {f(report['daemon_stop_s'], 's')}",
     ]

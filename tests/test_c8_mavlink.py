@@ -208,6 +208,31 @@ def test_tracker_altitude_priority_and_staleness() -> None:
     assert tr.alt_agl_at(T0_UNIX_USEC + 3_500_000) is None  # every source older than 1 s
 
 
+def test_tracker_acceleration_is_imu_rotated_by_attitude_minus_gravity() -> None:
+    """HIGHRES_IMU specific force (body FRD) rotated with ATTITUDE at each sample's time plus gravity is
+    the NED acceleration the prediction uses; stale IMU or no attitude gives None, never a guess."""
+    tr = _tracker()
+    recv_s = T0_UNIX_USEC / 1e6
+    tr.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC, BOOT0_MS)), recv_s)
+    yaw = math.pi / 2  # nose east
+    for k in range(0, 6):  # 50 Hz for 100 ms
+        t_ms = BOOT0_MS + 20 * k
+        tr.handle(_decoded(lambda mav, t=t_ms: mav.attitude_encode(t, 0.0, 0.0, yaw, 0, 0, 0)), recv_s)
+        # 2 m/s^2 forward (= east) and the -g an accelerometer at rest reads on body z
+        imu = (2.0, 0.0, -9.80665, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+        tr.handle(_decoded(lambda mav, t=t_ms, v=imu: mav.highres_imu_encode(t * 1000, *v)), recv_s)
+    t0 = T0_UNIX_USEC
+    accel = tr.accel_ned_mean(t0, t0 + 100_000)
+    assert accel is not None
+    np.testing.assert_allclose(accel, [0.0, 2.0, 0.0], atol=1e-4)
+    assert tr.accel_ned_mean(t0 + 400_000, t0 + 500_000) is None  # 300 ms past the last sample
+    no_att = _tracker()
+    no_att.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC, BOOT0_MS)), recv_s)
+    rest = (0.0, 0.0, -9.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+    no_att.handle(_decoded(lambda mav: mav.highres_imu_encode(BOOT0_MS * 1000, *rest)), recv_s)
+    assert no_att.accel_ned_mean(t0 - 10_000, t0 + 10_000) is None
+
+
 def test_tracker_ignores_gcs_and_companion_heartbeats_over_udp(udp_pair: tuple) -> None:
     """Heartbeats from a GCS, another companion, or sysid 1 with MAV_AUTOPILOT_INVALID do not count."""
     link, ap, _clock, port = udp_pair
@@ -296,8 +321,15 @@ def test_link_outputs_decode_on_autopilot_side(udp_pair: tuple) -> None:
     assert _pump(link, lambda: link.tracker.autopilot_seen)
     state = _state()
     t_usec = T0_UNIX_USEC + 40_000
-    n = link.send_estimate(state, time_unix_usec=t_usec, inliers=87, residual_px=1.25, frame_drops=2)
-    assert n == 8
+    assert link.send_estimate(state, time_unix_usec=t_usec) == 3
+    n = link.send_status_values(
+        provenance=state.provenance,
+        inliers=87,
+        residual_px=1.25,
+        horiz_sigma_m=state.horiz_sigma_m,
+        frame_drops=2,
+    )
+    assert n == 5
     assert link.send_heartbeat(D.MAV_STATE_ACTIVE)
 
     got = _recv_all(ap, None, 0.4)
@@ -338,13 +370,7 @@ def test_link_no_estimate_sends_fix_type_zero_and_unhealthy(udp_pair: tuple) -> 
     link, ap, _clock, _ = udp_pair
     ap.mav.send(_ap_heartbeat(ap.mav))
     assert _pump(link, lambda: link.tracker.autopilot_seen)
-    link.send_estimate(
-        _state(Provenance.NO_ESTIMATE),
-        time_unix_usec=T0_UNIX_USEC,
-        inliers=0,
-        residual_px=math.nan,
-        frame_drops=0,
-    )
+    link.send_estimate(_state(Provenance.NO_ESTIMATE), time_unix_usec=T0_UNIX_USEC)
     got = _recv_all(ap, ["GPS_INPUT", "GLOBAL_POSITION_SENSOR", "VISION_POSITION_ESTIMATE"], 0.3)
     by_type = {x.get_type(): x for x in got}
     assert by_type["GPS_INPUT"].fix_type == 0
@@ -423,9 +449,7 @@ def test_signing_outgoing_verified_by_keyed_receiver(tmp_path: Path) -> None:
             ap.mav.send(_ap_heartbeat(ap.mav))
             tracker = link.tracker
             assert _pump(link, lambda: tracker.autopilot_seen)  # noqa: B023 - called within the iteration
-            link.send_estimate(
-                _state(), time_unix_usec=T0_UNIX_USEC, inliers=1, residual_px=1.0, frame_drops=0
-            )
+            link.send_estimate(_state(), time_unix_usec=T0_UNIX_USEC)
             gps = ap.recv_match(type="GPS_INPUT", blocking=True, timeout=0.5 if not signed else 1.0)
             if signed:
                 assert gps is not None and gps.get_signed() and gps.lat == 504501234
@@ -520,10 +544,9 @@ def test_link_tcp_transport_loss_reconnects_with_backoff() -> None:
 def test_link_sends_never_raise_when_closed() -> None:
     """Sends on a link that is not open are dropped and counted, never raised."""
     link = MavlinkLink(MavlinkConfig(url="udpout:127.0.0.1:9"), _tracker())
-    assert (
-        link.send_estimate(_state(), time_unix_usec=T0_UNIX_USEC, inliers=1, residual_px=1.0, frame_drops=0)
-        == 0
-    )
+    assert link.send_estimate(_state(), time_unix_usec=T0_UNIX_USEC) == 0
+    status = {"inliers": 1, "residual_px": 1.0, "horiz_sigma_m": 1.0, "frame_drops": 0}
+    assert link.send_status_values(provenance=Provenance.SATELLITE_ANCHORED, **status) == 0
     link.notify_provenance(None, Provenance.SATELLITE_ANCHORED)
     assert link.poll() == 0
     assert link.stats().sends_dropped_link_down > 0

@@ -81,8 +81,8 @@ def test_daemon_keeps_running_and_records_bad_frames(tmp_path: Path, small_cache
                 (hlen,) = struct.unpack(">I", good[4:8])
                 body = 8 + hlen + 4
                 corrupt[body : body + 64] = b"\x00" * 64  # valid header, JPEG payload destroyed
-                wrong_size = encode_frame(
-                    np.zeros((100, 100, 3), np.uint8), seq=2, exposure_time_unix_usec=now_us
+                wrong_size = encode_frame(  # a later exposure: the time axis refuses a repeated stamp
+                    np.zeros((100, 100, 3), np.uint8), seq=2, exposure_time_unix_usec=now_us + 1000
                 )
                 writer.write(bytes(corrupt))
                 writer.write(wrong_size)

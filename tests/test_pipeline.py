@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from gps_denied_onboard.camera.types import Attitude, CameraCalibration, NavCameraFrame
-from gps_denied_onboard.components.c1_vio.types import VoError
+from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
 from gps_denied_onboard.components.c2_vpr.types import VprQuery, VprResult
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
-from gps_denied_onboard.components.c5_estimator import NavEstimator
+from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.config import EstimatorConfig, VprConfig
 from gps_denied_onboard.constants import Provenance
 from gps_denied_onboard.geo import LocalTangentPlane
@@ -71,19 +71,31 @@ class _Fdr:
         self.records.append((kind, dict(fields)))
 
 
-def _pipeline(vpr: _Vpr, fdr: _Fdr) -> NavigationPipeline:
+class _HoverVo:
+    """VO of a hovering vehicle: no motion, 0.3 m sigma, every frame."""
+
+    def process(self, frame: NavCameraFrame) -> VoMotion:
+        return VoMotion(frame.frame_id, uuid.uuid4(), 1 / 3, np.zeros(2), np.eye(2) * 0.09, 200)
+
+
+def _pipeline(vpr: _Vpr, fdr: _Fdr, vo: object | None = None) -> NavigationPipeline:
     calib = CameraCalibration.from_hfov(640, 480, 70.0)
     return NavigationPipeline(
         calibration=calib,
         ltp=LTP,
         ground_alt_amsl_m=400.0,
-        vo=_NoVo(),
+        vo=vo or _NoVo(),
         vpr=vpr,
         vpr_config=VprConfig(corpus_wide_sigma_m=300.0),
         rerank=_Unused(),
         matcher=_Unused(),  # type: ignore[arg-type]
         pose_solver=None,
-        estimator=NavEstimator(EstimatorConfig(), LTP),
+        time_axis=TimeAxis(
+            NavEstimator(EstimatorConfig(), LTP),
+            max_delay_s=5.0,
+            max_frame_age_s=1.0,
+            clock_unix_usec=lambda: T0,
+        ),
         fdr=fdr,
     )
 
@@ -102,7 +114,9 @@ def test_pipeline_searches_prior_region_when_uncertainty_is_small() -> None:
     assert isinstance(vpr.regions[0], SearchRegion)
     assert 60.0 <= vpr.regions[0].radius_m <= 2000.0
     assert out.no_fix_reason == "no_tiles_in_region"
-    assert fdr.records[-1][0] == "pipeline.frame" and fdr.records[-1][1]["frame_seq"] == 0
+    kinds = [(kind, fields["frame_seq"]) for kind, fields in fdr.records]
+    assert kinds == [("pipeline.frame", 0), ("pipeline.fix", 0)]
+    assert fdr.records[-1][1]["no_fix_reason"] == "no_tiles_in_region"
 
 
 def test_pipeline_goes_corpus_wide_when_uncertainty_is_large() -> None:
@@ -131,3 +145,19 @@ def test_pipeline_without_attitude_makes_no_fix_and_says_why() -> None:
     out = p.process(frame, InitialPrior(47.0, 8.0, 30.0, "test"))
     assert vpr.regions == [] and out.no_fix_reason == "no_attitude_or_altitude"
     assert out.provenance in (Provenance.DEAD_RECKONING, Provenance.NO_ESTIMATE)
+
+
+def test_pipeline_localises_an_older_frame_at_its_exposure_time() -> None:
+    """The fix half runs behind the track half: localising frame 0 after frames 1..3 were tracked is
+    recorded with how far behind the newest input it was fused, and does not move the clock back."""
+    vpr, fdr = _Vpr(dim=256), _Fdr()
+    p = _pipeline(vpr, fdr, _HoverVo())
+    frames = [_frame(k, T0 - 1_000_000 + k * 333_333) for k in range(4)]
+    for f in frames:
+        p.track(f, InitialPrior(47.0, 8.0, 30.0, "test"))
+    out = p.localise(frames[0])
+    assert out.fused_behind_s == pytest.approx(1.0, abs=1e-3)
+    fix_record = fdr.records[-1]
+    assert fix_record[0] == "pipeline.fix" and fix_record[1]["fused_behind_s"] == pytest.approx(1.0, abs=1e-3)
+    assert p.time_axis.head_unix_usec == frames[-1].exposure_time_unix_usec
+    assert p.time_axis.stats().rewinds == 1

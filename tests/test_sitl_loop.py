@@ -66,6 +66,17 @@ def test_sitl_daemon_accuracy_fields_are_honest(smoke_report: tuple[dict, Path])
     assert sum(within) >= 0.95 * len(within)
 
 
+def test_sitl_estimate_stream_is_steady_enough_for_ardupilot(smoke_report: tuple[dict, Path]) -> None:
+    """GPS_INPUT arrives at the configured 10 Hz between frames: interval mean <= 120 ms, p99 <= 200 ms,
+    max <= 245 ms, and the ArduPilot health rule (test double) never trips."""
+    report, _ = smoke_report
+    iv = report["stream"]["interval_ms"]
+    assert report["gps_input_received"] >= 2.5 * report["frames"], report["gps_input_received"]
+    assert iv["mean_ms"] <= 120.0 and iv["p99_ms"] <= 200.0 and iv["max_ms"] <= 245.0, iv
+    assert not report["stream"]["health"]["tripped"], report["stream"]
+    assert report["stream"]["ekf_failsafe_land_s"] is None
+
+
 def test_sitl_daemon_stopped_cleanly(smoke_report: tuple[dict, Path]) -> None:
     """The daemon process exited 0 on SIGTERM within 2 s, and sent its HEARTBEAT throughout."""
     report, _ = smoke_report

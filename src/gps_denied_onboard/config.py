@@ -123,6 +123,12 @@ class MavlinkConfig:
     outputs: tuple[OutputKind, ...] = ("gps_input",)
     #: Rate of this daemon's own HEARTBEAT, Hz.
     heartbeat_hz: PosFloat = 1.0
+    #: Rate of the estimate stream (GPS_INPUT etc.), propagated to the send time between frames, Hz.
+    #: ArduPilot counts a MAVLink GPS healthy only while the mean interval is < 215 ms with no two
+    #: consecutive intervals > 245 ms, so at least 5 Hz is enforced.
+    estimate_rate_hz: Annotated[float, Strict(), Field(ge=5, le=50)] = 10.0
+    #: Rate of the NAMED_VALUE_* status set for the ground station, Hz.
+    named_value_hz: Annotated[float, Strict(), Field(gt=0, le=10)] = 2.0
     #: Attitude/altitude older than this at a frame's exposure make the frame invalid for fixes.
     attitude_max_age_s: PosFloat = 0.3
     altitude_max_age_s: PosFloat = 1.0

@@ -67,6 +67,7 @@ class LogEvent:
     CAMERA_FRAME_DROPPED: Final = "camera.frame_dropped"
     CAMERA_BAD_FRAME: Final = "camera.bad_frame"
     PIPELINE_FRAME: Final = "pipeline.frame"
+    PIPELINE_FIX: Final = "pipeline.fix"
     PIPELINE_FRAME_ERROR: Final = "pipeline.frame_error"
     PIPELINE_FRAME_INVALID: Final = "pipeline.frame_invalid"
     MAVLINK_CONNECTED: Final = "c8.mavlink.connected"
@@ -126,6 +127,12 @@ class FdrKind:
     CONFIG: Final = "daemon.config"
     FRAME: Final = "pipeline.frame"
     FRAME_ERROR: Final = "pipeline.frame_error"
+    #: A frame refused by the time axis before any processing (future, stale, out of order).
+    FRAME_REFUSED: Final = "pipeline.frame_refused"
+    #: One absolute-fix attempt (VPR -> rerank -> C3 -> C4 -> C5), recorded when it finishes.
+    FIX: Final = "pipeline.fix"
+    #: One estimate sent to the autopilot (the steady output stream).
+    ESTIMATE_SENT: Final = "mavlink.estimate"
     PROVENANCE_CHANGED: Final = "estimator.provenance_changed"
     MATCHER_FRAME_DONE: Final = "matcher.frame_done"
     MATCHER_BACKBONE_ERROR: Final = "matcher.backbone_error"

@@ -1,14 +1,16 @@
-"""The F3 flight pipeline for one nav frame, stage by stage.
+"""The F3 flight pipeline for one nav frame, stage by stage, in two halves on one time axis.
 
-    frame ─┬─ C1 visual odometry ───────────────────────────────┐
-           └─ C2 VPR (prior-gated) → C2.5 rerank → C3 match → C4 pose ─┴→ C5 estimator → state
+    frame ─┬─ track:    C1 visual odometry ─────────────────────────────────────┐
+           │                                                                    ├→ C5 time axis → state
+           └─ localise: C2 VPR (prior-gated) → C2.5 rerank → C3 match → C4 pose ┘   (at the exposure time)
 
 Every stage's failure has one meaning for the estimator:
 - no attitude/altitude at exposure → no absolute fix from this frame (never reuse stale data);
 - VPR/rerank/matcher error or too few inliers → no fix; C5 propagates on VO (``visual_propagated``);
 - pose rejected (degenerate, implausible) → no fix;
-- fix outside the estimator's gate → rejected by C5 (a wrong tile cannot teleport the estimate).
-The pipeline is synchronous and single-threaded by contract (INV-1); the daemon runs it off the loop.
+- fix outside the estimator's gate → rejected by C5 (a wrong tile cannot teleport the estimate);
+- fix older than the time axis can rewind to → refused as too late (never fused at its arrival time).
+Each half is synchronous and single-threaded by contract (INV-1); the daemon runs them off the loop.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from gps_denied_onboard.components.c2_vpr.types import VprError
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
+from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxis
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import VprConfig
@@ -49,20 +52,17 @@ class InitialPrior:
 
 
 @dataclass(frozen=True)
-class FrameOutcome:
-    """What one frame produced; the daemon turns it into MAVLink output and FDR records."""
+class TrackOutcome:
+    """What the camera-rate half (VO into the estimator) made of one frame."""
 
     frame_id: uuid.UUID
     seq: int
     exposure_time_unix_usec: int
+    #: The estimate at the frame's exposure after fusing its VO (None before initialisation).
     state: EstimatorState | None
-    fix: PoseFix | None
-    fix_accepted: bool
-    inliers: int
-    residual_px: float | None
-    #: Why there was no accepted absolute fix (None when there was one).
-    no_fix_reason: str | None
     vo_ok: bool
+    #: Why the VO was not fused (None when it was): C1's reason, or the estimator's/time axis' refusal.
+    vo_reason: str | None
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -70,7 +70,56 @@ class FrameOutcome:
         return self.state.provenance if self.state is not None else Provenance.NO_ESTIMATE
 
 
+@dataclass(frozen=True)
+class FixOutcome:
+    """What the absolute-fix half (VPR -> rerank -> C3 -> C4 -> C5) made of one frame."""
+
+    frame_id: uuid.UUID
+    seq: int
+    exposure_time_unix_usec: int
+    fix: PoseFix | None
+    fix_accepted: bool
+    inliers: int
+    residual_px: float | None
+    #: Why there was no accepted absolute fix (None when there was one).
+    no_fix_reason: str | None
+    #: How far behind the newest fused input this fix was fused at its own exposure time, s (0: in order).
+    fused_behind_s: float
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class FrameOutcome:
+    """Both halves run one after the other on one frame (:meth:`NavigationPipeline.process`)."""
+
+    track: TrackOutcome
+    fix: FixOutcome | None
+
+    @property
+    def state(self) -> EstimatorState | None:
+        return self.track.state
+
+    @property
+    def provenance(self) -> Provenance:
+        return self.track.provenance
+
+    @property
+    def no_fix_reason(self) -> str | None:
+        return "not_initialised" if self.fix is None else self.fix.no_fix_reason
+
+
 class NavigationPipeline:
+    """The F3 flow in two halves that share one time axis (C5):
+
+    - :meth:`track` (camera rate): C1 VO on every frame, fused at the frame's exposure time;
+    - :meth:`localise` (as fast as the matcher allows, on the newest frame): C2 -> C2.5 -> C3 -> C4, the
+      fix fused at the frame's exposure time however late it arrives (or refused as too late).
+
+    The daemon runs them on two worker threads so a slow matcher never starves VO or the output;
+    :meth:`process` runs both in sequence (tests, replay). Each half is single-threaded by contract
+    (INV-1): one caller per half at a time.
+    """
+
     def __init__(
         self,
         *,
@@ -83,7 +132,7 @@ class NavigationPipeline:
         rerank: RerankStrategy,
         matcher: CrossDomainMatcher,
         pose_solver,  # PoseSolver
-        estimator,  # NavEstimator
+        time_axis: TimeAxis,
         fdr: FdrClient,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
     ) -> None:
@@ -96,20 +145,20 @@ class NavigationPipeline:
         self._rerank = rerank
         self._matcher = matcher
         self._pose = pose_solver
-        self._est = estimator
+        self._axis = time_axis
         self._fdr = fdr
         self._clock_ns = clock_ns
         #: F6 re-localisation (corpus-wide VPR) currently active; logged on transitions only.
         self._corpus_wide = False
 
     @property
-    def estimator(self):  # type: ignore[no-untyped-def]
-        return self._est
+    def time_axis(self) -> TimeAxis:
+        return self._axis
 
     def _initialise(self, prior: InitialPrior, frame: NavCameraFrame) -> None:
         alt_agl_m = frame.alt_agl_m if frame.alt_agl_m is not None else 0.0
         pos = self._ltp.to_ned(prior.lat_deg, prior.lon_deg, self._ground_alt_amsl_m + alt_agl_m)
-        self._est.initialise(pos, prior.sigma_m, frame.exposure_time_unix_usec)
+        self._axis.initialise(pos, prior.sigma_m, frame.exposure_time_unix_usec)
         log.info(
             LogEvent.ESTIMATOR_INITIALISED,
             source=prior.source,
@@ -139,51 +188,108 @@ class NavigationPipeline:
         return SearchRegion(state.lat_deg, state.lon_deg, radius)
 
     def process(self, frame: NavCameraFrame, prior: InitialPrior | None) -> FrameOutcome:
+        """Both halves on one frame, in sequence."""
+        track = self.track(frame, prior)
+        fix = self.localise(frame) if self._axis.is_initialised else None
+        return FrameOutcome(track, fix)
+
+    # -- camera-rate half ----------------------------------------------------------------------------
+
+    def track(self, frame: NavCameraFrame, prior: InitialPrior | None) -> TrackOutcome:
+        """VO on ``frame`` fused at its exposure time; initialises the estimator from ``prior`` on the
+        first frame. The frame must already be admitted by the time axis (``admit_frame``)."""
         t = frame.exposure_time_unix_usec
         timings: dict[str, float] = {}
-        mark = self._clock_ns()
-
-        def lap(name: str) -> None:
-            nonlocal mark
-            now = self._clock_ns()
-            timings[name] = (now - mark) / 1e6
-            mark = now
-
+        t0 = self._clock_ns()
         motion: VoMotion | None = None
+        reason: str | None = None
         try:
             motion = self._vo.process(frame)
         except VoError as exc:
+            reason = f"vo:{exc.reason}"
             log.debug("c1.vo.no_motion", frame=frame.seq, reason=exc.reason)
-        lap("vo")
-
-        if not self._est.is_initialised:
-            if prior is None:
-                return self._outcome(frame, None, None, False, 0, None, "no_prior", motion, timings)
+        t1 = self._clock_ns()
+        timings["vo"] = (t1 - t0) / 1e6
+        state: EstimatorState | None = None
+        if not self._axis.is_initialised and prior is not None:
             self._initialise(prior, frame)
-        self._est.predict_to(t)
-        if motion is not None:
-            self._est.update_vo(motion, time_unix_usec=t)
-        lap("estimator_predict")
+        if self._axis.is_initialised:
+            if motion is not None:
+                decision = self._axis.fuse_vo(motion, t)
+                if not decision.accepted:
+                    reason = f"estimator:{decision.reason}"
+            state = self._axis.state_at(t)
+        elif reason is None:
+            reason = "no_prior"
+        timings["estimator_vo"] = (self._clock_ns() - t1) / 1e6
+        vo_ok = motion is not None and reason is None
+        out = TrackOutcome(frame.frame_id, frame.seq, t, state, vo_ok, reason, timings)
+        self._fdr.record(
+            FdrKind.FRAME,
+            {
+                "frame_id": str(frame.frame_id),
+                "frame_seq": frame.seq,
+                "exposure_time_unix_usec": t,
+                "provenance": out.provenance.value,
+                "vo_ok": vo_ok,
+                "vo_reason": reason,
+                "vo_inliers": motion.inlier_count if motion is not None else 0,
+                "lat_deg": state.lat_deg if state else None,
+                "lon_deg": state.lon_deg if state else None,
+                "horiz_sigma_m": state.horiz_sigma_m if state else None,
+                "has_attitude": frame.attitude is not None,
+                "timings_ms": timings,
+            },
+        )
+        return out
 
-        fix, accepted, inliers, residual, reason = self._absolute_fix(frame, timings)
+    # -- absolute-fix half ---------------------------------------------------------------------------
+
+    def localise(self, frame: NavCameraFrame) -> FixOutcome:
+        """The absolute fix for ``frame`` (already tracked), fused at its exposure time."""
+        t = frame.exposure_time_unix_usec
+        timings: dict[str, float] = {}
+        fix, inliers, residual, reason = self._absolute_fix(frame, timings)
         mark = self._clock_ns()
+        head = self._axis.head_unix_usec
+        behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
+        accepted = False
         if fix is not None:
-            decision = self._est.update_fix(fix)
+            decision = self._axis.fuse_fix(fix)
             accepted = bool(decision.accepted)
             if not accepted:
                 reason = f"gated:{decision.reason}"
-        state = self._est.state(t)
-        lap("estimator_update")
-        return self._outcome(
-            frame, state, fix, accepted, inliers, residual, None if accepted else reason, motion, timings
+        if not accepted:
+            self._axis.note_no_fix(t)
+        timings["estimator_fix"] = (self._clock_ns() - mark) / 1e6
+        out = FixOutcome(
+            frame.frame_id, frame.seq, t, fix, accepted, inliers, residual, reason, behind_s, timings
         )
+        self._fdr.record(
+            FdrKind.FIX,
+            {
+                "frame_id": str(frame.frame_id),
+                "frame_seq": frame.seq,
+                "exposure_time_unix_usec": t,
+                "fix_accepted": accepted,
+                "inliers": inliers,
+                "residual_px": residual,
+                "no_fix_reason": reason,
+                "fused_behind_s": round(behind_s, 4),
+                "fix_lat_deg": fix.lat_deg if fix else None,
+                "fix_lon_deg": fix.lon_deg if fix else None,
+                "fix_sigma_m": fix.horiz_sigma_m if fix else None,
+                "timings_ms": timings,
+            },
+        )
+        return out
 
     def _absolute_fix(
         self, frame: NavCameraFrame, timings: dict[str, float]
-    ) -> tuple[PoseFix | None, bool, int, float | None, str | None]:
+    ) -> tuple[PoseFix | None, int, float | None, str | None]:
         if frame.attitude is None or frame.alt_agl_m is None:
-            return None, False, 0, None, "no_attitude_or_altitude"
-        prior_state = self._est.state(frame.exposure_time_unix_usec)
+            return None, 0, None, "no_attitude_or_altitude"
+        prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
         t0 = self._clock_ns()
         try:
             query = self._vpr.embed_query(frame, self._calib)
@@ -192,11 +298,11 @@ class NavigationPipeline:
             )
         except VprError as exc:
             log.error(LogEvent.VPR_ERROR, frame=frame.seq, error=str(exc))
-            return None, False, 0, None, "vpr_error"
+            return None, 0, None, "vpr_error"
         t1 = self._clock_ns()
         timings["vpr"] = (t1 - t0) / 1e6
         if not vpr_result.candidates:
-            return None, False, 0, None, "no_tiles_in_region"
+            return None, 0, None, "no_tiles_in_region"
         rerank_result = self._rerank.rerank(frame, vpr_result)
         t2 = self._clock_ns()
         timings["rerank"] = (t2 - t1) / 1e6
@@ -204,11 +310,11 @@ class NavigationPipeline:
             match = self._matcher.match(frame, rerank_result, self._calib)
         except InsufficientInliersError as exc:
             timings["match"] = (self._clock_ns() - t2) / 1e6
-            return None, False, exc.best_inlier_count, None, "insufficient_inliers"
+            return None, exc.best_inlier_count, None, "insufficient_inliers"
         except MatcherError as exc:
             timings["match"] = (self._clock_ns() - t2) / 1e6
             log.error(LogEvent.PIPELINE_FRAME_ERROR, frame=frame.seq, stage="match", error=str(exc))
-            return None, False, 0, None, "matcher_error"
+            return None, 0, None, "matcher_error"
         t3 = self._clock_ns()
         timings["match"] = (t3 - t2) / 1e6
         best = match.best
@@ -217,60 +323,6 @@ class NavigationPipeline:
             fix = self._pose.solve(frame, best, handle, self._calib)
         except PoseError as exc:
             timings["pose"] = (self._clock_ns() - t3) / 1e6
-            return (
-                None,
-                False,
-                best.inlier_count,
-                match.reprojection_residual_px,
-                f"pose_rejected:{exc.reason}",
-            )
+            return None, best.inlier_count, match.reprojection_residual_px, f"pose_rejected:{exc.reason}"
         timings["pose"] = (self._clock_ns() - t3) / 1e6
-        return fix, True, best.inlier_count, match.reprojection_residual_px, None
-
-    def _outcome(
-        self,
-        frame: NavCameraFrame,
-        state: EstimatorState | None,
-        fix: PoseFix | None,
-        accepted: bool,
-        inliers: int,
-        residual: float | None,
-        reason: str | None,
-        motion: VoMotion | None,
-        timings: dict[str, float],
-    ) -> FrameOutcome:
-        outcome = FrameOutcome(
-            frame.frame_id,
-            frame.seq,
-            frame.exposure_time_unix_usec,
-            state,
-            fix,
-            accepted,
-            inliers,
-            residual,
-            reason,
-            motion is not None,
-            timings,
-        )
-        self._fdr.record(
-            FdrKind.FRAME,
-            {
-                "frame_id": str(frame.frame_id),
-                "frame_seq": frame.seq,
-                "exposure_time_unix_usec": frame.exposure_time_unix_usec,
-                "provenance": outcome.provenance.value,
-                "fix_accepted": accepted,
-                "inliers": inliers,
-                "residual_px": residual,
-                "no_fix_reason": reason,
-                "vo_ok": motion is not None,
-                "lat_deg": state.lat_deg if state else None,
-                "lon_deg": state.lon_deg if state else None,
-                "horiz_sigma_m": state.horiz_sigma_m if state else None,
-                "fix_lat_deg": fix.lat_deg if fix else None,
-                "fix_lon_deg": fix.lon_deg if fix else None,
-                "fix_sigma_m": fix.horiz_sigma_m if fix else None,
-                "timings_ms": timings,
-            },
-        )
-        return outcome
+        return fix, best.inlier_count, match.reprojection_residual_px, None

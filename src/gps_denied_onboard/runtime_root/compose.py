@@ -26,7 +26,7 @@ from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.xfeat import XFEAT_DESCRIPTOR_DIM
 from gps_denied_onboard.components.c4_pose import PoseSolver
-from gps_denied_onboard.components.c5_estimator import NavEstimator
+from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
 from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
@@ -69,6 +69,7 @@ class RuntimeRoot:
     camera: FrameSource
     matcher: CrossDomainMatcher
     pipeline: NavigationPipeline
+    time_axis: TimeAxis
 
     def close(self) -> None:
         self.link.close()
@@ -281,6 +282,18 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
 
     vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
+    tracker = VehicleStateTracker(
+        autopilot_system_id=config.mavlink.autopilot_system_id,
+        attitude_max_age_s=config.mavlink.attitude_max_age_s,
+        altitude_max_age_s=config.mavlink.altitude_max_age_s,
+        link_timeout_s=config.mavlink.link_timeout_s,
+    )
+    time_axis = TimeAxis(
+        NavEstimator(config.estimator, ltp, accel_source=tracker),
+        max_delay_s=config.estimator.max_fix_delay_s,
+        max_frame_age_s=config.daemon.max_frame_age_s,
+        max_future_s=config.estimator.max_future_s,
+    )
     pipeline = NavigationPipeline(
         calibration=calibration,
         ltp=ltp,
@@ -291,14 +304,8 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         rerank=rerank,
         matcher=matcher,
         pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
-        estimator=NavEstimator(config.estimator, ltp),
+        time_axis=time_axis,
         fdr=fdr,
-    )
-    tracker = VehicleStateTracker(
-        autopilot_system_id=config.mavlink.autopilot_system_id,
-        attitude_max_age_s=config.mavlink.attitude_max_age_s,
-        altitude_max_age_s=config.mavlink.altitude_max_age_s,
-        link_timeout_s=config.mavlink.link_timeout_s,
     )
     link = MavlinkLink(config.mavlink, tracker, fdr)
     try:
@@ -310,4 +317,6 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         )
     except CameraSourceError as exc:
         raise StartupError("camera.source", str(exc)) from exc
-    return RuntimeRoot(config, calibration, ltp, tiles, fdr, tracker, link, camera, matcher, pipeline)
+    return RuntimeRoot(
+        config, calibration, ltp, tiles, fdr, tracker, link, camera, matcher, pipeline, time_axis
+    )

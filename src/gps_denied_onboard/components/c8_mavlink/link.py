@@ -442,17 +442,9 @@ class MavlinkLink:
         self._flush_pending_status(self._clock())
         return ok
 
-    def send_estimate(
-        self,
-        state: EstimatorState,
-        *,
-        time_unix_usec: int,
-        inliers: int,
-        residual_px: float | None,
-        frame_drops: int,
-    ) -> int:
-        """Send ``config.outputs`` for ``state`` plus the NAMED_VALUE set; returns the number of messages
-        handed to the transport (0 while the link is down)."""
+    def send_estimate(self, state: EstimatorState, *, time_unix_usec: int) -> int:
+        """Send ``config.outputs`` for ``state`` stamped ``time_unix_usec`` (the time the state is valid
+        for); returns the number of messages handed to the transport (0 while the link is down)."""
         sent = 0
         with self._lock:
             if (
@@ -483,20 +475,31 @@ class MavlinkLink:
                         mav, state, time_usec=time_unix_usec, reset_counter=self._vision_reset_counter
                     )
                 )
-        horiz = state.horiz_sigma_m
+        return sent
+
+    def send_status_values(
+        self,
+        *,
+        provenance: Provenance,
+        inliers: int,
+        residual_px: float | None,
+        horiz_sigma_m: float,
+        frame_drops: int,
+    ) -> int:
+        """Send the NAMED_VALUE set the ground station shows; returns the number handed to the transport."""
         with self._lock:
             conn = self._conn
-        if conn is None:
-            with self._lock:
+            if conn is None:
                 self._dropped_down += len(_NAMED_VALUE_NAMES)
-            return sent
+                return 0
+        sent = 0
         for msg in messages.named_values(
             conn.mav,
             time_boot_ms=self.time_boot_ms(),
-            provenance=state.provenance,
+            provenance=provenance,
             inliers=inliers,
             residual_px=residual_px,
-            horiz_sigma_m=horiz,
+            horiz_sigma_m=horiz_sigma_m,
             frame_drops=frame_drops,
         ):
             sent += self._send(msg)

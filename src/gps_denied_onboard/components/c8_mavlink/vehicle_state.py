@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any, Final
 
+import numpy as np
 import structlog
 
 from gps_denied_onboard.camera.types import Attitude
@@ -56,6 +57,11 @@ EXTRAPOLATION_LIMIT_S: Final[float] = 0.05
 OFFSET_ALPHA: Final[float] = 0.05
 #: Offset jumps larger than this restart the smoothing; boot time going back this much = reboot.
 OFFSET_RESET_S: Final[float] = 1.0
+#: An IMU sample farther than this from an interval cannot describe it (prediction falls back to
+#: constant velocity), s.
+IMU_MAX_GAP_S: Final[float] = 0.1
+#: Standard gravity, m/s^2 (NED down is positive; a level accelerometer at rest reads -g on body z).
+GRAVITY_M_S2: Final[float] = 9.80665
 #: time_usec values above this are Unix times (after 2001-09-09), below it times since boot.
 _UNIX_USEC_THRESHOLD: Final[int] = 1_000_000_000_000_000
 
@@ -212,6 +218,8 @@ class VehicleStateTracker:
         self._alt: dict[AltitudeSource, _Series] = {s: _Series() for s in AltitudeSource}
         self._home: tuple[float, float, float] | None = None
         self._imu: ImuSample | None = None
+        #: Specific force, body FRD, m/s^2, keyed by boot time.
+        self._accel_body = _Series()
         self._sys_offset_usec: float | None = None
         self._rx_offset_usec: float | None = None
         self._last_boot_usec: int | None = None
@@ -264,6 +272,7 @@ class VehicleStateTracker:
         last = self._last_boot_usec
         if last is not None and boot_usec < last - OFFSET_RESET_S * 1e6:
             self._attitude.clear()
+            self._accel_body.clear()
             for s in self._alt.values():
                 s.clear()
             self._sys_offset_usec = None
@@ -334,26 +343,35 @@ class VehicleStateTracker:
         self._home = (int(msg.latitude) / 1e7, int(msg.longitude) / 1e7, int(msg.altitude) / 1000.0)
         return True
 
+    def _add_imu(self, sample: ImuSample) -> bool:
+        if not all(math.isfinite(v) for v in (*sample.accel_m_s2, *sample.gyro_rad_s)):
+            return False
+        self._imu = sample
+        self._accel_body.add(sample.time_boot_usec, sample.accel_m_s2)
+        return True
+
     def _on_highres_imu(self, msg: Any, recv_usec: int) -> bool:
         t = self._to_boot_usec(int(msg.time_usec), recv_usec)
-        self._imu = ImuSample(
-            "HIGHRES_IMU",
-            t,
-            (float(msg.xacc), float(msg.yacc), float(msg.zacc)),
-            (float(msg.xgyro), float(msg.ygyro), float(msg.zgyro)),
+        return self._add_imu(
+            ImuSample(
+                "HIGHRES_IMU",
+                t,
+                (float(msg.xacc), float(msg.yacc), float(msg.zacc)),
+                (float(msg.xgyro), float(msg.ygyro), float(msg.zgyro)),
+            )
         )
-        return True
 
     def _on_scaled_imu(self, msg: Any, recv_usec: int) -> bool:
         t = self._timestamped(int(msg.time_boot_ms) * 1000, recv_usec)
-        g = 9.80665 / 1000.0  # mG -> m/s^2
-        self._imu = ImuSample(
-            msg.get_type(),
-            t,
-            (msg.xacc * g, msg.yacc * g, msg.zacc * g),
-            (msg.xgyro / 1000.0, msg.ygyro / 1000.0, msg.zgyro / 1000.0),  # mrad/s -> rad/s
+        g = GRAVITY_M_S2 / 1000.0  # mG -> m/s^2
+        return self._add_imu(
+            ImuSample(
+                msg.get_type(),
+                t,
+                (msg.xacc * g, msg.yacc * g, msg.zacc * g),
+                (msg.xgyro / 1000.0, msg.ygyro / 1000.0, msg.zgyro / 1000.0),  # mrad/s -> rad/s
+            )
         )
-        return True
 
     # --- queries ------------------------------------------------------------------------------------
     def _offset_usec(self) -> float | None:
@@ -395,6 +413,46 @@ class VehicleStateTracker:
                 if vals is not None:
                     return float(vals[0])
         return None
+
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray | None:
+        """Mean kinematic acceleration over ``[t0, t1]`` (Unix usec) in NED, (3,) m/s^2: each IMU sample's
+        specific force rotated by the attitude at its own time, plus gravity (the C5
+        ``AccelerationSource``). Samples inside the interval are averaged; an interval shorter than the
+        IMU period uses the nearest sample. None when no sample lies within ``IMU_MAX_GAP_S`` of both
+        ends, or no attitude is known at a sample's time: the prediction then must not pretend."""
+        with self._lock:
+            offset = self._offset_usec()
+            ts = self._accel_body.t_usec
+            if offset is None or not ts:
+                return None
+            b0, b1 = int(t0_unix_usec - offset), int(t1_unix_usec - offset)
+            gap = int(IMU_MAX_GAP_S * 1e6)
+            lo = bisect.bisect_left(ts, b0)
+            hi = bisect.bisect_right(ts, b1)
+            if lo < hi:
+                idx = range(lo, hi)
+            else:  # no sample inside: the nearest one
+                mid = (b0 + b1) // 2
+                near = min((j for j in (lo - 1, lo) if 0 <= j < len(ts)), key=lambda j: abs(ts[j] - mid))
+                idx = range(near, near + 1)
+            if ts[idx[0]] - b0 > gap or b1 - ts[idx[-1]] > gap:
+                return None
+            total = np.zeros(3)
+            for j in idx:
+                att = _interp(
+                    self._attitude,
+                    ts[j],
+                    max_age_usec=self._att_max_usec,
+                    extrap_usec=self._extrap_usec,
+                    wrap=(True, False, True),
+                )
+                if att is None:
+                    return None
+                r_ned_body = Attitude(att[0], att[1], att[2]).R_ned_body()
+                total += r_ned_body @ np.asarray(self._accel_body.values[j], dtype=np.float64)
+            mean = total / len(idx)
+        mean[2] += GRAVITY_M_S2
+        return mean
 
     def home(self) -> tuple[float, float, float] | None:
         """(lat_deg, lon_deg, alt_amsl_m) from HOME_POSITION, or None before it was received."""
