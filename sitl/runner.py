@@ -202,8 +202,8 @@ class _Flight:
         gap = self.scenario.gap_at(t_s)
         if gap is not None:
             img = degrade_for_gap(img, gap)
-        exposure_us = round((self.t0_unix_s + t_s) * 1e6)
-        return encode_frame(img, seq=index, exposure_time_unix_usec=exposure_us), truth
+        stamp_us = round((self.t0_unix_s + t_s + self.scenario.stamp_offset_s(t_s)) * 1e6)
+        return encode_frame(img, seq=index, exposure_time_unix_usec=stamp_us), truth
 
     async def _camera(self, server: FrameServer, stop: asyncio.Event) -> None:
         loop = asyncio.get_running_loop()

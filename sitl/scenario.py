@@ -80,6 +80,10 @@ number is expected.
 ``map_gaps`` (list, default [])
     Time windows in which the nav image is degraded (``sitl.photometric.degrade_for_gap``):
     ``{from_s: number >= 0, to_s: number > from_s, kind: featureless | blackout}``.
+``timestamp_faults`` (list, default [])
+    ``{at_s: number >= 0, ahead_s: number != 0}``: the first frame exposed at or after ``at_s`` is stamped
+    ``ahead_s`` seconds off its true exposure (positive: from the future; negative: late or out of order).
+    The image is the true one; only the stamp lies (a camera clock fault).
 """
 
 from __future__ import annotations
@@ -203,6 +207,14 @@ class LinkDrop:
 
     from_s: float
     to_s: float
+
+
+@dataclass(frozen=True)
+class TimestampFault:
+    """The first frame exposed at or after ``at_s`` is stamped ``ahead_s`` seconds off the truth."""
+
+    at_s: float
+    ahead_s: float
 
 
 @dataclass(frozen=True)
@@ -523,6 +535,7 @@ class Scenario:
     map_gaps: tuple[MapGap, ...] = ()
     map_edits: tuple[MapEdit, ...] = ()
     link_drops: tuple[LinkDrop, ...] = ()
+    timestamp_faults: tuple[TimestampFault, ...] = ()
     #: File the scenario was read from (None when built from a mapping).
     source: str | None = field(default=None, compare=False)
 
@@ -533,6 +546,11 @@ class Scenario:
     def link_down_at(self, t_s: float) -> bool:
         """Whether the autopilot link is cut at ``t_s``."""
         return any(d.from_s <= t_s < d.to_s for d in self.link_drops)
+
+    def stamp_offset_s(self, t_s: float) -> float:
+        """Seconds to add to the stamp of the frame exposed at ``t_s`` (0 for a truthful stamp)."""
+        period = 1.0 / self.frame_rate_hz
+        return sum(f.ahead_s for f in self.timestamp_faults if f.at_s <= t_s < f.at_s + period)
 
     def gap_at(self, t_s: float) -> GapKind | None:
         """The map-gap degradation for a frame exposed at ``t_s``, or None."""
@@ -875,6 +893,21 @@ def _read_link_drops(value: object, source: str | None) -> tuple[LinkDrop, ...]:
     return tuple(drops)
 
 
+def _read_timestamp_faults(value: object, source: str | None) -> tuple[TimestampFault, ...]:
+    if not isinstance(value, list):
+        raise ScenarioError("timestamp_faults", f"expected a list, got {_type_name(value)}", source=source)
+    faults = []
+    for i, raw in enumerate(value):
+        b = _Block(raw, f"timestamp_faults[{i}]", source)
+        at = b.number("at_s", ge=0.0)
+        ahead = b.number("ahead_s")
+        if ahead == 0.0:
+            raise b.error("ahead_s", "expected a non-zero offset in seconds, got 0")
+        b.finish()
+        faults.append(TimestampFault(at, ahead))
+    return tuple(faults)
+
+
 def _read_gaps(value: object, source: str | None) -> tuple[MapGap, ...]:
     if not isinstance(value, list):
         raise ScenarioError("map_gaps", f"expected a list, got {_type_name(value)}", source=source)
@@ -941,6 +974,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     gaps = _read_gaps(root.get("map_gaps", []), source)
     edits = _read_map_edits(root.get("map_edits", []), source)
     drops = _read_link_drops(root.get("link_drops", []), source)
+    stamp_faults = _read_timestamp_faults(root.get("timestamp_faults", []), source)
     root.finish()
     scenario = Scenario(
         name=name,
@@ -961,6 +995,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         map_gaps=gaps,
         map_edits=edits,
         link_drops=drops,
+        timestamp_faults=stamp_faults,
         source=source,
     )
     scenario.footprint_radius_m()  # rejects a camera + wobble that would see the horizon

@@ -72,10 +72,21 @@ def _ne(lat: float, lon: float, ltp: LocalTangentPlane) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------- scenarios
 
 
+def test_scenario_timestamp_faults_shift_one_frame_stamp() -> None:
+    """A timestamp fault shifts the stamp of the first frame at or after at_s only; 0 is refused."""
+    faults = [{"at_s": 6.0, "ahead_s": 3600.0}, {"at_s": 9.0, "ahead_s": -0.5}]
+    sc = _scenario(timestamp_faults=faults)
+    assert sc.stamp_offset_s(6.0) == 3600.0 and sc.stamp_offset_s(9.1) == -0.5
+    assert sc.stamp_offset_s(5.9) == 0.0 and sc.stamp_offset_s(6.0 + 1 / 3) == 0.0
+    err = _error_for({**BASE, "timestamp_faults": [{"at_s": 1.0, "ahead_s": 0.0}]})
+    assert "timestamp_faults[0].ahead_s" in str(err)
+
+
 def test_scenario_builtin_files_load() -> None:
     """The three shipped scenarios load, by path and by bare name, with the documented shape."""
     names = sorted(p.stem for p in BUILTIN_SCENARIOS_DIR.glob("*.yaml"))
     assert names == [
+        "clock_faults",
         "demo",
         "link_drop",
         "map_gap",
@@ -175,7 +186,8 @@ def test_scenario_map_gaps_parse_and_validate() -> None:
 
 def test_scenario_file_errors_name_the_file(tmp_path: Path) -> None:
     """A missing file lists the built-ins; broken YAML is a ScenarioError naming the file."""
-    with pytest.raises(ScenarioError, match=r"built-in scenarios: demo, link_drop, map_gap, .*, smoke"):
+    listed = r"built-in scenarios: clock_faults, demo, link_drop, map_gap, .*, smoke"
+    with pytest.raises(ScenarioError, match=listed):
         load_scenario(tmp_path / "nope.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: [unclosed\n", encoding="utf-8")
