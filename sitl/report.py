@@ -321,13 +321,13 @@ def analyse(
         growth = (max(during) - (e0 or 0.0)) if during else None
         recover = None
         if nominal_p95 is not None:
-            fixes = 0
+            n_fixes = 0
             for i in range(b + 1, len(seqs)):
                 if labels[i] == "satellite_anchored":
-                    fixes += 1
+                    n_fixes += 1
                     e = err(seqs[i])
                     if e is not None and e <= nominal_p95:
-                        recover = fixes
+                        recover = n_fixes
                         break
         vio.append(
             {

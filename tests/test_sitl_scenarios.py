@@ -85,9 +85,22 @@ def test_link_drop_keeps_daemon_running_and_recovers(link_drop: dict) -> None:
     assert link_drop["horizontal_error_m"]["p95"] <= 8.0, summary_lines(link_drop)
 
 
+def test_link_drop_trips_no_fix_but_never_the_ekf_failsafe(link_drop: dict) -> None:
+    """Judged by the ArduPilot rules (test double): the 6 s cut trips NO_FIX once, as measured on a real
+    ArduPilot, but the stream is back before the EKF loses its position (7 s) or fails safe (7.8 s)."""
+    stream = link_drop["stream"]
+    assert len(stream["no_fix"]) == 1 and stream["no_fix"][0]["end_s"] is not None, stream["no_fix"]
+    assert stream["ekf_position_lost"] == [] and stream["ekf_failsafe_land_s"] is None, stream
+    assert stream["health"]["healthy_at_end"]
+    assert link_drop["consistency"]["beyond_3sigma"] == 0, link_drop["consistency"]
+
+
 def test_nominal_real_meets_issue_5_bounds(tmp_path_factory: pytest.TempPathFactory) -> None:
     """Nominal flight at 100-150 m AGL over the real ortho: p50 <= 3 m, p95 <= 8 m, availability >= 0.95."""
     report = _fly(tmp_path_factory, "nominal_real")
     assert report["availability"] >= 0.95, summary_lines(report)
     assert report["horizontal_error_m"]["p50"] <= 3.0 and report["horizontal_error_m"]["p95"] <= 8.0
     assert report["analysis"]["accepted_fixes_beyond_3sigma"] == 0
+    # issue 10: the stated accuracy stays honest through turns and climbs (IMU-driven prediction)
+    assert report["consistency"]["within_2sigma"] >= 0.95 and report["consistency"]["beyond_3sigma"] == 0
+    assert not report["stream"]["health"]["tripped"], report["stream"]
