@@ -12,5 +12,8 @@ packages = find_packages("src")
 for name, folder in _MAPPED.items():
     packages.append(name)
     packages += [f"{name}.{sub}" for sub in find_packages(folder)]
+# Folders of package data with no __init__.py (sitl/scenarios/*.yaml): Python can import them as namespace
+# packages, and setuptools warns ("Package would be ignored") unless they are listed as packages too.
+packages += ["gps_denied_onboard.sitl.scenarios"]
 
 setup(packages=packages)

@@ -1,0 +1,239 @@
+"""The systemd unit: hardened, restarted only when a restart can help, and consistent with the airborne
+profile and with the README's install steps (one binary, one profile, the cache read-only, the FDR
+writable)."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import shlex
+import shutil
+import subprocess
+from pathlib import Path, PurePosixPath
+
+import pytest
+
+from gps_denied_onboard.cli import EXIT_CONFIG, EXIT_RESOURCE, build_parser
+from gps_denied_onboard.config import load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+UNIT_PATH = ROOT / "systemd" / "gdnav.service"
+#: A generous duration of one `gdnav config check` (Python imports) on a slow companion computer, s.
+SLOW_CHECK_S = 10.0
+#: Where a unit's paths are hidden from the service by PrivateTmp=/ProtectHome=.
+HIDDEN_ROOTS = ("/tmp", "/var/tmp", "/home", "/root", "/run/user")
+_TRUE = {"yes", "true", "on", "1"}
+
+
+def _parse_unit(text: str) -> dict[str, dict[str, list[str]]]:
+    """Section -> key -> every value in file order (keys such as ReadOnlyPaths= may repeat)."""
+    sections: dict[str, dict[str, list[str]]] = {}
+    current: dict[str, list[str]] | None = None
+    for lineno, raw in enumerate(text.splitlines(), 1):
+        line = raw.strip()
+        if not line or line[0] in "#;":
+            continue
+        if line.endswith("\\"):
+            raise ValueError(f"{UNIT_PATH.name}:{lineno}: continuation lines are not parsed here")
+        if line.startswith("[") and line.endswith("]"):
+            current = sections.setdefault(line[1:-1], {})
+            continue
+        key, sep, value = line.partition("=")
+        if current is None or not sep:
+            raise ValueError(f"{UNIT_PATH.name}:{lineno}: not a directive inside a section: {raw!r}")
+        current.setdefault(key.strip(), []).append(value.strip())
+    return sections
+
+
+UNIT_TEXT = UNIT_PATH.read_text()
+UNIT = _parse_unit(UNIT_TEXT)
+PROFILE = load_config(ROOT / "config" / "airborne.yaml")
+
+
+def _one(section: str, key: str) -> str:
+    values = UNIT.get(section, {}).get(key, [])
+    assert len(values) == 1, f"[{section}] {key}= must appear once, found {values}"
+    return values[0]
+
+
+def _words(section: str, key: str) -> list[str]:
+    """A list-valued directive: every assignment, split on whitespace ('' resets the list, as in systemd)."""
+    words: list[str] = []
+    for value in UNIT.get(section, {}).get(key, []):
+        words = [] if value == "" else [*words, *value.split()]
+    return words
+
+
+def _seconds(span: str) -> float:
+    """A systemd time span such as `5`, `5s`, `500ms`, `2min` (bare numbers are seconds)."""
+    m = re.fullmatch(r"(\d+(?:\.\d+)?)\s*(ms|s|sec|min|m)?", span)
+    assert m, f"unsupported time span {span!r}"
+    scale = {"ms": 1e-3, "min": 60.0, "m": 60.0}.get(m.group(2) or "s", 1.0)
+    return float(m.group(1)) * scale
+
+
+def _exec(key: str) -> list[str]:
+    """The argv of an Exec*= line; systemd's prefixes ('-', '+', '@', ...) are refused, not stripped."""
+    argv = shlex.split(_one("Service", key))
+    assert argv[0].startswith("/"), f"{key}= must name an absolute path: {argv[0]}"
+    return argv
+
+
+def _option(argv: list[str], name: str) -> str:
+    assert argv.count(name) == 1, f"{name} must be given once: {argv}"
+    return argv[argv.index(name) + 1]
+
+
+def _paths(key: str) -> list[PurePosixPath]:
+    """Paths of ReadOnlyPaths=/ReadWritePaths=, without the '-' (ignore if missing) and '+' prefixes."""
+    return [PurePosixPath(w.lstrip("-+")) for w in _words("Service", key)]
+
+
+def _writable() -> list[PurePosixPath]:
+    state = [PurePosixPath("/var/lib") / d for d in _words("Service", "StateDirectory")]
+    return state + _paths("ReadWritePaths")
+
+
+def _under(path: str | None, roots: list[PurePosixPath]) -> bool:
+    return path is not None and any(PurePosixPath(path).is_relative_to(r) for r in roots)
+
+
+def _install_section() -> str:
+    readme = (ROOT / "README.md").read_text()
+    aircraft = readme.split("\n## Running on an aircraft\n", 1)[1].split("\n## ", 1)[0]
+    assert "\n### Install on a companion computer\n" in aircraft
+    return aircraft.split("\n### Install on a companion computer\n", 1)[1].split("\n### ", 1)[0]
+
+
+def test_unit_every_directive_has_a_comment() -> None:
+    """Each directive is preceded by a comment saying why it is there."""
+    previous = ""
+    for lineno, raw in enumerate(UNIT_TEXT.splitlines(), 1):
+        line = raw.strip()
+        if line and line[0] not in "#;[":
+            assert previous.startswith("#"), f"{UNIT_PATH.name}:{lineno}: {line} has no comment above it"
+        if line:
+            previous = line
+
+
+def test_unit_is_notify_with_a_watchdog_the_daemon_can_keep() -> None:
+    """Type=notify (READY/WATCHDOG/STOPPING come from the daemon itself), and the watchdog spans several
+    of the status task's pings in the airborne profile."""
+    assert _one("Service", "Type") == "notify"
+    assert _one("Service", "NotifyAccess") == "main"
+    watchdog_s = _seconds(_one("Service", "WatchdogSec"))
+    # daemon/service.py pings every min(1/status_hz, 1/named_value_hz, WatchdogSec/2).
+    ping_s = min(1.0 / PROFILE.daemon.status_hz, 1.0 / PROFILE.mavlink.named_value_hz, watchdog_s / 2)
+    assert watchdog_s >= 4 * ping_s, f"WatchdogSec={watchdog_s} s leaves no room for a late {ping_s} s ping"
+
+
+def test_unit_does_not_restart_refusals() -> None:
+    """Restart=on-failure, but never on exit 2 (configuration) or 3 (refused file or port)."""
+    assert _one("Service", "Restart") == "on-failure"
+    prevented = _words("Service", "RestartPreventExitStatus")
+    assert {str(EXIT_CONFIG), str(EXIT_RESOURCE)} <= set(prevented), prevented
+    assert (EXIT_CONFIG, EXIT_RESOURCE) == (2, 3)
+
+
+def test_unit_start_limit_ends_an_exec_start_pre_refusal_loop() -> None:
+    """RestartPreventExitStatus= covers the main process only, so a refusing ExecStartPre is restarted:
+    the start limit must be reached even when each try takes RestartSec= plus a slow check."""
+    burst = int(_one("Unit", "StartLimitBurst"))
+    interval_s = _seconds(_one("Unit", "StartLimitIntervalSec"))
+    restart_s = _seconds(_one("Service", "RestartSec"))
+    assert burst >= 1
+    assert burst * (restart_s + SLOW_CHECK_S) <= interval_s, (burst, restart_s, interval_s)
+
+
+def test_unit_check_and_daemon_use_one_binary_and_one_profile() -> None:
+    """ExecStartPre is `gdnav config check` and ExecStart is `gdnav run`, same binary, same --config,
+    with no prefix ('-' would ignore a refusal, '+' would check as root instead of the service user)."""
+    check, run = _exec("ExecStartPre"), _exec("ExecStart")
+    assert check[0] == run[0] and PurePosixPath(check[0]).name == "gdnav"
+    assert check[1:3] == ["config", "check"] and run[1] == "run"
+    assert _option(check, "--config") == _option(run, "--config")
+    assert PurePosixPath(_option(run, "--config")).is_absolute()
+    assert not _under(run[0], [PurePosixPath(h) for h in HIDDEN_ROOTS])
+    for argv in (check, run):
+        build_parser().parse_args(argv[1:])
+
+
+def test_unit_is_hardened() -> None:
+    """A dedicated user with the device groups it needs, and the sandbox the README describes."""
+    assert _one("Service", "User") == "gdnav"
+    assert _one("Service", "Group") == "gdnav"
+    assert {"dialout", "video"} <= set(_words("Service", "SupplementaryGroups"))
+    for key in ("NoNewPrivileges", "PrivateTmp", "ProtectHome"):
+        assert _one("Service", key).lower() in _TRUE, key
+    assert _one("Service", "ProtectSystem") == "strict"
+
+
+def test_unit_sandbox_fits_the_airborne_profile() -> None:
+    """Under ProtectSystem=strict the FDR directory is writable, the cache and models are read-only, and
+    no file the daemon reads is hidden by PrivateTmp=/ProtectHome=."""
+    writable, read_only = _writable(), _paths("ReadOnlyPaths")
+    assert _under(PROFILE.fdr.dir, writable), (PROFILE.fdr.dir, writable)
+    assert _under(PROFILE.cache.dir, read_only), (PROFILE.cache.dir, read_only)
+    assert not _under(PROFILE.cache.dir, writable)
+    models = [
+        getattr(PROFILE.matcher, f.name)
+        for f in dataclasses.fields(PROFILE.matcher)
+        if f.name.endswith("_weights_path") and getattr(PROFILE.matcher, f.name) is not None
+    ]
+    assert models, "the airborne profile names its model files"
+    for path in models:
+        assert _under(path, read_only) and not _under(path, writable), path
+    hidden = [PurePosixPath(h) for h in HIDDEN_ROOTS]
+    for path in (PROFILE.camera.calibration_file, PROFILE.cache.dir, PROFILE.fdr.dir, *models):
+        assert path is not None and PurePosixPath(path).is_absolute(), path
+        assert not _under(path, hidden), path
+
+
+def test_readme_install_steps_match_the_unit() -> None:
+    """The README's install commands create what the unit runs and reads, and name its settings."""
+    text = _install_section()
+    run = _exec("ExecStart")
+    binary, config = run[0], _option(run, "--config")
+    venv = PurePosixPath(binary).parents[1]
+    user, group = _one("Service", "User"), _one("Service", "Group")
+    expected = [
+        f"useradd --system --user-group --home-dir /nonexistent --no-create-home "
+        f"--shell /usr/sbin/nologin {user}",
+        f"python3 -m venv {venv}",
+        f"{venv}/bin/pip install .",
+        f"install -m 0644 config/airborne.yaml {config}",
+        f"install -m 0644 nav_camera.yaml {PROFILE.camera.calibration_file}",
+        f"install -o {user} -g {group} -m 0600 mavlink.key",
+        f"{binary} cache build --source ortho.tif --out {PROFILE.cache.dir}",
+        f"install -m 0644 systemd/gdnav.service /etc/systemd/system/{UNIT_PATH.name}",
+        f"sudo -u {user} {' '.join(_exec('ExecStartPre'))}",
+        "systemctl enable --now gdnav",
+        "journalctl -u gdnav",
+        f"RestartPreventExitStatus={' '.join(_words('Service', 'RestartPreventExitStatus'))}",
+        f"StartLimitBurst={_one('Unit', 'StartLimitBurst')}",
+        f"StartLimitIntervalSec={_one('Unit', 'StartLimitIntervalSec')}",
+        f"WatchdogSec={_one('Service', 'WatchdogSec')}",
+        f"RestartSec={_one('Service', 'RestartSec')}",
+    ]
+    missing = [e for e in expected if e not in text]
+    assert not missing, f"README install section lacks: {missing}"
+    assert user == group, "the README creates the user with --user-group"
+
+
+def test_unit_passes_systemd_analyze_verify(tmp_path: Path) -> None:
+    """`systemd-analyze verify` accepts the unit with no warning (the binary is stubbed: it checks that
+    the executable exists)."""
+    analyze = shutil.which("systemd-analyze")
+    if analyze is None:
+        pytest.skip("systemd-analyze is not installed")
+    binary = _exec("ExecStart")[0]
+    stub = tmp_path / "gdnav"
+    stub.write_text("#!/bin/sh\nexit 0\n")
+    stub.chmod(0o755)
+    unit = tmp_path / UNIT_PATH.name
+    unit.write_text(UNIT_TEXT.replace(binary, str(stub)))
+    proc = subprocess.run(
+        [analyze, "verify", str(unit)], capture_output=True, text=True, timeout=60, check=False
+    )
+    ours = [ln for ln in (proc.stdout + proc.stderr).splitlines() if UNIT_PATH.name in ln]
+    assert proc.returncode == 0 and not ours, proc.stdout + proc.stderr
