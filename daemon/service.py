@@ -32,13 +32,15 @@ from pymavlink import mavutil
 from gps_denied_onboard.camera.sources import CapturedFrame
 from gps_denied_onboard.camera.stream import FrameStreamError
 from gps_denied_onboard.camera.types import NavCameraFrame
+from gps_denied_onboard.components.c5_estimator.prior import InitialPrior, PriorSource, choose_prior
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c8_mavlink.messages import fix_type_for
 from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.worker import WorkerThread
-from gps_denied_onboard.pipeline import FixOutcome, InitialPrior, TrackOutcome
+from gps_denied_onboard.geo import haversine_m
+from gps_denied_onboard.pipeline import FixOutcome, TrackOutcome
 from gps_denied_onboard.runtime_root import RuntimeRoot
 
 log = structlog.get_logger(__name__)
@@ -175,13 +177,15 @@ class NavDaemon:
             # Vehicle state is sampled on the loop (single owner); the worker threads get values only.
             attitude = tracker.attitude_at(t_us)
             alt_agl_m = tracker.alt_agl_at(t_us)
-            prior = self._prior()
+            prior = self._prior(t_us)
             result = await self._track_thread.submit(
                 self._track, captured, received_ns, attitude, alt_agl_m, prior
             )
             if result is None:
                 continue
             frame, outcome = result
+            if prior is not None and self._axis.is_initialised:
+                self._announce_prior(prior)
             self._note_tracked(outcome)
             if self._axis.is_initialised and not self._fix_mailbox.put(frame):
                 self.counters.fix_frames_skipped += 1
@@ -193,14 +197,61 @@ class NavDaemon:
             if outcome is not None:
                 self._note_fix(outcome)
 
-    def _prior(self) -> InitialPrior | None:
-        init = self._cfg.init
-        if init.lat_deg is not None and init.lon_deg is not None:
-            return InitialPrior(init.lat_deg, init.lon_deg, init.sigma_m, "config")
-        home = self._root.tracker.home() if init.use_home_position else None
-        if home is not None:
-            return InitialPrior(home[0], home[1], init.sigma_m, "home_position")
-        return None
+    def _prior(self, exposure_time_unix_usec: int) -> InitialPrior | None:
+        """The start-up prior (F8 rules in ``c5_estimator.prior``); None while the autopilot has not
+        told enough yet to decide (no HOME_POSITION or altitude, and no previous run to resume)."""
+        if self._axis.is_initialised:
+            return None
+        tracker = self._root.tracker
+        home = tracker.home() if self._cfg.init.use_home_position else None
+        alt_agl_m = tracker.alt_agl_at(exposure_time_unix_usec)
+        tiles = self._root.tile_store
+        _west, _south, east, north = tiles.bbox_lonlat
+        centre_lon, centre_lat = tiles.center_lonlat
+        radius_m = float(haversine_m(centre_lat, centre_lon, north, east))
+        prior = choose_prior(
+            now_unix_usec=exposure_time_unix_usec,
+            init=self._cfg.init,
+            previous=self._root.previous_run,
+            home=home,
+            alt_agl_m=alt_agl_m,
+            map_centre_lat_lon=(centre_lat, centre_lon),
+            map_radius_m=radius_m,
+        )
+        if prior.source == PriorSource.MAP_EXTENT and self._root.previous_run.last_record_unix_s is None:
+            return None  # a cold start without a start point yet: wait for HOME_POSITION, do not guess
+        return prior
+
+    def _announce_prior(self, prior: InitialPrior) -> None:
+        """Say where the estimator started and why: log, FDR, and the ground station."""
+        log.warning(
+            LogEvent.ESTIMATOR_PRIOR,
+            source=prior.source,
+            why=prior.why,
+            sigma_m=round(prior.sigma_m, 1),
+            lat_deg=prior.lat_deg,
+            lon_deg=prior.lon_deg,
+        )
+        self._root.fdr.record(
+            FdrKind.PRIOR,
+            {
+                "source": prior.source,
+                "why": prior.why,
+                "lat_deg": prior.lat_deg,
+                "lon_deg": prior.lon_deg,
+                "sigma_m": prior.sigma_m,
+            },
+        )
+        text = {
+            PriorSource.RESUMED: f"GDN: resumed, sigma {prior.sigma_m:.0f} m",
+            PriorSource.MAP_EXTENT: "GDN: no trusted prior, searching map",
+        }.get(prior.source, f"GDN: start at {prior.source}")
+        severity = (
+            mavutil.mavlink.MAV_SEVERITY_INFO
+            if prior.source in (PriorSource.HOME, PriorSource.CONFIG)
+            else mavutil.mavlink.MAV_SEVERITY_WARNING
+        )
+        self._root.link.send_statustext(severity, text)
 
     def _frame_error(self, seq: int, stage: str, error: str, *, bad_input: bool) -> None:
         if bad_input:

@@ -119,6 +119,8 @@ class _Flight:
         self.t0_unix_s = 0.0
         self.daemon_exit_code: int | None = None
         self.end_unix_s: float | None = None
+        #: Unix times at which the daemon was killed, and at which its replacement was started.
+        self.restarts: list[dict[str, float]] = []
         self._imu_rng = np.random.default_rng(11)
         self.daemon_stop_s: float | None = None
 
@@ -224,6 +226,22 @@ class _Flight:
                 )
             )
 
+    async def _restarter(self, cmd: list[str], log_file: Any, procs: list[subprocess.Popen[bytes]]) -> None:
+        """SIGKILL the daemon at each scheduled flight time and start the same command again at once."""
+        for at_s in self.scenario.daemon_restarts_s:
+            await asyncio.sleep(max(0.0, self.t0_unix_s + at_s - time.time()))
+            old = procs[-1]
+            t_kill = time.time()
+            old.kill()
+            await asyncio.get_running_loop().run_in_executor(None, old.wait)
+            procs.append(
+                subprocess.Popen(
+                    cmd, stdout=log_file, stderr=log_file, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+                )
+            )
+            self.restarts.append({"killed_unix_s": t_kill, "restarted_unix_s": time.time()})
+            self._say(f"daemon killed (SIGKILL) at {at_s:.1f} s and restarted: pid {procs[-1].pid}")
+
     async def fly(self) -> SimAutopilot:
         server = FrameServer()
         cam_port = await server.start()
@@ -231,13 +249,15 @@ class _Flight:
         ap = SimAutopilot(daemon_port=mav_port)
         log_path = self.workdir / "daemon.log"
         stop = asyncio.Event()
+        cmd = self._daemon_cmd(mav_port, cam_port)
         with log_path.open("wb") as log_file:
-            proc = subprocess.Popen(
-                self._daemon_cmd(mav_port, cam_port),
-                stdout=log_file,
-                stderr=log_file,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            )
+            procs = [
+                subprocess.Popen(
+                    cmd, stdout=log_file, stderr=log_file, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+                )
+            ]
+            proc = procs[0]
+            restarter: asyncio.Task[None] | None = None
             try:
                 telemetry = asyncio.create_task(self._telemetry(ap, stop), name="sitl_telemetry")
                 self._say(f"daemon pid {proc.pid}; waiting for its HEARTBEAT (log: {log_path})")
@@ -260,7 +280,12 @@ class _Flight:
                     f"flying '{self.scenario.name}': {self.traj.duration_s:.0f} s, "
                     f"{len(self.traj.frame_times_s())} frames"
                 )
+                if self.scenario.daemon_restarts_s:
+                    restarter = asyncio.create_task(self._restarter(cmd, log_file, procs), name="restarter")
                 await self._camera(server, stop)
+                if restarter is not None:
+                    await restarter
+                proc = procs[-1]
                 await asyncio.sleep(_TAIL_S)
                 self.end_unix_s = time.time()
                 stop.set()
@@ -268,6 +293,9 @@ class _Flight:
                 ap.poll()
             finally:
                 stop.set()
+                if restarter is not None and not restarter.done():
+                    restarter.cancel()
+                proc = procs[-1]
                 t_term = time.monotonic()
                 if proc.poll() is None:
                     proc.send_signal(signal.SIGTERM)
@@ -367,6 +395,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
             "daemon_overrides": list(opts.overrides),
             "matcher": _matcher_in_use(workdir / "daemon.log") or daemon_cfg.matcher.strategy,
             "daemon_exit_code": flight.daemon_exit_code,
+            "daemon_restarts": _restart_gaps(flight.restarts, ap.received),
             "daemon_stop_s": flight.daemon_stop_s,
             "cache_build_s": round(cache_s, 2),
             "heartbeats_received": len(ap.of_type("HEARTBEAT")),
@@ -382,6 +411,26 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     opts.report_path.write_text(json.dumps(report, indent=2))
     plot_report(report, opts.report_path.with_suffix(".png"), title=f"{scenario.name} on {map_path.name}")
     return report
+
+
+def _restart_gaps(restarts: list[dict[str, float]], received: list[Any]) -> list[dict[str, Any]]:
+    """For each kill/restart: when the autopilot side last heard a GPS_INPUT before the kill, and heard
+    one again (any fix type, and fix_type 3) after it, in seconds after the kill."""
+    gps = [(m.recv_time_unix_s, int(m.fields["fix_type"])) for m in received if m.type == "GPS_INPUT"]
+    out = []
+    for r in restarts:
+        kill = r["killed_unix_s"]
+        before = [t for t, _ in gps if t <= kill]
+        after = [(t, ft) for t, ft in gps if t > kill]
+        out.append(
+            {
+                **r,
+                "last_before_kill_s": round(before[-1] - kill, 3) if before else None,
+                "first_after_s": round(after[0][0] - kill, 3) if after else None,
+                "first_3d_after_s": next((round(t - kill, 3) for t, ft in after if ft >= 3), None),
+            }
+        )
+    return out
 
 
 def _matcher_in_use(log_path: Path) -> str | None:

@@ -80,6 +80,9 @@ number is expected.
 ``map_gaps`` (list, default [])
     Time windows in which the nav image is degraded (``sitl.photometric.degrade_for_gap``):
     ``{from_s: number >= 0, to_s: number > from_s, kind: featureless | blackout}``.
+``daemon_restarts`` (list, default [])
+    ``{at_s: number > 0}``: the daemon is killed with SIGKILL at ``at_s`` and started again at once with
+    the same command, as systemd's ``Restart=`` does (F8 restart recovery).
 ``timestamp_faults`` (list, default [])
     ``{at_s: number >= 0, ahead_s: number != 0}``: the first frame exposed at or after ``at_s`` is stamped
     ``ahead_s`` seconds off its true exposure (positive: from the future; negative: late or out of order).
@@ -536,6 +539,8 @@ class Scenario:
     map_edits: tuple[MapEdit, ...] = ()
     link_drops: tuple[LinkDrop, ...] = ()
     timestamp_faults: tuple[TimestampFault, ...] = ()
+    #: Flight times at which the daemon is killed (SIGKILL) and restarted, s.
+    daemon_restarts_s: tuple[float, ...] = ()
     #: File the scenario was read from (None when built from a mapping).
     source: str | None = field(default=None, compare=False)
 
@@ -908,6 +913,17 @@ def _read_timestamp_faults(value: object, source: str | None) -> tuple[Timestamp
     return tuple(faults)
 
 
+def _read_restarts(value: object, source: str | None) -> tuple[float, ...]:
+    if not isinstance(value, list):
+        raise ScenarioError("daemon_restarts", f"expected a list, got {_type_name(value)}", source=source)
+    times = []
+    for i, raw in enumerate(value):
+        b = _Block(raw, f"daemon_restarts[{i}]", source)
+        times.append(b.number("at_s", gt=0.0))
+        b.finish()
+    return tuple(sorted(times))
+
+
 def _read_gaps(value: object, source: str | None) -> tuple[MapGap, ...]:
     if not isinstance(value, list):
         raise ScenarioError("map_gaps", f"expected a list, got {_type_name(value)}", source=source)
@@ -975,6 +991,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     edits = _read_map_edits(root.get("map_edits", []), source)
     drops = _read_link_drops(root.get("link_drops", []), source)
     stamp_faults = _read_timestamp_faults(root.get("timestamp_faults", []), source)
+    restarts = _read_restarts(root.get("daemon_restarts", []), source)
     root.finish()
     scenario = Scenario(
         name=name,
@@ -996,6 +1013,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         map_edits=edits,
         link_drops=drops,
         timestamp_faults=stamp_faults,
+        daemon_restarts_s=restarts,
         source=source,
     )
     scenario.footprint_radius_m()  # rejects a camera + wobble that would see the horizon

@@ -92,6 +92,7 @@ def test_scenario_builtin_files_load() -> None:
         "map_gap",
         "naip_cross_date",
         "nominal_real",
+        "restart",
         "smoke",
         "wrong_tile_trap",
     ]

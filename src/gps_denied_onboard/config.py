@@ -158,7 +158,7 @@ class TerrainConfig:
 
 @dataclasses.dataclass(frozen=True)
 class InitConfig:
-    """Where the estimator starts when the autopilot gives no HOME_POSITION."""
+    """Where the estimator starts: see ``components.c5_estimator.prior`` for the rules."""
 
     __pydantic_config__: ClassVar[ConfigDict] = _STRICT
 
@@ -169,6 +169,14 @@ class InitConfig:
     sigma_m: PosFloat = 50.0
     #: Use the autopilot's HOME_POSITION as the initial prior when no lat/lon is configured.
     use_home_position: Bool = True
+    #: Restart (F8): resume from the previous run's last 3D estimate (in the FDR) when it is at most
+    #: this old; a previous run recorded within it also means "restarted in flight", s.
+    resume_max_age_s: PosFloat = 120.0
+    #: The vehicle's top ground speed: a resumed estimate's sigma grows by this times its age, m/s.
+    max_speed_m_s: PosFloat = 25.0
+    #: At or below this height above home the vehicle is on the ground (where the configured position
+    #: and HOME_POSITION are valid priors even after a restart), m.
+    on_ground_max_alt_agl_m: PosFloat = 10.0
 
 
 @dataclasses.dataclass(frozen=True)

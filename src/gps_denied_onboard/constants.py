@@ -80,6 +80,8 @@ class LogEvent:
     PROVENANCE_CHANGED: Final = "c5.estimator.provenance_changed"
     ESTIMATOR_FIX_REJECTED: Final = "c5.estimator.fix_rejected"
     ESTIMATOR_INITIALISED: Final = "c5.estimator.initialised"
+    #: Where the estimator started (F8: resumed, start point, or the whole map) and why.
+    ESTIMATOR_PRIOR: Final = "c5.estimator.prior"
     ESTIMATOR_COVARIANCE_INFLATED: Final = "c5.estimator.covariance_inflated"
     ESTIMATOR_TIME_BACKWARDS: Final = "c5.estimator.time_backwards"
     ESTIMATOR_VO_REJECTED: Final = "c5.estimator.vo_rejected"
@@ -134,6 +136,8 @@ class FdrKind:
     #: One estimate sent to the autopilot (the steady output stream).
     ESTIMATE_SENT: Final = "mavlink.estimate"
     PROVENANCE_CHANGED: Final = "estimator.provenance_changed"
+    #: The start-up prior the estimator was initialised from (source, why, position, sigma).
+    PRIOR: Final = "estimator.prior"
     MATCHER_FRAME_DONE: Final = "matcher.frame_done"
     MATCHER_BACKBONE_ERROR: Final = "matcher.backbone_error"
     MATCHER_INSUFFICIENT_INLIERS: Final = "matcher.insufficient_inliers"

@@ -31,6 +31,7 @@ from gps_denied_onboard.components.c2_vpr.types import VprError
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
+from gps_denied_onboard.components.c5_estimator.prior import InitialPrior
 from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxis
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
@@ -39,16 +40,6 @@ from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
 from gps_denied_onboard.geo import LocalTangentPlane
 
 log = structlog.get_logger(__name__)
-
-
-@dataclass(frozen=True)
-class InitialPrior:
-    """Where the flight starts: from the autopilot's HOME_POSITION or the config."""
-
-    lat_deg: float
-    lon_deg: float
-    sigma_m: float
-    source: str
 
 
 @dataclass(frozen=True)
@@ -162,6 +153,7 @@ class NavigationPipeline:
         log.info(
             LogEvent.ESTIMATOR_INITIALISED,
             source=prior.source,
+            why=prior.why,
             lat_deg=prior.lat_deg,
             lon_deg=prior.lon_deg,
             sigma_m=prior.sigma_m,

@@ -27,6 +27,7 @@ from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.xfeat import XFEAT_DESCRIPTOR_DIM
 from gps_denied_onboard.components.c4_pose import PoseSolver
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
+from gps_denied_onboard.components.c5_estimator.prior import PreviousRun, read_previous_run
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
 from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
@@ -37,7 +38,7 @@ from gps_denied_onboard.components.c8_mavlink import (
     VehicleStateTracker,
     load_signing_key,
 )
-from gps_denied_onboard.components.c13_fdr import FlightDataRecorder
+from gps_denied_onboard.components.c13_fdr import FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import Config
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
@@ -70,6 +71,7 @@ class RuntimeRoot:
     matcher: CrossDomainMatcher
     pipeline: NavigationPipeline
     time_axis: TimeAxis
+    previous_run: PreviousRun
 
     def close(self) -> None:
         self.link.close()
@@ -264,6 +266,8 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         gsd_m_px=round(tiles.gsd_m_px, 3),
     )
 
+    # F8: what the previous run left, read before this run records anything.
+    previous_run = read_previous_run(read_records_newest_first(config.fdr.dir))
     fdr = pre.get("fdr") or FlightDataRecorder(
         Path(config.fdr.dir), max_bytes=config.fdr.max_bytes, segment_bytes=config.fdr.segment_bytes
     )
@@ -318,5 +322,16 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     except CameraSourceError as exc:
         raise StartupError("camera.source", str(exc)) from exc
     return RuntimeRoot(
-        config, calibration, ltp, tiles, fdr, tracker, link, camera, matcher, pipeline, time_axis
+        config,
+        calibration,
+        ltp,
+        tiles,
+        fdr,
+        tracker,
+        link,
+        camera,
+        matcher,
+        pipeline,
+        time_axis,
+        previous_run,
     )

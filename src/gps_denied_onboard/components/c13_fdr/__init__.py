@@ -5,7 +5,15 @@ from gps_denied_onboard.components.c13_fdr.recorder import (
     FlightDataRecorder,
     list_segments,
     read_records,
+    read_records_newest_first,
     to_jsonable,
 )
 
-__all__ = ["FdrClient", "FlightDataRecorder", "list_segments", "read_records", "to_jsonable"]
+__all__ = [
+    "FdrClient",
+    "FlightDataRecorder",
+    "list_segments",
+    "read_records",
+    "read_records_newest_first",
+    "to_jsonable",
+]

@@ -128,6 +128,23 @@ def read_records(directory: str | Path) -> Iterator[dict[str, Any]]:
                     yield rec
 
 
+def read_records_newest_first(directory: str | Path) -> Iterator[dict[str, Any]]:
+    """Every record in ``directory``, newest first (for "what was the last ..." questions at start-up:
+    the caller stops early, so only the newest segment is usually read); torn lines are skipped."""
+    for seg in reversed(list_segments(directory)):
+        try:
+            data = seg.read_bytes()
+        except OSError:
+            continue
+        for raw in reversed(data.splitlines()):
+            try:
+                rec = json.loads(raw)
+            except (ValueError, UnicodeDecodeError):
+                continue
+            if isinstance(rec, dict) and "kind" in rec:
+                yield rec
+
+
 class FlightDataRecorder:
     """JSON-lines flight data recorder implementing ``FdrClient``; thread-safe, never raises on record."""
 

@@ -1,0 +1,146 @@
+"""C5 start-up prior: where the estimator may honestly start, after a cold start or a restart (F8).
+
+A restarted daemon must never claim an accuracy it cannot back. Measured on the previous main: killed
+250 m from home and restarted by systemd, it started at HOME_POSITION with the configured 30 m sigma and
+told the autopilot "3D fix, 30 m" while it was 252 m off. The rules, in order (:func:`choose_prior`):
+
+1. **Resume** from the last estimate the previous run sent as a 3D fix (read from the flight data
+   recorder) when it is at most ``init.resume_max_age_s`` old: its position, with a sigma grown by
+   ``init.max_speed_m_s`` times the time since (the vehicle can be anywhere it could have flown).
+2. **Configured position or HOME_POSITION** on a cold start (no record of a previous run within
+   ``init.resume_max_age_s``: the daemon is started at boot, before take-off) or while the vehicle is on
+   the ground (height above home at most ``init.on_ground_max_alt_agl_m``). After a restart in the air
+   they say nothing about where the vehicle is now.
+3. **Nothing trustworthy**: the whole map. The prior is the cache's centre with a sigma that covers
+   the cache, so the output is not a fix (fix_type 1, or 0 above ``estimator.max_output_sigma_m``) and
+   the fix path searches widely (corpus-wide with an appearance VPR strategy) until a fix re-anchors it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any, Final
+
+from gps_denied_onboard.config import InitConfig
+from gps_denied_onboard.constants import FdrKind
+
+#: GPS_FIX_TYPE_3D: only estimates sent as a 3D fix are resumed from.
+_FIX_3D: Final[int] = 3
+
+
+class PriorSource:
+    """Values of ``InitialPrior.source``."""
+
+    RESUMED: Final = "fdr_resume"
+    CONFIG: Final = "config"
+    HOME: Final = "home_position"
+    MAP_EXTENT: Final = "map_extent"
+
+
+@dataclass(frozen=True)
+class InitialPrior:
+    """Where the estimator starts: position and its horizontal 1-sigma, and where that came from."""
+
+    lat_deg: float
+    lon_deg: float
+    sigma_m: float
+    source: str
+    #: Why this source was chosen (and the others were not), for the log, the FDR and the operator.
+    why: str = ""
+
+
+@dataclass(frozen=True)
+class ResumeState:
+    """The last estimate a previous run sent to the autopilot as a 3D fix."""
+
+    lat_deg: float
+    lon_deg: float
+    horiz_sigma_m: float
+    time_unix_usec: int
+
+
+@dataclass(frozen=True)
+class PreviousRun:
+    """What the flight data recorder says about the daemon's previous run."""
+
+    #: The last estimate it sent as a 3D fix, or None.
+    last_3d: ResumeState | None
+    #: Time of its newest record of any kind, Unix seconds, or None (no previous run recorded).
+    last_record_unix_s: float | None
+
+
+def read_previous_run(records_newest_first: Iterable[Mapping[str, Any]]) -> PreviousRun:
+    """Scan FDR records newest first (``read_records_newest_first``) up to the last 3D estimate."""
+    last_record: float | None = None
+    for r in records_newest_first:
+        if last_record is None and isinstance(r.get("t_unix_s"), (int, float)):
+            last_record = float(r["t_unix_s"])
+        if r.get("kind") != FdrKind.ESTIMATE_SENT or r.get("fix_type") != _FIX_3D:
+            continue
+        try:
+            state = ResumeState(
+                float(r["lat_deg"]), float(r["lon_deg"]), float(r["horiz_sigma_m"]), int(r["time_unix_usec"])
+            )
+        except (KeyError, TypeError, ValueError):
+            continue
+        if all(math.isfinite(v) for v in (state.lat_deg, state.lon_deg, state.horiz_sigma_m)):
+            return PreviousRun(state, last_record)
+    return PreviousRun(None, last_record)
+
+
+def choose_prior(
+    *,
+    now_unix_usec: int,
+    init: InitConfig,
+    previous: PreviousRun,
+    home: tuple[float, float, float] | None,
+    alt_agl_m: float | None,
+    map_centre_lat_lon: tuple[float, float],
+    map_radius_m: float,
+) -> InitialPrior:
+    """The start-up prior by the rules in the module docstring.
+
+    ``previous``: the FDR's view of the previous run; a record of it within ``init.resume_max_age_s``
+    means this start is a restart in flight, unless the vehicle is on the ground. ``home``:
+    HOME_POSITION (lat, lon, alt) or None. ``alt_agl_m``: the autopilot's height above home now, or None
+    when unknown. ``map_centre_lat_lon``/``map_radius_m``: the cache's extent.
+    """
+    now_s = now_unix_usec / 1e6
+    notes: list[str] = []
+    resume = previous.last_3d
+    if resume is not None:
+        age_s = now_s - resume.time_unix_usec / 1e6
+        if 0.0 <= age_s <= init.resume_max_age_s:
+            sigma = math.hypot(resume.horiz_sigma_m, init.max_speed_m_s * age_s)
+            return InitialPrior(
+                resume.lat_deg,
+                resume.lon_deg,
+                sigma,
+                PriorSource.RESUMED,
+                f"last 3D estimate {age_s:.1f} s ago, sigma {resume.horiz_sigma_m:.1f} m grown at "
+                f"{init.max_speed_m_s:g} m/s",
+            )
+        notes.append(f"last 3D estimate {age_s:.0f} s old (limit {init.resume_max_age_s:g} s)")
+    restarted = (
+        previous.last_record_unix_s is not None
+        and 0.0 <= now_s - previous.last_record_unix_s <= init.resume_max_age_s
+    )
+    on_ground = alt_agl_m is not None and alt_agl_m <= init.on_ground_max_alt_agl_m
+    start_point: tuple[float, float, str] | None = None
+    if init.lat_deg is not None and init.lon_deg is not None:
+        start_point = (init.lat_deg, init.lon_deg, PriorSource.CONFIG)
+    elif init.use_home_position and home is not None:
+        start_point = (home[0], home[1], PriorSource.HOME)
+    if start_point is not None:
+        if on_ground:
+            return InitialPrior(start_point[0], start_point[1], init.sigma_m, start_point[2], "on the ground")
+        if not restarted:
+            return InitialPrior(
+                start_point[0], start_point[1], init.sigma_m, start_point[2], "cold start (before take-off)"
+            )
+        notes.append(f"{start_point[2]} ignored: restarted in flight")
+    lat, lon = map_centre_lat_lon
+    why = "; ".join(notes) or "no previous estimate, no start point"
+    return InitialPrior(lat, lon, max(map_radius_m, init.sigma_m), PriorSource.MAP_EXTENT, why)

@@ -1,0 +1,121 @@
+"""C5 start-up prior (F8): resume from the FDR with an honest sigma, start points only where they are
+true, and the whole map when nothing is trustworthy."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from gps_denied_onboard.components.c5_estimator.prior import (
+    PreviousRun,
+    PriorSource,
+    ResumeState,
+    choose_prior,
+    read_previous_run,
+)
+from gps_denied_onboard.components.c13_fdr import FlightDataRecorder, read_records_newest_first
+from gps_denied_onboard.config import InitConfig
+
+NOW = 1_800_000_000_000_000
+HOME = (47.0, 8.0, 400.0)
+MAP = {"map_centre_lat_lon": (47.001, 8.001), "map_radius_m": 900.0}
+NO_RUN = PreviousRun(None, None)
+
+
+def _resume(age_s: float, sigma_m: float = 2.0) -> PreviousRun:
+    t = NOW - round(age_s * 1e6)
+    return PreviousRun(ResumeState(47.002, 8.003, sigma_m, t), t / 1e6)
+
+
+def test_prior_resumes_last_3d_estimate_with_sigma_grown_by_top_speed() -> None:
+    """Restarted 4 s after the last 3D estimate (sigma 2 m): sigma = hypot(2, 25 m/s x 4 s) ~ 100 m."""
+    prior = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(), previous=_resume(4.0), home=HOME, alt_agl_m=120.0, **MAP
+    )
+    assert prior.source == PriorSource.RESUMED
+    assert (prior.lat_deg, prior.lon_deg) == (47.002, 8.003)
+    assert prior.sigma_m == pytest.approx(math.hypot(2.0, 100.0))
+
+
+def test_prior_restarted_in_flight_never_claims_home_with_its_small_sigma() -> None:
+    """The defect: killed 250 m from home with nothing to resume from, the daemon started at home with
+    30 m sigma. In the air after a restart, home is ignored: the whole map, a sigma that covers it."""
+    stale = _resume(600.0)  # the last 3D estimate is too old to resume, but the run was 2 s ago
+    previous = PreviousRun(stale.last_3d, NOW / 1e6 - 2.0)
+    prior = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(sigma_m=30.0), previous=previous, home=HOME, alt_agl_m=120.0, **MAP
+    )
+    assert prior.source == PriorSource.MAP_EXTENT
+    assert prior.sigma_m == 900.0
+    assert "restarted in flight" in prior.why and "old" in prior.why
+
+
+def test_prior_cold_start_and_ground_restart_use_home() -> None:
+    """Cold start (no previous run): home, assumed before take-off. After a restart on the ground
+    (<= 10 m above home) home is right again."""
+    cold = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(), previous=NO_RUN, home=HOME, alt_agl_m=120.0, **MAP
+    )
+    assert cold.source == PriorSource.HOME and cold.sigma_m == 50.0 and "cold start" in cold.why
+    previous = PreviousRun(None, NOW / 1e6 - 5.0)
+    ground = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(), previous=previous, home=HOME, alt_agl_m=0.5, **MAP
+    )
+    assert ground.source == PriorSource.HOME and ground.why == "on the ground"
+    unknown = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(), previous=previous, home=HOME, alt_agl_m=None, **MAP
+    )
+    assert unknown.source == PriorSource.MAP_EXTENT  # height unknown: not known to be on the ground
+
+
+def test_prior_configured_position_follows_the_same_rules_as_home() -> None:
+    """A configured start position wins over home, but only on a cold start or on the ground."""
+    init = InitConfig(lat_deg=46.9, lon_deg=7.9, sigma_m=20.0)
+    cold = choose_prior(now_unix_usec=NOW, init=init, previous=NO_RUN, home=HOME, alt_agl_m=80.0, **MAP)
+    assert (cold.source, cold.lat_deg, cold.sigma_m) == (PriorSource.CONFIG, 46.9, 20.0)
+    restarted = PreviousRun(None, NOW / 1e6 - 1.0)
+    air = choose_prior(now_unix_usec=NOW, init=init, previous=restarted, home=HOME, alt_agl_m=80.0, **MAP)
+    assert air.source == PriorSource.MAP_EXTENT and "config ignored" in air.why
+
+
+def test_previous_run_is_read_newest_first_from_a_real_recorder(tmp_path: Path) -> None:
+    """The newest mavlink.estimate with fix_type 3 and finite values is the resume state; a torn last
+    line (a kill -9 mid-write) and later non-3D estimates do not hide it."""
+    with FlightDataRecorder(tmp_path, max_bytes=1 << 20, segment_bytes=1 << 16) as fdr:
+        for k in range(5):
+            fdr.record(
+                "mavlink.estimate",
+                {
+                    "time_unix_usec": NOW + k,
+                    "fix_type": 3,
+                    "lat_deg": 47.0 + k,
+                    "lon_deg": 8.0,
+                    "horiz_sigma_m": 1.5,
+                },
+            )
+        fdr.record(
+            "mavlink.estimate",
+            {
+                "time_unix_usec": NOW + 9,
+                "fix_type": 3,
+                "lat_deg": math.nan,
+                "lon_deg": 8.0,
+                "horiz_sigma_m": 1.0,
+            },
+        )
+        fdr.record(
+            "mavlink.estimate", {"time_unix_usec": NOW + 10, "fix_type": 1, "lat_deg": 1.0, "lon_deg": 1.0}
+        )
+        fdr.record("pipeline.frame", {"frame_seq": 99})
+    seg = sorted(tmp_path.glob("fdr-*.jsonl"))[-1]
+    with seg.open("ab") as f:
+        f.write(b'{"kind": "mavlink.estimate", "fix_type": 3, "lat_de')  # torn
+    previous = read_previous_run(read_records_newest_first(tmp_path))
+    assert previous.last_3d is not None
+    assert previous.last_3d.lat_deg == 51.0 and previous.last_3d.time_unix_usec == NOW + 4
+    newest = json.loads(seg.read_bytes().splitlines()[-2])
+    assert previous.last_record_unix_s == newest["t_unix_s"]
+    assert read_previous_run(read_records_newest_first(tmp_path / "none")) == NO_RUN
