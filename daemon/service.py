@@ -45,9 +45,9 @@ from gps_denied_onboard.runtime_root import RuntimeRoot
 
 log = structlog.get_logger(__name__)
 
-#: Seconds allowed for cancelled tasks, then for the in-flight frames, when stopping (2 s budget in all).
+#: Seconds allowed for cancelled tasks when stopping (then ``daemon.frame_stop_grace_s`` for the frames
+#: in flight; 2 s budget in all).
 _STOP_GRACE_S = 0.5
-_FRAME_GRACE_S = 0.5
 
 
 @dataclass
@@ -80,6 +80,8 @@ class NavDaemon:
         self._last_state: EstimatorState | None = None
         self._last_fix: FixOutcome | None = None
         self._last_fix_reason: str | None = None
+        #: Worker threads still inside a frame when the daemon stopped (see ``run``).
+        self.abandoned_threads: list[str] = []
         #: Set before the tasks are cancelled. asyncio.wait_for can swallow a cancellation that lands as its
         #: inner wait completes (CPython 3.10/3.11), so the I/O loop also checks this flag.
         self._stopping = False
@@ -131,12 +133,14 @@ class NavDaemon:
                     stack=[f"{f.f_code.co_filename}:{f.f_lineno}" for f in task.get_stack()],
                 )
             # The workers may be inside a frame: a bounded grace, then they are abandoned (daemon threads).
-            finished = await asyncio.gather(
-                self._track_thread.stop(_FRAME_GRACE_S), self._fix_thread.stop(_FRAME_GRACE_S)
-            )
+            # The caller must then end the process without interpreter teardown (``exit_now``): a
+            # thread inside ONNX Runtime that is torn down under it aborts the process (SIGABRT).
+            grace_s = self._cfg.daemon.frame_stop_grace_s
+            finished = await asyncio.gather(self._track_thread.stop(grace_s), self._fix_thread.stop(grace_s))
             for name, ok in zip(("track_thread", "fix_thread"), finished, strict=True):
                 if not ok:
-                    log.warning(LogEvent.DAEMON_TASK_STUCK, task=name, grace_s=_FRAME_GRACE_S)
+                    self.abandoned_threads.append(name)
+                    log.warning(LogEvent.DAEMON_TASK_STUCK, task=name, grace_s=grace_s)
             self._root.close()
             self._notifier.close()
             log.info(LogEvent.DAEMON_STOPPED, exit_code=exit_code, **vars(self.counters))

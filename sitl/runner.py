@@ -52,7 +52,8 @@ GRAVITY_M_S2 = 9.80665
 IMU_BIAS_M_S2 = np.array([0.02, -0.02, 0.03])
 IMU_NOISE_M_S2 = 0.05
 ALTITUDE_HZ = 10.0
-_TAIL_S = 1.5
+#: Default seconds between the last frame and the daemon's SIGTERM (its last outputs still arrive).
+TAIL_S = 1.5
 
 
 class SitlError(RuntimeError):
@@ -70,6 +71,8 @@ class SitlOptions:
     workdir: Path | None = None
     duration_s: float | None = None
     quiet: bool = False
+    #: Seconds between the last frame and SIGTERM; 0 stops the daemon while it is still in frames.
+    tail_s: float = TAIL_S
 
 
 def _free_udp_port() -> int:
@@ -286,7 +289,7 @@ class _Flight:
                 if restarter is not None:
                     await restarter
                 proc = procs[-1]
-                await asyncio.sleep(_TAIL_S)
+                await asyncio.sleep(self.opts.tail_s)
                 self.end_unix_s = time.time()
                 stop.set()
                 await telemetry

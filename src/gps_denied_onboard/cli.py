@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -52,10 +53,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
         root = compose_root(config)
         root.fdr.record(FdrKind.CONFIG, {"version": __version__, "config": config_to_dict(config)})
         # The daemon opens its MAVLink link before READY: a UDP port another process holds is refused there.
-        return asyncio.run(NavDaemon(root).run())
+        daemon = NavDaemon(root)
+        code = asyncio.run(daemon.run())
     except (StartupError, MavlinkConfigError) as exc:
         log.error("daemon.startup_refused", what=getattr(exc, "what", "mavlink.url"), error=str(exc))
         raise  # main() prints the one line and exits 3
+    if daemon.abandoned_threads:
+        # A worker is still inside a frame (e.g. in ONNX Runtime). Interpreter teardown would unwind or
+        # destroy native code under it and abort the process (SIGABRT, seen once after SIGTERM); the
+        # FDR and the link are already closed, so end here with the daemon's own exit code.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 def _cmd_cache_build(args: argparse.Namespace) -> int:

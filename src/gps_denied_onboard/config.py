@@ -322,6 +322,9 @@ class DaemonConfig:
     max_frame_age_s: PosFloat = 1.0
     #: ONNX Runtime intra-op threads for learned strategies.
     onnx_intra_op_threads: PosInt = 2
+    #: At stop, how long the worker threads may take to finish the frame they are in before the process
+    #: ends without them (it then exits at once, without tearing down a running ONNX Runtime), s.
+    frame_stop_grace_s: Annotated[float, Strict(), Field(gt=0, le=1.5)] = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
