@@ -9,6 +9,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -95,3 +96,38 @@ def wait_for(predicate, timeout_s: float, interval_s: float = 0.05) -> bool:  # 
             return True
         time.sleep(interval_s)
     return False
+
+
+def fly_small_map(
+    root: Path, scenario: str, *, overrides: tuple[str, ...] = ("matcher.strategy=classical",), **options: Any
+) -> dict[str, Any]:
+    """One ``gdnav sitl run`` flight over the small procedural map (its cache built under ``root``), with
+    the weights-free matcher unless ``overrides`` say otherwise; the report is ``root/out/report.json``.
+    ``options``: further ``SitlOptions`` fields (``duration_s``, ``tail_s``...)."""
+    from gps_denied_onboard.sitl.runner import SitlOptions, run_sitl
+
+    root.mkdir(parents=True, exist_ok=True)
+    map_path, _cache = build_small_cache(root)
+    return run_sitl(
+        SitlOptions(
+            map_path=map_path,
+            scenario=scenario,
+            report_path=root / "out" / "report.json",
+            workdir=root / "work",
+            quiet=True,
+            overrides=overrides,
+            **options,
+        )
+    )
+
+
+def demo_at_frame_rate(root: Path, frame_rate_hz: float) -> Path:
+    """The bundled demo scenario with another camera frame rate, written under ``root``."""
+    import yaml
+
+    from gps_denied_onboard.sitl.scenario import BUILTIN_SCENARIOS_DIR
+
+    demo = yaml.safe_load((BUILTIN_SCENARIOS_DIR / "demo.yaml").read_text())
+    path = root / f"demo_{frame_rate_hz:g}hz.yaml"
+    path.write_text(yaml.safe_dump({**demo, "name": path.stem, "frame_rate_hz": frame_rate_hz}))
+    return path

@@ -10,7 +10,6 @@ import itertools
 import math
 import random
 import threading
-import uuid
 
 import numpy as np
 import pytest
@@ -19,14 +18,11 @@ import structlog
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator import FixReason, NavEstimator, Refusal, TimeAxis
-from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.config import EstimatorConfig
 from gps_denied_onboard.constants import LogEvent, Provenance
-from gps_denied_onboard.geo import LocalTangentPlane
+from test_c5_estimator import LTP, S, _fix, _vo
+from test_c5_estimator import T0_USEC as T0
 
-LTP = LocalTangentPlane(17.59, 78.12, 500.0)
-T0 = 1_700_000_000_000_000
-S = 1_000_000  # one second in microseconds
 FRAME_US = S // 3
 
 
@@ -48,31 +44,6 @@ class _ConstAccel:
     def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray | None:
         self.calls += 1
         return None if self.accel is None else self.accel.copy()
-
-
-def _fix(pos_ned: np.ndarray, sigma_m: float, t_usec: int) -> PoseFix:
-    lat, lon, alt = LTP.to_geodetic(pos_ned)
-    return PoseFix(
-        frame_id=uuid.uuid4(),
-        exposure_time_unix_usec=t_usec,
-        pos_ned_m=np.asarray(pos_ned, dtype=np.float64),
-        cov_ned_m2=np.eye(3) * sigma_m**2,
-        lat_deg=float(lat),
-        lon_deg=float(lon),
-        alt_amsl_m=float(alt),
-        yaw_rad=0.0,
-        yaw_sigma_rad=0.01,
-        attitude_disagreement_rad=0.01,
-        inlier_count=80,
-        residual_px=0.8,
-        tile_id=TileId.of(18, float(lat), float(lon)),
-    )
-
-
-def _vo(delta_ne: np.ndarray, sigma_m: float, dt_s: float) -> VoMotion:
-    return VoMotion(
-        uuid.uuid4(), uuid.uuid4(), dt_s, np.asarray(delta_ne, float), np.eye(2) * sigma_m**2, 200
-    )
 
 
 def _axis(

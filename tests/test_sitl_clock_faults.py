@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from daemon_harness import build_small_cache
+from daemon_harness import fly_small_map
 from gps_denied_onboard.components.c13_fdr import read_records
-from gps_denied_onboard.sitl.runner import SitlOptions, run_sitl, summary_lines
+from gps_denied_onboard.sitl.runner import summary_lines
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 
@@ -17,17 +17,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory) -> dict:
     root = tmp_path_factory.mktemp("clock_faults")
-    map_path, _cache = build_small_cache(root)
-    return run_sitl(
-        SitlOptions(
-            map_path=map_path,
-            scenario="clock_faults",
-            report_path=root / "out" / "report.json",
-            workdir=root / "work",
-            quiet=True,
-            overrides=("matcher.strategy=classical",),
-        )
-    )
+    return fly_small_map(root, "clock_faults")
 
 
 def test_lying_stamps_are_refused_by_reason(flight: dict) -> None:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from daemon_harness import build_small_cache
-from gps_denied_onboard.sitl.runner import SitlOptions, run_sitl, summary_lines
+from daemon_harness import fly_small_map
+from gps_denied_onboard.sitl.runner import summary_lines
 
 pytestmark = pytest.mark.sitl
 
@@ -19,19 +19,9 @@ REPORT_KEYS = {"frames", "availability", "horizontal_error_m", "latency_ms", "pr
 @pytest.fixture(scope="module")
 def smoke_report(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     root = tmp_path_factory.mktemp("sitl")
-    map_path, _cache = build_small_cache(root)
+    # the loop, not the matcher, is under test: the same (weights-free) strategy on every machine
+    report = fly_small_map(root, "smoke")
     report_path = root / "out" / "report.json"
-    report = run_sitl(
-        SitlOptions(
-            map_path=map_path,
-            scenario="smoke",
-            report_path=report_path,
-            workdir=root / "work",
-            quiet=True,
-            # the loop, not the matcher, is under test: the same strategy on every machine
-            overrides=("matcher.strategy=classical",),
-        )
-    )
     return report, report_path
 
 

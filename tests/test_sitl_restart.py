@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from daemon_harness import build_small_cache
+from daemon_harness import fly_small_map
 from gps_denied_onboard.components.c13_fdr import read_records
-from gps_denied_onboard.sitl.runner import SitlOptions, run_sitl, summary_lines
+from gps_denied_onboard.sitl.runner import summary_lines
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 
@@ -19,17 +19,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory) -> dict:
     root = tmp_path_factory.mktemp("restart")
-    map_path, _cache = build_small_cache(root)
-    return run_sitl(
-        SitlOptions(
-            map_path=map_path,
-            scenario="restart",
-            report_path=root / "out" / "report.json",
-            workdir=root / "work",
-            quiet=True,
-            overrides=("matcher.strategy=classical",),
-        )
-    )
+    return fly_small_map(root, "restart")
 
 
 def test_restarted_daemon_resumes_from_its_fdr_with_an_honest_sigma(flight: dict) -> None:

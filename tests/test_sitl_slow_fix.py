@@ -9,13 +9,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-import yaml
 
 from aliked_fixture import aliked_t16_onnx  # noqa: F401 - session fixture
-from daemon_harness import build_small_cache
+from daemon_harness import demo_at_frame_rate, fly_small_map
 from gps_denied_onboard.components.c13_fdr import read_records
-from gps_denied_onboard.sitl.runner import SitlOptions, run_sitl, summary_lines
-from gps_denied_onboard.sitl.scenario import BUILTIN_SCENARIOS_DIR
+from gps_denied_onboard.sitl.runner import summary_lines
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 
@@ -23,24 +21,12 @@ pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory, aliked_t16_onnx: Path) -> dict:  # noqa: F811
     root = tmp_path_factory.mktemp("slow_fix")
-    map_path, _cache = build_small_cache(root)
-    demo = yaml.safe_load((BUILTIN_SCENARIOS_DIR / "demo.yaml").read_text())
-    scenario = root / "demo_10hz.yaml"
-    scenario.write_text(yaml.safe_dump({**demo, "name": "demo_10hz", "frame_rate_hz": 10.0}))
-    return run_sitl(
-        SitlOptions(
-            map_path=map_path,
-            scenario=str(scenario),
-            report_path=root / "out" / "report.json",
-            workdir=root / "work",
-            quiet=True,
-            overrides=(
-                "matcher.strategy=aliked_lightglue",
-                f"matcher.aliked_weights_path={aliked_t16_onnx}",
-                "rerank.top_n=5",
-            ),
-        )
-    )
+    return fly_small_map(root, str(demo_at_frame_rate(root, 10.0)), overrides=_aliked(aliked_t16_onnx))
+
+
+def _aliked(model: Path) -> tuple[str, ...]:
+    """ALIKED on five candidates: slower than a 10 Hz camera's frame period on these 2 cores."""
+    return ("matcher.strategy=aliked_lightglue", f"matcher.aliked_weights_path={model}", "rerank.top_n=5")
 
 
 def _records(flight: dict, kind: str) -> list[dict]:
@@ -78,29 +64,13 @@ def test_sigterm_with_a_frame_inside_onnx_runtime_exits_0(
     """SIGTERM while the fix thread is inside ONNX Runtime and outlives the stop grace: the daemon
     abandons the thread and exits 0 without tearing the runtime down under it (once seen: SIGABRT)."""
     root = tmp_path_factory.mktemp("sigterm_in_ort")
-    map_path, _cache = build_small_cache(root)
-    demo = yaml.safe_load((BUILTIN_SCENARIOS_DIR / "demo.yaml").read_text())
-    scenario = root / "demo_10hz.yaml"
-    scenario.write_text(yaml.safe_dump({**demo, "name": "demo_10hz", "frame_rate_hz": 10.0}))
+    scenario = str(demo_at_frame_rate(root, 10.0))
+    # a stop grace shorter than any ALIKED fix: the fix thread is always abandoned inside ONNX Runtime
+    overrides = (*_aliked(aliked_t16_onnx), "daemon.frame_stop_grace_s=0.01")
     codes, abandoned = [], 0
     for k in range(3):
-        report = run_sitl(
-            SitlOptions(
-                map_path=map_path,
-                scenario=str(scenario),
-                duration_s=6.0,
-                tail_s=0.0,  # SIGTERM right after the last frame: the fix thread is still in one
-                report_path=root / f"out{k}" / "report.json",
-                workdir=root / f"work{k}",
-                quiet=True,
-                overrides=(
-                    "matcher.strategy=aliked_lightglue",
-                    f"matcher.aliked_weights_path={aliked_t16_onnx}",
-                    "rerank.top_n=5",
-                    "daemon.frame_stop_grace_s=0.01",  # shorter than any ALIKED fix: always abandoned
-                ),
-            )
-        )
+        # SIGTERM right after the last frame (no tail): the fix thread is still in one
+        report = fly_small_map(root / f"run{k}", scenario, overrides=overrides, duration_s=6.0, tail_s=0.0)
         codes.append(report["daemon_exit_code"])
         log = Path(report["daemon_log"]).read_text(errors="replace")
         abandoned += '"daemon.task_stuck"' in log and "_thread" in log
