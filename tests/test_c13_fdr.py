@@ -18,6 +18,13 @@ import pytest
 from gps_denied_onboard.components.c13_fdr import FdrClient, FlightDataRecorder, list_segments, read_records
 from gps_denied_onboard.constants import FdrKind, Provenance
 
+_MARKERS = (FdrKind.FDR_OPENED, FdrKind.FDR_CLOSED)
+
+
+def _data(directory: Path) -> list[dict]:
+    """The records a test wrote, without the recorder's own run markers."""
+    return [r for r in read_records(directory) if r["kind"] not in _MARKERS]
+
 
 class _FakeClock:
     def __init__(self, t: float = 1_717_000_000.0) -> None:
@@ -34,12 +41,12 @@ def test_fdr_round_trip_in_order(tmp_path: Path) -> None:
         assert isinstance(fdr, FdrClient)
         for i in range(20):
             fdr.record(FdrKind.FRAME, {"frame": i, "provenance": Provenance.SATELLITE_ANCHORED})
-    recs = list(read_records(tmp_path))
+    recs = _data(tmp_path)
     assert [r["frame"] for r in recs] == list(range(20))
-    assert [r["seq"] for r in recs] == list(range(1, 21))
+    assert [r["seq"] for r in recs] == list(range(2, 22))  # seq 1 is fdr.opened
     assert all(r["kind"] == "pipeline.frame" and r["provenance"] == "satellite_anchored" for r in recs)
     assert recs[0]["t_unix_s"] == pytest.approx(1_717_000_000.002)
-    assert fdr.records_written == 20 and fdr.errors == 0
+    assert fdr.records_written == 22 and fdr.errors == 0  # with fdr.opened and fdr.closed
     names = [p.name for p in list_segments(tmp_path)]
     assert len(names) == 1 and names[0].startswith("fdr-20240529T") and names[0].endswith("-000001.jsonl")
 
@@ -48,8 +55,8 @@ def test_fdr_reserved_field_names_do_not_clobber(tmp_path: Path) -> None:
     """A field called kind/seq is kept under <name>_field."""
     with FlightDataRecorder(tmp_path, 1 << 20, 1 << 16) as fdr:
         fdr.record("x", {"kind": "mine", "seq": 99})
-    (rec,) = read_records(tmp_path)
-    assert rec["kind"] == "x" and rec["seq"] == 1
+    (rec,) = _data(tmp_path)
+    assert rec["kind"] == "x" and rec["seq"] == 2
     assert rec["kind_field"] == "mine" and rec["seq_field"] == 99
 
 
@@ -67,7 +74,7 @@ def test_fdr_rotation_and_size_bound(tmp_path: Path) -> None:
     assert len(segs) >= 3
     assert all(p.stat().st_size <= seg for p in segs)
     assert fdr.segments_deleted > 0
-    recs = list(read_records(tmp_path))
+    recs = _data(tmp_path)
     idx = [r["i"] for r in recs]
     assert idx == list(range(idx[0], 1000))  # the newest survive, contiguous and in order
     assert fdr.total_bytes == sum(p.stat().st_size for p in segs)
@@ -85,7 +92,7 @@ def test_fdr_size_bound_counts_previous_runs(tmp_path: Path) -> None:
             new.record("new", {"i": i, "pad": "z" * 400})
     assert sum(p.stat().st_size for p in list_segments(tmp_path)) <= cap
     assert not old_segs <= set(list_segments(tmp_path))  # some old segments were deleted
-    kinds = [r["kind"] for r in read_records(tmp_path)]
+    kinds = [r["kind"] for r in _data(tmp_path)]
     assert kinds[-1] == "new" and kinds == sorted(kinds, key=lambda k: k == "new")  # old before new
 
 
@@ -97,7 +104,7 @@ def test_fdr_torn_last_line_is_skipped(tmp_path: Path) -> None:
     (seg,) = list_segments(tmp_path)
     with seg.open("ab") as fh:
         fh.write(b'{"t_unix_s": 1.0, "kind": "k", "seq": 6, "i": ')
-    assert [r["i"] for r in read_records(tmp_path)] == [0, 1, 2, 3, 4]
+    assert [r["i"] for r in _data(tmp_path)] == [0, 1, 2, 3, 4]
 
 
 def test_fdr_failed_write_does_not_glue_next_record(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -118,8 +125,8 @@ def test_fdr_failed_write_does_not_glue_next_record(tmp_path: Path, monkeypatch:
     monkeypatch.setattr(os, "write", real_write)
     fdr.record("k", {"i": 2})
     fdr.close()
-    assert fdr.errors == 1 and fdr.records_dropped == 1 and fdr.records_written == 2
-    assert [r["i"] for r in read_records(tmp_path)] == [0, 2]
+    assert fdr.errors == 1 and fdr.records_dropped == 1 and fdr.records_written == 4  # + the markers
+    assert [r["i"] for r in _data(tmp_path)] == [0, 2]
 
 
 def test_fdr_concurrent_writers_keep_lines_whole(tmp_path: Path) -> None:
@@ -137,9 +144,9 @@ def test_fdr_concurrent_writers_keep_lines_whole(tmp_path: Path) -> None:
     for t in threads:
         t.join(timeout=30)
     fdr.close()
-    recs = list(read_records(tmp_path))
+    recs = _data(tmp_path)
     assert len(recs) == n_threads * n_each
-    assert sorted(r["seq"] for r in recs) == list(range(1, n_threads * n_each + 1))
+    assert sorted(r["seq"] for r in recs) == list(range(2, n_threads * n_each + 2))
     assert [r["seq"] for r in recs] == sorted(r["seq"] for r in recs)
     for k in range(n_threads):
         assert [r["i"] for r in recs if r["thread"] == k] == list(range(n_each))
@@ -170,13 +177,13 @@ def test_fdr_converts_numpy_uuid_enum_tuple(tmp_path: Path) -> None:
                 "obj": object(),
             },
         )
-    (rec,) = read_records(tmp_path)
+    (rec,) = _data(tmp_path)
     assert rec["arr"] == [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]]
     assert rec["f32"] == 1.5 and rec["i64"] == 7 and rec["b"] is True
     assert rec["frame_id"] == str(fid) and rec["color"] == 1 and rec["prov"] == "no_estimate"
     assert rec["tile_id"] == [18, 50.45, 30.52] and rec["by_tile"] == {"[18, 1, 2]": 3}
     assert rec["age"] == math.inf and rec["obj"].startswith("<object")
-    raw = list_segments(tmp_path)[0].read_text()
+    raw = list_segments(tmp_path)[0].read_text().splitlines()[1]
     assert json.loads(raw)["frame_id"] == str(fid)
 
 

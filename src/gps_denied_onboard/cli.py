@@ -292,6 +292,9 @@ def build_parser() -> argparse.ArgumentParser:
     cli_models.register(sub)
     cli_match.register(sub)
     cli_bench.register(sub)
+    from gps_denied_onboard import cli_fdr
+
+    cli_fdr.register(sub)
     return parser
 
 

@@ -142,3 +142,7 @@ class FdrKind:
     MATCHER_BACKBONE_ERROR: Final = "matcher.backbone_error"
     MATCHER_INSUFFICIENT_INLIERS: Final = "matcher.insufficient_inliers"
     LINK_EVENT: Final = "mavlink.link_event"
+    #: The recorder opened (first record of every daemon run): pid, start time, torn lines recovered.
+    FDR_OPENED: Final = "fdr.opened"
+    #: The recorder closed cleanly (last record of a run); a run without it ended in a crash.
+    FDR_CLOSED: Final = "fdr.closed"

@@ -18,6 +18,13 @@ After a failed or short write, the next record starts with a newline, so the tor
 onto a good record. (No fsync per record: the bound is a process crash, not a power cut; segments are
 fsynced when they are closed.)
 
+Run markers: the first record a recorder writes is ``fdr.opened`` (pid, start time, and what it found at
+the end of the newest existing segment: torn lines, and whether that run closed cleanly); ``close``
+writes ``fdr.closed`` as the run's last record. A run with ``fdr.opened`` and no ``fdr.closed`` ended in
+a crash (``reader.FdrReader.runs`` reports it). Recovery on open: when the newest existing segment ends
+without a newline (a process killed mid-write), a newline is appended to it, so the torn fragment stays
+a line of its own that readers skip.
+
 Size bound: a segment is closed when the next record would take it past ``segment_bytes``; whenever the
 total of all ``fdr-*.jsonl`` files in the directory (including previous runs) exceeds ``max_bytes``, the
 oldest segments are deleted (never the open one).
@@ -45,7 +52,7 @@ from typing import Any, Final
 import numpy as np
 import structlog
 
-from gps_denied_onboard.constants import LogEvent
+from gps_denied_onboard.constants import FdrKind, LogEvent
 
 _log = structlog.get_logger(__name__)
 
@@ -55,6 +62,8 @@ SEGMENT_RE: Final = re.compile(r"^fdr-(\d{8}T\d{6}\.\d{3}Z)-(\d{6})\.jsonl$")
 ERROR_LOG_INTERVAL_S: Final[float] = 5.0
 _RESERVED: Final[frozenset[str]] = frozenset({"t_unix_s", "kind", "seq"})
 _MAX_DEPTH: Final[int] = 32
+#: How much of the newest existing segment's end is scanned for torn lines when a recorder opens.
+RECOVERY_TAIL_BYTES: Final[int] = 1 << 16
 
 
 def to_jsonable(obj: Any, _depth: int = 0) -> Any:
@@ -111,6 +120,15 @@ def list_segments(directory: str | Path) -> list[Path]:
     return [p for _, p in sorted(keyed)]
 
 
+def parse_line(raw: bytes) -> dict[str, Any] | None:
+    """One segment line as a record, or None for a torn, blank or unreadable line."""
+    try:
+        rec = json.loads(raw)
+    except (ValueError, UnicodeDecodeError):
+        return None
+    return rec if isinstance(rec, dict) and "kind" in rec else None
+
+
 def read_records(directory: str | Path) -> Iterator[dict[str, Any]]:
     """Every record in ``directory`` in recording order; torn or unreadable lines are skipped."""
     for seg in list_segments(directory):
@@ -120,11 +138,8 @@ def read_records(directory: str | Path) -> Iterator[dict[str, Any]]:
             continue
         with fh:
             for raw in fh:
-                try:
-                    rec = json.loads(raw)
-                except (ValueError, UnicodeDecodeError):
-                    continue
-                if isinstance(rec, dict) and "kind" in rec:
+                rec = parse_line(raw)
+                if rec is not None:
                     yield rec
 
 
@@ -137,11 +152,8 @@ def read_records_newest_first(directory: str | Path) -> Iterator[dict[str, Any]]
         except OSError:
             continue
         for raw in reversed(data.splitlines()):
-            try:
-                rec = json.loads(raw)
-            except (ValueError, UnicodeDecodeError):
-                continue
-            if isinstance(rec, dict) and "kind" in rec:
+            rec = parse_line(raw)
+            if rec is not None:
                 yield rec
 
 
@@ -165,7 +177,8 @@ class FlightDataRecorder:
         self.segment_bytes = int(segment_bytes)
         self._clock = clock
         self._lock = threading.Lock()
-        start = _dt.datetime.fromtimestamp(clock(), tz=_dt.timezone.utc)
+        self.started_unix_s = float(clock())
+        start = _dt.datetime.fromtimestamp(self.started_unix_s, tz=_dt.timezone.utc)
         self._start_tag = start.strftime("%Y%m%dT%H%M%S.") + f"{start.microsecond // 1000:03d}Z"
         self._seg_seq = 0
         self._fd: int | None = None
@@ -181,6 +194,21 @@ class FlightDataRecorder:
         self.records_dropped = 0
         self.segments_deleted = 0
         self._scan_existing()
+        previous, torn, previous_closed = self._recover_previous()
+        with self._lock:
+            self._append(
+                FdrKind.FDR_OPENED,
+                {
+                    "pid": os.getpid(),
+                    "started_unix_s": self.started_unix_s,
+                    "previous_segment": previous.name if previous is not None else None,
+                    "previous_torn_lines": torn,
+                    "previous_closed": previous_closed,
+                    "max_bytes": self.max_bytes,
+                    "segment_bytes": self.segment_bytes,
+                },
+                t=self.started_unix_s,
+            )
 
     # --- files --------------------------------------------------------------------------------------
     def _scan_existing(self) -> None:
@@ -189,6 +217,45 @@ class FlightDataRecorder:
                 self._sizes[seg] = seg.stat().st_size
             except OSError:
                 continue
+
+    def _recover_previous(self) -> tuple[Path | None, int, bool | None]:
+        """Scan the end of the newest existing segment: (that segment, torn lines in its last
+        ``RECOVERY_TAIL_BYTES``, whether its last good record is ``fdr.closed``; None when it has no
+        good record there). A last line without a newline is terminated (see the module docstring)."""
+        segs = list_segments(self.dir)
+        if not segs:
+            return None, 0, None
+        newest = segs[-1]
+        try:
+            with newest.open("rb") as fh:
+                size = fh.seek(0, os.SEEK_END)
+                start = max(0, size - RECOVERY_TAIL_BYTES)
+                fh.seek(start)
+                tail = fh.read()
+            if tail and not tail.endswith(b"\n"):
+                fd = os.open(newest, os.O_WRONLY | os.O_APPEND | os.O_CLOEXEC)
+                try:
+                    os.write(fd, b"\n")
+                finally:
+                    os.close(fd)
+                self._sizes[newest] = size + 1
+        except OSError as exc:
+            self._error("recover", exc)
+            return newest, 0, None
+        lines = tail.split(b"\n")
+        if start > 0:
+            lines = lines[1:]  # the scan began mid-line: not a torn line
+        torn = 0
+        last_kind: str | None = None
+        for raw in lines:
+            if not raw.strip():
+                continue
+            rec = parse_line(raw)
+            if rec is None:
+                torn += 1
+            else:
+                last_kind = str(rec["kind"])
+        return newest, torn, (last_kind == FdrKind.FDR_CLOSED) if last_kind is not None else None
 
     def _open_segment(self) -> None:
         os.makedirs(self.dir, exist_ok=True)
@@ -246,23 +313,28 @@ class FlightDataRecorder:
     # --- api ----------------------------------------------------------------------------------------
     def record(self, kind: str, fields: Mapping[str, object]) -> None:
         """Append one record (see the module docstring). Never raises."""
-        t = self._clock()
         with self._lock:
-            if self._closed:
-                self.records_dropped += 1
-                return
-            self._seq += 1
-            rec: dict[str, Any] = {"t_unix_s": t, "kind": str(kind), "seq": self._seq}
-            try:
-                for key, value in dict(fields).items():
-                    name = str(key)
-                    rec[f"{name}_field" if name in _RESERVED else name] = to_jsonable(value)
-                line = (json.dumps(rec, separators=(",", ":"), allow_nan=True) + "\n").encode("utf-8")
-            except (TypeError, ValueError, RecursionError) as exc:
-                self._error("encode", exc)
-                self.records_dropped += 1
-                return
-            self._write(line)
+            self._append(kind, fields)
+
+    def _append(self, kind: str, fields: Mapping[str, object], t: float | None = None) -> None:
+        """``record`` with the lock held; ``t`` defaults to the clock now."""
+        if t is None:
+            t = self._clock()
+        if self._closed:
+            self.records_dropped += 1
+            return
+        self._seq += 1
+        rec: dict[str, Any] = {"t_unix_s": t, "kind": str(kind), "seq": self._seq}
+        try:
+            for key, value in dict(fields).items():
+                name = str(key)
+                rec[f"{name}_field" if name in _RESERVED else name] = to_jsonable(value)
+            line = (json.dumps(rec, separators=(",", ":"), allow_nan=True) + "\n").encode("utf-8")
+        except (TypeError, ValueError, RecursionError) as exc:
+            self._error("encode", exc)
+            self.records_dropped += 1
+            return
+        self._write(line)
 
     def _write(self, line: bytes) -> None:
         try:
@@ -313,8 +385,22 @@ class FlightDataRecorder:
         return list_segments(self.dir)
 
     def close(self) -> None:
-        """Flush (fsync) and close the open segment; later records are dropped and counted."""
+        """Write ``fdr.closed``, flush (fsync) and close the open segment; later records are dropped and
+        counted. Idempotent."""
         with self._lock:
+            if self._closed:
+                return
+            self._append(
+                FdrKind.FDR_CLOSED,
+                {
+                    "pid": os.getpid(),
+                    "started_unix_s": self.started_unix_s,
+                    "records_written": self.records_written,
+                    "records_dropped": self.records_dropped,
+                    "errors": self.errors,
+                    "segments_deleted": self.segments_deleted,
+                },
+            )
             self._closed = True
             self._close_segment()
 

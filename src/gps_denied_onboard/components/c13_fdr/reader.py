@@ -1,0 +1,303 @@
+"""C13 reader: an FDR directory (or one segment file) as daemon runs and typed records.
+
+``FdrReader(path)`` streams the segments in recording order; every method is one pass over the files, so
+a full-size recorder (hundreds of MB) is never held in memory. Records of other kinds are skipped
+without a full JSON parse (the recorder writes ``{"t_unix_s":..,"kind":"..","seq":..`` first).
+
+Runs: a run starts at each ``fdr.opened`` record and, for records written by a recorder without markers,
+wherever ``seq`` starts again (every recorder numbers its records from 1). A run's stop is ``clean``
+when it has ``fdr.closed``, ``crash`` when it has ``fdr.opened`` but no ``fdr.closed`` (the newest run of
+a daemon still running reads as ``crash`` too: the recorder cannot tell), and ``unknown`` when it has
+neither marker (an older recorder, or its ``fdr.opened`` segment was deleted by the size bound).
+See docs/fdr.md for every kind and field.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import re
+from collections import Counter
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+from gps_denied_onboard.components.c13_fdr.recorder import list_segments, parse_line
+from gps_denied_onboard.constants import FdrKind
+
+#: The head the recorder writes on every line (t_unix_s, then kind): lets ``records`` skip other kinds
+#: without parsing them.
+_HEAD_RE: Final = re.compile(rb'^\{"t_unix_s":[^,]*,"kind":"([^"\\]*)"')
+
+
+class FdrReadError(Exception):
+    """The path is not a readable FDR (missing, or no segment in it)."""
+
+    def __init__(self, message: str, *, path: Path) -> None:
+        super().__init__(message)
+        self.path = path
+
+
+class RunStop(str, enum.Enum):
+    """How a daemon run ended, as the recorder's markers tell it."""
+
+    CLEAN = "clean"
+    CRASH = "crash"
+    UNKNOWN = "unknown"
+
+
+@dataclass(frozen=True)
+class FdrRun:
+    """One daemon run: the records from one ``fdr.opened`` to the next."""
+
+    #: 0-based, in recording order.
+    index: int
+    #: The daemon's process id (from ``fdr.opened``/``fdr.closed``), or None when neither was read.
+    pid: int | None
+    #: First record's time, Unix s (``fdr.opened``'s when present).
+    start_unix_s: float
+    #: Last record's time, Unix s (``fdr.closed``'s on a clean stop).
+    end_unix_s: float
+    stop: RunStop
+    #: Records by kind, markers included.
+    counts: Mapping[str, int]
+    #: Torn or unreadable lines inside this run's part of the files.
+    bad_lines: int = 0
+    #: Torn lines the next run's recorder found at the end of this run's last segment
+    #: (``fdr.opened.previous_torn_lines``); 0 for the newest run.
+    torn_lines_at_end: int = 0
+
+    @property
+    def duration_s(self) -> float:
+        return max(0.0, self.end_unix_s - self.start_unix_s)
+
+    def rate_hz(self, kind: str) -> float | None:
+        """Records of ``kind`` per second over the run, or None for a run shorter than 1 ms."""
+        d = self.duration_s
+        return self.counts.get(kind, 0) / d if d > 1e-3 else None
+
+
+@dataclass(frozen=True)
+class EstimateRecord:
+    """``mavlink.estimate``: one estimate sent to the autopilot."""
+
+    t_unix_s: float
+    time_unix_usec: int | None
+    provenance: str
+    fix_type: int | None
+    lat_deg: float | None
+    lon_deg: float | None
+    horiz_sigma_m: float | None
+
+
+@dataclass(frozen=True)
+class FixRecord:
+    """``pipeline.fix``: one absolute-fix attempt."""
+
+    t_unix_s: float
+    frame_seq: int | None
+    fix_accepted: bool
+    inliers: int
+    residual_px: float | None
+    no_fix_reason: str | None
+
+
+@dataclass(frozen=True)
+class ProvenanceChange:
+    """``estimator.provenance_changed``."""
+
+    t_unix_s: float
+    old: str
+    new: str
+    reason: str | None
+
+
+@dataclass(frozen=True)
+class FrameError:
+    """``pipeline.frame_error``."""
+
+    t_unix_s: float
+    frame_seq: int | None
+    stage: str
+    error: str
+
+
+@dataclass(frozen=True)
+class FrameRefusal:
+    """``pipeline.frame_refused``."""
+
+    t_unix_s: float
+    frame_seq: int | None
+    reason: str
+
+
+def _float(v: Any) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    return float(v) if math.isfinite(v) else None
+
+
+def _int(v: Any) -> int | None:
+    return int(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) else None
+
+
+def _str(v: Any) -> str | None:
+    return None if v is None else str(v)
+
+
+@dataclass
+class _RunBuilder:
+    index: int
+    start_unix_s: float | None = None
+    end_unix_s: float | None = None
+    pid: int | None = None
+    opened: bool = False
+    closed: bool = False
+    last_seq: int = 0
+    bad_lines: int = 0
+    counts: Counter[str] = field(default_factory=Counter)
+
+    def build(self, torn_at_end: int) -> FdrRun:
+        if self.closed:
+            stop = RunStop.CLEAN
+        elif self.opened:
+            stop = RunStop.CRASH
+        else:
+            stop = RunStop.UNKNOWN
+        start = self.start_unix_s if self.start_unix_s is not None else math.nan
+        end = self.end_unix_s if self.end_unix_s is not None else start
+        return FdrRun(self.index, self.pid, start, end, stop, dict(self.counts), self.bad_lines, torn_at_end)
+
+
+class FdrReader:
+    """Reads the FDR at ``path``: a recorder directory, or one ``fdr-*.jsonl`` segment file."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+
+    def segments(self) -> list[Path]:
+        """The segment files, oldest first. Raises ``FdrReadError`` when there are none."""
+        p = self.path
+        if p.is_file():
+            return [p]
+        if not p.is_dir():
+            raise FdrReadError(f"{p}: no such file or directory", path=p)
+        segs = list_segments(p)
+        if not segs:
+            raise FdrReadError(f"{p}: no FDR segments (fdr-*.jsonl) in this directory", path=p)
+        return segs
+
+    def _lines(self) -> Iterator[bytes]:
+        for seg in self.segments():
+            try:
+                fh = seg.open("rb")
+            except OSError:
+                continue
+            with fh:
+                yield from fh
+
+    def records(self, *kinds: str) -> Iterator[dict[str, Any]]:
+        """Every record (of ``kinds`` when given) in recording order; torn lines skipped."""
+        wanted = frozenset(kinds)
+        for raw in self._lines():
+            if wanted:
+                head = _HEAD_RE.match(raw)
+                if head is not None and head.group(1).decode("utf-8", "replace") not in wanted:
+                    continue
+            rec = parse_line(raw)
+            if rec is not None and (not wanted or rec["kind"] in wanted):
+                yield rec
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        return self.records()
+
+    def counts(self) -> dict[str, int]:
+        """Records by kind over all runs."""
+        total: Counter[str] = Counter()
+        for run in self.runs():
+            total.update(run.counts)
+        return dict(total)
+
+    def runs(self) -> list[FdrRun]:
+        """The daemon runs in recording order (see the module docstring). Parses every line: a torn
+        line starts like a good one, so only a full parse tells them apart."""
+        builders: list[_RunBuilder] = []
+        torn_at_start: list[int] = []  # per run: what its fdr.opened found at the previous run's end
+        pending_bad = 0  # torn lines before the first record
+        for raw in self._lines():
+            if not raw.strip():
+                continue
+            rec = parse_line(raw)
+            if rec is None:
+                if builders:
+                    builders[-1].bad_lines += 1
+                else:
+                    pending_bad += 1
+                continue
+            kind, t, seq = str(rec["kind"]), _float(rec.get("t_unix_s")), _int(rec.get("seq")) or 0
+            if not builders or kind == FdrKind.FDR_OPENED or 0 < seq <= builders[-1].last_seq:
+                builders.append(_RunBuilder(len(builders), bad_lines=pending_bad))
+                torn_at_start.append(0)
+                pending_bad = 0
+            run = builders[-1]
+            run.counts[kind] += 1
+            run.last_seq = seq
+            if t is not None:
+                if run.start_unix_s is None:
+                    run.start_unix_s = t
+                run.end_unix_s = t
+            if kind == FdrKind.FDR_OPENED:
+                run.opened = True
+                run.pid = _int(rec.get("pid"))
+                torn_at_start[-1] = _int(rec.get("previous_torn_lines")) or 0
+            elif kind == FdrKind.FDR_CLOSED:
+                run.closed = True
+                if run.pid is None:
+                    run.pid = _int(rec.get("pid"))
+        return [b.build(torn_at_start[i + 1] if i + 1 < len(builders) else 0) for i, b in enumerate(builders)]
+
+    # --- typed accessors ------------------------------------------------------------------------------
+    def estimates(self) -> Iterator[EstimateRecord]:
+        """``mavlink.estimate`` records (lat/lon/sigma None when the estimate had no position)."""
+        for r in self.records(FdrKind.ESTIMATE_SENT):
+            yield EstimateRecord(
+                float(r["t_unix_s"]),
+                _int(r.get("time_unix_usec")),
+                str(r.get("provenance")),
+                _int(r.get("fix_type")),
+                _float(r.get("lat_deg")),
+                _float(r.get("lon_deg")),
+                _float(r.get("horiz_sigma_m")),
+            )
+
+    def fixes(self) -> Iterator[FixRecord]:
+        """``pipeline.fix`` records."""
+        for r in self.records(FdrKind.FIX):
+            yield FixRecord(
+                float(r["t_unix_s"]),
+                _int(r.get("frame_seq")),
+                bool(r.get("fix_accepted")),
+                _int(r.get("inliers")) or 0,
+                _float(r.get("residual_px")),
+                _str(r.get("no_fix_reason")),
+            )
+
+    def provenance_changes(self) -> Iterator[ProvenanceChange]:
+        """``estimator.provenance_changed`` records."""
+        for r in self.records(FdrKind.PROVENANCE_CHANGED):
+            yield ProvenanceChange(
+                float(r["t_unix_s"]), str(r.get("old")), str(r.get("new")), _str(r.get("reason"))
+            )
+
+    def frame_errors(self) -> Iterator[FrameError]:
+        """``pipeline.frame_error`` records."""
+        for r in self.records(FdrKind.FRAME_ERROR):
+            yield FrameError(
+                float(r["t_unix_s"]), _int(r.get("frame_seq")), str(r.get("stage")), str(r.get("error"))
+            )
+
+    def frame_refusals(self) -> Iterator[FrameRefusal]:
+        """``pipeline.frame_refused`` records."""
+        for r in self.records(FdrKind.FRAME_REFUSED):
+            yield FrameRefusal(float(r["t_unix_s"]), _int(r.get("frame_seq")), str(r.get("reason")))
