@@ -27,13 +27,20 @@ from gps_denied_onboard.components.c8_mavlink import (
 from gps_denied_onboard.components.c8_mavlink import messages as m
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT as D
 from gps_denied_onboard.components.c8_mavlink.messages import mavutil
-from gps_denied_onboard.config import MavlinkConfig
-from gps_denied_onboard.constants import GPS_INPUT_GPS_ID, LogEvent, Provenance
-from gps_denied_onboard.geo import gps_week_and_ms
+from gps_denied_onboard.config import ConfigError, MavlinkConfig, config_from_mapping
+from gps_denied_onboard.constants import (
+    GPS_INPUT_GPS_ID,
+    SET_GPS_GLOBAL_ORIGIN_INTERVAL_S,
+    LogEvent,
+    Provenance,
+)
+from gps_denied_onboard.geo import LocalTangentPlane, gps_week_and_ms
 
 T0_UNIX_USEC = 1_717_000_000_000_000  # 2024-05-29
 BOOT0_MS = 100_000
 KEY_HEX = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff"
+#: The daemon's tangent plane in the link tests (map-cache centre at terrain height).
+LTP = LocalTangentPlane(50.45, 30.52, 180.0)
 
 
 class FakeClock:
@@ -124,6 +131,7 @@ def udp_pair() -> Iterator[tuple[MavlinkLink, Any, FakeClock, int]]:
         ),
         tracker,
         clock=clock,
+        ltp=LTP,
     )
     link.open()
     ap = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
@@ -610,3 +618,206 @@ def test_link_udpin_port_cannot_be_shared_after_open() -> None:
         assert err.value.errno == errno.EADDRINUSE
     finally:
         first.close()
+
+
+# --- shared local frame, reset_counter, sensor id ----------------------------------------------------
+
+
+def _state_at(
+    t_usec: int,
+    pos_ned_m: tuple[float, float, float],
+    *,
+    provenance: Provenance = Provenance.SATELLITE_ANCHORED,
+    vel: tuple[float, float, float] = (5.0, 0.0, 0.0),
+    sigma_m: float = 3.0,
+) -> EstimatorState:
+    return EstimatorState(
+        time_unix_usec=t_usec,
+        provenance=provenance,
+        pos_ned_m=np.array(pos_ned_m, dtype=np.float64),
+        vel_ned_m_s=np.array(vel, dtype=np.float64),
+        cov_pos_ned_m2=np.diag([sigma_m**2, sigma_m**2, 4.0]),
+        cov_vel_ned_m2_s2=np.diag([0.25, 0.25, 0.09]),
+        lat_deg=50.45,
+        lon_deg=30.52,
+        alt_amsl_m=280.0,
+        yaw_rad=None,
+        last_fix_age_s=0.1,
+    )
+
+
+def _ap_origin(mav: Any, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> Any:
+    return mav.gps_global_origin_encode(
+        round(lat_deg * 1e7), round(lon_deg * 1e7), round(alt_amsl_m * 1000), T0_UNIX_USEC
+    )
+
+
+def _seen(link: MavlinkLink, ap: Any) -> None:
+    ap.mav.send(_ap_heartbeat(ap.mav))
+    assert _pump(link, lambda: link.tracker.link_alive())
+
+
+def test_link_offers_origin_when_autopilot_seen_and_repeats_until_reported(udp_pair: tuple) -> None:
+    """SET_GPS_GLOBAL_ORIGIN (the ltp origin) and a GPS_GLOBAL_ORIGIN request go out once the autopilot is
+    seen, every 10 s until it reports an origin, then stop; no VISION_POSITION_ESTIMATE before the offer."""
+    link, ap, clock, _ = udp_pair
+    state = _state_at(T0_UNIX_USEC, (10.0, 20.0, -100.0))
+    assert link.send_estimate(state, time_unix_usec=T0_UNIX_USEC) == 2  # GPS_INPUT + GPS sensor only
+    assert link.stats().vision_withheld == 1 and link.stats().global_origin_sent == 0
+
+    _seen(link, ap)
+    got = _recv_all(ap, ["SET_GPS_GLOBAL_ORIGIN", "COMMAND_LONG", "VISION_POSITION_ESTIMATE"], 0.3)
+    origin = [x for x in got if x.get_type() == "SET_GPS_GLOBAL_ORIGIN"]
+    assert len(origin) == 1 and origin[0].get_srcComponent() == 197
+    assert origin[0].target_system == 1
+    assert origin[0].latitude == 504500000 and origin[0].longitude == 305200000
+    assert origin[0].altitude == 180_000 and origin[0].time_usec == int(clock.t * 1e6)
+    request = [x for x in got if x.get_type() == "COMMAND_LONG"]
+    assert request and request[0].command == D.MAV_CMD_REQUEST_MESSAGE
+    assert request[0].param1 == D.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN and request[0].target_component == 1
+    assert not [x for x in got if x.get_type() == "VISION_POSITION_ESTIMATE"]  # the one before was withheld
+
+    clock.t += SET_GPS_GLOBAL_ORIGIN_INTERVAL_S / 2
+    _seen(link, ap)
+    assert _recv_all(ap, "SET_GPS_GLOBAL_ORIGIN", 0.2) == []  # not due yet
+    clock.t += SET_GPS_GLOBAL_ORIGIN_INTERVAL_S / 2
+    _seen(link, ap)
+    assert len(_recv_all(ap, "SET_GPS_GLOBAL_ORIGIN", 0.3)) == 1
+    assert link.stats().global_origin_sent == 2
+
+    ap.mav.send(_ap_origin(ap.mav, 50.45, 30.52, 180.0))  # the autopilot adopted ours
+    assert _pump(link, lambda: link.tracker.gps_origin() is not None)
+    clock.t += 3 * SET_GPS_GLOBAL_ORIGIN_INTERVAL_S
+    _seen(link, ap)
+    assert link.send_estimate(state, time_unix_usec=T0_UNIX_USEC) == 3
+    got = _recv_all(ap, ["SET_GPS_GLOBAL_ORIGIN", "VISION_POSITION_ESTIMATE"], 0.3)
+    assert [x.get_type() for x in got] == ["VISION_POSITION_ESTIMATE"]
+    assert (got[0].x, got[0].y, got[0].z) == pytest.approx((10.0, 20.0, -100.0), abs=1e-4)
+
+
+def test_link_vision_position_is_state_ned_in_the_shared_frame(udp_pair: tuple) -> None:
+    """After the offer, VISION_POSITION_ESTIMATE x/y/z are the state's NED position in the ltp, unchanged."""
+    link, ap, _clock, _ = udp_pair
+    _seen(link, ap)
+    state = _state_at(T0_UNIX_USEC, (123.25, -456.5, -80.0))
+    link.send_estimate(state, time_unix_usec=T0_UNIX_USEC + 1000)
+    vpe = _recv_all(ap, "VISION_POSITION_ESTIMATE", 0.3)
+    assert len(vpe) == 1 and vpe[0].usec == T0_UNIX_USEC + 1000
+    assert (vpe[0].x, vpe[0].y, vpe[0].z) == pytest.approx((123.25, -456.5, -80.0), abs=1e-4)
+
+
+def test_link_vision_position_reexpressed_at_autopilot_origin(udp_pair: tuple) -> None:
+    """An autopilot that reports another origin gets positions in its own NED frame (and no
+    SET_GPS_GLOBAL_ORIGIN); the switch from our frame to its frame bumps reset_counter."""
+    link, ap, clock, _ = udp_pair
+    _seen(link, ap)
+    state = _state_at(T0_UNIX_USEC, (10.0, 20.0, -100.0))
+    link.send_estimate(state, time_unix_usec=T0_UNIX_USEC)
+    first = _recv_all(ap, "VISION_POSITION_ESTIMATE", 0.3)
+    assert len(first) == 1 and first[0].x == pytest.approx(10.0, abs=1e-4)
+
+    # The autopilot's origin lies 100 m north, 50 m west and 20 m above ours.
+    lat, lon, alt = LTP.to_geodetic(np.array([100.0, -50.0, -20.0]))
+    ap.mav.send(_ap_origin(ap.mav, float(lat), float(lon), float(alt)))
+    assert _pump(link, lambda: link.tracker.gps_origin() is not None)
+    clock.t += 2 * SET_GPS_GLOBAL_ORIGIN_INTERVAL_S
+    _seen(link, ap)
+    later = _state_at(T0_UNIX_USEC + 100_000, (10.5, 20.0, -100.0))
+    link.send_estimate(later, time_unix_usec=T0_UNIX_USEC + 100_000)
+    got = _recv_all(ap, ["VISION_POSITION_ESTIMATE", "SET_GPS_GLOBAL_ORIGIN"], 0.3)
+    assert [x.get_type() for x in got] == ["VISION_POSITION_ESTIMATE"]
+    vpe = got[0]
+    # 1e-7 deg and 1 mm rounding of the reported origin: about 1 cm.
+    assert (vpe.x, vpe.y, vpe.z) == pytest.approx((10.5 - 100.0, 20.0 + 50.0, -100.0 + 20.0), abs=0.02)
+    assert vpe.reset_counter == (first[0].reset_counter + 1) & 0xFF
+
+
+def test_link_vision_reset_counter_bumps_on_reinit_and_jump_not_on_motion(udp_pair: tuple) -> None:
+    """reset_counter: unchanged over ordinary motion and a 1.7-sigma correction; +1 on a jump beyond
+    3 sigma; +1 when an estimate follows no_estimate."""
+    link, ap, _clock, _ = udp_pair
+    _seen(link, ap)
+    t, north = T0_UNIX_USEC, 0.0
+    plan: list[tuple[float, Provenance]] = []
+    for _ in range(5):  # 5 m/s at 10 Hz: 0.5 m per send, as predicted by the velocity
+        north += 0.5
+        plan.append((north, Provenance.VISUAL_PROPAGATED))
+    north += 0.5 + 5.0  # an ordinary fix moves it 5 m (< 3 * 3 m)
+    plan.append((north, Provenance.SATELLITE_ANCHORED))
+    north += 0.5 + 20.0  # a re-acquisition lands 20 m away (> 3 * 3 m)
+    plan.append((north, Provenance.SATELLITE_ANCHORED))
+    north += 0.5
+    plan.append((north, Provenance.SATELLITE_ANCHORED))
+    plan.append((north, Provenance.NO_ESTIMATE))
+    plan.append((north + 300.0, Provenance.SATELLITE_ANCHORED))  # re-initialised elsewhere
+    for n, provenance in plan:
+        t += 100_000
+        link.send_estimate(_state_at(t, (n, 0.0, -50.0), provenance=provenance), time_unix_usec=t)
+    vpe = _recv_all(ap, "VISION_POSITION_ESTIMATE", 0.4)
+    counters = [x.reset_counter for x in vpe]
+    c = counters[0]
+    assert counters == [c] * 6 + [c + 1, c + 1, c + 2]
+    assert [x.x for x in vpe][-1] == pytest.approx(north + 300.0)
+
+
+def test_vision_position_jumped_rule() -> None:
+    """The jump rule: beyond 3 previous sigma (horizontal or vertical) after the velocity's prediction,
+    with a 0.5 m floor; non-finite input is not a jump."""
+    prev = _state_at(T0_UNIX_USEC, (0.0, 0.0, -50.0), sigma_m=2.0)
+    dt = 200_000  # 0.2 s at 5 m/s north: predicted 1 m north
+    assert not m.vision_position_jumped(prev, _state_at(T0_UNIX_USEC + dt, (1.0 + 5.9, 0.0, -50.0)))
+    assert m.vision_position_jumped(prev, _state_at(T0_UNIX_USEC + dt, (1.0 + 6.1, 0.0, -50.0)))
+    assert m.vision_position_jumped(prev, _state_at(T0_UNIX_USEC + dt, (1.0, 0.0, -50.0 + 6.1)))  # sigma_d 2
+    tiny = _state_at(T0_UNIX_USEC, (0.0, 0.0, -50.0), sigma_m=0.01)
+    assert not m.vision_position_jumped(tiny, _state_at(T0_UNIX_USEC + dt, (1.4, 0.0, -50.0)))
+    nan = _state_at(T0_UNIX_USEC + dt, (math.nan, 0.0, -50.0))
+    assert not m.vision_position_jumped(prev, nan)
+
+
+def test_link_global_position_sensor_carries_configured_id() -> None:
+    """GLOBAL_POSITION_SENSOR.id is mavlink.global_position_sensor_id (so it can match EKF2_AGP0_ID), and
+    GPS_INPUT.gps_id is mavlink.gps_input_gps_id."""
+    port = _free_udp_port()
+    cfg = MavlinkConfig(
+        url=f"udpin:127.0.0.1:{port}",
+        outputs=("global_position_sensor", "gps_input"),
+        global_position_sensor_id=7,
+        gps_input_gps_id=1,
+    )
+    link = MavlinkLink(cfg, _tracker())
+    link.open()
+    ap = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    try:
+        ap.mav.send(_ap_heartbeat(ap.mav))
+        assert _pump(link, lambda: link.tracker.autopilot_seen)
+        assert link.send_estimate(_state(), time_unix_usec=T0_UNIX_USEC) == 2
+        got = {x.get_type(): x for x in _recv_all(ap, ["GLOBAL_POSITION_SENSOR", "GPS_INPUT"], 0.3)}
+        sensor = got["GLOBAL_POSITION_SENSOR"]
+        assert sensor.id == 7 and sensor.target_system == 1 and sensor.flags == 0
+        assert got["GPS_INPUT"].gps_id == 1  # GPS2_TYPE=14 for the in-flight switch
+    finally:
+        ap.close()
+        link.close()
+    assert MavlinkConfig().global_position_sensor_id == 1
+    with pytest.raises(ConfigError, match="global_position_sensor_id"):
+        config_from_mapping({"mavlink": {"global_position_sensor_id": 256}})
+    with pytest.raises(ConfigError, match="gps_input_gps_id"):
+        config_from_mapping({"mavlink": {"gps_input_gps_id": 2}})
+
+
+def test_link_refuses_vision_output_without_local_frame() -> None:
+    """vision_position_estimate without the daemon's ltp cannot say which frame it is in: refused."""
+    cfg = MavlinkConfig(url="udpout:127.0.0.1:9", outputs=("vision_position_estimate",))
+    with pytest.raises(MavlinkConfigError, match="ltp"):
+        MavlinkLink(cfg, _tracker())
+
+
+def test_tracker_gps_global_origin_from_autopilot_only() -> None:
+    """GPS_GLOBAL_ORIGIN from the autopilot is kept (degE7, mm); another system's is ignored."""
+    tracker = _tracker()
+    now = T0_UNIX_USEC / 1e6
+    assert tracker.gps_origin() is None
+    assert not tracker.handle(_decoded(lambda mav: _ap_origin(mav, 1.0, 2.0, 3.0), src=(2, 1)), now)
+    assert tracker.handle(_decoded(lambda mav: _ap_origin(mav, 50.4512345, 30.5212345, 201.5)), now)
+    origin = tracker.gps_origin()
+    assert origin == pytest.approx((50.4512345, 30.5212345, 201.5))

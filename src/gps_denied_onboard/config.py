@@ -119,8 +119,15 @@ class MavlinkConfig:
     #: System id of the autopilot whose messages are used (others are ignored).
     autopilot_system_id: Annotated[int, Strict(), Field(ge=1, le=255)] = 1
     #: What is sent per estimate: GPS_INPUT (ArduPilot, GPS1_TYPE=14), GLOBAL_POSITION_SENSOR (PX4 1.18+),
-    #: VISION_POSITION_ESTIMATE (ArduPilot VISO_TYPE=1). NAMED_VALUE_* status is always sent.
+    #: VISION_POSITION_ESTIMATE (ArduPilot VISO_TYPE=1, PX4 EKF2_EV_CTRL bit 0; local NED at the origin
+    #: set with SET_GPS_GLOBAL_ORIGIN or the one the autopilot reports). NAMED_VALUE_* status is always sent.
     outputs: tuple[OutputKind, ...] = ("gps_input",)
+    #: GLOBAL_POSITION_SENSOR.id (the message's uint8 sensor instance): PX4 fuses the message only when
+    #: one of its EKF2_AGP{i}_ID parameters equals it (and EKF2_AGP{i}_CTRL has bit 0 set).
+    global_position_sensor_id: Annotated[int, Strict(), Field(ge=0, le=255)] = 1
+    #: GPS_INPUT.gps_id: 0 feeds ArduPilot's GPS1 (GPS1_TYPE=14), 1 feeds GPS2 (GPS2_TYPE=14, e.g. next to
+    #: a real GNSS with GPS_AUTO_SWITCH=1); ArduPilot ignores other ids.
+    gps_input_gps_id: Annotated[int, Strict(), Field(ge=0, le=1)] = 0
     #: Rate of this daemon's own HEARTBEAT, Hz.
     heartbeat_hz: PosFloat = 1.0
     #: Rate of the estimate stream (GPS_INPUT etc.), propagated to the send time between frames, Hz.

@@ -17,6 +17,8 @@ MAV_COMPONENT_ID: Final[int] = 197
 STATUSTEXT_MIN_INTERVAL_S: Final[float] = 1.0
 #: GPS_INPUT.gps_id for GPS1 (ArduPilot silently ignores other ids for the first GPS).
 GPS_INPUT_GPS_ID: Final[int] = 0
+#: SET_GPS_GLOBAL_ORIGIN is repeated at this interval until the autopilot reports GPS_GLOBAL_ORIGIN, s.
+SET_GPS_GLOBAL_ORIGIN_INTERVAL_S: Final[float] = 10.0
 
 # NAMED_VALUE_* names: 10 characters at most (MAVLink field size).
 NV_PROVENANCE: Final[str] = "GDN_PROV"
@@ -75,6 +77,10 @@ class LogEvent:
     MAVLINK_LINK_LOST: Final = "c8.mavlink.link_lost"
     MAVLINK_SEND_ERROR: Final = "c8.mavlink.send_error"
     MAVLINK_LINK_RESTORED: Final = "c8.mavlink.link_restored"
+    #: SET_GPS_GLOBAL_ORIGIN sent (the daemon's local frame offered to the autopilot).
+    MAVLINK_ORIGIN_SENT: Final = "c8.mavlink.origin_sent"
+    #: The frame VISION_POSITION_ESTIMATE is sent in changed (the autopilot reported its GPS_GLOBAL_ORIGIN).
+    MAVLINK_VISION_FRAME: Final = "c8.mavlink.vision_frame"
     FDR_WRITE_ERROR: Final = "c13.fdr.write_error"
     FDR_SEGMENT_DELETED: Final = "c13.fdr.segment_deleted"
     PROVENANCE_CHANGED: Final = "c5.estimator.provenance_changed"

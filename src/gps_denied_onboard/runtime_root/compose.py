@@ -311,7 +311,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         time_axis=time_axis,
         fdr=fdr,
     )
-    link = MavlinkLink(config.mavlink, tracker, fdr)
+    link = MavlinkLink(config.mavlink, tracker, fdr, ltp=ltp)
     try:
         camera = open_frame_source(
             config.camera.source,

@@ -16,6 +16,17 @@
   the ground always ends up seeing the latest state.
 - MAVLink 2 signing when ``signing_key_file`` is set: outgoing messages are signed; incoming unsigned or
   wrongly signed messages are rejected (except RADIO_STATUS, which radios inject unsigned).
+- VISION_POSITION_ESTIMATE is a local NED position, so it is only sent in a frame the autopilot shares.
+  With ``vision_position_estimate`` in ``outputs``, while the autopilot is alive and has not reported a
+  GPS_GLOBAL_ORIGIN, the link sends SET_GPS_GLOBAL_ORIGIN (the daemon's tangent-plane origin) and a
+  MAV_CMD_REQUEST_MESSAGE for GPS_GLOBAL_ORIGIN every ``SET_GPS_GLOBAL_ORIGIN_INTERVAL_S``. Positions go
+  out in the daemon's frame once the origin has been offered; once the autopilot reports its origin,
+  the offer stops (re-sending a different origin would at best be ignored and at worst move the
+  autopilot's frame in flight) and positions go out in the reported frame: the daemon's own when the
+  two origins agree within ``ORIGIN_MATCH_TOLERANCE_M``, else re-expressed at the autopilot's origin
+  through geodetic coordinates. Before the offer (link down, autopilot not seen) none is sent. After a
+  detected autopilot reboot the reported origin is forgotten and the offer starts again.
+  ``reset_counter`` rules: ``messages`` module docstring.
 """
 
 from __future__ import annotations
@@ -32,12 +43,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
+import numpy as np
 import structlog
 
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c8_mavlink import messages
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT, mavutil
-from gps_denied_onboard.components.c8_mavlink.vehicle_state import VehicleStateTracker
+from gps_denied_onboard.components.c8_mavlink.vehicle_state import AUTOPILOT_COMPONENT_ID, VehicleStateTracker
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import MavlinkConfig, check_mavlink_url
 from gps_denied_onboard.constants import (
@@ -46,11 +58,13 @@ from gps_denied_onboard.constants import (
     NV_INLIERS,
     NV_PROVENANCE,
     NV_RESIDUAL_PX,
+    SET_GPS_GLOBAL_ORIGIN_INTERVAL_S,
     STATUSTEXT_MIN_INTERVAL_S,
     FdrKind,
     LogEvent,
     Provenance,
 )
+from gps_denied_onboard.geo import LocalTangentPlane
 
 _log = structlog.get_logger(__name__)
 
@@ -64,6 +78,10 @@ MAX_MESSAGES_PER_POLL: Final[int] = 1000
 SEND_ERROR_LOG_INTERVAL_S: Final[float] = 5.0
 #: Message ids accepted unsigned when signing is on (RADIO_STATUS is injected by SiK radios).
 UNSIGNED_ALLOWED_MSG_IDS: Final[frozenset[int]] = frozenset({DIALECT.MAVLINK_MSG_ID_RADIO_STATUS})
+#: The autopilot's reported origin is "ours" when it lies this close to the daemon's (degE7/mm rounding
+#: of SET_GPS_GLOBAL_ORIGIN is about 1 cm), m.
+ORIGIN_MATCH_TOLERANCE_M: Final[float] = 0.05
+_VISION_OUTPUT: Final[str] = "vision_position_estimate"
 
 _NAMED_VALUE_NAMES: Final[tuple[str, ...]] = (
     NV_PROVENANCE,
@@ -178,6 +196,10 @@ class LinkStats:
     reconnects: int
     statustext_sent: int
     statustext_coalesced: int
+    #: SET_GPS_GLOBAL_ORIGIN messages handed to the transport.
+    global_origin_sent: int = 0
+    #: VISION_POSITION_ESTIMATEs not sent because no frame shared with the autopilot was known yet.
+    vision_withheld: int = 0
 
 
 @dataclass
@@ -208,8 +230,19 @@ class MavlinkLink:
         fdr: FdrClient | None = None,
         clock: Callable[[], float] = time.time,
         rng: random.Random | None = None,
+        *,
+        ltp: LocalTangentPlane | None = None,
     ) -> None:
+        """``ltp``: the daemon's local tangent plane (the frame of ``EstimatorState.pos_ned_m``); required
+        when ``vision_position_estimate`` is among ``config.outputs``."""
+        if _VISION_OUTPUT in config.outputs and ltp is None:
+            raise MavlinkConfigError(
+                "mavlink.outputs has vision_position_estimate but the link was given no local frame (ltp) "
+                "to offer the autopilot as its origin",
+                url=config.url,
+            )
         self._config = config
+        self._ltp = ltp
         self._tracker = tracker
         self._fdr = fdr
         self._clock = clock
@@ -240,6 +273,14 @@ class MavlinkLink:
         self._status_coalesced = 0
         self._vision_reset_counter = 0
         self._last_provenance: Provenance | None = None
+        # vision frame (see the module docstring)
+        self._origin_sent_at: float | None = None
+        self._origin_sent = 0
+        self._vision_withheld = 0
+        self._ap_origin: tuple[float, float, float] | None = None
+        self._ap_frame: LocalTangentPlane | None = None  # the autopilot's frame, or our ltp when they agree
+        self._last_vision_frame: LocalTangentPlane | None = None
+        self._last_vision_state: EstimatorState | None = None
 
     # --- lifecycle ----------------------------------------------------------------------------------
     def open(self) -> None:
@@ -354,6 +395,7 @@ class MavlinkLink:
                     self._schedule_reconnect(now, reason=f"receive failed: {exc}")
             self._received += count
         self._check_liveness(now)
+        self._maybe_send_origin(now)
         self._flush_pending_status(now)
         return count
 
@@ -451,13 +493,15 @@ class MavlinkLink:
                 self._last_provenance is Provenance.NO_ESTIMATE
                 and state.provenance is not Provenance.NO_ESTIMATE
             ):
-                self._vision_reset_counter = (self._vision_reset_counter + 1) & 0xFF  # re-initialised
+                self.reset_vision_counter()  # re-initialised
             self._last_provenance = state.provenance
         processing_usec = max(0, int(self._clock() * 1e6) - int(state.time_unix_usec))
         for output in self._config.outputs:
             if output == "gps_input":
                 sent += self._build_and_send(
-                    lambda mav: messages.gps_input(mav, state, time_unix_usec=time_unix_usec)
+                    lambda mav: messages.gps_input(
+                        mav, state, time_unix_usec=time_unix_usec, gps_id=self._config.gps_input_gps_id
+                    )
                 )
             elif output == "global_position_sensor":
                 sent += self._build_and_send(
@@ -467,15 +511,120 @@ class MavlinkLink:
                         time_unix_usec=time_unix_usec,
                         processing_time_usec=processing_usec,
                         target_system=self._config.autopilot_system_id,
+                        sensor_id=self._config.global_position_sensor_id,
                     )
                 )
-            elif output == "vision_position_estimate" and state.provenance is not Provenance.NO_ESTIMATE:
-                sent += self._build_and_send(
-                    lambda mav: messages.vision_position_estimate(
-                        mav, state, time_usec=time_unix_usec, reset_counter=self._vision_reset_counter
-                    )
-                )
+            elif output == _VISION_OUTPUT:
+                sent += self._send_vision(state, time_unix_usec)
         return sent
+
+    def _send_vision(self, state: EstimatorState, time_unix_usec: int) -> int:
+        """One VISION_POSITION_ESTIMATE in the frame shared with the autopilot, or none (see the module
+        docstring); bumps reset_counter on a frame change or a jump (``messages.vision_position_jumped``)."""
+        self._maybe_send_origin(self._clock())
+        with self._lock:
+            position_ok = bool(np.all(np.isfinite(np.asarray(state.pos_ned_m, dtype=np.float64))))
+            if state.provenance is Provenance.NO_ESTIMATE or not position_ok or self._ltp is None:
+                self._last_vision_state = None
+                return 0
+            frame = self._vision_frame()
+            if frame is None:
+                self._vision_withheld += 1
+                self._last_vision_state = None
+                return 0
+            frame_changed = self._last_vision_frame is not None and frame != self._last_vision_frame
+            previous = self._last_vision_state
+            if frame_changed or (previous is not None and messages.vision_position_jumped(previous, state)):
+                self.reset_vision_counter()
+            self._last_vision_frame = frame
+            self._last_vision_state = state
+            pos = messages.ned_in_frame(state.pos_ned_m, self._ltp, frame)
+            counter = self._vision_reset_counter
+        return int(
+            self._build_and_send(
+                lambda mav: messages.vision_position_estimate(
+                    mav, state, time_usec=time_unix_usec, reset_counter=counter, pos_ned_m=pos
+                )
+            )
+        )
+
+    def _sync_autopilot_origin(self) -> tuple[float, float, float] | None:
+        """Follow the autopilot's reported GPS_GLOBAL_ORIGIN; returns it (None while unknown)."""
+        reported = self._tracker.gps_origin()
+        with self._lock:
+            if reported == self._ap_origin:
+                return reported
+            if reported is None:  # forgotten after an autopilot reboot: offer ours again, at once
+                self._ap_origin, self._ap_frame, self._origin_sent_at = None, None, None
+                return None
+            own = self._ltp
+            if own is None:  # no vision output configured: nothing to re-express
+                return reported
+            theirs = LocalTangentPlane(*reported)
+            offset_m = float(np.linalg.norm(own.to_ned(*reported)))
+            self._ap_origin = reported
+            self._ap_frame = own if offset_m <= ORIGIN_MATCH_TOLERANCE_M else theirs
+            fields = {
+                "lat_deg": reported[0],
+                "lon_deg": reported[1],
+                "alt_amsl_m": reported[2],
+                "offset_from_ours_m": round(offset_m, 3),
+                "frame": "daemon" if self._ap_frame is own else "autopilot",
+            }
+            if self._ap_frame is own:
+                _log.info(LogEvent.MAVLINK_VISION_FRAME, **fields)
+            else:
+                _log.warning(
+                    LogEvent.MAVLINK_VISION_FRAME,
+                    reason="the autopilot already has another origin; positions are re-expressed in it",
+                    **fields,
+                )
+            self._record_event("vision_frame", **fields)
+            return reported
+
+    def _vision_frame(self) -> LocalTangentPlane | None:
+        """The frame VISION_POSITION_ESTIMATE goes out in now, or None when none is shared yet."""
+        if self._sync_autopilot_origin() is not None:
+            return self._ap_frame
+        return self._ltp if self._origin_sent_at is not None else None
+
+    def _maybe_send_origin(self, now: float) -> None:
+        """Offer our origin (SET_GPS_GLOBAL_ORIGIN + a request for GPS_GLOBAL_ORIGIN) when due."""
+        if self._ltp is None or _VISION_OUTPUT not in self._config.outputs:
+            return
+        if self._sync_autopilot_origin() is not None or not self._tracker.link_alive(now):
+            return
+        ltp = self._ltp
+        cfg = self._config
+        with self._lock:
+            last = self._origin_sent_at
+            if last is not None and now - last < SET_GPS_GLOBAL_ORIGIN_INTERVAL_S:
+                return
+            sent = self._build_and_send(
+                lambda mav: messages.set_gps_global_origin(
+                    mav, ltp, target_system=cfg.autopilot_system_id, time_usec=int(now * 1e6)
+                )
+            )
+            if not sent:
+                return
+            self._build_and_send(
+                lambda mav: messages.request_message(
+                    mav,
+                    target_system=cfg.autopilot_system_id,
+                    target_component=AUTOPILOT_COMPONENT_ID,
+                    message_id=DIALECT.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
+                )
+            )
+            self._origin_sent_at = now
+            self._origin_sent += 1
+            fields = {
+                "lat_deg": ltp.origin_lat_deg,
+                "lon_deg": ltp.origin_lon_deg,
+                "alt_amsl_m": ltp.origin_alt_m,
+                "count": self._origin_sent,
+            }
+        _log.info(LogEvent.MAVLINK_ORIGIN_SENT, **fields)
+        self._record_event("origin_sent", **fields)
 
     def send_status_values(
         self,
@@ -566,6 +715,8 @@ class MavlinkLink:
                 reconnects=self._reconnects,
                 statustext_sent=self._status_sent,
                 statustext_coalesced=self._status_coalesced,
+                global_origin_sent=self._origin_sent,
+                vision_withheld=self._vision_withheld,
             )
 
 

@@ -23,6 +23,20 @@ Policy (what the autopilot is told, and why)
 - **yaw** (GPS_INPUT.yaw, centidegrees): 0 means unknown, so north is sent as 36000.
 - **satellites_visible**: a synthetic count (``SATELLITES_WITH_FIX``) while fix_type is 3, else 0,
   because ArduPilot's pre-arm/EKF checks look at the satellite count of a GPS.
+- **GLOBAL_POSITION_SENSOR.id** is ``mavlink.global_position_sensor_id``: PX4 fuses the message only
+  when that id equals one of its ``EKF2_AGP{i}_ID`` parameters.
+- **VISION_POSITION_ESTIMATE frame**: local NED at an origin the autopilot shares (its
+  GPS_GLOBAL_ORIGIN, or ours offered with SET_GPS_GLOBAL_ORIGIN); ``ned_in_frame`` re-expresses a
+  position of the daemon's tangent plane in another one through geodetic coordinates. The link
+  (``link.py``) decides which frame, and when the position is not sent at all.
+- **reset_counter** (``vision_position_jumped``): bumped when the estimate re-initialises
+  (``no_estimate`` -> an estimate), when the frame changes, and when one sent position differs from the
+  previous one carried forward at its velocity by more than ``VISION_RESET_JUMP_SIGMAS`` times the
+  previous (propagated) 1-sigma, horizontally or vertically (at least ``VISION_RESET_MIN_JUMP_M``).
+  An ordinary fix moves the state by less than its prior sigma in expectation (the correction's
+  variance is below the prior's), so 3 sigma is not crossed by ordinary fixes or motion, while a
+  re-acquisition that lands well outside the prior is; the autopilot's own innovation gates (a few
+  sigma) would otherwise reject such a step instead of resetting to it.
 """
 
 from __future__ import annotations
@@ -45,7 +59,7 @@ from gps_denied_onboard.constants import (
     NV_RESIDUAL_PX,
     Provenance,
 )
-from gps_denied_onboard.geo import gps_week_and_ms
+from gps_denied_onboard.geo import LocalTangentPlane, gps_week_and_ms
 
 # pymavlink chooses the wire protocol when a dialect is loaded, from the MAVLINK20 environment variable.
 # MAVLink 2 is required here (signing, GPS_INPUT.yaw extension, GLOBAL_POSITION_SENSOR id 296 > 255),
@@ -73,6 +87,12 @@ SATELLITES_WITH_FIX: Final[int] = 10
 STATUSTEXT_MAX_BYTES: Final[int] = 50
 #: Variance used for attitude entries of VISION_POSITION_ESTIMATE when the attitude is not known, rad^2.
 UNKNOWN_ANGLE_VARIANCE_RAD2: Final[float] = math.pi**2
+
+#: A sent position that moves by more than this many previous 1-sigmas (beyond its velocity's
+#: prediction) is a jump: VISION_POSITION_ESTIMATE.reset_counter is bumped.
+VISION_RESET_JUMP_SIGMAS: Final[float] = 3.0
+#: ... but never for a step shorter than this (a very confident state must not bump on noise), m.
+VISION_RESET_MIN_JUMP_M: Final[float] = 0.5
 
 #: GPS_FIX_TYPE values used by the policy.
 FIX_TYPE_NO_GPS: Final[int] = 0
@@ -202,11 +222,12 @@ def global_position_sensor(
     time_unix_usec: int,
     processing_time_usec: int,
     target_system: int,
-    sensor_id: int = 0,
+    sensor_id: int,
     max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
 ) -> MavlinkMessage:
     """GLOBAL_POSITION_SENSOR (PX4 v1.18+; id 296, in pymavlink's common/ardupilotmega dialects).
 
+    ``sensor_id`` is the message's ``id`` (uint8): PX4 uses it only when an ``EKF2_AGP{i}_ID`` equals it.
     source = GLOBAL_POSITION_SRC_VISION; the UNHEALTHY flag is set whenever ``fix_type_for`` would not
     report a 3D fix, so PX4 sees the same validity as ArduPilot. ``alt_ellipsoid`` is NaN (we only know
     AMSL), which the message defines as "use ``alt``". ``processing_time_usec`` = transmission time minus
@@ -234,6 +255,72 @@ def global_position_sensor(
     )
 
 
+def set_gps_global_origin(
+    mav: Any, ltp: LocalTangentPlane, *, target_system: int, time_usec: int
+) -> MavlinkMessage:
+    """SET_GPS_GLOBAL_ORIGIN (id 48) offering ``ltp``'s origin as the autopilot's local NED origin:
+    latitude/longitude degE7, altitude in mm above mean sea level (the ltp's origin height is AMSL)."""
+    return mav.set_gps_global_origin_encode(
+        int(target_system),
+        _e7(ltp.origin_lat_deg),
+        _e7(ltp.origin_lon_deg),
+        round(ltp.origin_alt_m * 1000.0),
+        int(time_usec),
+    )
+
+
+def request_message(
+    mav: Any, *, target_system: int, target_component: int, message_id: int
+) -> MavlinkMessage:
+    """COMMAND_LONG MAV_CMD_REQUEST_MESSAGE for ``message_id`` (e.g. GPS_GLOBAL_ORIGIN, id 49)."""
+    return mav.command_long_encode(
+        int(target_system),
+        int(target_component),
+        DIALECT.MAV_CMD_REQUEST_MESSAGE,
+        0,
+        float(message_id),
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+    )
+
+
+def ned_in_frame(pos_ned_m: np.ndarray, own: LocalTangentPlane, other: LocalTangentPlane) -> np.ndarray:
+    """A (3,) NED position in ``own`` re-expressed in ``other``'s NED frame, through WGS84 geodetic.
+
+    The two frames' axes differ by the angle between their verticals (distance / Earth radius, 1e-4 rad
+    for 600 m), so a covariance is carried over unrotated."""
+    if own == other:
+        return np.asarray(pos_ned_m, dtype=np.float64).copy()
+    lat, lon, alt = own.to_geodetic(np.asarray(pos_ned_m, dtype=np.float64))
+    return np.asarray(other.to_ned(lat, lon, alt), dtype=np.float64)
+
+
+def vision_position_jumped(previous: EstimatorState, current: EstimatorState) -> bool:
+    """True when ``current`` jumped away from ``previous`` (both sent in the same frame): its position
+    differs from ``previous`` carried forward at ``previous``'s velocity by more than
+    ``VISION_RESET_JUMP_SIGMAS`` times ``previous``'s horizontal (resp. vertical) 1-sigma, and by more
+    than ``VISION_RESET_MIN_JUMP_M``. Non-finite inputs are not a jump (re-initialisation is detected
+    from the provenance)."""
+    dt_s = (int(current.time_unix_usec) - int(previous.time_unix_usec)) / 1e6
+    vel = np.asarray(previous.vel_ned_m_s, dtype=np.float64)
+    if not np.all(np.isfinite(vel)):
+        vel = np.zeros(3)
+    step = np.asarray(current.pos_ned_m, dtype=np.float64) - (
+        np.asarray(previous.pos_ned_m, dtype=np.float64) + vel * max(dt_s, 0.0)
+    )
+    cov = np.asarray(previous.cov_pos_ned_m2, dtype=np.float64)
+    if not (np.all(np.isfinite(step)) and np.all(np.isfinite(cov))):
+        return False
+    horiz_m, vert_m = float(np.hypot(step[0], step[1])), abs(float(step[2]))
+    horiz_limit = max(VISION_RESET_JUMP_SIGMAS * previous.horiz_sigma_m, VISION_RESET_MIN_JUMP_M)
+    vert_limit = max(VISION_RESET_JUMP_SIGMAS * previous.vert_sigma_m, VISION_RESET_MIN_JUMP_M)
+    return horiz_m > horiz_limit or vert_m > vert_limit
+
+
 def pose_covariance_upper(cov_pos_ned_m2: np.ndarray, attitude_var_rad2: Sequence[float]) -> list[float]:
     """21-element row-major upper triangle of the 6x6 (x, y, z, roll, pitch, yaw) covariance."""
     full = np.zeros((6, 6), dtype=np.float64)
@@ -250,11 +337,14 @@ def vision_position_estimate(
     reset_counter: int,
     attitude: Attitude | None = None,
     attitude_var_rad2: Sequence[float] | None = None,
+    pos_ned_m: np.ndarray | None = None,
 ) -> MavlinkMessage:
     """VISION_POSITION_ESTIMATE in the local NED frame of ``state`` (its origin must be the autopilot's
-    EKF origin, set with SET_GPS_GLOBAL_ORIGIN). Attitude entries are the given attitude, or zeros with
-    ``UNKNOWN_ANGLE_VARIANCE_RAD2`` variances when unknown (yaw from ``state.yaw_rad`` when known)."""
-    pos = np.asarray(state.pos_ned_m, dtype=np.float64)
+    EKF origin, set with SET_GPS_GLOBAL_ORIGIN), or at ``pos_ned_m`` (3,) when given: ``state``'s
+    position already re-expressed in the autopilot's frame (``ned_in_frame``). Attitude entries are the
+    given attitude, or zeros with ``UNKNOWN_ANGLE_VARIANCE_RAD2`` variances when unknown (yaw from
+    ``state.yaw_rad`` when known)."""
+    pos = np.asarray(state.pos_ned_m if pos_ned_m is None else pos_ned_m, dtype=np.float64)
     if attitude is not None:
         roll, pitch, yaw = attitude.roll_rad, attitude.pitch_rad, attitude.yaw_rad
         var = attitude_var_rad2 or (0.01, 0.01, 0.05)

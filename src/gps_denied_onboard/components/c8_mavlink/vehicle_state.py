@@ -1,4 +1,5 @@
-"""C8 inbound: the autopilot's attitude, altitude, home, IMU and liveness, from decoded MAVLink messages.
+"""C8 inbound: the autopilot's attitude, altitude, home, local-frame origin (GPS_GLOBAL_ORIGIN), IMU and
+liveness, from decoded MAVLink messages.
 
 Only the configured autopilot's messages are used: source system ``autopilot_system_id`` and
 component 1 (MAV_COMP_ID_AUTOPILOT1). A HEARTBEAT counts only when it also declares a real autopilot
@@ -217,6 +218,8 @@ class VehicleStateTracker:
         self._attitude = _Series()
         self._alt: dict[AltitudeSource, _Series] = {s: _Series() for s in AltitudeSource}
         self._home: tuple[float, float, float] | None = None
+        #: The autopilot's local-frame origin from GPS_GLOBAL_ORIGIN (lat_deg, lon_deg, alt_amsl_m).
+        self._gps_origin: tuple[float, float, float] | None = None
         self._imu: ImuSample | None = None
         #: Specific force, body FRD, m/s^2, keyed by boot time.
         self._accel_body = _Series()
@@ -278,6 +281,7 @@ class VehicleStateTracker:
             self._sys_offset_usec = None
             self._rx_offset_usec = None
             self._imu = None
+            self._gps_origin = None  # a rebooted autopilot has no origin until it reports one again
         if last is None or boot_usec > last or boot_usec < last - OFFSET_RESET_S * 1e6:
             self._last_boot_usec = boot_usec
 
@@ -341,6 +345,13 @@ class VehicleStateTracker:
 
     def _on_home_position(self, msg: Any, recv_usec: int) -> bool:
         self._home = (int(msg.latitude) / 1e7, int(msg.longitude) / 1e7, int(msg.altitude) / 1000.0)
+        return True
+
+    def _on_gps_global_origin(self, msg: Any, recv_usec: int) -> bool:
+        lat_deg, lon_deg = int(msg.latitude) / 1e7, int(msg.longitude) / 1e7
+        if abs(lat_deg) > 90.0 or abs(lon_deg) > 180.0:
+            return False
+        self._gps_origin = (lat_deg, lon_deg, int(msg.altitude) / 1000.0)
         return True
 
     def _add_imu(self, sample: ImuSample) -> bool:
@@ -459,6 +470,12 @@ class VehicleStateTracker:
         with self._lock:
             return self._home
 
+    def gps_origin(self) -> tuple[float, float, float] | None:
+        """(lat_deg, lon_deg, alt_amsl_m) of the autopilot's local NED origin from its latest
+        GPS_GLOBAL_ORIGIN, or None before one was received (or since a detected autopilot reboot)."""
+        with self._lock:
+            return self._gps_origin
+
     def latest_imu(self) -> ImuSample | None:
         with self._lock:
             return self._imu
@@ -504,6 +521,7 @@ _HANDLERS: Final[dict[str, Callable[[VehicleStateTracker, Any, int], bool]]] = {
     "GLOBAL_POSITION_INT": VehicleStateTracker._on_global_position_int,
     "VFR_HUD": VehicleStateTracker._on_vfr_hud,
     "HOME_POSITION": VehicleStateTracker._on_home_position,
+    "GPS_GLOBAL_ORIGIN": VehicleStateTracker._on_gps_global_origin,
     "HIGHRES_IMU": VehicleStateTracker._on_highres_imu,
     "SCALED_IMU": VehicleStateTracker._on_scaled_imu,
     "SCALED_IMU2": VehicleStateTracker._on_scaled_imu,
