@@ -18,7 +18,8 @@ from gps_denied_onboard.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 UNIT_PATH = ROOT / "systemd" / "gdnav.service"
-#: A generous duration of one `gdnav config check` (Python imports) on a slow companion computer, s.
+#: A generous duration of one `gdnav config check` (imports, the calibration and key files) on a slow
+#: companion computer, s.
 SLOW_CHECK_S = 10.0
 #: Where a unit's paths are hidden from the service by PrivateTmp=/ProtectHome=.
 HIDDEN_ROOTS = ("/tmp", "/var/tmp", "/home", "/root", "/run/user")
@@ -146,8 +147,9 @@ def test_unit_start_limit_ends_an_exec_start_pre_refusal_loop() -> None:
 
 
 def test_unit_check_and_daemon_use_one_binary_and_one_profile() -> None:
-    """ExecStartPre is `gdnav config check` and ExecStart is `gdnav run`, same binary, same --config,
-    with no prefix ('-' would ignore a refusal, '+' would check as root instead of the service user)."""
+    """ExecStartPre is `gdnav config check` (cheap: it runs before every restart in flight; `gdnav run`
+    verifies the cache and models itself) and ExecStart is `gdnav run`, same binary, same --config, with
+    no prefix ('-' would ignore a refusal, '+' would check as root instead of the service user)."""
     check, run = _exec("ExecStartPre"), _exec("ExecStart")
     assert check[0] == run[0] and PurePosixPath(check[0]).name == "gdnav"
     assert check[1:3] == ["config", "check"] and run[1] == "run"

@@ -295,6 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
     from gps_denied_onboard import cli_fdr
 
     cli_fdr.register(sub)
+    from gps_denied_onboard import cli_preflight
+
+    cli_preflight.register(sub)
     return parser
 
 

@@ -38,7 +38,7 @@ from gps_denied_onboard.components.c8_mavlink import (
     VehicleStateTracker,
     load_signing_key,
 )
-from gps_denied_onboard.components.c13_fdr import FlightDataRecorder, read_records_newest_first
+from gps_denied_onboard.components.c13_fdr import FdrClient, FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import Config
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
@@ -164,7 +164,7 @@ def _matcher_deps(
     config: Config,
     pre: Mapping[str, Any],
     ransac: RansacFilter,
-    fdr: FlightDataRecorder,
+    fdr: FdrClient,
     health: RollingHealthWindow,
 ) -> dict[str, Any]:
     """The superset of collaborators a C3 strategy may ask for; ONNX objects only for learned strategies
@@ -241,6 +241,67 @@ def _resolve_matcher(config: Config) -> Config:
     )
 
 
+def open_tile_store(config: Config) -> TileStore:
+    """Open the map cache, verifying its manifest hashes when ``cache.verify_hashes`` (seconds for a
+    large cache). Raises ``StartupError("cache", ...)``."""
+    try:
+        tiles = TileStore.open(Path(config.cache.dir), verify_hashes=config.cache.verify_hashes)
+    except TileStoreError as exc:
+        log.error(LogEvent.CACHE_REFUSED, dir=config.cache.dir, error=str(exc))
+        raise StartupError("cache", str(exc)) from exc
+    log.info(
+        LogEvent.CACHE_OPENED,
+        dir=config.cache.dir,
+        tiles=len(tiles),
+        zoom=tiles.zoom,
+        gsd_m_px=round(tiles.gsd_m_px, 3),
+    )
+    return tiles
+
+
+def create_matcher(config: Config, pre: Mapping[str, Any], fdr: FdrClient) -> CrossDomainMatcher:
+    """The C3 strategy of an already resolved ``config`` (``_resolve_matcher``), with its ONNX Runtime
+    sessions for a learned strategy. Raises ``StartupError`` for an unknown strategy or a model that
+    does not load."""
+    ransac = pre.get("c282_ransac_filter") or RansacFilter(
+        confidence=config.matcher.ransac_confidence, max_iters=config.matcher.ransac_max_iters
+    )
+    health = RollingHealthWindow(low_inlier_threshold=config.matcher.min_inliers_threshold)
+    try:
+        matcher: CrossDomainMatcher = matcher_registry.create_matcher(
+            config.matcher.strategy, **_matcher_deps(config, pre, ransac, fdr, health)
+        )
+    except StrategyNotLinkedError as exc:
+        raise StartupError("matcher.strategy", str(exc)) from exc
+    except EngineLoadError as exc:
+        raise StartupError("matcher model", str(exc)) from exc
+    return matcher
+
+
+def make_tracker(config: Config) -> VehicleStateTracker:
+    """The autopilot-state tracker the MAVLink link feeds."""
+    return VehicleStateTracker(
+        autopilot_system_id=config.mavlink.autopilot_system_id,
+        attitude_max_age_s=config.mavlink.attitude_max_age_s,
+        altitude_max_age_s=config.mavlink.altitude_max_age_s,
+        link_timeout_s=config.mavlink.link_timeout_s,
+    )
+
+
+def open_camera_source(config: Config) -> FrameSource:
+    """The configured camera source (nothing is connected until its ``frames()`` is iterated). Raises
+    ``StartupError("camera.source", ...)`` for a source string that cannot be used."""
+    try:
+        return open_frame_source(
+            config.camera.source,
+            connect_timeout_s=config.camera.connect_timeout_s,
+            frame_timeout_s=config.camera.frame_timeout_s,
+            backoff_max_s=config.camera.reconnect_backoff_max_s,
+        )
+    except CameraSourceError as exc:
+        raise StartupError("camera.source", str(exc)) from exc
+
+
 def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = None) -> RuntimeRoot:
     """Build every object the daemon needs from ``config``.
 
@@ -251,47 +312,20 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     config = _resolve_matcher(config)
     calibration = _calibration(config)
     _check_signing_key(config)
-    try:
-        tiles = TileStore.open(Path(config.cache.dir), verify_hashes=config.cache.verify_hashes)
-    except TileStoreError as exc:
-        log.error(LogEvent.CACHE_REFUSED, dir=config.cache.dir, error=str(exc))
-        raise StartupError("cache", str(exc)) from exc
+    tiles = open_tile_store(config)
     center_lon, center_lat = tiles.center_lonlat
     ltp = LocalTangentPlane(center_lat, center_lon, config.terrain.ground_alt_amsl_m)
-    log.info(
-        LogEvent.CACHE_OPENED,
-        dir=config.cache.dir,
-        tiles=len(tiles),
-        zoom=tiles.zoom,
-        gsd_m_px=round(tiles.gsd_m_px, 3),
-    )
 
     # F8: what the previous run left, read before this run records anything.
     previous_run = read_previous_run(read_records_newest_first(config.fdr.dir))
     fdr = pre.get("fdr") or FlightDataRecorder(
         Path(config.fdr.dir), max_bytes=config.fdr.max_bytes, segment_bytes=config.fdr.segment_bytes
     )
-    ransac = pre.get("c282_ransac_filter") or RansacFilter(
-        confidence=config.matcher.ransac_confidence, max_iters=config.matcher.ransac_max_iters
-    )
-    health = RollingHealthWindow(low_inlier_threshold=config.matcher.min_inliers_threshold)
-    try:
-        matcher = matcher_registry.create_matcher(
-            config.matcher.strategy, **_matcher_deps(config, pre, ransac, fdr, health)
-        )
-    except StrategyNotLinkedError as exc:
-        raise StartupError("matcher.strategy", str(exc)) from exc
-    except EngineLoadError as exc:
-        raise StartupError("matcher model", str(exc)) from exc
+    matcher = create_matcher(config, pre, fdr)
 
     vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
-    tracker = VehicleStateTracker(
-        autopilot_system_id=config.mavlink.autopilot_system_id,
-        attitude_max_age_s=config.mavlink.attitude_max_age_s,
-        altitude_max_age_s=config.mavlink.altitude_max_age_s,
-        link_timeout_s=config.mavlink.link_timeout_s,
-    )
+    tracker = make_tracker(config)
     time_axis = TimeAxis(
         NavEstimator(config.estimator, ltp, accel_source=tracker),
         max_delay_s=config.estimator.max_fix_delay_s,
@@ -312,15 +346,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         fdr=fdr,
     )
     link = MavlinkLink(config.mavlink, tracker, fdr, ltp=ltp)
-    try:
-        camera = open_frame_source(
-            config.camera.source,
-            connect_timeout_s=config.camera.connect_timeout_s,
-            frame_timeout_s=config.camera.frame_timeout_s,
-            backoff_max_s=config.camera.reconnect_backoff_max_s,
-        )
-    except CameraSourceError as exc:
-        raise StartupError("camera.source", str(exc)) from exc
+    camera = open_camera_source(config)
     return RuntimeRoot(
         config,
         calibration,

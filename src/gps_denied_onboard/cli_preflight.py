@@ -1,0 +1,480 @@
+"""``gdnav preflight --config FILE``: everything that can be checked before flight, as a pass/fail table.
+
+One row per check, in ``CHECKS`` order, each saying what it checked and what it measured. The checks
+call the composition root's own functions (``runtime_root.compose``) and the MAVLink link's own port
+probe, so a pass means ``gdnav run`` gets past the same step:
+
+- ``config``: the profile and the ``--set`` overrides validate (``load_config``);
+- ``cache``: the map cache opens and its manifest hashes verify, as at start-up (tile count, seconds);
+- ``models``: a learned matcher's model directory verifies against its manifest and its ONNX Runtime
+  sessions are created; a weights-free matcher needs none;
+- ``calibration``: the calibration file (or the ``intrinsics`` block) gives a usable camera model;
+- ``signing_key``: the MAVLink signing key file, when configured, is a private 32-byte key;
+- ``fdr``: the FDR directory is writable by this user and its file system has room for ``fdr.max_bytes``;
+- ``mavlink_port``: a ``udpin:``/``udp:`` port no other socket holds, a serial device that opens, a
+  ``tcp:`` endpoint that accepts a connection (online only);
+- ``camera`` and ``autopilot`` (online only; ``--offline`` skips them): the camera delivers one frame of
+  the calibrated size that decodes, and the autopilot's HEARTBEAT and SYSTEM_TIME arrive, each within
+  ``--timeout``.
+
+Exit 0 when no check fails (a skipped check is not a failure), 2 when the configuration is refused, 3 when
+any other check fails; the table is printed either way and one ``gdnav:`` line on stderr names the first
+failure. Nothing is sent to the autopilot and nothing is recorded in the FDR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import errno
+import json
+import os
+import shutil
+import socket
+import stat
+import sys
+import tempfile
+import time
+from collections.abc import AsyncGenerator, Callable
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Final
+
+from gps_denied_onboard.config import Config, ConfigError, load_config
+from gps_denied_onboard.logging_setup import configure_logging
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+# Same values as ``cli``'s (not imported: ``cli`` imports this module).
+EXIT_OK, EXIT_CONFIG, EXIT_RESOURCE = 0, 2, 3
+
+#: Check names, in the order they run and are printed (also the ``name`` of each ``--json`` row).
+CHECKS: Final[tuple[str, ...]] = (
+    "config",
+    "cache",
+    "models",
+    "calibration",
+    "signing_key",
+    "fdr",
+    "mavlink_port",
+    "camera",
+    "autopilot",
+)
+#: Checks that need the camera and the autopilot to be there; ``--offline`` skips them.
+ONLINE_CHECKS: Final[frozenset[str]] = frozenset({"camera", "autopilot"})
+#: Default of ``--timeout``: the wait for the first frame and for HEARTBEAT + SYSTEM_TIME, s.
+DEFAULT_TIMEOUT_S: Final[float] = 10.0
+#: How often the autopilot check polls the link, s.
+_POLL_INTERVAL_S: Final[float] = 0.02
+
+
+class Status(str, Enum):
+    PASS = "pass"
+    FAIL = "fail"
+    SKIP = "skip"
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    """One row of the table."""
+
+    name: str
+    status: Status
+    #: What was checked (a path, a URL, a strategy).
+    checked: str
+    #: What was measured, or what is wrong.
+    detail: str
+    #: Wall time the check took, s.
+    seconds: float = 0.0
+
+
+class CheckFailed(Exception):
+    """A check's failure: ``detail`` says what is wrong (the row's detail)."""
+
+    def __init__(self, detail: str) -> None:
+        super().__init__(detail)
+        self.detail = detail
+
+
+class _Skipped(Exception):
+    """A check that does not apply: ``detail`` says why."""
+
+    def __init__(self, detail: str) -> None:
+        super().__init__(detail)
+        self.detail = detail
+
+
+class _DiscardFdr:
+    """The matcher's FDR client during the models check: the preflight records nothing in the FDR."""
+
+    def record(self, kind: str, fields: Mapping[str, object]) -> None:
+        del kind, fields
+
+
+def _refusals() -> tuple[type[Exception], ...]:
+    """Typed refusals of the composition root and the link; a check that raises one fails with its
+    message. Anything else is a bug and keeps its traceback."""
+    from gps_denied_onboard.components.c8_mavlink import MavlinkConfigError
+    from gps_denied_onboard.runtime_root import StartupError
+
+    return (StartupError, MavlinkConfigError, CheckFailed)
+
+
+def _run_check(name: str, checked: str, fn: Callable[[], str]) -> CheckResult:
+    t0 = time.monotonic()
+    try:
+        detail = fn()
+    except _Skipped as exc:
+        return CheckResult(name, Status.SKIP, checked, exc.detail, time.monotonic() - t0)
+    except _refusals() as exc:
+        return CheckResult(name, Status.FAIL, checked, str(exc), time.monotonic() - t0)
+    return CheckResult(name, Status.PASS, checked, detail, time.monotonic() - t0)
+
+
+def _mib(n_bytes: float) -> str:
+    if n_bytes >= 1 << 30:
+        return f"{n_bytes / (1 << 30):.1f} GiB"
+    return f"{n_bytes / (1 << 20):.1f} MiB"
+
+
+# --- offline checks -------------------------------------------------------------------------------------
+
+
+def _check_cache(config: Config) -> str:
+    from gps_denied_onboard.runtime_root.compose import open_tile_store
+
+    t0 = time.monotonic()
+    tiles = open_tile_store(config)
+    dt = time.monotonic() - t0
+    how = (
+        f"manifest hashes verified in {dt:.2f} s"
+        if config.cache.verify_hashes
+        else (f"opened in {dt:.2f} s, hashes NOT verified (cache.verify_hashes: false)")
+    )
+    return f"{len(tiles)} tiles, zoom {tiles.zoom}, {tiles.gsd_m_px:.2f} m/px; {how}"
+
+
+def _check_models(config: Config) -> str:
+    # The same two steps as compose_root: resolve model_dir/auto (verifies the manifest), then build the
+    # strategy, which creates its ONNX Runtime sessions.
+    from gps_denied_onboard.runtime_root.compose import (
+        WEIGHTS_FREE_MATCHERS,
+        _resolve_matcher,
+        create_matcher,
+    )
+
+    resolved = _resolve_matcher(config)
+    strategy = resolved.matcher.strategy
+    if strategy in WEIGHTS_FREE_MATCHERS:
+        chose = (
+            f"; matcher.strategy {config.matcher.strategy} chose it"
+            if strategy != config.matcher.strategy
+            else ""
+        )
+        raise _Skipped(f"not needed ({strategy}{chose})")
+    t0 = time.monotonic()
+    create_matcher(resolved, {}, _DiscardFdr())
+    dt = time.monotonic() - t0
+    files = sorted(
+        Path(str(value)).name
+        for f in dataclasses.fields(resolved.matcher)
+        if f.name.endswith("_weights_path") and (value := getattr(resolved.matcher, f.name)) is not None
+    )
+    manifest = f"manifest of {resolved.matcher.model_dir} verified; " if resolved.matcher.model_dir else ""
+    return f"{strategy}: {manifest}{', '.join(files) or 'no model file'} loaded in {dt:.2f} s"
+
+
+def _check_calibration(config: Config) -> str:
+    from gps_denied_onboard.runtime_root.compose import _calibration
+
+    cal = _calibration(config)
+    return (
+        f"{cal.width_px}x{cal.height_px} px, fx {cal.fx_px:.1f} fy {cal.fy_px:.1f} px, "
+        f"principal point ({cal.cx_px:.1f}, {cal.cy_px:.1f}), {len(cal.dist_coeffs)} distortion coefficients"
+    )
+
+
+def _check_signing_key(config: Config) -> str:
+    from gps_denied_onboard.runtime_root.compose import _check_signing_key as check
+
+    path = config.mavlink.signing_key_file
+    if path is None:
+        raise _Skipped("not configured (MAVLink unsigned)")
+    check(config)
+    return f"32-byte key, mode {stat.S_IMODE(Path(path).stat().st_mode):04o}"
+
+
+def _check_fdr(config: Config) -> str:
+    from gps_denied_onboard.components.c13_fdr import list_segments
+
+    d = Path(config.fdr.dir)
+    if d.exists():
+        if not d.is_dir():
+            raise CheckFailed(f"{d} is not a directory")
+        # Proof by writing: permission bits say nothing under a read-only mount or a sandbox.
+        try:
+            fd, probe = tempfile.mkstemp(dir=d, prefix=".gdnav-preflight-")
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            raise CheckFailed(f"cannot write in {d}: {exc.strerror}") from exc
+        where, writable = d, f"{d} writable"
+    else:
+        # The recorder creates the directory itself; a missing parent is taken for a mistyped path.
+        parent = d.parent
+        if not parent.is_dir():
+            raise CheckFailed(f"{d} does not exist, nor does its parent {parent}")
+        try:
+            os.rmdir(tempfile.mkdtemp(dir=parent, prefix=".gdnav-preflight-"))
+        except OSError as exc:
+            raise CheckFailed(
+                f"{d} does not exist and cannot be created in {parent}: {exc.strerror}"
+            ) from exc
+        where, writable = parent, f"{d} can be created"
+    # The recorder keeps every segment under max_bytes, its own earlier ones included: they count as room.
+    recorded = sum(p.stat().st_size for p in list_segments(d))
+    needed = max(0, config.fdr.max_bytes - recorded)
+    free = shutil.disk_usage(where).free
+    budget = f"fdr.max_bytes {_mib(config.fdr.max_bytes)}, {_mib(recorded)} already recorded"
+    if free < needed:
+        raise CheckFailed(
+            f"{_mib(free)} free on the file system of {where}, {_mib(needed)} needed ({budget}): "
+            f"{_mib(needed - free)} missing"
+        )
+    return f"{writable}; {_mib(free)} free >= {_mib(needed)} needed ({budget})"
+
+
+def _check_mavlink_port(config: Config, *, offline: bool, timeout_s: float) -> str:
+    from gps_denied_onboard.components.c8_mavlink.link import _UDP_LISTEN_SCHEMES, _refuse_taken_udp_port
+
+    url = config.mavlink.url
+    if url.startswith(_UDP_LISTEN_SCHEMES):
+        _refuse_taken_udp_port(url)
+        return "UDP port not bound by another process"
+    if url.startswith("udpout:"):
+        raise _Skipped("udpout: sends only, nothing to bind")
+    if url.startswith("tcp:"):
+        if offline:
+            raise _Skipped("tcp: client endpoint, not connected with --offline")
+        host, _, port = url.split(":", 1)[1].rpartition(":")
+        t0 = time.monotonic()
+        try:
+            with socket.create_connection((host, int(port)), timeout=timeout_s):
+                pass
+        except OSError as exc:
+            raise CheckFailed(f"TCP connect to {host}:{port} failed: {exc.strerror or exc}") from exc
+        return f"TCP {host}:{port} accepted a connection in {time.monotonic() - t0:.2f} s"
+    if not url.startswith("/"):
+        raise _Skipped("not a device path, UDP or TCP URL; not probed")
+    # A serial device: opened the way pymavlink opens it, and closed again at once.
+    try:
+        fd = os.open(url, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError as exc:
+        hint = " (is the service user in the dialout group?)" if exc.errno == errno.EACCES else ""
+        raise CheckFailed(f"serial device {url} cannot be opened: {exc.strerror}{hint}") from exc
+    os.close(fd)
+    return f"serial device opens read-write (baud {config.mavlink.baud})"
+
+
+# --- online checks --------------------------------------------------------------------------------------
+
+
+async def _check_camera(config: Config, timeout_s: float) -> str:
+    from gps_denied_onboard.camera.stream import FrameStreamError
+    from gps_denied_onboard.runtime_root.compose import _calibration, open_camera_source
+
+    cal = _calibration(config)
+    source = open_camera_source(config)
+    frames = source.frames()
+    t0 = time.monotonic()
+    try:
+        frame = await asyncio.wait_for(anext(frames), timeout_s)
+    except asyncio.TimeoutError as exc:
+        raise CheckFailed(f"no frame within {timeout_s:g} s") from exc
+    finally:
+        if isinstance(frames, AsyncGenerator):
+            await frames.aclose()
+    waited = time.monotonic() - t0
+    try:
+        image = await asyncio.to_thread(frame.decode)  # OpenCV decode: off the event loop
+    except FrameStreamError as exc:
+        raise CheckFailed(f"first frame does not decode: {exc}") from exc
+    h, w = image.shape[:2]
+    if (w, h) != (cal.width_px, cal.height_px):
+        raise CheckFailed(f"frame is {w}x{h} px, the calibration is for {cal.width_px}x{cal.height_px} px")
+    return f"{w}x{h} px frame decoded after {waited:.2f} s"
+
+
+def _check_autopilot(config: Config, timeout_s: float) -> str:
+    from gps_denied_onboard.components.c8_mavlink import MavlinkLink, TimeSource
+    from gps_denied_onboard.runtime_root.compose import make_tracker
+
+    # As the daemon opens it (URL, signing, port probe), but listening only: with just GPS_INPUT among
+    # the outputs the link sends nothing unasked, whereas vision_position_estimate would offer the
+    # autopilot a global origin.
+    mav = dataclasses.replace(config.mavlink, outputs=("gps_input",))
+    tracker = make_tracker(config)
+    link = MavlinkLink(mav, tracker)
+    t0 = time.monotonic()
+    heartbeat_s = time_s = None
+    link.open()
+    try:
+        while time.monotonic() - t0 < timeout_s:
+            link.poll()
+            now = time.monotonic() - t0
+            if heartbeat_s is None and tracker.autopilot_seen:
+                heartbeat_s = now
+            if time_s is None and tracker.time_source is TimeSource.SYSTEM_TIME:
+                time_s = now
+            if heartbeat_s is not None and time_s is not None:
+                break
+            time.sleep(_POLL_INTERVAL_S)
+    finally:
+        link.close()
+    who = f"system {config.mavlink.autopilot_system_id}"
+    if heartbeat_s is None:
+        raise CheckFailed(f"no HEARTBEAT from {who} within {timeout_s:g} s")
+    if time_s is None:
+        raise CheckFailed(
+            f"HEARTBEAT from {who} after {heartbeat_s:.2f} s, but no SYSTEM_TIME within {timeout_s:g} s "
+            f"(time source: {tracker.time_source.value})"
+        )
+    return f"HEARTBEAT from {who} after {heartbeat_s:.2f} s, SYSTEM_TIME after {time_s:.2f} s"
+
+
+async def _online(config: Config, timeout_s: float) -> tuple[CheckResult, CheckResult]:
+    """The camera and the autopilot checks, side by side (each waits up to ``timeout_s``)."""
+
+    async def camera() -> CheckResult:
+        t0 = time.monotonic()
+        try:
+            detail = await _check_camera(config, timeout_s)
+        except _refusals() as exc:
+            return CheckResult("camera", Status.FAIL, config.camera.source, str(exc), time.monotonic() - t0)
+        return CheckResult("camera", Status.PASS, config.camera.source, detail, time.monotonic() - t0)
+
+    autopilot = asyncio.to_thread(
+        _run_check, "autopilot", config.mavlink.url, lambda: _check_autopilot(config, timeout_s)
+    )
+    cam, ap = await asyncio.gather(camera(), autopilot)
+    return cam, ap
+
+
+# --- the command ----------------------------------------------------------------------------------------
+
+
+def run_checks(config: Config, checked_config: str, *, offline: bool, timeout_s: float) -> list[CheckResult]:
+    """Every check after ``config`` (already loaded), in ``CHECKS`` order."""
+    results = [
+        CheckResult("config", Status.PASS, checked_config, f"valid (profile {config.profile})"),
+        _run_check("cache", config.cache.dir, lambda: _check_cache(config)),
+        _run_check("models", f"matcher.strategy {config.matcher.strategy}", lambda: _check_models(config)),
+        _run_check(
+            "calibration",
+            config.camera.calibration_file or "camera.intrinsics",
+            lambda: _check_calibration(config),
+        ),
+        _run_check(
+            "signing_key",
+            config.mavlink.signing_key_file or "mavlink.signing_key_file",
+            lambda: _check_signing_key(config),
+        ),
+        _run_check("fdr", config.fdr.dir, lambda: _check_fdr(config)),
+        _run_check(
+            "mavlink_port",
+            config.mavlink.url,
+            lambda: _check_mavlink_port(config, offline=offline, timeout_s=timeout_s),
+        ),
+    ]
+    if offline:
+        results += [
+            CheckResult("camera", Status.SKIP, config.camera.source, "skipped (--offline)"),
+            CheckResult("autopilot", Status.SKIP, config.mavlink.url, "skipped (--offline)"),
+        ]
+    else:
+        results += asyncio.run(_online(config, timeout_s))
+    return results
+
+
+def format_table(results: list[CheckResult]) -> str:
+    header = ("check", "result", "checked", "detail")
+    rows = [header] + [(r.name, r.status.value.upper(), r.checked, r.detail) for r in results]
+    widths = [max(len(row[i]) for row in rows) for i in range(3)]
+    return "\n".join(
+        "  ".join(cell.ljust(width) for cell, width in zip(row[:3], widths, strict=True)) + "  " + row[3]
+        for row in rows
+    )
+
+
+def _to_json(results: list[CheckResult], code: int) -> dict[str, Any]:
+    return {
+        "ok": code == EXIT_OK,
+        "exit_code": code,
+        "checks": [
+            {**dataclasses.asdict(r), "status": r.status.value, "seconds": round(r.seconds, 3)}
+            for r in results
+        ],
+    }
+
+
+def _cmd_preflight(args: argparse.Namespace) -> int:
+    # Error-level JSON log lines only: the table is the report, and it goes to stdout.
+    configure_logging("error", json=True)
+    checked_config = str(args.config) + (f" (+{len(args.set)} --set)" if args.set else "")
+    try:
+        config = load_config(args.config, args.set or ())
+    except ConfigError as exc:
+        results = [CheckResult("config", Status.FAIL, checked_config, str(exc))] + [
+            CheckResult(name, Status.SKIP, "", "not checked (configuration refused)") for name in CHECKS[1:]
+        ]
+        code = EXIT_CONFIG
+    else:
+        results = run_checks(config, checked_config, offline=args.offline, timeout_s=args.timeout)
+        code = EXIT_RESOURCE if any(r.status is Status.FAIL for r in results) else EXIT_OK
+    print(json.dumps(_to_json(results, code), indent=2) if args.json else format_table(results))
+    failed = [r for r in results if r.status is Status.FAIL]
+    if failed:
+        more = f" (and {len(failed) - 1} more failed check(s))" if len(failed) > 1 else ""
+        print(f"gdnav: preflight: {failed[0].name}: {failed[0].detail}{more}", file=sys.stderr)
+    return code
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return value
+
+
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``preflight``; returns its parser."""
+    p = subparsers.add_parser(
+        "preflight",
+        help="check everything that can be checked before flight (pass/fail table)",
+        description="Check the profile, the cache (hashes), the models, the calibration, the signing key, "
+        "the FDR directory and the MAVLink port, then (unless --offline) that the camera delivers a frame "
+        "and the autopilot its HEARTBEAT and SYSTEM_TIME. Exit 0: all pass; 2: bad profile; 3: another "
+        "check failed.",
+    )
+    p.add_argument("--config", required=True, type=Path, help="YAML profile, e.g. config/airborne.yaml")
+    p.add_argument(
+        "--set", action="append", metavar="KEY.PATH=VALUE", help="override one setting (repeatable)"
+    )
+    p.add_argument("--offline", action="store_true", help="skip the camera and autopilot checks")
+    p.add_argument(
+        "--timeout",
+        type=_positive_seconds,
+        default=DEFAULT_TIMEOUT_S,
+        metavar="S",
+        help="how long to wait for the camera's first frame and for the autopilot's messages, s "
+        f"(default {DEFAULT_TIMEOUT_S:g})",
+    )
+    p.add_argument("--json", action="store_true", help="print the checks as one JSON object")
+    p.set_defaults(func=_cmd_preflight)
+    return p
