@@ -296,11 +296,18 @@ class NavDaemon:
             received_ns,
         )
         try:
-            return frame, self._root.pipeline.track(frame, prior)
+            outcome = self._root.pipeline.track(frame, prior)
         except Exception as exc:  # keep flying on any per-frame failure; it is recorded
             log.exception(LogEvent.PIPELINE_FRAME_ERROR, seq=captured.seq, stage="track", error=repr(exc))
             self._frame_error(captured.seq, "track", repr(exc), bad_input=False)
             return None
+        every_n = self._cfg.fdr.frame_jpeg_every_n
+        if every_n and captured.seq % every_n == 0:
+            # After VO, so the encode (a few ms) never delays the estimate; the recorder never raises.
+            self._root.fdr.record_frame_jpeg(
+                captured.seq, captured.exposure_time_unix_usec, image, self._cfg.fdr.frame_jpeg_quality
+            )
+        return frame, outcome
 
     def _localise(self, frame: NavCameraFrame) -> FixOutcome | None:
         """Runs on the fix thread. A per-frame error is recorded and the daemon keeps flying."""
@@ -438,6 +445,7 @@ class NavDaemon:
             residual_px=fix.residual_px if fix is not None else None,
             horiz_sigma_m=state.horiz_sigma_m if state is not None else math.inf,
             frame_drops=self._queue.dropped,
+            fdr_health=self._root.fdr.health().state,
         )
 
     async def _status(self) -> None:
@@ -457,6 +465,7 @@ class NavDaemon:
                 c = self.counters
                 alive = self._root.tracker.link_alive(time.time())
                 axis = self._axis.stats()
+                fdr = self._root.fdr.health()
                 log.info(
                     LogEvent.DAEMON_STATUS,
                     provenance=self._provenance.value,
@@ -465,11 +474,16 @@ class NavDaemon:
                     bad_frames=c.frames_bad + self._root.camera.bad_frames,
                     time_axis_refused=axis.refused,
                     time_axis_rewinds=axis.rewinds,
+                    fdr=fdr.state.value,
+                    fdr_free_bytes=fdr.free_bytes,
+                    fdr_records_dropped=fdr.records_dropped,
+                    fdr_images_dropped=fdr.images_dropped,
+                    fdr_write_errors=fdr.write_errors,
                     **{k: v for k, v in vars(c).items() if k != "frames_bad"},
                 )
                 self._notifier.status(
                     f"{self._provenance.value} frames={c.frames_processed} "
                     f"fixes={c.fixes_accepted}/{c.fix_attempts} refused={c.frames_refused} "
-                    f"drops={self._queue.dropped}"
+                    f"drops={self._queue.dropped} fdr={fdr.state.value}"
                 )
             await asyncio.sleep(tick)

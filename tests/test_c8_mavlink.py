@@ -31,6 +31,7 @@ from gps_denied_onboard.config import ConfigError, MavlinkConfig, config_from_ma
 from gps_denied_onboard.constants import (
     GPS_INPUT_GPS_ID,
     SET_GPS_GLOBAL_ORIGIN_INTERVAL_S,
+    FdrHealthState,
     LogEvent,
     Provenance,
 )
@@ -336,8 +337,9 @@ def test_link_outputs_decode_on_autopilot_side(udp_pair: tuple) -> None:
         residual_px=1.25,
         horiz_sigma_m=state.horiz_sigma_m,
         frame_drops=2,
+        fdr_health=FdrHealthState.DEGRADED,
     )
-    assert n == 5
+    assert n == 6
     assert link.send_heartbeat(D.MAV_STATE_ACTIVE)
 
     got = _recv_all(ap, None, 0.4)
@@ -365,6 +367,7 @@ def test_link_outputs_decode_on_autopilot_side(udp_pair: tuple) -> None:
     values = {x.name: x.value for x in got if x.get_type().startswith("NAMED_VALUE")}
     assert values["GDN_PROV"] == Provenance.SATELLITE_ANCHORED.code == 3
     assert values["GDN_INL"] == 87 and values["GDN_DROP"] == 2
+    assert values["GDN_FDR"] == FdrHealthState.DEGRADED.code == 1
     assert values["GDN_RES"] == pytest.approx(1.25) and values["GDN_HSIG"] == pytest.approx(4.0)
 
     hb = [x for x in got if x.get_type() == "HEARTBEAT" and x.get_srcComponent() == 197]
@@ -553,7 +556,13 @@ def test_link_sends_never_raise_when_closed() -> None:
     """Sends on a link that is not open are dropped and counted, never raised."""
     link = MavlinkLink(MavlinkConfig(url="udpout:127.0.0.1:9"), _tracker())
     assert link.send_estimate(_state(), time_unix_usec=T0_UNIX_USEC) == 0
-    status = {"inliers": 1, "residual_px": 1.0, "horiz_sigma_m": 1.0, "frame_drops": 0}
+    status = {
+        "inliers": 1,
+        "residual_px": 1.0,
+        "horiz_sigma_m": 1.0,
+        "frame_drops": 0,
+        "fdr_health": FdrHealthState.OK,
+    }
     assert link.send_status_values(provenance=Provenance.SATELLITE_ANCHORED, **status) == 0
     link.notify_provenance(None, Provenance.SATELLITE_ANCHORED)
     assert link.poll() == 0
@@ -578,7 +587,7 @@ def test_named_values_without_residual_send_nan() -> None:
 
     mav = common.MAVLink(None, srcSystem=1, srcComponent=197)
     msgs = named_values(mav, time_boot_ms=1, provenance=Provenance.VISUAL_PROPAGATED, inliers=16,
-                        residual_px=None, horiz_sigma_m=2.0, frame_drops=0)
+                        residual_px=None, horiz_sigma_m=2.0, frame_drops=0, fdr_health=FdrHealthState.OK)
     res = [m for m in msgs if m.get_type() == "NAMED_VALUE_FLOAT" and m.name == NV_RESIDUAL_PX]
     assert len(res) == 1 and _math.isnan(res[0].value)
 
@@ -821,3 +830,20 @@ def test_tracker_gps_global_origin_from_autopilot_only() -> None:
     assert tracker.handle(_decoded(lambda mav: _ap_origin(mav, 50.4512345, 30.5212345, 201.5)), now)
     origin = tracker.gps_origin()
     assert origin == pytest.approx((50.4512345, 30.5212345, 201.5))
+
+
+def test_named_values_carry_fdr_health_code() -> None:
+    """GDN_FDR goes out as a NAMED_VALUE_INT with the recorder's health code; decoded by pymavlink."""
+    from pymavlink.dialects.v20 import common
+
+    from gps_denied_onboard.components.c8_mavlink.messages import named_values
+    from gps_denied_onboard.constants import NV_FDR_HEALTH
+
+    for health, code in ((FdrHealthState.OK, 0), (FdrHealthState.DEGRADED, 1), (FdrHealthState.FAILING, 2)):
+        tx = common.MAVLink(None, srcSystem=1, srcComponent=197)
+        msgs = named_values(tx, time_boot_ms=5, provenance=Provenance.DEAD_RECKONING, inliers=0,
+                            residual_px=None, horiz_sigma_m=9.0, frame_drops=0, fdr_health=health)
+        rx = common.MAVLink(None)
+        decoded = [rx.decode(bytearray(m.pack(tx))) for m in msgs]
+        fdr = [m for m in decoded if m.get_type() == "NAMED_VALUE_INT" and m.name == NV_FDR_HEALTH]
+        assert len(fdr) == 1 and fdr[0].value == code and fdr[0].time_boot_ms == 5

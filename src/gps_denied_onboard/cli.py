@@ -51,7 +51,24 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     try:
         root = compose_root(config)
-        root.fdr.record(FdrKind.CONFIG, {"version": __version__, "config": config_to_dict(config)})
+        from gps_denied_onboard.components.c13_fdr.provenance import run_inputs
+        from gps_denied_onboard.runtime_root.compose import WEIGHTS_FREE_MATCHERS
+
+        # The resolved matcher (``auto`` picked, model_dir applied) says which model files this run uses.
+        m = root.config.matcher
+        learned = m.strategy not in WEIGHTS_FREE_MATCHERS
+        inputs = run_inputs(
+            args.config,
+            overrides=args.set or (),
+            cache_dir=root.config.cache.dir,
+            model_dir=m.model_dir if learned else None,
+            model_files=(
+                [m.disk_weights_path, m.aliked_weights_path, m.xfeat_weights_path, m.lightglue_weights_path]
+                if learned
+                else []
+            ),
+        )
+        root.fdr.record(FdrKind.CONFIG, {"version": __version__, "config": config_to_dict(config), **inputs})
         # The daemon opens its MAVLink link before READY: a UDP port another process holds is refused there.
         daemon = NavDaemon(root)
         code = asyncio.run(daemon.run())

@@ -301,12 +301,26 @@ class FdrConfig:
     dir: Str = "fdr"
     max_bytes: Annotated[int, Strict(), Field(ge=1 << 16)] = 256 << 20
     segment_bytes: Annotated[int, Strict(), Field(ge=1 << 14)] = 16 << 20
+    #: Store every N-th nav frame (camera seq a multiple of N) as a JPEG in <dir>/images; 0 = off.
+    frame_jpeg_every_n: Annotated[int, Strict(), Field(ge=0)] = 0
+    #: JPEG quality of those frames (1..100).
+    frame_jpeg_quality: Annotated[int, Strict(), Field(ge=1, le=100)] = 80
+    #: Budget of the frame images, bytes, apart from max_bytes (oldest images deleted first).
+    frame_jpeg_max_bytes: Annotated[int, Strict(), Field(ge=0)] = 64 << 20
+    #: Below this much free space on the file system, images are deleted and no longer written; below a
+    #: quarter of it, records are dropped too (counted, reported as GDN_FDR). 0 = not checked.
+    min_free_bytes: Annotated[int, Strict(), Field(ge=0)] = 64 << 20
 
     def __post_init__(self) -> None:
         # The recorder deletes whole segments to stay under max_bytes: the bound must hold one segment.
         if self.max_bytes < self.segment_bytes:
             raise SettingError(
                 "max_bytes", f"must be at least segment_bytes ({self.segment_bytes}), got {self.max_bytes}"
+            )
+        if self.frame_jpeg_every_n > 0 and self.frame_jpeg_max_bytes < 1 << 16:
+            raise SettingError(
+                "frame_jpeg_max_bytes",
+                f"must be at least 65536 when frame_jpeg_every_n > 0, got {self.frame_jpeg_max_bytes}",
             )
 
 

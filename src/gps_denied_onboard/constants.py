@@ -26,6 +26,8 @@ NV_INLIERS: Final[str] = "GDN_INL"
 NV_RESIDUAL_PX: Final[str] = "GDN_RES"
 NV_HORIZ_SIGMA_M: Final[str] = "GDN_HSIG"
 NV_FRAME_DROPS: Final[str] = "GDN_DROP"
+#: Flight data recorder health: ``FdrHealthState.code`` (0 ok, 1 degraded, 2 failing).
+NV_FDR_HEALTH: Final[str] = "GDN_FDR"
 
 # --- SITL transport ---------------------------------------------------------------------------------
 #: Magic prefix of a frame message on the SITL camera stream (see camera.stream).
@@ -51,6 +53,29 @@ _PROVENANCE_CODES: Final[dict[Provenance, int]] = {
     Provenance.DEAD_RECKONING: 1,
     Provenance.VISUAL_PROPAGATED: 2,
     Provenance.SATELLITE_ANCHORED: 3,
+}
+
+
+class FdrHealthState(str, Enum):
+    """What the flight data recorder can still do (status line, ``GDN_FDR``)."""
+
+    #: Records and images (when on) are written.
+    OK = "ok"
+    #: Low free space or images dropped recently: images are sacrificed, records are still written.
+    DEGRADED = "degraded"
+    #: Records dropped recently (ENOSPC, I/O error, below the records' floor): the flight is not recorded.
+    FAILING = "failing"
+
+    @property
+    def code(self) -> int:
+        """Integer code sent as NAMED_VALUE_INT ``GDN_FDR``."""
+        return _FDR_HEALTH_CODES[self]
+
+
+_FDR_HEALTH_CODES: Final[dict[FdrHealthState, int]] = {
+    FdrHealthState.OK: 0,
+    FdrHealthState.DEGRADED: 1,
+    FdrHealthState.FAILING: 2,
 }
 
 
@@ -83,6 +108,10 @@ class LogEvent:
     MAVLINK_VISION_FRAME: Final = "c8.mavlink.vision_frame"
     FDR_WRITE_ERROR: Final = "c13.fdr.write_error"
     FDR_SEGMENT_DELETED: Final = "c13.fdr.segment_deleted"
+    #: A frame image deleted (images budget or low free space; debug level).
+    FDR_IMAGE_DELETED: Final = "c13.fdr.image_deleted"
+    #: The recorder's health changed (ok / degraded / failing).
+    FDR_HEALTH_CHANGED: Final = "c13.fdr.health_changed"
     PROVENANCE_CHANGED: Final = "c5.estimator.provenance_changed"
     ESTIMATOR_FIX_REJECTED: Final = "c5.estimator.fix_rejected"
     ESTIMATOR_INITIALISED: Final = "c5.estimator.initialised"
@@ -139,6 +168,8 @@ class FdrKind:
     FRAME_REFUSED: Final = "pipeline.frame_refused"
     #: One absolute-fix attempt (VPR -> rerank -> C3 -> C4 -> C5), recorded when it finishes.
     FIX: Final = "pipeline.fix"
+    #: One nav frame stored as a JPEG under ``<fdr dir>/images`` (every ``fdr.frame_jpeg_every_n``-th).
+    FRAME_IMAGE: Final = "pipeline.frame_image"
     #: One estimate sent to the autopilot (the steady output stream).
     ESTIMATE_SENT: Final = "mavlink.estimate"
     PROVENANCE_CHANGED: Final = "estimator.provenance_changed"

@@ -319,7 +319,11 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     # F8: what the previous run left, read before this run records anything.
     previous_run = read_previous_run(read_records_newest_first(config.fdr.dir))
     fdr = pre.get("fdr") or FlightDataRecorder(
-        Path(config.fdr.dir), max_bytes=config.fdr.max_bytes, segment_bytes=config.fdr.segment_bytes
+        Path(config.fdr.dir),
+        max_bytes=config.fdr.max_bytes,
+        segment_bytes=config.fdr.segment_bytes,
+        images_max_bytes=config.fdr.frame_jpeg_max_bytes,
+        min_free_bytes=config.fdr.min_free_bytes,
     )
     matcher = create_matcher(config, pre, fdr)
 

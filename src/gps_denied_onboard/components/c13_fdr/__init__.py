@@ -1,4 +1,7 @@
-"""C13 flight data recorder: the ``FdrClient`` contract, the JSON-lines recorder and its reader."""
+"""C13 flight data recorder: the ``FdrClient`` contract, the JSON-lines recorder and its reader.
+
+``provenance.run_inputs`` (the start record's hashes) is not re-exported: it imports the model package,
+which the reader's users (``gdnav fdr summary``) do not need."""
 
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.components.c13_fdr.reader import (
@@ -13,7 +16,9 @@ from gps_denied_onboard.components.c13_fdr.reader import (
     RunStop,
 )
 from gps_denied_onboard.components.c13_fdr.recorder import (
+    FdrHealth,
     FlightDataRecorder,
+    list_images,
     list_segments,
     parse_line,
     read_records,
@@ -24,6 +29,7 @@ from gps_denied_onboard.components.c13_fdr.recorder import (
 __all__ = [
     "EstimateRecord",
     "FdrClient",
+    "FdrHealth",
     "FdrReadError",
     "FdrReader",
     "FdrRun",
@@ -33,6 +39,7 @@ __all__ = [
     "FrameRefusal",
     "ProvenanceChange",
     "RunStop",
+    "list_images",
     "list_segments",
     "parse_line",
     "read_records",

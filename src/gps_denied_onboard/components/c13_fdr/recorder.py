@@ -29,19 +29,35 @@ Size bound: a segment is closed when the next record would take it past ``segmen
 total of all ``fdr-*.jsonl`` files in the directory (including previous runs) exceeds ``max_bytes``, the
 oldest segments are deleted (never the open one).
 
+Frame images (optional): ``record_frame_image`` stores one JPEG as ``<dir>/images/img-<start>-<n>-<frame
+seq>.jpg`` (``<n>``: the image number in this run, 6 digits) and writes a ``pipeline.frame_image``
+record naming it. Images have their own budget (``images_max_bytes``, earlier runs' images included;
+oldest deleted first) and are written whole (``.part`` then rename), so a crash never leaves half an
+image under a final name.
+
+Low-disk policy: images go first. While the file system's free space (``shutil.disk_usage``, checked at
+most every ``free_check_interval_s``) is below ``min_free_bytes``, no image is written and the oldest
+images are deleted until it is back above it (or none is left); records keep the ``max_bytes`` policy.
+Below a quarter of ``min_free_bytes`` (the records' floor), or when a write fails (ENOSPC...), records
+are dropped and counted: the daemon keeps flying without its recorder rather than filling the disk the
+OS and the autopilot link need. ``health`` is the snapshot the status line and ``GDN_FDR`` report.
+
 ``record`` never raises: I/O errors are counted in ``errors`` and logged (rate-limited), and the
 recorder retries opening a segment on the next record.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import enum
+import errno
 import json
 import math
 import os
 import re
+import shutil
 import threading
 import time
 import uuid
@@ -52,7 +68,7 @@ from typing import Any, Final
 import numpy as np
 import structlog
 
-from gps_denied_onboard.constants import FdrKind, LogEvent
+from gps_denied_onboard.constants import FdrHealthState, FdrKind, LogEvent
 
 _log = structlog.get_logger(__name__)
 
@@ -64,6 +80,42 @@ _RESERVED: Final[frozenset[str]] = frozenset({"t_unix_s", "kind", "seq"})
 _MAX_DEPTH: Final[int] = 32
 #: How much of the newest existing segment's end is scanned for torn lines when a recorder opens.
 RECOVERY_TAIL_BYTES: Final[int] = 1 << 16
+#: Frame image files in ``<dir>/images``: img-<start>-<n>-<frame seq>.jpg.
+IMAGE_RE: Final = re.compile(r"^img-(\d{8}T\d{6}\.\d{3}Z)-(\d{6})-(\d+)\.jpg$")
+IMAGES_SUBDIR: Final[str] = "images"
+#: Defaults of the constructor (the config's defaults: ``fdr.frame_jpeg_max_bytes``, ``fdr.min_free_bytes``).
+DEFAULT_IMAGES_MAX_BYTES: Final[int] = 64 << 20
+DEFAULT_MIN_FREE_BYTES: Final[int] = 64 << 20
+#: Records are dropped below ``min_free_bytes // RECORD_FLOOR_DIVISOR`` of free space.
+RECORD_FLOOR_DIVISOR: Final[int] = 4
+#: ``health`` stays degraded/failing this long after the last dropped image/record, s (monotonic).
+HEALTH_HOLD_S: Final[float] = 10.0
+
+
+@dataclasses.dataclass(frozen=True)
+class FdrHealth:
+    """What the recorder can still do (``FlightDataRecorder.health``); counters are for this run.
+
+    ``state``: ``ok``; ``degraded`` while free space is below ``min_free_bytes`` or an image was dropped
+    in the last ``HEALTH_HOLD_S`` (images are being sacrificed, records are safe); ``failing`` while free
+    space is below the records' floor or a record was dropped in the last ``HEALTH_HOLD_S``.
+    """
+
+    state: FdrHealthState
+    #: Bytes of all record segments (earlier runs included) and of all frame images.
+    record_bytes: int
+    image_bytes: int
+    #: Free bytes of the file system (None: unknown, the check failed or is disabled).
+    free_bytes: int | None
+    records_written: int
+    records_dropped: int
+    images_written: int
+    #: Images not written (low space, over the budget alone, or a write error).
+    images_dropped: int
+    #: Images deleted: the images budget (oldest first) and the low-disk policy.
+    images_deleted: int
+    #: I/O and encode errors (records and images).
+    write_errors: int
 
 
 def to_jsonable(obj: Any, _depth: int = 0) -> Any:
@@ -107,6 +159,26 @@ def to_jsonable(obj: Any, _depth: int = 0) -> Any:
 def _segment_key(path: Path) -> tuple[str, int] | None:
     m = SEGMENT_RE.match(path.name)
     return (m.group(1), int(m.group(2))) if m else None
+
+
+def _image_key(path: Path) -> tuple[str, int] | None:
+    m = IMAGE_RE.match(path.name)
+    return (m.group(1), int(m.group(2))) if m else None
+
+
+def list_images(directory: str | Path) -> list[Path]:
+    """Frame image files of the FDR at ``directory`` (in its ``images/``), oldest first."""
+    d = Path(directory) / IMAGES_SUBDIR
+    try:
+        entries = list(d.iterdir())
+    except OSError:
+        return []
+    keyed = [(k, p) for p in entries if (k := _image_key(p)) is not None]
+    return [p for _, p in sorted(keyed)]
+
+
+def _disk_free_bytes(path: Path) -> int:
+    return int(shutil.disk_usage(path).free)
 
 
 def list_segments(directory: str | Path) -> list[Path]:
@@ -166,15 +238,42 @@ class FlightDataRecorder:
         max_bytes: int,
         segment_bytes: int,
         clock: Callable[[], float] = time.time,
+        *,
+        images_max_bytes: int = DEFAULT_IMAGES_MAX_BYTES,
+        min_free_bytes: int = DEFAULT_MIN_FREE_BYTES,
+        free_bytes: Callable[[Path], int] = _disk_free_bytes,
+        free_check_interval_s: float = 1.0,
     ) -> None:
+        """``images_max_bytes``: budget of the frame images (0: no image is kept). ``min_free_bytes``:
+        the low-disk threshold (0: free space is not checked). ``free_bytes(dir)``: the file system's
+        free bytes (injectable for tests)."""
         if segment_bytes <= 0 or max_bytes < segment_bytes:
             raise ValueError(
                 f"FDR needs 0 < segment_bytes <= max_bytes, got segment_bytes={segment_bytes}, "
                 f"max_bytes={max_bytes}"
             )
+        if images_max_bytes < 0 or min_free_bytes < 0:
+            raise ValueError(
+                f"FDR needs images_max_bytes >= 0 and min_free_bytes >= 0, got {images_max_bytes}, "
+                f"{min_free_bytes}"
+            )
         self.dir = Path(dir)
         self.max_bytes = int(max_bytes)
         self.segment_bytes = int(segment_bytes)
+        self.images_max_bytes = int(images_max_bytes)
+        self.min_free_bytes = int(min_free_bytes)
+        self._free_fn = free_bytes
+        self._free_check_interval_s = float(free_check_interval_s)
+        self._free_cached: int | None = None
+        self._free_checked_mono = -math.inf
+        self._images: dict[Path, int] = {}
+        self._image_seq = 0
+        self._last_image_drop_mono = -math.inf
+        self._last_record_drop_mono = -math.inf
+        self._last_state = FdrHealthState.OK
+        self.images_written = 0
+        self.images_dropped = 0
+        self.images_deleted = 0
         self._clock = clock
         self._lock = threading.Lock()
         self.started_unix_s = float(clock())
@@ -206,6 +305,8 @@ class FlightDataRecorder:
                     "previous_closed": previous_closed,
                     "max_bytes": self.max_bytes,
                     "segment_bytes": self.segment_bytes,
+                    "images_max_bytes": self.images_max_bytes,
+                    "min_free_bytes": self.min_free_bytes,
                 },
                 t=self.started_unix_s,
             )
@@ -215,6 +316,15 @@ class FlightDataRecorder:
         for seg in list_segments(self.dir):
             try:
                 self._sizes[seg] = seg.stat().st_size
+            except OSError:
+                continue
+        images = self.dir / IMAGES_SUBDIR
+        with contextlib.suppress(OSError):
+            for part in images.glob("*.part"):  # a crash mid-image: never a final name, reclaim it
+                part.unlink()
+        for img in list_images(self.dir):
+            try:
+                self._images[img] = img.stat().st_size
             except OSError:
                 continue
 
@@ -301,6 +411,61 @@ class FlightDataRecorder:
             self.segments_deleted += 1
             _log.info(LogEvent.FDR_SEGMENT_DELETED, path=str(seg), total_bytes=total)
 
+    # --- free space and images ------------------------------------------------------------------------
+    def _free(self, *, force: bool = False) -> int | None:
+        """Free bytes of the file system, at most every ``free_check_interval_s`` unless ``force``;
+        None when the check is disabled or failed."""
+        if self.min_free_bytes == 0:
+            return None
+        now = time.monotonic()
+        if force or now - self._free_checked_mono >= self._free_check_interval_s:
+            self._free_checked_mono = now
+            try:
+                self._free_cached = int(self._free_fn(self.dir if self.dir.exists() else self.dir.parent))
+            except OSError as exc:
+                self._free_cached = None
+                self._error("disk_usage", exc)
+        return self._free_cached
+
+    @property
+    def _record_floor(self) -> int:
+        return self.min_free_bytes // RECORD_FLOOR_DIVISOR
+
+    def _delete_oldest_image(self, why: str) -> bool:
+        """Delete the oldest known image; False when there is none (or it cannot be deleted)."""
+        for img in sorted(self._images, key=lambda p: _image_key(p) or ("", 0)):
+            try:
+                img.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                self._error("delete_image", exc)
+                self._images.pop(img)  # do not retry it forever; it no longer counts against the budget
+                continue
+            self._images.pop(img)
+            self.images_deleted += 1
+            _log.debug(LogEvent.FDR_IMAGE_DELETED, path=str(img), why=why)
+            return True
+        return False
+
+    def _make_room(self, need_bytes: int) -> bool:
+        """Free space for ``need_bytes`` more by deleting the oldest images (never a record segment);
+        True when the free space is then at least ``min_free_bytes`` + ``need_bytes``."""
+        free = self._free(force=True)
+        while free is not None and free - need_bytes < self.min_free_bytes:
+            if not self._delete_oldest_image("low_free_space"):
+                return False
+            free = self._free(force=True)
+        return True
+
+    def _drop_record(self) -> None:
+        self.records_dropped += 1
+        self._last_record_drop_mono = time.monotonic()
+
+    def _drop_image(self) -> None:
+        self.images_dropped += 1
+        self._last_image_drop_mono = time.monotonic()
+
     def _error(self, phase: str, exc: BaseException) -> None:
         self.errors += 1
         now = time.monotonic()
@@ -332,11 +497,20 @@ class FlightDataRecorder:
             line = (json.dumps(rec, separators=(",", ":"), allow_nan=True) + "\n").encode("utf-8")
         except (TypeError, ValueError, RecursionError) as exc:
             self._error("encode", exc)
-            self.records_dropped += 1
+            self._drop_record()
             return
         self._write(line)
 
     def _write(self, line: bytes) -> None:
+        free = self._free()
+        if free is not None and free - len(line) < self._record_floor:
+            # Images are sacrificed first; the records stop only when that is not enough.
+            self._make_room(len(line))
+            free = self._free(force=True)
+            if free is not None and free - len(line) < self._record_floor:
+                self._drop_record()
+                self._error("low_free_space", OSError(errno.ENOSPC, f"{free} bytes free"))
+                return
         try:
             if self._fd is not None and self._fd_size > 0 and self._fd_size + len(line) > self.segment_bytes:
                 self._close_segment()
@@ -346,7 +520,7 @@ class FlightDataRecorder:
         except OSError as exc:
             self._close_segment()
             self._error("open", exc)
-            self.records_dropped += 1
+            self._drop_record()
             return
         if self._need_newline:
             line = b"\n" + line
@@ -362,7 +536,9 @@ class FlightDataRecorder:
             self._need_newline = written > 0 or self._need_newline
             self._account(written)
             self._error("write", exc)
-            self.records_dropped += 1
+            self._drop_record()
+            if exc.errno == errno.ENOSPC:
+                self._make_room(len(line))  # the next record may fit where an image was
             return
         self._need_newline = False
         self._account(written)
@@ -384,6 +560,129 @@ class FlightDataRecorder:
     def segments(self) -> list[Path]:
         return list_segments(self.dir)
 
+    def images(self) -> list[Path]:
+        """Frame image files of the directory (earlier runs' too), oldest first."""
+        return list_images(self.dir)
+
+    def record_frame_image(self, frame_seq: int, exposure_time_unix_usec: int, jpeg: bytes) -> Path | None:
+        """Store one encoded frame image and write its ``pipeline.frame_image`` record; returns its path,
+        or None when it was dropped (counted: low space, over budget, I/O error, closed). Never raises."""
+        with self._lock:
+            if self._closed or self.images_max_bytes == 0:
+                self._drop_image()
+                return None
+            size = len(jpeg)
+            if size > self.images_max_bytes:
+                self._drop_image()
+                return None
+            free = self._free(force=True)
+            if free is not None and free - size < self.min_free_bytes:
+                # Low disk: reclaim the oldest images and skip this one (degraded), rather than churn
+                # images on a disk that has no room for them.
+                self._make_room(0)
+                self._drop_image()
+                return None
+            while sum(self._images.values()) + size > self.images_max_bytes:
+                if not self._delete_oldest_image("budget"):
+                    break
+            self._image_seq += 1
+            name = f"img-{self._start_tag}-{self._image_seq:06d}-{max(0, int(frame_seq))}.jpg"
+            path = self.dir / IMAGES_SUBDIR / name
+            part = path.with_name(name + ".part")
+            try:
+                os.makedirs(path.parent, exist_ok=True)
+                fd = os.open(part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+                try:
+                    view = memoryview(jpeg)
+                    written = 0
+                    while written < size:
+                        n = os.write(fd, view[written:])
+                        if n <= 0:
+                            raise OSError("short write (0 bytes)")
+                        written += n
+                finally:
+                    os.close(fd)
+                os.replace(part, path)
+            except OSError as exc:
+                with contextlib.suppress(OSError):
+                    part.unlink(missing_ok=True)
+                self._error("image", exc)
+                self._drop_image()
+                if exc.errno == errno.ENOSPC:
+                    self._make_room(size)
+                return None
+            self._images[path] = size
+            self.images_written += 1
+            self._append(
+                FdrKind.FRAME_IMAGE,
+                {
+                    "frame_seq": int(frame_seq),
+                    "exposure_time_unix_usec": int(exposure_time_unix_usec),
+                    "file": f"{IMAGES_SUBDIR}/{name}",
+                    "bytes": size,
+                },
+            )
+            return path
+
+    def record_frame_jpeg(
+        self, frame_seq: int, exposure_time_unix_usec: int, image: np.ndarray, quality: int
+    ) -> Path | None:
+        """Encode ``image`` (uint8 (H, W) grey or (H, W, 3) BGR) as JPEG at ``quality`` (1..100) on the
+        caller's thread and store it (``record_frame_image``). Never raises: a failed encode is logged
+        and counted as a dropped image."""
+        import cv2  # only where images are on: OpenCV takes a while to import
+
+        try:
+            ok, buf = cv2.imencode(".jpg", image, [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)])
+            if not ok:
+                raise ValueError("cv2.imencode returned False")
+        except (cv2.error, ValueError, TypeError) as exc:
+            with self._lock:
+                self._error("jpeg_encode", exc)
+                self._drop_image()
+            return None
+        return self.record_frame_image(frame_seq, exposure_time_unix_usec, buf.tobytes())
+
+    def health(self) -> FdrHealth:
+        """The recorder's state now (see ``FdrHealth``); a change of state is logged."""
+        with self._lock:
+            free = self._free()
+            now = time.monotonic()
+            if now - self._last_record_drop_mono < HEALTH_HOLD_S or (
+                free is not None and free < self._record_floor
+            ):
+                state = FdrHealthState.FAILING
+            elif now - self._last_image_drop_mono < HEALTH_HOLD_S or (
+                free is not None and free < self.min_free_bytes
+            ):
+                state = FdrHealthState.DEGRADED
+            else:
+                state = FdrHealthState.OK
+            snapshot = FdrHealth(
+                state=state,
+                record_bytes=sum(self._sizes.values()),
+                image_bytes=sum(self._images.values()),
+                free_bytes=free,
+                records_written=self.records_written,
+                records_dropped=self.records_dropped,
+                images_written=self.images_written,
+                images_dropped=self.images_dropped,
+                images_deleted=self.images_deleted,
+                write_errors=self.errors,
+            )
+            if state is not self._last_state:
+                old, self._last_state = self._last_state, state
+                log = _log.info if state is FdrHealthState.OK else _log.warning
+                log(
+                    LogEvent.FDR_HEALTH_CHANGED,
+                    old=old.value,
+                    new=state.value,
+                    free_bytes=free,
+                    records_dropped=self.records_dropped,
+                    images_dropped=self.images_dropped,
+                )
+            return snapshot
+
     def close(self) -> None:
         """Write ``fdr.closed``, flush (fsync) and close the open segment; later records are dropped and
         counted. Idempotent."""
@@ -399,6 +698,9 @@ class FlightDataRecorder:
                     "records_dropped": self.records_dropped,
                     "errors": self.errors,
                     "segments_deleted": self.segments_deleted,
+                    "images_written": self.images_written,
+                    "images_dropped": self.images_dropped,
+                    "images_deleted": self.images_deleted,
                 },
             )
             self._closed = True
@@ -409,3 +711,4 @@ class FlightDataRecorder:
 
     def __exit__(self, *_exc: object) -> None:
         self.close()
+

@@ -53,6 +53,7 @@ from gps_denied_onboard.components.c8_mavlink.vehicle_state import AUTOPILOT_COM
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import MavlinkConfig, check_mavlink_url
 from gps_denied_onboard.constants import (
+    NV_FDR_HEALTH,
     NV_FRAME_DROPS,
     NV_HORIZ_SIGMA_M,
     NV_INLIERS,
@@ -60,6 +61,7 @@ from gps_denied_onboard.constants import (
     NV_RESIDUAL_PX,
     SET_GPS_GLOBAL_ORIGIN_INTERVAL_S,
     STATUSTEXT_MIN_INTERVAL_S,
+    FdrHealthState,
     FdrKind,
     LogEvent,
     Provenance,
@@ -89,6 +91,7 @@ _NAMED_VALUE_NAMES: Final[tuple[str, ...]] = (
     NV_RESIDUAL_PX,
     NV_HORIZ_SIGMA_M,
     NV_FRAME_DROPS,
+    NV_FDR_HEALTH,
 )
 #: pymavlink schemes that bind a UDP port to listen on (``udp:`` is pymavlink's alias of ``udpin:``).
 _UDP_LISTEN_SCHEMES: Final[tuple[str, ...]] = ("udpin:", "udp:")
@@ -634,8 +637,10 @@ class MavlinkLink:
         residual_px: float | None,
         horiz_sigma_m: float,
         frame_drops: int,
+        fdr_health: FdrHealthState,
     ) -> int:
-        """Send the NAMED_VALUE set the ground station shows; returns the number handed to the transport."""
+        """Send the NAMED_VALUE set the ground station shows (``messages.named_values``); returns the
+        number handed to the transport."""
         with self._lock:
             conn = self._conn
             if conn is None:
@@ -650,6 +655,7 @@ class MavlinkLink:
             residual_px=residual_px,
             horiz_sigma_m=horiz_sigma_m,
             frame_drops=frame_drops,
+            fdr_health=fdr_health,
         ):
             sent += self._send(msg)
         return sent

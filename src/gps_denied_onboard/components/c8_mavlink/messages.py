@@ -52,11 +52,13 @@ from gps_denied_onboard.camera.types import Attitude
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.constants import (
     GPS_INPUT_GPS_ID,
+    NV_FDR_HEALTH,
     NV_FRAME_DROPS,
     NV_HORIZ_SIGMA_M,
     NV_INLIERS,
     NV_PROVENANCE,
     NV_RESIDUAL_PX,
+    FdrHealthState,
     Provenance,
 )
 from gps_denied_onboard.geo import LocalTangentPlane, gps_week_and_ms
@@ -374,10 +376,11 @@ def named_values(
     residual_px: float | None,
     horiz_sigma_m: float,
     frame_drops: int,
+    fdr_health: FdrHealthState,
 ) -> list[MavlinkMessage]:
     """NAMED_VALUE_INT/FLOAT set shown by ground stations: GDN_PROV (provenance code), GDN_INL, GDN_RES,
-    GDN_HSIG, GDN_DROP. A residual of None (no match this frame) and non-finite floats are sent as NaN
-    (the GCS shows "nan", i.e. unknown)."""
+    GDN_HSIG, GDN_DROP, GDN_FDR (flight data recorder: 0 ok, 1 degraded, 2 failing). A residual of None
+    (no match this frame) and non-finite floats are sent as NaN (the GCS shows "nan", i.e. unknown)."""
     t = int(time_boot_ms) & 0xFFFFFFFF
 
     def _i32(v: int) -> int:
@@ -391,6 +394,7 @@ def named_values(
         ),
         mav.named_value_float_encode(t, NV_HORIZ_SIGMA_M.encode(), float(horiz_sigma_m)),
         mav.named_value_int_encode(t, NV_FRAME_DROPS.encode(), _i32(frame_drops)),
+        mav.named_value_int_encode(t, NV_FDR_HEALTH.encode(), FdrHealthState(fdr_health).code),
     ]
 
 
