@@ -33,8 +33,10 @@ from gps_denied_onboard.camera.sources import CapturedFrame
 from gps_denied_onboard.camera.stream import FrameStreamError
 from gps_denied_onboard.camera.types import NavCameraFrame
 from gps_denied_onboard.components.c5_estimator.prior import InitialPrior, PriorSource, choose_prior
+from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxisStats
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c8_mavlink.messages import fix_type_for
+from gps_denied_onboard.components.c13_fdr import FdrHealth
 from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
@@ -448,6 +450,33 @@ class NavDaemon:
             fdr_health=self._root.fdr.health().state,
         )
 
+    def _record_status(self, link_alive: bool, axis: TimeAxisStats, fdr: FdrHealth) -> None:
+        """One ``daemon.status`` FDR record per status period: every counter a fault moves (refused and
+        bad frames, camera reconnects, MAVLink bad packets and link state, FDR health), so the recorder
+        alone shows when each fault happened and how the daemon took it."""
+        link = self._root.link.stats()
+        camera = self._root.camera
+        self._root.fdr.record(
+            FdrKind.STATUS,
+            {
+                "provenance": self._provenance.value,
+                **vars(self.counters),
+                "frames_dropped": self._queue.dropped,
+                "camera_bad_frames": camera.bad_frames,
+                "camera_connections": camera.connections,
+                "time_axis_refused": axis.refused,
+                "time_axis_rewinds": axis.rewinds,
+                "link_alive": link_alive,
+                "link_connected": link.connected,
+                "mavlink_received": link.messages_received,
+                "mavlink_bad_packets": link.bad_packets,
+                "mavlink_sent": link.messages_sent,
+                "mavlink_send_errors": link.send_errors,
+                "mavlink_reconnects": link.reconnects,
+                "fdr_state": fdr.state.value,
+            },
+        )
+
     async def _status(self) -> None:
         period = 1.0 / self._cfg.daemon.status_hz
         nv_period = 1.0 / self._cfg.mavlink.named_value_hz
@@ -481,6 +510,7 @@ class NavDaemon:
                     fdr_write_errors=fdr.write_errors,
                     **{k: v for k, v in vars(c).items() if k != "frames_bad"},
                 )
+                self._record_status(alive, axis, fdr)
                 self._notifier.status(
                     f"{self._provenance.value} frames={c.frames_processed} "
                     f"fixes={c.fixes_accepted}/{c.fix_attempts} refused={c.frames_refused} "

@@ -29,6 +29,14 @@ class FrameServer:
         self._writer = writer
         self.client_connected.set()
 
+    def drop_client(self) -> bool:
+        """Close the connection to the current client (a camera cable pulled); True if there was one."""
+        writer, self._writer = self._writer, None
+        if writer is None:
+            return False
+        writer.close()
+        return True
+
     async def send(self, message: bytes) -> bool:
         writer = self._writer
         if writer is None or writer.is_closing():

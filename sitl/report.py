@@ -179,6 +179,8 @@ def score(
         "provenance_counts": dict(sorted(prov_counts.items())),
         "gps_input_received": len(gps),
         "stream": stream.to_dict(),
+        #: Unix time of the stream's 0 s (its first GPS_INPUT), to place its spans on the flight clock.
+        "stream_t0_unix_s": t_ref,
         "statustext": statustexts,
         "per_frame": per_frame,
     }

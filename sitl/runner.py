@@ -18,14 +18,17 @@ import contextlib
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import platform
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,18 +38,30 @@ import numpy as np
 from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import ConfigError, load_config
+from gps_denied_onboard.constants import FRAME_STREAM_MAGIC
 from gps_denied_onboard.sitl.autopilot import SimAutopilot
 from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.photometric import PhotometricModel, degrade_for_gap
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
 from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, score
-from gps_denied_onboard.sitl.scenario import Scenario, ScenarioError, Trajectory, load_scenario
+from gps_denied_onboard.sitl.scenario import (
+    Fault,
+    FaultKind,
+    Scenario,
+    ScenarioError,
+    Trajectory,
+    load_scenario,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO_ROOT / "config" / "sitl.yaml"
 DAEMON_READY_TIMEOUT_S = 90.0
 DAEMON_STOP_TIMEOUT_S = 10.0
 ATTITUDE_HZ = 50.0
+#: How often the daemon's resident memory is sampled, s.
+RSS_SAMPLE_S = 5.0
+#: RSS growth is measured from this far into the flight (start-up and caches warm first), s.
+RSS_WARMUP_S = 60.0
 GRAVITY_M_S2 = 9.80665
 #: The simulated accelerometer's fixed bias and white noise (1-sigma per sample), body FRD, m/s^2.
 IMU_BIAS_M_S2 = np.array([0.02, -0.02, 0.03])
@@ -122,6 +137,10 @@ class _Flight:
         self.t0_unix_s = 0.0
         self.daemon_exit_code: int | None = None
         self.end_unix_s: float | None = None
+        #: Faults injected on the camera and MAVLink side, for the report.
+        self.faults_injected: list[dict[str, Any]] = []
+        #: (flight time s, daemon RSS MiB), sampled every RSS_SAMPLE_S.
+        self.rss_mib: list[tuple[float, float]] = []
         #: Unix times at which the daemon was killed, and at which its replacement was started.
         self.restarts: list[dict[str, float]] = []
         self._imu_rng = np.random.default_rng(11)
@@ -166,8 +185,13 @@ class _Flight:
     def _send_telemetry(self, ap: SimAutopilot, now: float, *, full: bool) -> None:
         t_s = max(0.0, now - self.t0_unix_s) if self.t0_unix_s else 0.0
         truth = self.traj.truth_at(t_s)
-        ap.send_attitude(now, truth.roll_rad, truth.pitch_rad, truth.yaw_rad)
-        ap.send_highres_imu(now, self._specific_force_body(t_s, truth))
+        flying = bool(self.t0_unix_s)
+        if not (flying and self.scenario.fault_at(FaultKind.ATTITUDE_ABSENT, t_s)):
+            if flying and self.scenario.fault_at(FaultKind.ATTITUDE_NAN, t_s):
+                ap.send_attitude(now, math.nan, math.nan, math.nan)
+            else:
+                ap.send_attitude(now, truth.roll_rad, truth.pitch_rad, truth.yaw_rad)
+            ap.send_highres_imu(now, self._specific_force_body(t_s, truth))
         if full:
             alt_rel = truth.alt_agl_m  # home is on the flat ground
             ap.send_altitude(now, truth.alt_amsl_m, alt_rel, truth.alt_agl_m)
@@ -210,12 +234,65 @@ class _Flight:
         stamp_us = round((self.t0_unix_s + t_s + self.scenario.stamp_offset_s(t_s)) * 1e6)
         return encode_frame(img, seq=index, exposure_time_unix_usec=stamp_us), truth
 
+    def _bad_frame(self, kind: FaultKind, seq: int, stamp_us: int) -> bytes:
+        """A malformed frame message of ``kind`` (see the scenario's ``faults``)."""
+        w, h = self.calib.width_px, self.calib.height_px
+        if kind is FaultKind.WRONG_SIZE_FRAME:
+            return encode_frame(np.zeros((100, 100, 3), np.uint8), seq=seq, exposure_time_unix_usec=stamp_us)
+        if kind is FaultKind.CORRUPT_FRAME:
+            good = bytearray(
+                encode_frame(np.full((h, w, 3), 90, np.uint8), seq=seq, exposure_time_unix_usec=stamp_us)
+            )
+            (hlen,) = struct.unpack(">I", good[4:8])
+            body = 8 + hlen + 4
+            good[body : body + 64] = b"\x00" * 64  # a valid header, the JPEG destroyed
+            return bytes(good)
+        # bomb: the header says the calibrated size, the PNG's own IHDR says 20000x20000
+        ihdr = struct.pack(">IIBBBBB", 20000, 20000, 8, 0, 0, 0, 0)
+        chunk = struct.pack(">I", len(ihdr)) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+        idat_data = zlib.compress(b"\x00" * 4096)
+        idat = struct.pack(">I", len(idat_data)) + b"IDAT" + idat_data
+        idat += struct.pack(">I", zlib.crc32(b"IDAT" + idat_data))
+        payload = b"\x89PNG\r\n\x1a\n" + chunk + idat
+        header = json.dumps(
+            {
+                "seq": seq,
+                "exposure_time_unix_usec": stamp_us,
+                "encoding": "png",
+                "width_px": w,
+                "height_px": h,
+            }
+        ).encode()
+        return (
+            FRAME_STREAM_MAGIC
+            + struct.pack(">I", len(header))
+            + header
+            + struct.pack(">I", len(payload))
+            + payload
+        )
+
     async def _camera(self, server: FrameServer, stop: asyncio.Event) -> None:
         loop = asyncio.get_running_loop()
+        prev_t = -1.0
+        stalled: Fault | None = None
         for index, t_s in enumerate(self.traj.frame_times_s()):
             if stop.is_set():
                 return
             await asyncio.sleep(max(0.0, self.t0_unix_s + float(t_s) - time.time()))
+            for fault in self.scenario.instant_faults(prev_t, float(t_s)):
+                stamp_us = round((self.t0_unix_s + float(t_s) - 0.01) * 1e6)
+                await server.send(self._bad_frame(fault.kind, 10_000_000 + index, stamp_us))
+                self.faults_injected.append({"kind": fault.kind.value, "t_s": round(float(t_s), 3)})
+            prev_t = float(t_s)
+            stall = self.scenario.fault_at(FaultKind.CAMERA_STALL, float(t_s))
+            if stall is not None:
+                if stall is not stalled:
+                    stalled = stall
+                    dropped = stall.reconnect and server.drop_client()
+                    self.faults_injected.append(
+                        {"kind": stall.kind.value, "t_s": round(float(t_s), 3), "connection_dropped": dropped}
+                    )
+                continue  # the camera sends nothing
             message, truth = await loop.run_in_executor(None, self._render, index, float(t_s))
             await server.send(message)
             self.frames.append(
@@ -228,6 +305,46 @@ class _Flight:
                     truth.alt_agl_m,
                 )
             )
+
+    async def _flood(self, mav_port: int, stop: asyncio.Event) -> None:
+        """During ``mavlink_flood`` windows: random bytes and truncated MAVLink 2 packets to the daemon's
+        MAVLink port, at the fault's rate, in 10 ms batches."""
+        floods = [f for f in self.scenario.faults if f.kind is FaultKind.MAVLINK_FLOOD]
+        if not floods:
+            return
+        rng = np.random.default_rng(5)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.setblocking(False)
+            sent = 0
+            while not stop.is_set():
+                t_s = time.time() - self.t0_unix_s
+                fault = self.scenario.fault_at(FaultKind.MAVLINK_FLOOD, t_s)
+                if fault is not None:
+                    for _ in range(max(1, round(fault.rate_hz / 100.0))):
+                        n = int(rng.integers(1, 280))
+                        junk = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+                        if sent % 2:
+                            junk = b"\xfd" + junk  # looks like the start of a MAVLink 2 frame
+                        with contextlib.suppress(OSError):
+                            sock.sendto(junk, ("127.0.0.1", mav_port))
+                        sent += 1
+                elif t_s > max(f.to_s for f in floods):
+                    break
+                await asyncio.sleep(0.01)
+            self.faults_injected.append({"kind": FaultKind.MAVLINK_FLOOD.value, "datagrams": sent})
+
+    async def _sample_rss(self, procs: list[subprocess.Popen[bytes]], stop: asyncio.Event) -> None:
+        """The daemon's resident memory every RSS_SAMPLE_S (Linux /proc; nothing elsewhere)."""
+        while not stop.is_set():
+            try:
+                status = Path(f"/proc/{procs[-1].pid}/status").read_text()
+            except OSError:
+                return
+            for line in status.splitlines():
+                if line.startswith("VmRSS:"):
+                    kib = float(line.split()[1])
+                    self.rss_mib.append((round(time.time() - self.t0_unix_s, 1), round(kib / 1024.0, 1)))
+            await asyncio.sleep(RSS_SAMPLE_S)
 
     async def _restarter(self, cmd: list[str], log_file: Any, procs: list[subprocess.Popen[bytes]]) -> None:
         """SIGKILL the daemon at each scheduled flight time and start the same command again at once."""
@@ -285,6 +402,10 @@ class _Flight:
                 )
                 if self.scenario.daemon_restarts_s:
                     restarter = asyncio.create_task(self._restarter(cmd, log_file, procs), name="restarter")
+                side_tasks = [
+                    asyncio.create_task(self._flood(mav_port, stop), name="sitl_flood"),
+                    asyncio.create_task(self._sample_rss(procs, stop), name="sitl_rss"),
+                ]
                 await self._camera(server, stop)
                 if restarter is not None:
                     await restarter
@@ -292,6 +413,7 @@ class _Flight:
                 await asyncio.sleep(self.opts.tail_s)
                 self.end_unix_s = time.time()
                 stop.set()
+                await asyncio.gather(*side_tasks)
                 await telemetry
                 ap.poll()
             finally:
@@ -382,7 +504,9 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     ap = asyncio.run(flight.fly())
 
     def truth_at_unix(t_unix_s: float) -> tuple[float, float]:
-        s = trajectory.truth_at(min(max(0.0, t_unix_s - flight.t0_unix_s), trajectory.duration_s))
+        # Not clamped at the scenario's duration: the simulated vehicle flies on along its path during the
+        # tail (its telemetry says so), and a truth frozen there would score a moving estimate as wrong.
+        s = trajectory.truth_at(max(0.0, t_unix_s - flight.t0_unix_s))
         return s.lat_deg, s.lon_deg
 
     records = list(read_records(workdir / "fdr"))
@@ -399,6 +523,9 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
             "matcher": _matcher_in_use(workdir / "daemon.log") or daemon_cfg.matcher.strategy,
             "daemon_exit_code": flight.daemon_exit_code,
             "daemon_restarts": _restart_gaps(flight.restarts, ap.received),
+            "faults_injected": flight.faults_injected,
+            "t0_unix_s": flight.t0_unix_s,
+            "daemon_rss_mib": _rss_summary(flight.rss_mib),
             "daemon_stop_s": flight.daemon_stop_s,
             "cache_build_s": round(cache_s, 2),
             "heartbeats_received": len(ap.of_type("HEARTBEAT")),
@@ -434,6 +561,18 @@ def _restart_gaps(restarts: list[dict[str, float]], received: list[Any]) -> list
             }
         )
     return out
+
+
+def _rss_summary(samples: list[tuple[float, float]]) -> dict[str, Any]:
+    """Resident memory samples and the growth after warm-up: last sample vs the first one at or after
+    RSS_WARMUP_S (None for a shorter flight)."""
+    warm = [mib for t, mib in samples if t >= RSS_WARMUP_S]
+    growth = (warm[-1] - warm[0]) / warm[0] if len(warm) >= 2 and warm[0] > 0 else None
+    return {
+        "samples": samples,
+        "max": max((mib for _, mib in samples), default=None),
+        "growth_after_warmup_frac": None if growth is None else round(growth, 4),
+    }
 
 
 def _matcher_in_use(log_path: Path) -> str | None:

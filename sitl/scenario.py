@@ -83,6 +83,14 @@ number is expected.
 ``daemon_restarts`` (list, default [])
     ``{at_s: number > 0}``: the daemon is killed with SIGKILL at ``at_s`` and started again at once with
     the same command, as systemd's ``Restart=`` does (F8 restart recovery).
+``faults`` (list, default [])
+    Faults the soak injects, each ``{kind, ...}``. Windows ``{from_s, to_s}``: ``camera_stall`` (no frames;
+    with ``reconnect: true`` the camera connection is dropped at its start and the daemon must reconnect),
+    ``attitude_nan`` (ATTITUDE with NaN angles), ``attitude_absent`` (no ATTITUDE, no HIGHRES_IMU),
+    ``mavlink_flood`` (random bytes and truncated packets to the daemon's MAVLink port at ``rate_hz``,
+    default 500). Instants ``{at_s}``, sent before the frame exposed at or after ``at_s``:
+    ``corrupt_frame`` (a valid header with a destroyed JPEG), ``bomb_frame`` (a small PNG that claims
+    20000x20000), ``wrong_size_frame`` (a 100x100 image).
 ``timestamp_faults`` (list, default [])
     ``{at_s: number >= 0, ahead_s: number != 0}``: the first frame exposed at or after ``at_s`` is stamped
     ``ahead_s`` seconds off its true exposure (positive: from the future; negative: late or out of order).
@@ -210,6 +218,34 @@ class LinkDrop:
 
     from_s: float
     to_s: float
+
+
+class FaultKind(str, Enum):
+    CAMERA_STALL = "camera_stall"
+    ATTITUDE_NAN = "attitude_nan"
+    ATTITUDE_ABSENT = "attitude_absent"
+    MAVLINK_FLOOD = "mavlink_flood"
+    CORRUPT_FRAME = "corrupt_frame"
+    BOMB_FRAME = "bomb_frame"
+    WRONG_SIZE_FRAME = "wrong_size_frame"
+
+    @property
+    def instant(self) -> bool:
+        return self in _INSTANT_FAULTS
+
+
+_INSTANT_FAULTS = frozenset({FaultKind.CORRUPT_FRAME, FaultKind.BOMB_FRAME, FaultKind.WRONG_SIZE_FRAME})
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One injected fault: a window ``[from_s, to_s)``, or an instant (``from_s == to_s == at_s``)."""
+
+    kind: FaultKind
+    from_s: float
+    to_s: float
+    reconnect: bool = False
+    rate_hz: float = 500.0
 
 
 @dataclass(frozen=True)
@@ -539,6 +575,7 @@ class Scenario:
     map_edits: tuple[MapEdit, ...] = ()
     link_drops: tuple[LinkDrop, ...] = ()
     timestamp_faults: tuple[TimestampFault, ...] = ()
+    faults: tuple[Fault, ...] = ()
     #: Flight times at which the daemon is killed (SIGKILL) and restarted, s.
     daemon_restarts_s: tuple[float, ...] = ()
     #: File the scenario was read from (None when built from a mapping).
@@ -551,6 +588,14 @@ class Scenario:
     def link_down_at(self, t_s: float) -> bool:
         """Whether the autopilot link is cut at ``t_s``."""
         return any(d.from_s <= t_s < d.to_s for d in self.link_drops)
+
+    def fault_at(self, kind: FaultKind, t_s: float) -> Fault | None:
+        """The window fault of ``kind`` active at ``t_s``, or None."""
+        return next((f for f in self.faults if f.kind is kind and f.from_s <= t_s < f.to_s), None)
+
+    def instant_faults(self, t0_s: float, t1_s: float) -> list[Fault]:
+        """Instant faults due in ``(t0_s, t1_s]`` (the frames between two exposures)."""
+        return [f for f in self.faults if f.kind.instant and t0_s < f.from_s <= t1_s]
 
     def stamp_offset_s(self, t_s: float) -> float:
         """Seconds to add to the stamp of the frame exposed at ``t_s`` (0 for a truthful stamp)."""
@@ -913,6 +958,33 @@ def _read_timestamp_faults(value: object, source: str | None) -> tuple[Timestamp
     return tuple(faults)
 
 
+def _read_faults(value: object, source: str | None) -> tuple[Fault, ...]:
+    if not isinstance(value, list):
+        raise ScenarioError("faults", f"expected a list, got {_type_name(value)}", source=source)
+    faults = []
+    for i, raw in enumerate(value):
+        b = _Block(raw, f"faults[{i}]", source)
+        kind_raw = b.string("kind")
+        try:
+            kind = FaultKind(kind_raw)
+        except ValueError as exc:
+            valid = ", ".join(k.value for k in FaultKind)
+            raise b.error("kind", f"expected one of: {valid}; got {kind_raw!r}") from exc
+        if kind.instant:
+            at = b.number("at_s", ge=0.0)
+            faults.append(Fault(kind, at, at))
+        else:
+            start = b.number("from_s", ge=0.0)
+            end = b.number("to_s", gt=start)
+            reconnect = b.get("reconnect", False) if kind is FaultKind.CAMERA_STALL else False
+            if not isinstance(reconnect, bool):
+                raise b.error("reconnect", f"expected true or false, got {reconnect!r}")
+            rate = b.number("rate_hz", 500.0, gt=0.0, le=5000.0) if kind is FaultKind.MAVLINK_FLOOD else 500.0
+            faults.append(Fault(kind, start, end, reconnect, rate))
+        b.finish()
+    return tuple(faults)
+
+
 def _read_restarts(value: object, source: str | None) -> tuple[float, ...]:
     if not isinstance(value, list):
         raise ScenarioError("daemon_restarts", f"expected a list, got {_type_name(value)}", source=source)
@@ -992,6 +1064,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     drops = _read_link_drops(root.get("link_drops", []), source)
     stamp_faults = _read_timestamp_faults(root.get("timestamp_faults", []), source)
     restarts = _read_restarts(root.get("daemon_restarts", []), source)
+    faults = _read_faults(root.get("faults", []), source)
     root.finish()
     scenario = Scenario(
         name=name,
@@ -1014,6 +1087,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         link_drops=drops,
         timestamp_faults=stamp_faults,
         daemon_restarts_s=restarts,
+        faults=faults,
         source=source,
     )
     scenario.footprint_radius_m()  # rejects a camera + wobble that would see the horizon

@@ -22,6 +22,7 @@ from gps_denied_onboard.sitl.photometric import GapKind, PhotometricModel, Photo
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
 from gps_denied_onboard.sitl.scenario import (
     BUILTIN_SCENARIOS_DIR,
+    FaultKind,
     Scenario,
     ScenarioError,
     load_scenario,
@@ -82,18 +83,41 @@ def test_scenario_timestamp_faults_shift_one_frame_stamp() -> None:
     assert "timestamp_faults[0].ahead_s" in str(err)
 
 
+def test_scenario_faults_parse_windows_and_instants() -> None:
+    """Window faults are active in [from_s, to_s); instants fire between two exposures; a bad kind or a
+    non-boolean reconnect is refused with its key path."""
+    sc = _scenario(
+        faults=[
+            {"kind": "camera_stall", "from_s": 5.0, "to_s": 7.0, "reconnect": True},
+            {"kind": "bomb_frame", "at_s": 9.0},
+        ]
+    )
+    stall = sc.fault_at(FaultKind.CAMERA_STALL, 6.0)
+    assert stall is not None and stall.reconnect and sc.fault_at(FaultKind.CAMERA_STALL, 7.0) is None
+    assert [f.kind for f in sc.instant_faults(8.9, 9.1)] == [FaultKind.BOMB_FRAME]
+    assert sc.instant_faults(9.0, 9.3) == []
+    err = _error_for({**BASE, "faults": [{"kind": "gremlins", "at_s": 1.0}]})
+    assert "faults[0].kind" in str(err)
+    err = _error_for(
+        {**BASE, "faults": [{"kind": "camera_stall", "from_s": 1, "to_s": 2, "reconnect": "yes"}]}
+    )
+    assert "faults[0].reconnect" in str(err)
+
+
 def test_scenario_builtin_files_load() -> None:
     """The three shipped scenarios load, by path and by bare name, with the documented shape."""
     names = sorted(p.stem for p in BUILTIN_SCENARIOS_DIR.glob("*.yaml"))
     assert names == [
         "clock_faults",
         "demo",
+        "faults",
         "link_drop",
         "map_gap",
         "naip_cross_date",
         "nominal_real",
         "restart",
         "smoke",
+        "soak",
         "wrong_tile_trap",
     ]
     demo = load_scenario(BUILTIN_SCENARIOS_DIR / "demo.yaml")
@@ -187,7 +211,7 @@ def test_scenario_map_gaps_parse_and_validate() -> None:
 
 def test_scenario_file_errors_name_the_file(tmp_path: Path) -> None:
     """A missing file lists the built-ins; broken YAML is a ScenarioError naming the file."""
-    listed = r"built-in scenarios: clock_faults, demo, link_drop, map_gap, .*, smoke"
+    listed = r"built-in scenarios: clock_faults, demo, faults, link_drop, map_gap, .*, smoke"
     with pytest.raises(ScenarioError, match=listed):
         load_scenario(tmp_path / "nope.yaml")
     bad = tmp_path / "bad.yaml"

@@ -173,6 +173,8 @@ class FdrKind:
     #: One estimate sent to the autopilot (the steady output stream).
     ESTIMATE_SENT: Final = "mavlink.estimate"
     PROVENANCE_CHANGED: Final = "estimator.provenance_changed"
+    #: The daemon's counters once per status period (daemon.status_hz): frames, refusals, faults, link.
+    STATUS: Final = "daemon.status"
     #: The start-up prior the estimator was initialised from (source, why, position, sigma).
     PRIOR: Final = "estimator.prior"
     MATCHER_FRAME_DONE: Final = "matcher.frame_done"

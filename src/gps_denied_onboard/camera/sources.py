@@ -45,6 +45,8 @@ class FrameSource(Protocol):
     name: str
     #: Malformed messages seen (each also logged); the daemon reports it.
     bad_frames: int
+    #: Times the source was (re)opened; more than one means it was lost and came back.
+    connections: int
 
     def frames(self) -> AsyncIterator[CapturedFrame]: ...
 
@@ -79,6 +81,7 @@ class TcpFrameSource:
         self._frame_timeout_s = frame_timeout_s
         self._backoff = _Backoff(backoff_max_s)
         self.bad_frames = 0
+        self.connections = 0
         self.connected = False
 
     async def frames(self) -> AsyncIterator[CapturedFrame]:
@@ -95,6 +98,7 @@ class TcpFrameSource:
                 await asyncio.sleep(delay)
                 continue
             self.connected = True
+            self.connections += 1
             self._backoff.reset()
             log.info(LogEvent.CAMERA_CONNECTED, source=self.name)
             try:
@@ -136,6 +140,7 @@ class OpenCvFrameSource:
         self._backoff = _Backoff(backoff_max_s)
         self._clock = clock
         self.bad_frames = 0
+        self.connections = 0
 
     async def frames(self) -> AsyncIterator[CapturedFrame]:
         import cv2
@@ -152,6 +157,7 @@ class OpenCvFrameSource:
                     time.sleep(self._backoff.next_delay_s())
                     continue
                 self._backoff.reset()
+                self.connections += 1
                 while not stop.is_set():
                     ok, img = cap.read()
                     stamp_us = int(self._clock() * 1e6)
