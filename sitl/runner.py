@@ -344,7 +344,9 @@ class _Flight:
                 if line.startswith("VmRSS:"):
                     kib = float(line.split()[1])
                     self.rss_mib.append((round(time.time() - self.t0_unix_s, 1), round(kib / 1024.0, 1)))
-            await asyncio.sleep(RSS_SAMPLE_S)
+            # wake at once when the flight ends: the final poll of the autopilot side must not wait
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(stop.wait(), RSS_SAMPLE_S)
 
     async def _restarter(self, cmd: list[str], log_file: Any, procs: list[subprocess.Popen[bytes]]) -> None:
         """SIGKILL the daemon at each scheduled flight time and start the same command again at once."""
