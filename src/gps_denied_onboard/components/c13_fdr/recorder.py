@@ -166,15 +166,19 @@ def _image_key(path: Path) -> tuple[str, int] | None:
     return (m.group(1), int(m.group(2))) if m else None
 
 
-def list_images(directory: str | Path) -> list[Path]:
-    """Frame image files of the FDR at ``directory`` (in its ``images/``), oldest first."""
-    d = Path(directory) / IMAGES_SUBDIR
+def _sorted_files(directory: Path, key: Callable[[Path], Any]) -> list[Path]:
+    """Files of ``directory`` that ``key`` recognises (not None), in ``key`` order; [] when unreadable."""
     try:
-        entries = list(d.iterdir())
+        entries = list(directory.iterdir())
     except OSError:
         return []
-    keyed = [(k, p) for p in entries if (k := _image_key(p)) is not None]
+    keyed = [(k, p) for p in entries if (k := key(p)) is not None]
     return [p for _, p in sorted(keyed)]
+
+
+def list_images(directory: str | Path) -> list[Path]:
+    """Frame image files of the FDR at ``directory`` (in its ``images/``), oldest first."""
+    return _sorted_files(Path(directory) / IMAGES_SUBDIR, _image_key)
 
 
 def _disk_free_bytes(path: Path) -> int:
@@ -183,13 +187,7 @@ def _disk_free_bytes(path: Path) -> int:
 
 def list_segments(directory: str | Path) -> list[Path]:
     """FDR segment files in ``directory``, oldest first (by start time, then sequence number)."""
-    d = Path(directory)
-    try:
-        entries = list(d.iterdir())
-    except OSError:
-        return []
-    keyed = [(k, p) for p in entries if (k := _segment_key(p)) is not None]
-    return [p for _, p in sorted(keyed)]
+    return _sorted_files(Path(directory), _segment_key)
 
 
 def parse_line(raw: bytes) -> dict[str, Any] | None:
