@@ -357,6 +357,23 @@ def test_prediction_without_imu_stays_honest_through_an_unmeasured_turn() -> Non
     assert nees < 13.8, (err, nees)
 
 
+def test_vo_over_an_unmeasured_gap_does_not_claim_the_end_velocity() -> None:
+    """The soak's second finding: VO across a 2 s gap without IMU measures the mean velocity of a turn,
+    3 m/s off the end velocity. Its covariance must say so (velocity NEES below 13.8), where the
+    frame-rate covariance alone claimed 0.1 m/s."""
+    est = NavEstimator(EstimatorConfig(), LTP, accel_source=_ConstAccel(None))
+    est.initialise(np.zeros(3), 0.5, T0, vel_sigma_m_s=0.5)
+    est._kf.x[3:6, 0] = [12.0, 0.0, 0.0]
+    end_vel = np.array([12.0 * math.cos(math.radians(30)), 12.0 * math.sin(math.radians(30))])
+    mean_vel = np.array([12.0 * math.sin(math.radians(30)) / math.radians(30), 0.0])
+    mean_vel[1] = 12.0 * (1 - math.cos(math.radians(30))) / math.radians(30)
+    assert np.hypot(*(mean_vel - end_vel)) > 3.0
+    assert est.update_vo(_vo(mean_vel * 2.0, 0.2, 2.0), time_unix_usec=T0 + 2 * S).accepted
+    st = est.state()
+    err = st.vel_ned_m_s[:2] - end_vel
+    assert float(err @ np.linalg.solve(st.cov_vel_ned_m2_s2[:2, :2], err)) < 13.8
+
+
 def test_prediction_without_imu_uses_the_larger_noise() -> None:
     """With no IMU answer the prediction covariance grows with accel_noise_m_s2, not the IMU's."""
     with_imu = NavEstimator(EstimatorConfig(), LTP, accel_source=_ConstAccel(np.zeros(3)))

@@ -74,6 +74,10 @@ DEFAULT_VO_RECENT_S: Final[float] = 2.0
 #: Longest prediction step; each step asks the acceleration source for its own mean acceleration, s.
 PREDICT_STEP_S: Final[float] = 0.1
 
+#: A VO interval longer than this with no IMU to move its mean velocity to the interval's end is a gap
+#: (frames lost, attitude missing): the velocity may have changed by much more than within a frame, s.
+VO_GAP_S: Final[float] = 0.5
+
 #: Consecutive gated fixes after which their disagreement is added to the position covariance.
 CONSECUTIVE_GATED_INFLATE: Final[int] = 3
 _H_POS = np.hstack([np.eye(3), np.zeros((3, 3))])
@@ -439,11 +443,17 @@ class NavEstimator:
             return behind
         self.predict_to(t)
         vel = delta / dt
+        accel = None
         if self._accel is not None:
             accel = _valid_accel(self._accel.accel_ned_mean(t - round(dt * 1e6), t))
             if accel is not None:
                 vel = vel + accel[:2] * (dt / 2.0)
         r_mat = self._config.vo_noise_scale * cov / dt**2
+        if accel is None and dt > VO_GAP_S:
+            # Over a gap the interval's mean velocity can differ from the end velocity by an unmeasured
+            # manoeuvre (soak: 2 s without attitude in a turn left the fixes after it 4 sigma off):
+            # add what the constant-velocity model allows for, so VO does not claim the end velocity.
+            r_mat = r_mat + np.eye(2) * (self._config.accel_noise_m_s2 * dt / 2.0) ** 2
         x = self._kf.x.reshape(-1)
         innov = vel - x[3:5]
         s_mat = self._kf.P[3:5, 3:5] + r_mat
