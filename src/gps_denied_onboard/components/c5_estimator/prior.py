@@ -14,6 +14,8 @@ told the autopilot "3D fix, 30 m" while it was 252 m off. The rules, in order (:
 3. **Nothing trustworthy**: the whole map. The prior is the cache's centre with a sigma that covers
    the cache, so the output is not a fix (fix_type 1, or 0 above ``estimator.max_output_sigma_m``) and
    the fix path searches widely (corpus-wide with an appearance VPR strategy) until a fix re-anchors it.
+   Known edge: a cache smaller than 50 m in radius gives a sigma under the 3D-fix limit, which is honest
+   only while the vehicle is over the map.
 """
 
 from __future__ import annotations
