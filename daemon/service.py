@@ -66,6 +66,8 @@ class DaemonCounters:
     fix_frames_skipped: int = 0
     estimates_sent: int = 0
     last_latency_ms: float | None = None
+    #: Steps of the host's wall clock against the daemon's clock (detected and recorded, not followed).
+    clock_steps: int = 0
 
 
 class NavDaemon:
@@ -73,6 +75,7 @@ class NavDaemon:
         self._root = root
         self._cfg = root.config
         self._axis = root.time_axis
+        self._clock = root.clock
         self._notifier = notifier or SdNotifier()
         self._queue: LatestQueue[tuple[CapturedFrame, int]] = LatestQueue(self._cfg.camera.queue_depth)
         self._fix_mailbox: LatestQueue[NavCameraFrame] = LatestQueue(1)
@@ -159,8 +162,8 @@ class NavDaemon:
         tracker = self._root.tracker
         while True:
             captured, received_ns = await self._queue.get()
-            t_us = captured.exposure_time_unix_usec
-            admission = self._axis.admit_frame(t_us)
+            admission = self._axis.admit_frame(captured.exposure_time_unix_usec)
+            t_us = admission.exposure_time_unix_usec  # in the daemon's clock from here on
             if not admission.admitted:
                 self.counters.frames_refused += 1
                 reason = admission.reason.value if admission.reason is not None else "unknown"
@@ -175,6 +178,7 @@ class NavDaemon:
                     {
                         "frame_seq": captured.seq,
                         "exposure_time_unix_usec": t_us,
+                        "stamp_unix_usec": captured.exposure_time_unix_usec,
                         "reason": reason,
                         "ahead_of_clock_s": admission.ahead_s,
                     },
@@ -185,7 +189,7 @@ class NavDaemon:
             alt_agl_m = tracker.alt_agl_at(t_us)
             prior = self._prior(t_us)
             result = await self._track_thread.submit(
-                self._track, captured, received_ns, attitude, alt_agl_m, prior
+                self._track, captured, t_us, received_ns, attitude, alt_agl_m, prior
             )
             if result is None:
                 continue
@@ -269,6 +273,7 @@ class NavDaemon:
     def _track(
         self,
         captured: CapturedFrame,
+        exposure_time_unix_usec: int,
         received_ns: int,
         attitude,
         alt_agl_m,  # type: ignore[no-untyped-def]
@@ -291,7 +296,7 @@ class NavDaemon:
         frame = NavCameraFrame(
             uuid.uuid4(),
             captured.seq,
-            captured.exposure_time_unix_usec,
+            exposure_time_unix_usec,
             image,
             attitude,
             alt_agl_m,
@@ -307,7 +312,7 @@ class NavDaemon:
         if every_n and captured.seq % every_n == 0:
             # After VO, so the encode (a few ms) never delays the estimate; the recorder never raises.
             self._root.fdr.record_frame_jpeg(
-                captured.seq, captured.exposure_time_unix_usec, image, self._cfg.fdr.frame_jpeg_quality
+                captured.seq, exposure_time_unix_usec, image, self._cfg.fdr.frame_jpeg_quality
             )
         return frame, outcome
 
@@ -322,7 +327,7 @@ class NavDaemon:
 
     def _note_tracked(self, outcome: TrackOutcome) -> None:
         self.counters.frames_processed += 1
-        latency_ms = (time.time() * 1e6 - outcome.exposure_time_unix_usec) / 1e3
+        latency_ms = (self._clock.now_unix_usec() - outcome.exposure_time_unix_usec) / 1e3
         self.counters.last_latency_ms = latency_ms
         log.info(
             LogEvent.PIPELINE_FRAME,
@@ -347,7 +352,7 @@ class NavDaemon:
             inliers=outcome.inliers,
             reason=outcome.no_fix_reason,
             fused_behind_s=round(outcome.fused_behind_s, 3),
-            age_ms=round((time.time() * 1e6 - outcome.exposure_time_unix_usec) / 1e3, 1),
+            age_ms=round((self._clock.now_unix_usec() - outcome.exposure_time_unix_usec) / 1e3, 1),
             timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()},
         )
 
@@ -477,6 +482,31 @@ class NavDaemon:
             },
         )
 
+    def _check_clock(self) -> None:
+        """A step of the host's wall clock: logged, recorded, counted and told to the ground station. The
+        daemon's clock (monotonic) does not follow it; camera stamps are mapped through the new offset."""
+        step = self._clock.check_step()
+        if step is None:
+            return
+        self.counters.clock_steps += 1
+        log.warning(
+            LogEvent.CLOCK_STEP,
+            step_s=round(step.step_s, 3),
+            wall_offset_s=round(step.wall_offset_s, 3),
+            clock_steps=self.counters.clock_steps,
+        )
+        self._root.fdr.record(
+            FdrKind.CLOCK_STEP,
+            {
+                "step_s": step.step_s,
+                "wall_offset_s": step.wall_offset_s,
+                "clock_steps": self.counters.clock_steps,
+            },
+        )
+        self._root.link.send_statustext(
+            mavutil.mavlink.MAV_SEVERITY_WARNING, f"GDN: host clock stepped {step.step_s:+.1f} s, ignored"
+        )
+
     async def _status(self) -> None:
         period = 1.0 / self._cfg.daemon.status_hz
         nv_period = 1.0 / self._cfg.mavlink.named_value_hz
@@ -485,6 +515,7 @@ class NavDaemon:
         last_status = last_nv = 0.0
         while True:
             self._notifier.watchdog()
+            self._check_clock()
             now = time.monotonic()
             if now - last_nv >= nv_period:
                 last_nv = now
@@ -492,7 +523,7 @@ class NavDaemon:
             if now - last_status >= period:
                 last_status = now
                 c = self.counters
-                alive = self._root.tracker.link_alive(time.time())
+                alive = self._root.tracker.link_alive(self._clock.now_unix_s())
                 axis = self._axis.stats()
                 fdr = self._root.fdr.health()
                 log.info(

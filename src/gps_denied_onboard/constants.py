@@ -123,6 +123,10 @@ class LogEvent:
     ESTIMATOR_REACQUIRED: Final = "c5.estimator.reacquired"
     TIME_AXIS_REFUSED: Final = "c5.time_axis.refused"
     TIME_AXIS_REWOUND: Final = "c5.time_axis.rewound"
+    #: The host's wall clock stepped against the daemon's (monotonic) clock; the daemon does not follow it.
+    CLOCK_STEP: Final = "daemon.clock_step"
+    #: A map tile's pixels no longer match the digest taken when the cache was verified: never used.
+    CACHE_TILE_CORRUPT: Final = "c6.cache.tile_corrupt"
     POSE_REJECTED: Final = "c4.pose.rejected"
     VPR_READY: Final = "c2.vpr.ready"
     VPR_FAR_TOP1: Final = "c2.vpr.top1_distance_above_threshold"
@@ -185,3 +189,7 @@ class FdrKind:
     FDR_OPENED: Final = "fdr.opened"
     #: The recorder closed cleanly (last record of a run); a run without it ended in a crash.
     FDR_CLOSED: Final = "fdr.closed"
+    #: The host's wall clock stepped against the daemon's clock (detected, recorded, not followed).
+    CLOCK_STEP: Final = "daemon.clock_step"
+    #: A map tile failed its digest on read (corrupted after the cache was verified): masked, never used.
+    TILE_CORRUPT: Final = "cache.tile_corrupt"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +12,7 @@ import structlog
 
 from gps_denied_onboard.camera.sources import CameraSourceError, FrameSource, open_frame_source
 from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration
+from gps_denied_onboard.clock import DaemonClock
 from gps_denied_onboard.components.c1_vio import HomographyVo
 from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
 from gps_denied_onboard.components.c2_5_rerank.passthrough import PassthroughRerank
@@ -72,6 +73,8 @@ class RuntimeRoot:
     pipeline: NavigationPipeline
     time_axis: TimeAxis
     previous_run: PreviousRun
+    #: The daemon's one clock (monotonic, anchored to Unix time at start): every "now" comes from it.
+    clock: DaemonClock = field(default_factory=DaemonClock)
 
     def close(self) -> None:
         self.link.close()
@@ -278,13 +281,14 @@ def create_matcher(config: Config, pre: Mapping[str, Any], fdr: FdrClient) -> Cr
     return matcher
 
 
-def make_tracker(config: Config) -> VehicleStateTracker:
-    """The autopilot-state tracker the MAVLink link feeds."""
+def make_tracker(config: Config, clock: DaemonClock | None = None) -> VehicleStateTracker:
+    """The autopilot-state tracker the MAVLink link feeds (on ``clock``; default: a new one)."""
     return VehicleStateTracker(
         autopilot_system_id=config.mavlink.autopilot_system_id,
         attitude_max_age_s=config.mavlink.attitude_max_age_s,
         altitude_max_age_s=config.mavlink.altitude_max_age_s,
         link_timeout_s=config.mavlink.link_timeout_s,
+        clock=(clock or DaemonClock()).now_unix_s,
     )
 
 
@@ -306,9 +310,11 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     """Build every object the daemon needs from ``config``.
 
     ``pre_constructed`` lets a caller (tests, the SITL) hand in objects by slot name instead of having
-    them built here: ``c7_inference``, ``c3_lightglue_runtime``, ``c282_ransac_filter``, ``fdr``.
+    them built here: ``c7_inference``, ``c3_lightglue_runtime``, ``c282_ransac_filter``, ``fdr``,
+    ``clock`` (a ``DaemonClock``: the one "now" of the run, given to everything that needs one).
     """
     pre = dict(pre_constructed or {})
+    clock: DaemonClock = pre.get("clock") or DaemonClock()
     config = _resolve_matcher(config)
     calibration = _calibration(config)
     _check_signing_key(config)
@@ -324,17 +330,19 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         segment_bytes=config.fdr.segment_bytes,
         images_max_bytes=config.fdr.frame_jpeg_max_bytes,
         min_free_bytes=config.fdr.min_free_bytes,
+        clock=clock.now_unix_s,
     )
     matcher = create_matcher(config, pre, fdr)
 
     vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
-    tracker = make_tracker(config)
+    tracker = make_tracker(config, clock)
     time_axis = TimeAxis(
         NavEstimator(config.estimator, ltp, accel_source=tracker),
         max_delay_s=config.estimator.max_fix_delay_s,
         max_frame_age_s=config.daemon.max_frame_age_s,
         max_future_s=config.estimator.max_future_s,
+        clock=clock,
     )
     pipeline = NavigationPipeline(
         calibration=calibration,
@@ -349,7 +357,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         time_axis=time_axis,
         fdr=fdr,
     )
-    link = MavlinkLink(config.mavlink, tracker, fdr, ltp=ltp)
+    link = MavlinkLink(config.mavlink, tracker, fdr, clock.now_unix_s, ltp=ltp)
     camera = open_camera_source(config)
     return RuntimeRoot(
         config,
@@ -364,4 +372,5 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         pipeline,
         time_axis,
         previous_run,
+        clock,
     )

@@ -23,6 +23,12 @@ arrived, and every input goes through here. Three jobs, one mechanism:
    its arrival time instead would put a position measured seconds ago at today's state: a bias the
    size of the distance flown meanwhile.
 
+Whose clock: the daemon's (``gps_denied_onboard.clock.DaemonClock``: monotonic, anchored to Unix time
+once at start), never the wall clock, so a step of the host's clock neither refuses correct frames nor
+moves the filter. A frame's stamp is the host's wall clock at exposure; ``admit_frame`` maps it into the
+daemon's clock (``DaemonClock.from_wall_usec``) before judging it, and every later use of the frame
+(attitude lookup, VO, the fix, the FDR) uses the mapped time (``Admission.exposure_time_unix_usec``).
+
 3. **Output at any time**: :meth:`TimeAxis.state_at` predicts from the newest fused input to the
    requested time (default: now) without changing the filter, through the estimator's IMU-driven
    prediction. This is what the steady MAVLink stream sends between frames.
@@ -37,7 +43,6 @@ import bisect
 import itertools
 import math
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
@@ -46,6 +51,7 @@ from typing import Final
 import numpy as np
 import structlog
 
+from gps_denied_onboard.clock import DaemonClock
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator.ekf import EstimatorCheckpoint, FixReason, NavEstimator
@@ -69,11 +75,14 @@ class Refusal(str, Enum):
 
 @dataclass(frozen=True)
 class Admission:
-    """The verdict on one frame's exposure time. ``ahead_s``: exposure minus the clock (> 0: future)."""
+    """The verdict on one frame's exposure time. ``ahead_s``: exposure minus the clock (> 0: future).
+    ``exposure_time_unix_usec``: the exposure in the daemon's clock (the stamp mapped from the host's wall
+    clock); every later use of the frame uses this time."""
 
     admitted: bool
     reason: Refusal | None
     ahead_s: float
+    exposure_time_unix_usec: int
 
 
 @dataclass(frozen=True)
@@ -103,16 +112,13 @@ class _Entry:
         return self.time_usec, self.seq
 
 
-def _clock_unix_usec() -> int:
-    return time.time_ns() // 1000
-
-
 class TimeAxis:
     """The estimator's time axis (see the module docstring).
 
-    ``estimator``: the filter it owns (nothing else may call its update methods). ``clock_unix_usec``:
-    the daemon's clock (injected for tests and replay). ``max_future_s``, ``max_frame_age_s``,
-    ``max_delay_s``: the admission bounds, seconds.
+    ``estimator``: the filter it owns (nothing else may call its update methods). ``clock``: the
+    daemon's clock (one per run, from the composition root; default: a new one anchored now).
+    ``clock_unix_usec``: a bare "now" instead (tests, replay: camera stamps are then taken as already in
+    that clock). ``max_future_s``, ``max_frame_age_s``, ``max_delay_s``: the admission bounds, seconds.
     """
 
     def __init__(
@@ -122,7 +128,8 @@ class TimeAxis:
         max_delay_s: float,
         max_frame_age_s: float,
         max_future_s: float = DEFAULT_MAX_FUTURE_S,
-        clock_unix_usec: Callable[[], int] = _clock_unix_usec,
+        clock: DaemonClock | None = None,
+        clock_unix_usec: Callable[[], int] | None = None,
     ) -> None:
         for name, value in (
             ("max_delay_s", max_delay_s),
@@ -132,7 +139,13 @@ class TimeAxis:
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number of seconds, got {value!r}")
         self._est = estimator
-        self._clock = clock_unix_usec
+        if clock_unix_usec is not None:
+            self._clock = clock_unix_usec
+            self._from_wall: Callable[[int], int] = int
+        else:
+            daemon_clock = clock or DaemonClock()
+            self._clock = daemon_clock.now_unix_usec
+            self._from_wall = daemon_clock.from_wall_usec
         self._max_future_usec = round(max_future_s * 1e6)
         self._max_frame_age_usec = round(max_frame_age_s * 1e6)
         self._max_delay_usec = round(max_delay_s * 1e6)
@@ -148,11 +161,12 @@ class TimeAxis:
 
     # -- frames ---------------------------------------------------------------------------------------
 
-    def admit_frame(self, exposure_time_unix_usec: int) -> Admission:
-        """Admit or refuse a frame by its exposure time (see the module docstring). An admitted frame's
-        time becomes the bound for the next one; a refused one changes nothing but the counters."""
-        t = int(exposure_time_unix_usec)
+    def admit_frame(self, exposure_stamp_unix_usec: int) -> Admission:
+        """Admit or refuse a frame by its exposure stamp (the host's wall clock at exposure; see the
+        module docstring). An admitted frame's time becomes the bound for the next one; a refused one
+        changes nothing but the counters."""
         with self._lock:
+            t = self._from_wall(int(exposure_stamp_unix_usec))
             now = self._clock()
             ahead_usec = t - now
             reason: Refusal | None = None
@@ -164,10 +178,10 @@ class TimeAxis:
                 reason = Refusal.OUT_OF_ORDER
             if reason is not None:
                 self._refuse("frame", reason, t, now)
-                return Admission(False, reason, ahead_usec / 1e6)
+                return Admission(False, reason, ahead_usec / 1e6, t)
             self._last_frame_usec = t
             self._frames_admitted += 1
-            return Admission(True, None, ahead_usec / 1e6)
+            return Admission(True, None, ahead_usec / 1e6, t)
 
     def _refuse(self, kind: str, reason: Refusal, t: int, now: int) -> None:
         self._refused[reason.value] += 1
