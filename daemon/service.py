@@ -479,6 +479,7 @@ class NavDaemon:
                 "mavlink_send_errors": link.send_errors,
                 "mavlink_reconnects": link.reconnects,
                 "fdr_state": fdr.state.value,
+                "tiles_corrupt": self._root.tile_store.corrupt_cells,
             },
         )
 

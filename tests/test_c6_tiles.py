@@ -23,6 +23,7 @@ from gps_denied_onboard.components.c6_tiles import (
     TileStoreError,
 )
 from gps_denied_onboard.components.c10_cache_build import build_cache_from_geotiff
+from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest
 from gps_denied_onboard.geo import haversine_m
 
 P_LON, P_LAT = 16.3, 48.2
@@ -176,16 +177,98 @@ def test_tiles_near_latency_100k_tile_centres() -> None:
     assert median_ms < 50.0
 
 
-def test_chip_is_readonly_view_of_mosaic(store: TileStore) -> None:
-    """chip.pixels() is a (size, size, 3) uint8 view of the mmap mosaic, not a copy, and read-only."""
+def test_chip_is_readonly_verified_copy_of_mosaic(store: TileStore) -> None:
+    """chip.pixels() is a (size, size, 3) uint8 read-only copy of the mmap mosaic's window (the bytes
+    checked against the digests are the bytes handed out)."""
     tile_id = store.tiles_near(P_LAT, P_LON, 500.0, k=1)[0][0]
     chip = store.chip(tile_id, 400)
     pixels = chip.pixels()
     assert isinstance(chip, TilePixelsHandle) and isinstance(chip, TileChip)
     assert pixels.shape == (400, 400, 3) and pixels.dtype == np.uint8
-    assert np.shares_memory(pixels, store.mosaic)
+    assert not np.shares_memory(pixels, store.mosaic)
+    tr, ts = store.manifest.tile_range, store.tile_size_px
+    col0, row0 = chip.origin_px[0] - tr.x0 * ts, chip.origin_px[1] - tr.y0 * ts
+    assert np.array_equal(pixels, store.mosaic[row0 : row0 + 400, col0 : col0 + 400])
     assert not pixels.flags.writeable
     assert chip.tile_id == tile_id
+    assert store.corrupt_cells == 0
+
+
+def _mosaic_offset(cache_dir: Path) -> tuple[Path, int, tuple[int, ...]]:
+    """(mosaic path, byte offset of pixel (0, 0), shape) of a cache's .npy mosaic."""
+    path = cache_dir / CacheManifest.load(cache_dir).mosaic_name
+    arr = np.load(path, mmap_mode="r")
+    return path, int(arr.offset), tuple(arr.shape)
+
+
+def _overwrite_cell(cache_dir: Path, row: int, col: int, ts: int, value: int) -> None:
+    """Write ``value`` into every byte of mosaic cell (row, col) in place (the daemon's mapping sees it),
+    as a failing flash page or another process would."""
+    path, offset, shape = _mosaic_offset(cache_dir)
+    width = shape[1]
+    with path.open("r+b") as f:
+        for r in range(row * ts, (row + 1) * ts):
+            f.seek(offset + (r * width + col * ts) * 3)
+            f.write(bytes([value]) * (ts * 3))
+
+
+def test_chip_masks_a_cell_corrupted_after_open_and_reports_it_once(cache_dir: Path, tmp_path: Path) -> None:
+    """A cell whose bytes change on disk after the cache was verified reads as nodata in every chip that
+    covers it, is reported once (log + listener) and stays masked after its bytes come back; chips that
+    do not cover it are unchanged."""
+    out = _copy(cache_dir, tmp_path)
+    store = TileStore.open(out)
+    seen: list[dict] = []
+    store.on_corrupt = seen.append
+    ts = store.tile_size_px
+    tile_id = store.tiles_near(P_LAT, P_LON, 500.0, k=1)[0][0]
+    x, y, _ = store.tile_xyz(tile_id)
+    row, col = y - store.manifest.tile_range.y0, x - store.manifest.tile_range.x0
+    before = np.array(store.chip(tile_id, ts).pixels())
+    assert before.any()
+    original = np.array(store.mosaic[row * ts : (row + 1) * ts, col * ts : (col + 1) * ts])
+    _overwrite_cell(out, row, col, ts, 0x5A)
+    assert (store.mosaic[row * ts, col * ts] == 0x5A).all(), "the mapping does not see the file"
+    chip = store.chip(tile_id, ts)
+    assert not chip.pixels().any(), "corrupt pixels reached the matcher"
+    assert store.corrupt_cells == 1
+    assert len(seen) == 1 and (seen[0]["x"], seen[0]["y"], seen[0]["zoom"]) == (x, y, store.zoom)
+    assert seen[0]["crc32_read"] != seen[0]["crc32_verified"]
+    big = store.chip(tile_id, 3 * ts).pixels()  # covers the cell and its neighbours
+    assert not big[ts : 2 * ts, ts : 2 * ts].any() and big[:ts].any()
+    assert len(seen) == 1, "one corruption reported twice"
+    # the bytes come back: the cell stays untrusted for the rest of the run
+    path, offset, shape = _mosaic_offset(out)
+    with path.open("r+b") as f:
+        for r in range(ts):
+            f.seek(offset + ((row * ts + r) * shape[1] + col * ts) * 3)
+            f.write(original[r].tobytes())
+    assert not store.chip(tile_id, ts).pixels().any()
+    # a chip away from the cell is exact
+    far = max(store.tile_ids, key=lambda t: abs(store.tile_xyz(t)[0] - x) + abs(store.tile_xyz(t)[1] - y))
+    far_chip = store.chip(far, ts)
+    fx, fy, _ = store.tile_xyz(far)
+    fr, fc = fy - store.manifest.tile_range.y0, fx - store.manifest.tile_range.x0
+    assert np.array_equal(far_chip.pixels(), store.mosaic[fr * ts : (fr + 1) * ts, fc * ts : (fc + 1) * ts])
+
+
+def test_open_and_chip_measure_the_digest_cost(store: TileStore, cache_dir: Path) -> None:
+    """The digest table costs one read of the mosaic at open, a verified chip one copy and a CRC of the
+    cells it covers (prints the figures for docs/benchmarks.md)."""
+    t0 = time.perf_counter()
+    TileStore.open(cache_dir, verify_hashes=False)
+    elapsed = time.perf_counter() - t0
+    mib = store.mosaic.nbytes / 2**20
+    tile_id = store.tiles_near(P_LAT, P_LON, 500.0, k=1)[0][0]
+    t0 = time.perf_counter()
+    for _ in range(50):
+        store.chip(tile_id, 512)
+    chip_ms = (time.perf_counter() - t0) / 50 * 1e3
+    print(
+        f"\nopen without sha256 (cell digests only): {elapsed * 1e3:.1f} ms for {mib:.1f} MiB; "
+        f"verified 512 px chip: {chip_ms:.2f} ms"
+    )
+    assert store.corrupt_cells == 0
 
 
 def test_chip_georeference_round_trips_below_0_01_px(store: TileStore) -> None:

@@ -41,7 +41,7 @@ from gps_denied_onboard.components.c8_mavlink import (
 )
 from gps_denied_onboard.components.c13_fdr import FdrClient, FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import Config
-from gps_denied_onboard.constants import LogEvent
+from gps_denied_onboard.constants import FdrKind, LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
@@ -332,6 +332,8 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         min_free_bytes=config.fdr.min_free_bytes,
         clock=clock.now_unix_s,
     )
+    # A map cell corrupted after verification is masked by the store; the FDR keeps which and when.
+    tiles.on_corrupt = lambda info: fdr.record(FdrKind.TILE_CORRUPT, info)
     matcher = create_matcher(config, pre, fdr)
 
     vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)

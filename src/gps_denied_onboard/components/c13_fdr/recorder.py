@@ -709,4 +709,3 @@ class FlightDataRecorder:
 
     def __exit__(self, *_exc: object) -> None:
         self.close()
-

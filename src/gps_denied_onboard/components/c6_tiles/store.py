@@ -1,7 +1,19 @@
 """C6 tile store: opens a verified map cache and serves tiles and page-cache-backed chips.
 
-The mosaic is memory-mapped read-only: chips are views of it, so pixels are paged in by the kernel on
-first touch and shared with every other consumer, never copied.
+The mosaic is memory-mapped read-only, so pixels are paged in by the kernel on first touch and shared
+with every other consumer.
+
+Verified on read. The whole mosaic's sha256 is checked at open (``cache.verify_hashes``); the map is then
+read for the whole flight, and bytes can change under a mapping after that (flash wear, a failing SD card
+or eMMC page re-read after eviction, another process writing the file). At open the store therefore
+takes a CRC-32 of every grid cell (one tile, ``tile_size_px`` square) of the bytes it just verified, and
+``chip`` copies the cells a chip covers, checks each copy against its digest and cuts the chip from the
+copy: the bytes checked are the bytes the matcher gets. A cell that fails is corrupt for the rest of the
+run (never trusted again, even if its bytes come back): its pixels read as nodata (zero, as off the map),
+so no fix is ever made from them, and it is logged (``c6.cache.tile_corrupt``), counted
+(``corrupt_cells``) and reported to the listener (the daemon records it in the FDR). CRC-32 detects
+corruption, not an adversary who can write the cache while the daemon runs (who could as well change the
+daemon).
 
 Pixel convention (chips and mosaic): OpenCV's, ``(x, y)`` with ``(0, 0)`` at the *centre* of the
 top-left pixel, x east, y south. The Web-Mercator grid is corner-based, hence the 0.5 px offsets below.
@@ -11,9 +23,13 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 import time
+import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import structlog
@@ -36,9 +52,10 @@ _EARTH_MEAN_RADIUS_M = 6_371_008.8
 class TileChip:
     """A square window of the mosaic around one tile; implements ``TilePixelsHandle``.
 
-    ``pixels()`` is a read-only (h, w, 3) uint8 BGR view of the memory-mapped mosaic (h = w = size_px
-    unless the mosaic is smaller). ``origin_px`` is the global Web-Mercator pixel (x, y) of the
-    top-left corner of chip pixel (0, 0) at the store's zoom.
+    ``pixels()`` is a read-only (h, w, 3) uint8 BGR array (h = w = size_px unless the mosaic is smaller):
+    a verified copy of the mosaic (``TileStore.chip``), or a view of it where a caller built one.
+    ``origin_px`` is the global Web-Mercator pixel (x, y) of the top-left corner of chip pixel (0, 0) at
+    the store's zoom.
     """
 
     __slots__ = ("_grid", "_origin_px", "_pixels", "_tile_id")
@@ -79,7 +96,7 @@ class TileChip:
         )
 
     def pixels(self) -> np.ndarray:
-        """Read-only (h, w, 3) uint8 BGR view of the mosaic (no copy)."""
+        """Read-only (h, w, 3) uint8 BGR pixels of the chip."""
         return self._pixels
 
     def chip_px_to_lonlat(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -166,6 +183,12 @@ class TileStore:
         tr = manifest.tile_range
         #: Global px of the mosaic's top-left corner.
         self._mosaic_origin_px = (tr.x0 * manifest.tile_size_px, tr.y0 * manifest.tile_size_px)
+        #: CRC-32 of every grid cell as verified at open, (rows, cols) uint32 (see the module docstring).
+        self._cell_crc = _cell_digests(mosaic, manifest.tile_size_px)
+        self._corrupt: set[tuple[int, int]] = set()
+        self._corrupt_lock = threading.Lock()
+        #: Called once per newly corrupt cell with its description (the daemon records it in the FDR).
+        self.on_corrupt: Callable[[dict[str, Any]], None] | None = None
 
     @classmethod
     def open(cls, cache_dir: Path, *, verify_hashes: bool = True) -> TileStore:
@@ -266,10 +289,17 @@ class TileStore:
         nearest first (ties by tile order), at most ``k``."""
         return self._centres.near(lat_deg, lon_deg, radius_m, k)
 
+    @property
+    def corrupt_cells(self) -> int:
+        """Grid cells found corrupt on read so far (masked as nodata for the rest of the run)."""
+        with self._corrupt_lock:
+            return len(self._corrupt)
+
     def chip(self, tile_id: TileId, size_px: int) -> TileChip:
         """A ``size_px`` square chip centred on the tile, shifted to stay inside the mosaic.
 
-        In a dimension where the mosaic is smaller than ``size_px`` the chip spans the whole mosaic.
+        In a dimension where the mosaic is smaller than ``size_px`` the chip spans the whole mosaic. The
+        pixels are a verified copy: a cell whose bytes no longer match its digest is nodata (zero).
         """
         if size_px < 1:
             raise ValueError(f"size_px must be >= 1, got {size_px}")
@@ -280,9 +310,59 @@ class TileStore:
         centre_row = (int(y) - self._manifest.tile_range.y0) * ts + ts // 2
         col0, chip_w = _clamp_span(centre_col - size_px // 2, size_px, width)
         row0, chip_h = _clamp_span(centre_row - size_px // 2, size_px, height)
-        view = self._mosaic[row0 : row0 + chip_h, col0 : col0 + chip_w]
+        pixels = self._verified(row0, col0, chip_h, chip_w)
         origin = (self._mosaic_origin_px[0] + col0, self._mosaic_origin_px[1] + row0)
-        return TileChip(tile_id, self._grid, view, origin)
+        return TileChip(tile_id, self._grid, pixels, origin)
+
+    def _verified(self, row0: int, col0: int, h: int, w: int) -> np.ndarray:
+        """A read-only copy of mosaic[row0:row0+h, col0:col0+w], every cell it touches checked against its
+        digest in the copy itself (corrupt cells zeroed)."""
+        ts = self.tile_size_px
+        r_lo, r_hi = row0 // ts, (row0 + h - 1) // ts
+        c_lo, c_hi = col0 // ts, (col0 + w - 1) // ts
+        block = np.array(self._mosaic[r_lo * ts : (r_hi + 1) * ts, c_lo * ts : (c_hi + 1) * ts])
+        for r in range(r_lo, r_hi + 1):
+            for c in range(c_lo, c_hi + 1):
+                cell = block[(r - r_lo) * ts : (r - r_lo + 1) * ts, (c - c_lo) * ts : (c - c_lo + 1) * ts]
+                with self._corrupt_lock:
+                    known_bad = (r, c) in self._corrupt
+                if known_bad:
+                    cell[...] = 0
+                    continue
+                crc = _crc32(cell)
+                if crc != int(self._cell_crc[r, c]):
+                    self._report_corrupt(r, c, crc)
+                    cell[...] = 0
+        top, left = row0 - r_lo * ts, col0 - c_lo * ts
+        out = block[top : top + h, left : left + w]
+        out.flags.writeable = False
+        return out
+
+    def _report_corrupt(self, row: int, col: int, crc_read: int) -> None:
+        with self._corrupt_lock:
+            if (row, col) in self._corrupt:
+                return
+            self._corrupt.add((row, col))
+            total = len(self._corrupt)
+        tr = self._manifest.tile_range
+        ts = self.tile_size_px
+        centre = np.array([(col + 0.5) * ts - 0.5, (row + 0.5) * ts - 0.5])
+        lon, lat = self.mosaic_px_to_lonlat(centre)
+        info: dict[str, Any] = {
+            "x": tr.x0 + col,
+            "y": tr.y0 + row,
+            "zoom": self.zoom,
+            "lat_deg": round(float(lat), 7),
+            "lon_deg": round(float(lon), 7),
+            "crc32_verified": int(self._cell_crc[row, col]),
+            "crc32_read": int(crc_read),
+            "corrupt_cells": total,
+            "mosaic": str(self._cache_dir / self._manifest.mosaic_name),
+        }
+        _log.error(LogEvent.CACHE_TILE_CORRUPT, action="masked as nodata for the rest of the run", **info)
+        listener = self.on_corrupt
+        if listener is not None:
+            listener(info)
 
     def lonlat_to_mosaic_px(self, lon_deg: np.ndarray, lat_deg: np.ndarray) -> np.ndarray:
         """(lon_deg, lat_deg) of shape (...) -> mosaic pixel (..., 2) float64 (x, y), OpenCV convention."""
@@ -310,6 +390,23 @@ def _clamp_span(start: int, size: int, extent: int) -> tuple[int, int]:
     if size >= extent:
         return 0, extent
     return min(max(start, 0), extent - size), size
+
+
+def _cell_digests(mosaic: np.ndarray, tile_size_px: int) -> np.ndarray:
+    """CRC-32 of every ``tile_size_px`` square cell of the mosaic, (rows, cols) uint32 (edge cells may be
+    smaller when the mosaic is not a whole number of cells)."""
+    ts = tile_size_px
+    rows, cols = -(-mosaic.shape[0] // ts), -(-mosaic.shape[1] // ts)
+    crc = np.zeros((rows, cols), dtype=np.uint32)
+    for r in range(rows):
+        band = np.array(mosaic[r * ts : (r + 1) * ts])  # one sequential read per band of cells
+        for c in range(cols):
+            crc[r, c] = _crc32(band[:, c * ts : (c + 1) * ts])
+    return crc
+
+
+def _crc32(pixels: np.ndarray) -> int:
+    return zlib.crc32(np.ascontiguousarray(pixels).data)
 
 
 def _open_mosaic(path: Path, manifest: CacheManifest) -> np.ndarray:

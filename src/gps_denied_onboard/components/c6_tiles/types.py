@@ -24,9 +24,10 @@ class TileId(NamedTuple):
 class TilePixelsHandle(Protocol):
     """A reference to a georeferenced map chip around one tile, backed by the page cache.
 
-    ``pixels()`` returns a read-only (H, W, 3) uint8 BGR view (no copy) of the map mosaic around the
-    tile; ``chip_px_to_lonlat`` maps chip pixel coordinates (N, 2) float (x, y) to (lon_deg, lat_deg)
-    arrays of shape (N,); ``gsd_m_px`` is the chip's ground sampling distance.
+    ``pixels()`` returns read-only (H, W, 3) uint8 BGR pixels of the map mosaic around the tile (the
+    tile store hands out a copy verified against the cache's digests); ``chip_px_to_lonlat`` maps chip
+    pixel coordinates (N, 2) float (x, y) to (lon_deg, lat_deg) arrays of shape (N,); ``gsd_m_px`` is the
+    chip's ground sampling distance.
     """
 
     @property
