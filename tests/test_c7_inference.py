@@ -18,6 +18,7 @@ from gps_denied_onboard.components.c7_inference import (
     TensorSpec,
     resolve_providers,
 )
+from gps_denied_onboard.components.c7_inference.onnx_runtime import ORT_FAULT_FILE_ENV
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.helpers.onnx_signatures import (
     ALIKED_EXTRACTOR,
@@ -344,3 +345,34 @@ def test_resolve_providers_none_available_raises() -> None:
     """Asking only for providers this build lacks is a clear error."""
     with pytest.raises(ValueError, match="none of the execution providers"):
         OnnxInferenceRuntime(providers=["NoSuchExecutionProvider"])
+
+
+def test_fault_hook_makes_onnx_runtime_itself_refuse_runs_then_recover(
+    models, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The SITL's ORT fault: with the hook's file holding 2, the next two runs raise ONNX Runtime's own
+    Fail from inside the real session (chained into InferenceError), the file is consumed, and the same
+    session answers correctly afterwards. Without the variable nothing is injected."""
+    fault_file = tmp_path / "ort_fault"
+    monkeypatch.setenv(ORT_FAULT_FILE_ENV, str(fault_file))
+    with capture_logs() as logs:
+        runtime = OnnxInferenceRuntime(intra_op_threads=1)
+    assert any(e["event"] == LogEvent.C7_FAULT_HOOK_ARMED for e in logs)
+    engine_id = runtime.load_engine(str(models["reshape"]), RESHAPE_SIGNATURE)
+    feed = {"x": np.arange(6, dtype=np.float32)[None]}
+    assert runtime.run(engine_id, feed)["y"].shape == (2, 3)
+    fault_file.write_text("2")
+    for left in ("1", None):
+        with pytest.raises(InferenceError, match="terminate flag") as err:
+            runtime.run(engine_id, feed)
+        assert type(err.value.__cause__).__module__.startswith("onnxruntime"), type(err.value.__cause__)
+        assert (fault_file.read_text() if fault_file.exists() else None) == left
+    np.testing.assert_array_equal(
+        runtime.run(engine_id, feed)["y"], np.arange(6, dtype=np.float32).reshape(2, 3)
+    )
+    monkeypatch.delenv(ORT_FAULT_FILE_ENV)
+    unarmed = OnnxInferenceRuntime(intra_op_threads=1)
+    fault_file.write_text("1")
+    engine_id = unarmed.load_engine(str(models["reshape"]), RESHAPE_SIGNATURE)
+    assert unarmed.run(engine_id, feed)["y"].shape == (2, 3)
+    assert fault_file.exists()

@@ -159,6 +159,8 @@ class LogEvent:
     C7_PROVIDER_FALLBACK: Final = "c7.inference.provider_fallback"
     C7_WARMUP_SKIPPED: Final = "c7.inference.warmup_skipped"
     C7_WARMUP_FAILED: Final = "c7.inference.warmup_failed"
+    #: The fault-injection test hook is armed (GDNAV_TEST_ORT_FAULT_FILE set): never in flight.
+    C7_FAULT_HOOK_ARMED: Final = "c7.inference.fault_hook_armed"
     LIGHTGLUE_READY: Final = "helpers.lightglue.ready"
 
 

@@ -14,11 +14,22 @@ One ``onnxruntime.InferenceSession`` per loaded model, created at load time (nev
 
 Sessions run with ``intra_op_num_threads`` from config, one inter-op thread and sequential execution;
 each session is guarded by its own lock so that callers from several threads are served one at a time.
+
+Test hook (fault injection, for the SITL soak): when the environment variable named by
+``ORT_FAULT_FILE_ENV`` is set when the runtime is built, every ``run`` first looks for that file. While
+it exists and holds a positive count N, the run is handed to ONNX Runtime with ``RunOptions.terminate``
+set, N is decremented (the file is removed at 0), and ONNX Runtime itself refuses the run and raises its
+own ``Fail`` from inside ``InferenceSession.run``: the same call, exception type and error path as any
+runtime failure in flight, on the real session, which keeps working afterwards. It proves that a raising
+runtime costs the frame, is recorded and logged, and that the daemon flies on with the same sessions; it
+does not reproduce a crash inside native code (that is the kill -9 restart path) or a run that never
+returns. Arming it is logged (``c7.inference.fault_hook_armed``); without the variable nothing is checked.
 """
 
 from __future__ import annotations
 
 import itertools
+import os
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -47,6 +58,42 @@ PROVIDER_PREFERENCE: tuple[str, ...] = (
     "CUDAExecutionProvider",
     "CPUExecutionProvider",
 )
+
+#: Environment variable naming the fault-injection file (test hook; see the module docstring).
+ORT_FAULT_FILE_ENV = "GDNAV_TEST_ORT_FAULT_FILE"
+
+
+class _FaultHook:
+    """The test hook of the module docstring: a count of runs to refuse, read from a file."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self._lock = threading.Lock()
+        self.injected = 0
+
+    def take(self) -> bool:
+        """True when this run must be refused (consumes one from the file's count)."""
+        if not os.path.exists(self.path):
+            return False
+        with self._lock:
+            try:
+                with open(self.path, encoding="utf-8") as f:
+                    count = int(f.read().strip() or "0")
+            except (OSError, ValueError):
+                return False
+            try:
+                if count <= 1:
+                    os.unlink(self.path)
+                else:
+                    with open(self.path, "w", encoding="utf-8") as f:
+                        f.write(str(count - 1))
+            except OSError:
+                return False
+            if count < 1:
+                return False
+            self.injected += 1
+            return True
+
 
 #: ONNX Runtime's own exception classes (they derive from ``Exception`` directly, not RuntimeError).
 _ORT_ERRORS: tuple[type[BaseException], ...] = (
@@ -277,6 +324,10 @@ class OnnxInferenceRuntime:
         self._engines: dict[str, _Engine] = {}
         self._registry_lock = threading.Lock()
         self._counter = itertools.count(1)
+        fault_file = os.environ.get(ORT_FAULT_FILE_ENV)
+        self._fault = _FaultHook(fault_file) if fault_file else None
+        if self._fault is not None:
+            _log.warning(LogEvent.C7_FAULT_HOOK_ARMED, env=ORT_FAULT_FILE_ENV, path=fault_file)
 
     @property
     def providers(self) -> tuple[str, ...]:
@@ -415,9 +466,13 @@ class OnnxInferenceRuntime:
             )
         feed = {name: inputs[name] for name in engine.input_names}
         names = [s.name for s in engine.info.outputs]
+        run_options = None
+        if self._fault is not None and self._fault.take():
+            run_options = ort.RunOptions()
+            run_options.terminate = True  # ONNX Runtime refuses the run and raises its own Fail
         try:
             with engine.lock:
-                values = engine.session.run(names, feed)
+                values = engine.session.run(names, feed, run_options)
         except _ORT_ERRORS as exc:
             shapes = {k: f"{v.dtype}{list(np.shape(v))}" for k, v in feed.items()}
             raise InferenceError(
