@@ -41,6 +41,7 @@ from gps_denied_onboard.config import ConfigError, load_config
 from gps_denied_onboard.constants import FRAME_STREAM_MAGIC
 from gps_denied_onboard.sitl.autopilot import SimAutopilot
 from gps_denied_onboard.sitl.frame_server import FrameServer
+from gps_denied_onboard.sitl.host_faults import HostFaultError, HostFaults
 from gps_denied_onboard.sitl.photometric import PhotometricModel, degrade_for_gap
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
 from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, score
@@ -145,6 +146,11 @@ class _Flight:
         self.restarts: list[dict[str, float]] = []
         self._imu_rng = np.random.default_rng(11)
         self.daemon_stop_s: float | None = None
+        #: Faults of the daemon's host (clock, ONNX Runtime, map cells, FDR disk: ``sitl.host_faults``).
+        self.host = HostFaults(scenario, trajectory, workdir, cache_dir, self.faults_injected)
+        self.host_setup = self.host.prepare()
+        if self.host_setup.cache_dir is not None:
+            self.cache_dir = self.host_setup.cache_dir
 
     def _say(self, msg: str) -> None:
         if not self.opts.quiet:
@@ -163,11 +169,15 @@ class _Flight:
             f"camera.intrinsics.cx_px={self.calib.cx_px}",
             f"camera.intrinsics.cy_px={self.calib.cy_px}",
             *self.opts.overrides,
+            *self.host_setup.overrides,
         ]
         cmd = [sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", str(self.config_path)]
         for s in sets:
             cmd += ["--set", s]
         return cmd
+
+    def _daemon_env(self) -> dict[str, str]:
+        return {**os.environ, "PYTHONUNBUFFERED": "1", **self.host_setup.env}
 
     def _specific_force_body(self, t_s: float, truth: Any) -> tuple[float, float, float]:
         """What an accelerometer on the vehicle reads at ``t_s``: the truth's acceleration (central
@@ -231,7 +241,9 @@ class _Flight:
         gap = self.scenario.gap_at(t_s)
         if gap is not None:
             img = degrade_for_gap(img, gap)
-        stamp_us = round((self.t0_unix_s + t_s + self.scenario.stamp_offset_s(t_s)) * 1e6)
+        # The camera is on the daemon's host: it stamps with that host's wall clock (clock_jump steps it).
+        wall_s = self.t0_unix_s + t_s + self.scenario.wall_step_s(t_s)
+        stamp_us = round((wall_s + self.scenario.stamp_offset_s(t_s)) * 1e6)
         return encode_frame(img, seq=index, exposure_time_unix_usec=stamp_us), truth
 
     def _bad_frame(self, kind: FaultKind, seq: int, stamp_us: int) -> bytes:
@@ -280,7 +292,9 @@ class _Flight:
                 return
             await asyncio.sleep(max(0.0, self.t0_unix_s + float(t_s) - time.time()))
             for fault in self.scenario.instant_faults(prev_t, float(t_s)):
-                stamp_us = round((self.t0_unix_s + float(t_s) - 0.01) * 1e6)
+                stamp_us = round(
+                    (self.t0_unix_s + float(t_s) + self.scenario.wall_step_s(float(t_s)) - 0.01) * 1e6
+                )
                 await server.send(self._bad_frame(fault.kind, 10_000_000 + index, stamp_us))
                 self.faults_injected.append({"kind": fault.kind.value, "t_s": round(float(t_s), 3)})
             prev_t = float(t_s)
@@ -356,11 +370,7 @@ class _Flight:
             t_kill = time.time()
             old.kill()
             await asyncio.get_running_loop().run_in_executor(None, old.wait)
-            procs.append(
-                subprocess.Popen(
-                    cmd, stdout=log_file, stderr=log_file, env={**os.environ, "PYTHONUNBUFFERED": "1"}
-                )
-            )
+            procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=log_file, env=self._daemon_env()))
             self.restarts.append({"killed_unix_s": t_kill, "restarted_unix_s": time.time()})
             self._say(f"daemon killed (SIGKILL) at {at_s:.1f} s and restarted: pid {procs[-1].pid}")
 
@@ -373,11 +383,7 @@ class _Flight:
         stop = asyncio.Event()
         cmd = self._daemon_cmd(mav_port, cam_port)
         with log_path.open("wb") as log_file:
-            procs = [
-                subprocess.Popen(
-                    cmd, stdout=log_file, stderr=log_file, env={**os.environ, "PYTHONUNBUFFERED": "1"}
-                )
-            ]
+            procs = [subprocess.Popen(cmd, stdout=log_file, stderr=log_file, env=self._daemon_env())]
             proc = procs[0]
             restarter: asyncio.Task[None] | None = None
             try:
@@ -407,6 +413,7 @@ class _Flight:
                 side_tasks = [
                     asyncio.create_task(self._flood(mav_port, stop), name="sitl_flood"),
                     asyncio.create_task(self._sample_rss(procs, stop), name="sitl_rss"),
+                    asyncio.create_task(self.host.run(self.t0_unix_s, stop), name="sitl_host_faults"),
                 ]
                 await self._camera(server, stop)
                 if restarter is not None:
@@ -502,8 +509,14 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     cache_s = time.monotonic() - t_cache
 
     shutil.rmtree(workdir / "fdr", ignore_errors=True)  # this run's records only
-    flight = _Flight(opts, scenario, trajectory, renderer, config_path, cache_dir, workdir, ground_alt)
-    ap = asyncio.run(flight.fly())
+    try:
+        flight = _Flight(opts, scenario, trajectory, renderer, config_path, cache_dir, workdir, ground_alt)
+    except HostFaultError as exc:
+        raise SitlError(str(exc)) from exc
+    try:
+        ap = asyncio.run(flight.fly())
+    finally:
+        flight.host.finish(workdir / "fdr")
 
     def truth_at_unix(t_unix_s: float) -> tuple[float, float]:
         # Not clamped at the scenario's duration: the simulated vehicle flies on along its path during the

@@ -91,6 +91,16 @@ number is expected.
     default 500). Instants ``{at_s}``, sent before the frame exposed at or after ``at_s``:
     ``corrupt_frame`` (a valid header with a destroyed JPEG), ``bomb_frame`` (a small PNG that claims
     20000x20000), ``wrong_size_frame`` (a 100x100 image).
+    Faults of the companion computer the daemon runs on (``sitl.host_faults``): ``clock_jump``
+    ``{at_s, step_s}`` (an instant: its wall clock steps by ``step_s`` != 0 seconds, as NTP or ``date -s``
+    would: the daemon process sees the step through libfaketime (its monotonic clock is untouched) and the
+    camera, on the same computer, stamps with the stepped clock; the autopilot's clock does not step);
+    ``ort_fault`` ``{at_s, count}`` (an instant: the next ``count`` ONNX Runtime runs, default 3, are
+    refused by ONNX Runtime itself through the C7 test hook; only a learned matcher runs ONNX Runtime);
+    ``tile_corrupt`` ``{from_s, to_s}`` (a window: the map cell under the aircraft's position 3 s later is
+    overwritten with noise in the daemon's cache file, in place, and its bytes put back at ``to_s``; the
+    run uses its own copy of the cache); ``fdr_full`` ``{from_s, to_s}`` (a window: the file system of the
+    flight data recorder, a tmpfs the runner mounts for the run, is filled to its last byte).
 ``timestamp_faults`` (list, default [])
     ``{at_s: number >= 0, ahead_s: number != 0}``: the first frame exposed at or after ``at_s`` is stamped
     ``ahead_s`` seconds off its true exposure (positive: from the future; negative: late or out of order).
@@ -228,13 +238,23 @@ class FaultKind(str, Enum):
     CORRUPT_FRAME = "corrupt_frame"
     BOMB_FRAME = "bomb_frame"
     WRONG_SIZE_FRAME = "wrong_size_frame"
+    CLOCK_JUMP = "clock_jump"
+    ORT_FAULT = "ort_fault"
+    TILE_CORRUPT = "tile_corrupt"
+    FDR_FULL = "fdr_full"
 
     @property
     def instant(self) -> bool:
         return self in _INSTANT_FAULTS
 
+    @property
+    def bad_frame(self) -> bool:
+        """A malformed frame the camera sends (the other instants happen on the companion computer)."""
+        return self in _BAD_FRAME_FAULTS
 
-_INSTANT_FAULTS = frozenset({FaultKind.CORRUPT_FRAME, FaultKind.BOMB_FRAME, FaultKind.WRONG_SIZE_FRAME})
+
+_BAD_FRAME_FAULTS = frozenset({FaultKind.CORRUPT_FRAME, FaultKind.BOMB_FRAME, FaultKind.WRONG_SIZE_FRAME})
+_INSTANT_FAULTS = _BAD_FRAME_FAULTS | {FaultKind.CLOCK_JUMP, FaultKind.ORT_FAULT}
 
 
 @dataclass(frozen=True)
@@ -246,6 +266,10 @@ class Fault:
     to_s: float
     reconnect: bool = False
     rate_hz: float = 500.0
+    #: ``clock_jump``: the wall clock's step, s.
+    step_s: float = 0.0
+    #: ``ort_fault``: ONNX Runtime runs to refuse.
+    count: int = 0
 
 
 @dataclass(frozen=True)
@@ -594,8 +618,16 @@ class Scenario:
         return next((f for f in self.faults if f.kind is kind and f.from_s <= t_s < f.to_s), None)
 
     def instant_faults(self, t0_s: float, t1_s: float) -> list[Fault]:
-        """Instant faults due in ``(t0_s, t1_s]`` (the frames between two exposures)."""
-        return [f for f in self.faults if f.kind.instant and t0_s < f.from_s <= t1_s]
+        """Bad-frame instant faults due in ``(t0_s, t1_s]`` (the frames between two exposures)."""
+        return [f for f in self.faults if f.kind.bad_frame and t0_s < f.from_s <= t1_s]
+
+    def faults_of(self, kind: FaultKind) -> list[Fault]:
+        """Every fault of ``kind``, in time order."""
+        return sorted((f for f in self.faults if f.kind is kind), key=lambda f: f.from_s)
+
+    def wall_step_s(self, t_s: float) -> float:
+        """The companion computer's wall clock minus true time at ``t_s`` (sum of ``clock_jump`` steps)."""
+        return sum(f.step_s for f in self.faults if f.kind is FaultKind.CLOCK_JUMP and f.from_s <= t_s)
 
     def stamp_offset_s(self, t_s: float) -> float:
         """Seconds to add to the stamp of the frame exposed at ``t_s`` (0 for a truthful stamp)."""
@@ -970,7 +1002,16 @@ def _read_faults(value: object, source: str | None) -> tuple[Fault, ...]:
         except ValueError as exc:
             valid = ", ".join(k.value for k in FaultKind)
             raise b.error("kind", f"expected one of: {valid}; got {kind_raw!r}") from exc
-        if kind.instant:
+        if kind is FaultKind.CLOCK_JUMP:
+            at = b.number("at_s", ge=0.0)
+            step = b.number("step_s")
+            if step == 0.0:
+                raise b.error("step_s", "expected a non-zero step in seconds, got 0")
+            faults.append(Fault(kind, at, at, step_s=step))
+        elif kind is FaultKind.ORT_FAULT:
+            at = b.number("at_s", ge=0.0)
+            faults.append(Fault(kind, at, at, count=b.integer("count", 3, ge=1)))
+        elif kind.instant:
             at = b.number("at_s", ge=0.0)
             faults.append(Fault(kind, at, at))
         else:

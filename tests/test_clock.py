@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gps_denied_onboard.clock import CLOCK_STEP_MIN_S, DaemonClock
+from gps_denied_onboard.clock import CLOCK_STEP_MIN_S, EPOCH_HISTORY_S, DaemonClock
 from gps_denied_onboard.components.c5_estimator import FixReason, NavEstimator, Refusal, TimeAxis
 from gps_denied_onboard.config import EstimatorConfig
 from test_c5_estimator import LTP, S, _fix, _vo
@@ -92,6 +92,36 @@ def test_clock_detects_each_step_once_and_ignores_slew() -> None:
     assert step is not None and step.step_s == pytest.approx(45.0, abs=1e-6)
     assert step.wall_offset_s == pytest.approx(15.0 + CLOCK_STEP_MIN_S / 4, abs=1e-6)
     assert clock.steps == 2
+
+
+@pytest.mark.parametrize("step_s", [-30.0, 30.0, -2.0, 3600.0])
+def test_clock_maps_a_backlogged_frame_with_the_offset_of_its_own_epoch(step_s: float) -> None:
+    """Frames exposed before a step but read after it (a backlog in the stream) keep their true times, as
+    do the frames after the step; once the backlog horizon has passed only the current offset is used."""
+    host = _HostClocks(T0)
+    clock = _clock(host)
+    host.advance(S)
+    before = [host.wall_usec() - LATENCY_US - k * FRAME_US for k in (2, 1, 0)]
+    true_before = [T0 + S - LATENCY_US - k * FRAME_US for k in (2, 1, 0)]
+    host.step_wall(step_s)
+    assert clock.check_step() is not None
+    host.advance(FRAME_US)
+    after = host.wall_usec() - LATENCY_US
+    assert [clock.from_wall_usec(stamp) for stamp in before] == true_before
+    assert clock.from_wall_usec(after) == T0 + S + FRAME_US - LATENCY_US
+    host.advance(round(EPOCH_HISTORY_S * S) + S)
+    assert clock.from_wall_usec(before[-1]) == true_before[-1] - round(step_s * S)
+
+
+def test_clock_history_does_not_explain_away_a_lying_stamp() -> None:
+    """A frame stamped 5 s in the future right after a backwards step is not mapped to a fresh time."""
+    host = _HostClocks(T0)
+    clock = _clock(host)
+    host.advance(S)
+    host.step_wall(-30.0)
+    clock.check_step()
+    t = clock.from_wall_usec(host.wall_usec() + 5 * S)
+    assert abs(t - clock.now_unix_usec()) > 4 * S
 
 
 def _axis(clock: DaemonClock) -> TimeAxis:

@@ -104,6 +104,32 @@ def test_scenario_faults_parse_windows_and_instants() -> None:
     assert "faults[0].reconnect" in str(err)
 
 
+def test_scenario_host_faults_parse_and_never_reach_the_camera() -> None:
+    """clock_jump steps accumulate into the host's wall clock from their instant; ort_fault carries its
+    count (3 by default); tile_corrupt and fdr_full are windows; none of them is sent as a bad frame; a
+    zero step or a zero count is refused with its key path."""
+    sc = _scenario(
+        faults=[
+            {"kind": "clock_jump", "at_s": 5.0, "step_s": -30.0},
+            {"kind": "clock_jump", "at_s": 8.0, "step_s": 30.5},
+            {"kind": "ort_fault", "at_s": 6.0},
+            {"kind": "ort_fault", "at_s": 7.0, "count": 5},
+            {"kind": "tile_corrupt", "from_s": 2.0, "to_s": 4.0},
+            {"kind": "fdr_full", "from_s": 3.0, "to_s": 4.0},
+        ]
+    )
+    assert [sc.wall_step_s(t) for t in (4.99, 5.0, 7.9, 8.0)] == [0.0, -30.0, -30.0, 0.5]
+    assert [f.count for f in sc.faults_of(FaultKind.ORT_FAULT)] == [3, 5]
+    assert (
+        sc.fault_at(FaultKind.TILE_CORRUPT, 3.0) is not None and sc.fault_at(FaultKind.FDR_FULL, 4.0) is None
+    )
+    assert sc.instant_faults(0.0, 10.0) == []
+    err = _error_for({**BASE, "faults": [{"kind": "clock_jump", "at_s": 1.0, "step_s": 0}]})
+    assert "faults[0].step_s" in str(err)
+    err = _error_for({**BASE, "faults": [{"kind": "ort_fault", "at_s": 1.0, "count": 0}]})
+    assert "faults[0].count" in str(err)
+
+
 def test_scenario_builtin_files_load() -> None:
     """The three shipped scenarios load, by path and by bare name, with the documented shape."""
     names = sorted(p.stem for p in BUILTIN_SCENARIOS_DIR.glob("*.yaml"))
