@@ -34,14 +34,15 @@ few 6x6 matrix operations, a rewind a few dozen).
 from __future__ import annotations
 
 import bisect
+import contextlib
 import itertools
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 import structlog
@@ -49,6 +50,7 @@ import structlog
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator.ekf import EstimatorCheckpoint, FixReason, NavEstimator
+from gps_denied_onboard.components.c5_estimator.journal import InputJournal
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState, FixDecision
 from gps_denied_onboard.constants import LogEvent
 
@@ -112,7 +114,9 @@ class TimeAxis:
 
     ``estimator``: the filter it owns (nothing else may call its update methods). ``clock_unix_usec``:
     the daemon's clock (injected for tests and replay). ``max_future_s``, ``max_frame_age_s``,
-    ``max_delay_s``: the admission bounds, seconds.
+    ``max_delay_s``: the admission bounds, seconds. ``journal``: records (or, in a replay, plays back)
+    each :meth:`unit` and the IMU answers inside it (``c5_estimator.journal``); it must also be the
+    estimator's acceleration source.
     """
 
     def __init__(
@@ -123,6 +127,7 @@ class TimeAxis:
         max_frame_age_s: float,
         max_future_s: float = DEFAULT_MAX_FUTURE_S,
         clock_unix_usec: Callable[[], int] = _clock_unix_usec,
+        journal: InputJournal | None = None,
     ) -> None:
         for name, value in (
             ("max_delay_s", max_delay_s),
@@ -133,6 +138,7 @@ class TimeAxis:
                 raise ValueError(f"{name} must be a positive number of seconds, got {value!r}")
         self._est = estimator
         self._clock = clock_unix_usec
+        self._journal = journal
         self._max_future_usec = round(max_future_s * 1e6)
         self._max_frame_age_usec = round(max_frame_age_s * 1e6)
         self._max_delay_usec = round(max_delay_s * 1e6)
@@ -200,6 +206,26 @@ class TimeAxis:
         with self._lock:
             self._est.initialise(pos_ned_m, sigma_m, int(time_unix_usec))
             self._entries.clear()
+
+    @contextlib.contextmanager
+    def unit(self, kind: str, time_unix_usec: int) -> Iterator[dict[str, Any]]:
+        """One atomic visit of a pipeline half (``c5_estimator.journal``): the axis' lock is held for the
+        whole block, so no other thread's input lands inside it, and the journal (if any) records it
+        with the clock now and the IMU answers the estimator got. The block may add fields to the
+        yielded dict; they go into the unit's record."""
+        with self._lock:
+            journal = self._journal
+            extra: dict[str, Any] = {}
+            if journal is None:
+                yield extra
+                return
+            journal.begin(kind, int(time_unix_usec), self._clock())
+            try:
+                yield extra
+            except BaseException:
+                journal.abort()
+                raise
+            journal.end(extra)
 
     # -- measurements ---------------------------------------------------------------------------------
 
