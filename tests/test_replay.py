@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import shutil
 import struct
 from pathlib import Path
@@ -205,12 +206,47 @@ def _write_tlog(path: Path, samples: list[tuple[float, Any]], t0_unix_s: float) 
     assert path.stat().st_size > 0
 
 
-def test_replay_tlog_with_rendered_frames_anchors_on_the_map(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+def _write_bin(path: Path, states: list[tuple[float, Any]]) -> None:
+    """A real ArduPilot DataFlash (.bin) log as pymavlink's DFReader reads it: FMT records, a GPS record
+    with the GPS week and time of week (the log's clock), ATT (degrees) and POS (degrees, RelHomeAlt)."""
+    head = b"\xa3\x95"
+    sizes = {"Q": 8, "f": 4, "L": 4, "I": 4, "H": 2}
+
+    def fmt(type_id: int, name: str, form: str, cols: str) -> bytes:
+        length = 3 + sum(sizes[c] for c in form)
+        return (
+            head
+            + bytes([128])
+            + struct.pack("<BB4s16s64s", type_id, length, name.encode(), form.encode(), cols.encode())
+        )
+
+    def rec(type_id: int, form: str, *vals: Any) -> bytes:
+        return head + bytes([type_id]) + struct.pack("<" + form.replace("L", "i"), *vals)
+
+    t_first = states[0][0]
+    gps_epoch_unix_s = 315964800  # 1980-01-06; DataFlash GPS time runs 18 leap seconds ahead of UTC
+    gps_s = t_first + 18 - gps_epoch_unix_s
+    with path.open("wb") as fh:
+        fh.write(fmt(130, "GPS", "QIH", "TimeUS,GMS,GWk"))
+        fh.write(fmt(131, "ATT", "Qfff", "TimeUS,Roll,Pitch,Yaw"))
+        fh.write(fmt(132, "POS", "QLLf", "TimeUS,Lat,Lng,RelHomeAlt"))
+        fh.write(rec(130, "QIH", 1_000_000, round((gps_s % 604800) * 1000), int(gps_s // 604800)))
+        for i, (t, s) in enumerate(states):
+            us = 1_000_000 + round((t - t_first) * 1e6)
+            yaw_deg = math.degrees(s.yaw_rad) % 360.0
+            fh.write(rec(131, "Qfff", us, math.degrees(s.roll_rad), math.degrees(s.pitch_rad), yaw_deg))
+            if i % 5 == 0:
+                fh.write(rec(132, "QLLf", us, round(s.lat_deg * 1e7), round(s.lon_deg * 1e7), s.alt_agl_m))
+
+
+@pytest.mark.parametrize("log_format", ["tlog", "bin"])
+def test_replay_telemetry_log_with_rendered_frames_anchors_on_the_map(
+    log_format: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """A .tlog written with pymavlink (SYSTEM_TIME, ATTITUDE, GLOBAL_POSITION_INT) and frames rendered along
-    the same flight over a real cache: the replay reads the log through pymavlink, interpolates attitude
-    and height to each frame, anchors on the map, and scores against the log's positions."""
+    """A log (a .tlog written with pymavlink: SYSTEM_TIME, ATTITUDE, GLOBAL_POSITION_INT; or a DataFlash
+    .bin: ATT, POS) and frames rendered along the same flight over a real cache: the replay reads the log
+    through pymavlink, interpolates attitude and height to each frame, anchors on the map, and scores
+    against the log's positions."""
     from pymavlink.dialects.v20 import ardupilotmega as mav2
 
     from gps_denied_onboard.camera.types import CameraCalibration
@@ -239,33 +275,34 @@ def test_replay_tlog_with_rendered_frames_anchors_on_the_map(
         w = csv.DictWriter(fh, fieldnames=["file", "time_unix_s"])
         w.writeheader()
         w.writerows(times)
-    samples: list[tuple[float, Any]] = []
-    for i in range(0, 6 * 50):
-        t_s = i / 50.0
-        t = t0 + t_s
-        boot_ms = round((t - boot0) * 1e3)
-        s = traj.truth_at(t_s)
-        samples.append(
-            (t, mav2.MAVLink_attitude_message(boot_ms, s.roll_rad, s.pitch_rad, s.yaw_rad, 0, 0, 0))
-        )
-        if i % 5 == 0:
+    states = [(t0 + i / 50.0, traj.truth_at(i / 50.0)) for i in range(6 * 50)]
+    log = tmp_path / f"flight.{log_format}"
+    if log_format == "bin":
+        _write_bin(log, states)
+    else:
+        samples: list[tuple[float, Any]] = []
+        for i, (t, s) in enumerate(states):
+            boot_ms = round((t - boot0) * 1e3)
             samples.append(
-                (
-                    t,
-                    mav2.MAVLink_global_position_int_message(
-                        boot_ms, round(s.lat_deg * 1e7), round(s.lon_deg * 1e7), round(s.alt_amsl_m * 1e3),
-                        round(s.alt_agl_m * 1e3), 0, 0, 0, 65535,
-                    ),
-                )
-            )  # fmt: skip
-        if i % 50 == 0:
-            samples.append((t, mav2.MAVLink_system_time_message(round(t * 1e6), boot_ms)))
-    tlog = tmp_path / "flight.tlog"
-    _write_tlog(tlog, samples, t0)
-    report_path = tmp_path / "tlog.json"
+                (t, mav2.MAVLink_attitude_message(boot_ms, s.roll_rad, s.pitch_rad, s.yaw_rad, 0, 0, 0))
+            )
+            if i % 5 == 0:
+                samples.append(
+                    (
+                        t,
+                        mav2.MAVLink_global_position_int_message(
+                            boot_ms, round(s.lat_deg * 1e7), round(s.lon_deg * 1e7),
+                            round(s.alt_amsl_m * 1e3), round(s.alt_agl_m * 1e3), 0, 0, 0, 65535,
+                        ),
+                    )
+                )  # fmt: skip
+            if i % 50 == 0:
+                samples.append((t, mav2.MAVLink_system_time_message(round(t * 1e6), boot_ms)))
+        _write_tlog(log, samples, t0)
+    report_path = tmp_path / "log.json"
     code, out, err = _replay(
         [
-            "--tlog", str(tlog), "--images", str(frames_dir), "--frame-times", str(times_csv),
+            "--tlog", str(log), "--images", str(frames_dir), "--frame-times", str(times_csv),
             "--config", str(SITL_CONFIG), "--cache", str(cache), "--set", "matcher.strategy=classical",
             "--report", str(report_path),
         ],
@@ -278,8 +315,8 @@ def test_replay_tlog_with_rendered_frames_anchors_on_the_map(
     m = report["metrics"]
     assert m["horizontal_error_m"]["p95"] is not None and m["horizontal_error_m"]["p95"] < 5.0, m
     assert m["consistency"]["beyond_3sigma"] == 0 and m["analysis"]["accepted_fixes_beyond_3sigma"] == 0
-    # attitude came from the log, interpolated to each frame
-    assert report["vo"]["intervals_measured"] >= 10, report["vo"]
+    # attitude and height came from the log, interpolated to each frame: VO measured every interval
+    assert report["vo"]["intervals_measured"] == 11, report["vo"]
     assert "anchored frames:" in out
 
 

@@ -453,10 +453,17 @@ class TelemetryLog:
     home: tuple[float, float] | None
 
 
+#: Messages read from a MAVLink telemetry log (.tlog).
+_TLOG_TYPES: Final = ("ATTITUDE", "GLOBAL_POSITION_INT", "SYSTEM_TIME", "HOME_POSITION")
+#: Messages read from an ArduPilot DataFlash log (.bin): attitude and position.
+_BIN_TYPES: Final = ("ATT", "POS")
+
+
 def read_telemetry_log(path: Path) -> TelemetryLog:
-    """ATTITUDE and GLOBAL_POSITION_INT (and HOME_POSITION) from a ``.tlog`` or ``.bin`` log, on the Unix
-    time axis: a message's ``time_boot_ms`` mapped through SYSTEM_TIME when the log has it, else the
-    log's own receive timestamps."""
+    """Attitude and position from a ``.tlog`` (ATTITUDE, GLOBAL_POSITION_INT, HOME_POSITION) or a DataFlash
+    ``.bin`` (ATT, POS) log, on the Unix time axis: a .tlog message's ``time_boot_ms`` mapped through
+    SYSTEM_TIME when the log has it, else the log's receive timestamps; a .bin message's time from
+    pymavlink's log clock (GPS week/ms when the log has a GPS time, else time since boot)."""
     from pymavlink import mavutil
 
     if not path.is_file():
@@ -472,7 +479,7 @@ def read_telemetry_log(path: Path) -> TelemetryLog:
     times: list[float] = []
     try:
         while True:
-            msg = conn.recv_match(type=["ATTITUDE", "GLOBAL_POSITION_INT", "SYSTEM_TIME", "HOME_POSITION"])
+            msg = conn.recv_match(type=[*_TLOG_TYPES, *_BIN_TYPES])
             if msg is None:
                 break
             ts = float(getattr(msg, "_timestamp", 0.0) or 0.0)
@@ -487,11 +494,17 @@ def read_telemetry_log(path: Path) -> TelemetryLog:
                 pos_raw.append((ts, boot, (msg.lat / 1e7, msg.lon / 1e7, msg.relative_alt / 1e3)))
             elif mtype == "HOME_POSITION":
                 home = (msg.latitude / 1e7, msg.longitude / 1e7)
+            elif mtype == "ATT":  # DataFlash (.bin): degrees; time from pymavlink's log clock
+                att_raw.append(
+                    (ts, None, (math.radians(msg.Roll), math.radians(msg.Pitch), math.radians(msg.Yaw)))
+                )
+            elif mtype == "POS":  # DataFlash: degrees, height above home in m
+                pos_raw.append((ts, None, (float(msg.Lat), float(msg.Lng), float(msg.RelHomeAlt))))
     finally:
         conn.close()
     if not att_raw or not pos_raw:
         raise ReplayInputError(
-            f"{path}: needs ATTITUDE and GLOBAL_POSITION_INT messages; "
+            f"{path}: needs ATTITUDE and GLOBAL_POSITION_INT messages (ATT and POS in a .bin log); "
             f"found {len(att_raw)} and {len(pos_raw)}"
         )
     offset = float(np.median(offsets)) if offsets else None
