@@ -239,14 +239,14 @@ def _write_bin(path: Path, states: list[tuple[float, Any]]) -> None:
                 fh.write(rec(132, "QLLf", us, round(s.lat_deg * 1e7), round(s.lon_deg * 1e7), s.alt_agl_m))
 
 
-@pytest.mark.parametrize("log_format", ["tlog", "bin"])
+@pytest.mark.parametrize("log_format", ["tlog", "bin", "tlog+video"])
 def test_replay_telemetry_log_with_rendered_frames_anchors_on_the_map(
     log_format: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A log (a .tlog written with pymavlink: SYSTEM_TIME, ATTITUDE, GLOBAL_POSITION_INT; or a DataFlash
-    .bin: ATT, POS) and frames rendered along the same flight over a real cache: the replay reads the log
-    through pymavlink, interpolates attitude and height to each frame, anchors on the map, and scores
-    against the log's positions."""
+    .bin: ATT, POS) and frames rendered along the same flight over a real cache (an image directory, or an
+    MJPEG video at 3 fps): the replay reads the log through pymavlink, interpolates attitude and height to
+    each frame, anchors on the map, and scores against the log's positions."""
     from pymavlink.dialects.v20 import ardupilotmega as mav2
 
     from gps_denied_onboard.camera.types import CameraCalibration
@@ -270,13 +270,20 @@ def test_replay_telemetry_log_with_rendered_frames_anchors_on_the_map(
         name = f"f{k:03d}.png"
         assert cv2.imwrite(str(frames_dir / name), img)
         times.append({"file": name, "time_unix_s": f"{t0 + t_s:.6f}"})
+    if log_format == "tlog+video":
+        video = tmp_path / "nav.avi"
+        writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 3.0, (640, 480))
+        assert writer.isOpened()
+        for row in times:
+            writer.write(cv2.imread(str(frames_dir / row["file"])))
+        writer.release()
     times_csv = tmp_path / "frame_times.csv"
     with times_csv.open("w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=["file", "time_unix_s"])
         w.writeheader()
         w.writerows(times)
     states = [(t0 + i / 50.0, traj.truth_at(i / 50.0)) for i in range(6 * 50)]
-    log = tmp_path / f"flight.{log_format}"
+    log = tmp_path / f"flight.{log_format.split('+')[0]}"
     if log_format == "bin":
         _write_bin(log, states)
     else:
@@ -302,7 +309,12 @@ def test_replay_telemetry_log_with_rendered_frames_anchors_on_the_map(
     report_path = tmp_path / "log.json"
     code, out, err = _replay(
         [
-            "--tlog", str(log), "--images", str(frames_dir), "--frame-times", str(times_csv),
+            "--tlog", str(log),
+            *(
+                ["--video", str(video), "--video-start-unix-s", f"{t0 + 1.0:.6f}"]
+                if log_format == "tlog+video"
+                else ["--images", str(frames_dir), "--frame-times", str(times_csv)]
+            ),
             "--config", str(SITL_CONFIG), "--cache", str(cache), "--set", "matcher.strategy=classical",
             "--report", str(report_path),
         ],

@@ -132,6 +132,9 @@ def run_replay(
     )
     calib = root.calibration
     pipeline, axis = root.pipeline, root.time_axis
+    cache_note = _cache_matches_recording(inp, root.config) if with_map else None
+    if cache_note is not None:
+        inp.notes.append(cache_note)
     divergence: str | None = None
     refused: Counter[str] = Counter()
     bad_frames: list[dict[str, Any]] = []
@@ -221,6 +224,28 @@ def run_replay(
     if journal is not None:
         report["journal"] = {"units_total": journal.units_total, "units_replayed": journal.units_replayed}
     return report
+
+
+def _cache_matches_recording(inp: ReplayInput, config: Config) -> str | None:
+    """A note when the map cache is not the one the recorded run used (its manifest pins every artifact):
+    an exact replay then has no reason to match."""
+    if inp.recorded_cache_manifest_sha256 is None:
+        return None
+    import hashlib
+    from pathlib import Path
+
+    from gps_denied_onboard.components.c10_cache_build.manifest import MANIFEST_NAME
+
+    try:
+        now = hashlib.sha256((Path(config.cache.dir) / MANIFEST_NAME).read_bytes()).hexdigest()
+    except OSError:
+        return None  # compose_replay has already refused a missing cache
+    if now != inp.recorded_cache_manifest_sha256:
+        return (
+            f"the map cache {config.cache.dir} is not the one the run used (manifest sha256 {now[:12]}, "
+            f"recorded {inp.recorded_cache_manifest_sha256[:12]})"
+        )
+    return None
 
 
 def _report(

@@ -91,6 +91,8 @@ class ReplayInput:
     recorded_frames: dict[int, dict[str, Any]] = field(default_factory=dict)
     #: The daemon's config as recorded (FDR only).
     recorded_config: dict[str, Any] | None = None
+    #: sha256 of the map cache's manifest as recorded at the run's start (FDR only; None: not recorded).
+    recorded_cache_manifest_sha256: str | None = None
     #: A calibration the source brings (EXIF), or None: the config's.
     calibration: CameraCalibration | None = None
     #: Ground height AMSL the source implies (None: the config's ``terrain.ground_alt_amsl_m``).
@@ -228,6 +230,9 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
         journal=journal,
         recorded_frames={int(r["frame_seq"]): r for r in frames_rec},
         recorded_config=dict(config_rec["config"]) if config_rec is not None else None,
+        recorded_cache_manifest_sha256=config_rec.get("cache_manifest_sha256")
+        if config_rec is not None
+        else None,
         not_exact=not_exact,
     )
 
