@@ -154,6 +154,21 @@ def test_replay_sitl_fdr_detects_a_changed_imu_answer(
     assert seq["mode"] == "sequential" and not seq["reproduction"]["all_equal"]
 
 
+@pytest.mark.sitl
+def test_replay_sitl_fdr_refuses_a_missing_cache_and_a_bad_override(
+    sitl_flight: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The recorded config with its map cache gone: exit 3 naming the cache; an unknown override: exit 2;
+    a run index the FDR does not have: exit 2. One line each."""
+    fdr = str(sitl_flight / "work" / "fdr")
+    code, _, err = _replay(["--fdr", fdr, "--set", f"cache.dir={sitl_flight / 'gone'}"], capsys)
+    _assert_one_line_refusal(code, err, 3, "cache")
+    code, _, err = _replay(["--fdr", fdr, "--set", "estimator.no_such_key=1"], capsys)
+    _assert_one_line_refusal(code, err, 2, "no_such_key")
+    code, _, err = _replay(["--fdr", fdr, "--run", "7"], capsys)
+    _assert_one_line_refusal(code, err, 2, "--run 7")
+
+
 # -- photos + CSV: the snowpeak eBee flight -----------------------------------------------------------
 
 

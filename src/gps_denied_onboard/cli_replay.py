@@ -14,9 +14,12 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import logging
 import sys
 from pathlib import Path
 from typing import Any
+
+import structlog
 
 EXIT_OK, EXIT_CONFIG, EXIT_RESOURCE = 0, 2, 3
 
@@ -122,7 +125,12 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.vo_max_gap_s is not None and not args.vo_max_gap_s > 0:
         _err(f"--vo-max-gap-s must be > 0, got {args.vo_max_gap_s}")
         return EXIT_CONFIG
-    configure_logging("error", json=False)
+    if args.log_level is None:
+        # The report says everything the logs would; a refusal stays one line on stderr.
+        configure_logging("error", json=False)
+        structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.CRITICAL))
+    else:
+        configure_logging(args.log_level, json=False)
     overrides = list(args.set or ())
     if args.cache is not None:
         overrides.append(f"cache.dir={args.cache}")
@@ -242,5 +250,11 @@ def register(sub: Any) -> None:
     p.add_argument("--vo-max-gap-s", type=float, default=None, help="C1's longest measured interval, s")
     p.add_argument("--config", type=Path, default=None, help="profile (FDR: default the recorded config)")
     p.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="config override (repeatable)")
+    p.add_argument(
+        "--log-level",
+        choices=("debug", "info", "warning", "error"),
+        default=None,
+        help="pipeline logs on stderr (default: none; the report holds the outcome)",
+    )
     p.add_argument("--report", type=Path, default=Path("out/replay/report.json"), help="report JSON path")
     p.set_defaults(func=_cmd_replay)

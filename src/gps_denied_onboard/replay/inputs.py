@@ -149,13 +149,25 @@ def _split_runs(records: Sequence[dict[str, Any]]) -> list[list[dict[str, Any]]]
     return runs
 
 
+#: FDR kinds a replay reads (``fdr.opened`` marks where a run starts).
+_FDR_KINDS: Final = (
+    FdrKind.FDR_OPENED,
+    FdrKind.CONFIG,
+    FdrKind.PRIOR,
+    FdrKind.FRAME,
+    FdrKind.FRAME_IMAGE,
+    FdrKind.ESTIMATOR_INPUT,
+)
+
+
 def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
     """One run of the FDR at ``path`` (default: the last run that tracked frames)."""
     from gps_denied_onboard.components.c13_fdr.reader import FdrReader, FdrReadError
 
     reader = FdrReader(path)
     try:
-        runs = _split_runs(list(reader.records()))
+        # Only the kinds a replay uses (the estimate stream and status records are most of a recorder).
+        runs = _split_runs(list(reader.records(*_FDR_KINDS)))
     except FdrReadError as exc:
         raise ReplayInputError(str(exc)) from exc
     if not runs:
