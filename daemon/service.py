@@ -311,8 +311,12 @@ class NavDaemon:
         every_n = self._cfg.fdr.frame_jpeg_every_n
         if every_n and captured.seq % every_n == 0:
             # After VO, so the encode (a few ms) never delays the estimate; the recorder never raises.
-            self._root.fdr.record_frame_jpeg(
-                captured.seq, exposure_time_unix_usec, image, self._cfg.fdr.frame_jpeg_quality
+            self._root.fdr.record_frame_encoded(
+                captured.seq,
+                exposure_time_unix_usec,
+                image,
+                self._cfg.fdr.frames_format,
+                quality=self._cfg.fdr.frame_jpeg_quality,
             )
         return frame, outcome
 

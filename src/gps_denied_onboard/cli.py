@@ -315,6 +315,9 @@ def build_parser() -> argparse.ArgumentParser:
     from gps_denied_onboard import cli_preflight
 
     cli_preflight.register(sub)
+    from gps_denied_onboard import cli_replay
+
+    cli_replay.register(sub)
     return parser
 
 

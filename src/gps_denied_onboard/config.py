@@ -305,6 +305,9 @@ class FdrConfig:
     segment_bytes: Annotated[int, Strict(), Field(ge=1 << 14)] = 16 << 20
     #: Store every N-th nav frame (camera seq a multiple of N) as a JPEG in <dir>/images; 0 = off.
     frame_jpeg_every_n: Annotated[int, Strict(), Field(ge=0)] = 0
+    #: Encoding of those frames: jpeg (small, lossy) or png (lossless: with frame_jpeg_every_n 1, `gdnav
+    #: replay` reproduces the flight's per-frame estimates exactly).
+    frames_format: Literal["jpeg", "png"] = "jpeg"
     #: JPEG quality of those frames (1..100).
     frame_jpeg_quality: Annotated[int, Strict(), Field(ge=1, le=100)] = 80
     #: Budget of the frame images, bytes, apart from max_bytes (oldest images deleted first).
@@ -437,6 +440,17 @@ def _apply_override(data: dict[str, Any], assignment: str) -> None:
         node[parts[-1]] = yaml.safe_load(raw) if raw.strip() else None
     except yaml.YAMLError as exc:
         raise ConfigError(key, f"override value is not valid YAML: {exc}".replace("\n", " ")) from exc
+
+
+def config_with_overrides(
+    data: Mapping[str, Any], overrides: Sequence[str] = (), *, source: str | None = None
+) -> Config:
+    """A config from a mapping (e.g. the ``daemon.config`` an FDR recorded) with ``KEY.PATH=VALUE``
+    overrides applied, validated like a file."""
+    copy = json.loads(json.dumps(dict(data)))
+    for item in overrides:
+        _apply_override(copy, item)
+    return config_from_mapping(copy, source=source)
 
 
 def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Config:

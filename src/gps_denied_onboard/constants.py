@@ -183,6 +183,9 @@ class FdrKind:
     STATUS: Final = "daemon.status"
     #: The start-up prior the estimator was initialised from (source, why, position, sigma).
     PRIOR: Final = "estimator.prior"
+    #: One journal unit of the estimator's time axis: the order of the pipeline halves, the clock and the
+    #: IMU answers the estimator got (``c5_estimator.journal``; what ``gdnav replay`` plays back).
+    ESTIMATOR_INPUT: Final = "estimator.input"
     MATCHER_FRAME_DONE: Final = "matcher.frame_done"
     MATCHER_BACKBONE_ERROR: Final = "matcher.backbone_error"
     MATCHER_INSUFFICIENT_INLIERS: Final = "matcher.insufficient_inliers"

@@ -31,6 +31,7 @@ from gps_denied_onboard.components.c2_vpr.types import VprError
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
+from gps_denied_onboard.components.c5_estimator.journal import UNIT_FIX, UNIT_FIX_PRIOR, UNIT_TRACK
 from gps_denied_onboard.components.c5_estimator.prior import InitialPrior
 from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxis
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
@@ -80,6 +81,18 @@ class FixOutcome:
 
 
 @dataclass(frozen=True)
+class FixAttempt:
+    """What C2 -> C2.5 -> C3 -> C4 made of one frame, before the estimator has seen it."""
+
+    fix: PoseFix | None
+    inliers: int
+    residual_px: float | None
+    #: Why there is no fix (None when there is one).
+    no_fix_reason: str | None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class FrameOutcome:
     """Both halves run one after the other on one frame (:meth:`NavigationPipeline.process`)."""
 
@@ -107,8 +120,10 @@ class NavigationPipeline:
       fix fused at the frame's exposure time however late it arrives (or refused as too late).
 
     The daemon runs them on two worker threads so a slow matcher never starves VO or the output;
-    :meth:`process` runs both in sequence (tests, replay). Each half is single-threaded by contract
-    (INV-1): one caller per half at a time.
+    :meth:`process` runs both in sequence (tests). Each half is single-threaded by contract (INV-1): one
+    caller per half at a time. Every visit to the time axis is one journal unit
+    (``c5_estimator.journal``), so ``gdnav replay`` can run :meth:`track`, :meth:`attempt_fix` and
+    :meth:`fuse_attempt` on one thread in the order the daemon's two threads reached the axis.
     """
 
     def __init__(
@@ -118,10 +133,10 @@ class NavigationPipeline:
         ltp: LocalTangentPlane,
         ground_alt_amsl_m: float,
         vo,  # HomographyVo  # type: ignore[no-untyped-def]
-        vpr: VprStrategy,
+        vpr: VprStrategy | None,
         vpr_config: VprConfig,
-        rerank: RerankStrategy,
-        matcher: CrossDomainMatcher,
+        rerank: RerankStrategy | None,
+        matcher: CrossDomainMatcher | None,
         pose_solver,  # PoseSolver
         time_axis: TimeAxis,
         fdr: FdrClient,
@@ -163,7 +178,11 @@ class NavigationPipeline:
         """The prior's uncertainty region, or None (corpus-wide, F6) once the uncertainty is so large
         that the region says little and the VPR strategy can search by appearance."""
         cfg = self._vpr_cfg
-        corpus_wide = state.horiz_sigma_m > cfg.corpus_wide_sigma_m and self._vpr.descriptor_dim() > 0
+        corpus_wide = (
+            state.horiz_sigma_m > cfg.corpus_wide_sigma_m
+            and self._vpr is not None
+            and self._vpr.descriptor_dim() > 0
+        )
         if corpus_wide != self._corpus_wide:
             self._corpus_wide = corpus_wide
             log.warning(
@@ -203,16 +222,19 @@ class NavigationPipeline:
         t1 = self._clock_ns()
         timings["vo"] = (t1 - t0) / 1e6
         state: EstimatorState | None = None
-        if not self._axis.is_initialised and prior is not None:
-            self._initialise(prior, frame)
-        if self._axis.is_initialised:
-            if motion is not None:
-                decision = self._axis.fuse_vo(motion, t)
-                if not decision.accepted:
-                    reason = f"estimator:{decision.reason}"
-            state = self._axis.state_at(t)
-        elif reason is None:
-            reason = "no_prior"
+        # One unit: no fix from the other thread lands between this frame's VO and its state.
+        with self._axis.unit(UNIT_TRACK, t) as unit:
+            if not self._axis.is_initialised and prior is not None:
+                self._initialise(prior, frame)
+                unit["initialised"] = True
+            if self._axis.is_initialised:
+                if motion is not None:
+                    decision = self._axis.fuse_vo(motion, t)
+                    if not decision.accepted:
+                        reason = f"estimator:{decision.reason}"
+                state = self._axis.state_at(t)
+            elif reason is None:
+                reason = "no_prior"
         timings["estimator_vo"] = (self._clock_ns() - t1) / 1e6
         vo_ok = motion is not None and reason is None
         out = TrackOutcome(frame.frame_id, frame.seq, t, state, vo_ok, reason, timings)
@@ -226,10 +248,19 @@ class NavigationPipeline:
                 "vo_ok": vo_ok,
                 "vo_reason": reason,
                 "vo_inliers": motion.inlier_count if motion is not None else 0,
+                "vo_delta_ne_m": [float(v) for v in motion.delta_ne_m] if motion is not None else None,
+                "vo_dt_s": float(motion.dt_s) if motion is not None else None,
                 "lat_deg": state.lat_deg if state else None,
                 "lon_deg": state.lon_deg if state else None,
                 "horiz_sigma_m": state.horiz_sigma_m if state else None,
                 "has_attitude": frame.attitude is not None,
+                # What the frame was tracked with (a replay gives the pipeline the same again).
+                "attitude_rad": (
+                    [frame.attitude.roll_rad, frame.attitude.pitch_rad, frame.attitude.yaw_rad]
+                    if frame.attitude is not None
+                    else None
+                ),
+                "alt_agl_m": frame.alt_agl_m,
                 "timings_ms": timings,
             },
         )
@@ -239,20 +270,38 @@ class NavigationPipeline:
 
     def localise(self, frame: NavCameraFrame) -> FixOutcome:
         """The absolute fix for ``frame`` (already tracked), fused at its exposure time."""
-        t = frame.exposure_time_unix_usec
+        return self.fuse_attempt(frame, self.attempt_fix(frame))
+
+    def attempt_fix(self, frame: NavCameraFrame) -> FixAttempt:
+        """C2 -> C2.5 -> C3 -> C4 on ``frame``, searching around the estimate read when it starts."""
         timings: dict[str, float] = {}
         fix, inliers, residual, reason = self._absolute_fix(frame, timings)
+        return FixAttempt(fix, inliers, residual, reason, timings)
+
+    def fuse_attempt(self, frame: NavCameraFrame, attempt: FixAttempt) -> FixOutcome:
+        """Fuse ``attempt`` (from :meth:`attempt_fix` on ``frame``) at the frame's exposure time, or note
+        that the attempt gave no fix; records the ``pipeline.fix`` record."""
+        t = frame.exposure_time_unix_usec
+        timings = dict(attempt.timings_ms)
+        fix, inliers, residual, reason = (
+            attempt.fix,
+            attempt.inliers,
+            attempt.residual_px,
+            attempt.no_fix_reason,
+        )
         mark = self._clock_ns()
-        head = self._axis.head_unix_usec
-        behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
         accepted = False
-        if fix is not None:
-            decision = self._axis.fuse_fix(fix)
-            accepted = bool(decision.accepted)
+        with self._axis.unit(UNIT_FIX, t) as unit:
+            head = self._axis.head_unix_usec
+            behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
+            if fix is not None:
+                decision = self._axis.fuse_fix(fix)
+                accepted = bool(decision.accepted)
+                if not accepted:
+                    reason = f"gated:{decision.reason}"
             if not accepted:
-                reason = f"gated:{decision.reason}"
-        if not accepted:
-            self._axis.note_no_fix(t)
+                self._axis.note_no_fix(t)
+            unit["accepted"] = accepted
         timings["estimator_fix"] = (self._clock_ns() - mark) / 1e6
         out = FixOutcome(
             frame.frame_id, frame.seq, t, fix, accepted, inliers, residual, reason, behind_s, timings
@@ -279,9 +328,12 @@ class NavigationPipeline:
     def _absolute_fix(
         self, frame: NavCameraFrame, timings: dict[str, float]
     ) -> tuple[PoseFix | None, int, float | None, str | None]:
+        if self._vpr is None or self._rerank is None or self._matcher is None:
+            return None, 0, None, "no_map"  # a replay without a map cache: VO only, never a fix
         if frame.attitude is None or frame.alt_agl_m is None:
             return None, 0, None, "no_attitude_or_altitude"
-        prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
+        with self._axis.unit(UNIT_FIX_PRIOR, frame.exposure_time_unix_usec):
+            prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
         t0 = self._clock_ns()
         try:
             query = self._vpr.embed_query(frame, self._calib)

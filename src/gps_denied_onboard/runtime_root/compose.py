@@ -28,6 +28,7 @@ from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.xfeat import XFEAT_DESCRIPTOR_DIM
 from gps_denied_onboard.components.c4_pose import PoseSolver
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
+from gps_denied_onboard.components.c5_estimator.journal import RecordingJournal
 from gps_denied_onboard.components.c5_estimator.prior import PreviousRun, read_previous_run
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
@@ -339,12 +340,15 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
     tracker = make_tracker(config, clock)
+    # Every unit of the time axis and the IMU answers inside it go to the FDR (``gdnav replay``).
+    journal = RecordingJournal(tracker, lambda fields: fdr.record(FdrKind.ESTIMATOR_INPUT, fields))
     time_axis = TimeAxis(
-        NavEstimator(config.estimator, ltp, accel_source=tracker),
+        NavEstimator(config.estimator, ltp, accel_source=journal),
         max_delay_s=config.estimator.max_fix_delay_s,
         max_frame_age_s=config.daemon.max_frame_age_s,
         max_future_s=config.estimator.max_future_s,
         clock=clock,
+        journal=journal,
     )
     pipeline = NavigationPipeline(
         calibration=calibration,
@@ -376,3 +380,80 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         previous_run,
         clock,
     )
+
+
+@dataclass
+class ReplayRoot:
+    """What ``gdnav replay`` runs: the same pipeline and time axis as the daemon, on one thread, with the
+    clock and the IMU the replay gives them."""
+
+    config: Config
+    calibration: CameraCalibration
+    ltp: LocalTangentPlane
+    pipeline: NavigationPipeline
+    time_axis: TimeAxis
+    #: None when the replay runs without a map cache (VO only).
+    tile_store: TileStore | None
+
+
+def compose_replay(
+    config: Config,
+    *,
+    fdr: FdrClient,
+    clock_unix_usec: Callable[[], int],
+    journal: Any | None = None,
+    with_map: bool = True,
+    calibration: CameraCalibration | None = None,
+    ltp_origin_lat_lon: tuple[float, float] | None = None,
+    vo_max_gap_s: float | None = None,
+) -> ReplayRoot:
+    """The pipeline for a replay, built the way ``compose_root`` builds the daemon's (same strategies and
+    settings from ``config``), minus the link, the camera and the recorder.
+
+    ``journal``: the ``ReplayJournal`` (exact replay of an FDR: it is then also the estimator's
+    acceleration source) or None (no IMU: constant-velocity prediction). ``with_map``: open
+    ``config.cache.dir`` and run the fix path; without it the pipeline has no VPR, rerank or matcher and
+    every fix attempt says ``no_map``. ``calibration``: overrides the config's camera (a replay of photos
+    brings its own). ``ltp_origin_lat_lon``: the NED origin without a map (the map's centre otherwise).
+    ``vo_max_gap_s``: C1's longest measured interval (default: the daemon's).
+    """
+    config = _resolve_matcher(config)
+    calib = calibration if calibration is not None else _calibration(config)
+    tiles: TileStore | None = None
+    vpr: VprStrategy | None = None
+    rerank: RerankStrategy | None = None
+    matcher: CrossDomainMatcher | None = None
+    if with_map:
+        tiles = open_tile_store(config)
+        lon, lat = tiles.center_lonlat
+        ltp = LocalTangentPlane(lat, lon, config.terrain.ground_alt_amsl_m)
+        matcher = create_matcher(config, {}, fdr)
+        vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)
+        rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
+    else:
+        if ltp_origin_lat_lon is None:
+            raise ValueError("a replay without a map needs ltp_origin_lat_lon")
+        ltp = LocalTangentPlane(*ltp_origin_lat_lon, config.terrain.ground_alt_amsl_m)
+    time_axis = TimeAxis(
+        NavEstimator(config.estimator, ltp, accel_source=journal),
+        max_delay_s=config.estimator.max_fix_delay_s,
+        max_frame_age_s=config.daemon.max_frame_age_s,
+        max_future_s=config.estimator.max_future_s,
+        clock_unix_usec=clock_unix_usec,
+        journal=journal,
+    )
+    vo = HomographyVo(calib) if vo_max_gap_s is None else HomographyVo(calib, max_gap_s=vo_max_gap_s)
+    pipeline = NavigationPipeline(
+        calibration=calib,
+        ltp=ltp,
+        ground_alt_amsl_m=config.terrain.ground_alt_amsl_m,
+        vo=vo,
+        vpr=vpr,
+        vpr_config=config.vpr,
+        rerank=rerank,
+        matcher=matcher,
+        pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
+        time_axis=time_axis,
+        fdr=fdr,
+    )
+    return ReplayRoot(config, calib, ltp, pipeline, time_axis, tiles)

@@ -29,11 +29,11 @@ Size bound: a segment is closed when the next record would take it past ``segmen
 total of all ``fdr-*.jsonl`` files in the directory (including previous runs) exceeds ``max_bytes``, the
 oldest segments are deleted (never the open one).
 
-Frame images (optional): ``record_frame_image`` stores one JPEG as ``<dir>/images/img-<start>-<n>-<frame
-seq>.jpg`` (``<n>``: the image number in this run, 6 digits) and writes a ``pipeline.frame_image``
-record naming it. Images have their own budget (``images_max_bytes``, earlier runs' images included;
-oldest deleted first) and are written whole (``.part`` then rename), so a crash never leaves half an
-image under a final name.
+Frame images (optional): ``record_frame_image`` stores one JPEG (or lossless PNG) as
+``<dir>/images/img-<start>-<n>-<frame seq>.jpg|png`` (``<n>``: the image number in this run, 6 digits) and
+writes a ``pipeline.frame_image`` record naming it. Images have their own budget (``images_max_bytes``,
+earlier runs' images included; oldest deleted first) and are written whole (``.part`` then rename), so a
+crash never leaves half an image under a final name.
 
 Low-disk policy: images go first. While the file system's free space (``shutil.disk_usage``, checked at
 most every ``free_check_interval_s``) is below ``min_free_bytes``, no image is written and the oldest
@@ -81,7 +81,9 @@ _MAX_DEPTH: Final[int] = 32
 #: How much of the newest existing segment's end is scanned for torn lines when a recorder opens.
 RECOVERY_TAIL_BYTES: Final[int] = 1 << 16
 #: Frame image files in ``<dir>/images``: img-<start>-<n>-<frame seq>.jpg.
-IMAGE_RE: Final = re.compile(r"^img-(\d{8}T\d{6}\.\d{3}Z)-(\d{6})-(\d+)\.jpg$")
+IMAGE_RE: Final = re.compile(r"^img-(\d{8}T\d{6}\.\d{3}Z)-(\d{6})-(\d+)\.(?:jpg|png)$")
+#: Frame image encodings: name -> (file extension, OpenCV encoder extension).
+IMAGE_FORMATS: Final[dict[str, str]] = {"jpeg": "jpg", "png": "png"}
 IMAGES_SUBDIR: Final[str] = "images"
 #: Defaults of the constructor (the config's defaults: ``fdr.frame_jpeg_max_bytes``, ``fdr.min_free_bytes``).
 DEFAULT_IMAGES_MAX_BYTES: Final[int] = 64 << 20
@@ -562,7 +564,9 @@ class FlightDataRecorder:
         """Frame image files of the directory (earlier runs' too), oldest first."""
         return list_images(self.dir)
 
-    def record_frame_image(self, frame_seq: int, exposure_time_unix_usec: int, jpeg: bytes) -> Path | None:
+    def record_frame_image(
+        self, frame_seq: int, exposure_time_unix_usec: int, jpeg: bytes, *, ext: str = "jpg"
+    ) -> Path | None:
         """Store one encoded frame image and write its ``pipeline.frame_image`` record; returns its path,
         or None when it was dropped (counted: low space, over budget, I/O error, closed). Never raises."""
         with self._lock:
@@ -584,7 +588,10 @@ class FlightDataRecorder:
                 if not self._delete_oldest_image("budget"):
                     break
             self._image_seq += 1
-            name = f"img-{self._start_tag}-{self._image_seq:06d}-{max(0, int(frame_seq))}.jpg"
+            if ext not in IMAGE_FORMATS.values():
+                valid = sorted(IMAGE_FORMATS.values())
+                raise ValueError(f"image extension must be one of {valid}, got {ext!r}")
+            name = f"img-{self._start_tag}-{self._image_seq:06d}-{max(0, int(frame_seq))}.{ext}"
             path = self.dir / IMAGES_SUBDIR / name
             part = path.with_name(name + ".part")
             try:
@@ -628,18 +635,28 @@ class FlightDataRecorder:
         """Encode ``image`` (uint8 (H, W) grey or (H, W, 3) BGR) as JPEG at ``quality`` (1..100) on the
         caller's thread and store it (``record_frame_image``). Never raises: a failed encode is logged
         and counted as a dropped image."""
+        return self.record_frame_encoded(frame_seq, exposure_time_unix_usec, image, "jpeg", quality=quality)
+
+    def record_frame_encoded(
+        self, frame_seq: int, exposure_time_unix_usec: int, image: np.ndarray, fmt: str, *, quality: int = 80
+    ) -> Path | None:
+        """Encode ``image`` (uint8 (H, W) grey or (H, W, 3) BGR) as ``fmt`` (``jpeg`` at ``quality``, or
+        lossless ``png``) on the caller's thread and store it (``record_frame_image``). Never raises: a
+        failed encode is logged and counted as a dropped image."""
         import cv2  # only where images are on: OpenCV takes a while to import
 
         try:
-            ok, buf = cv2.imencode(".jpg", image, [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)])
+            ext = IMAGE_FORMATS[fmt]
+            params = [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)] if fmt == "jpeg" else []
+            ok, buf = cv2.imencode(f".{ext}", image, params)
             if not ok:
                 raise ValueError("cv2.imencode returned False")
-        except (cv2.error, ValueError, TypeError) as exc:
+        except (cv2.error, ValueError, TypeError, KeyError) as exc:
             with self._lock:
-                self._error("jpeg_encode", exc)
+                self._error(f"{fmt}_encode", exc)
                 self._drop_image()
             return None
-        return self.record_frame_image(frame_seq, exposure_time_unix_usec, buf.tobytes())
+        return self.record_frame_image(frame_seq, exposure_time_unix_usec, buf.tobytes(), ext=ext)
 
     def health(self) -> FdrHealth:
         """The recorder's state now (see ``FdrHealth``); a change of state is logged."""

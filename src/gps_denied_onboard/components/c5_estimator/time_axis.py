@@ -40,13 +40,14 @@ few 6x6 matrix operations, a rewind a few dozen).
 from __future__ import annotations
 
 import bisect
+import contextlib
 import itertools
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 import structlog
@@ -55,6 +56,7 @@ from gps_denied_onboard.clock import DaemonClock
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator.ekf import EstimatorCheckpoint, FixReason, NavEstimator
+from gps_denied_onboard.components.c5_estimator.journal import InputJournal
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState, FixDecision
 from gps_denied_onboard.constants import LogEvent
 
@@ -119,6 +121,8 @@ class TimeAxis:
     daemon's clock (one per run, from the composition root; default: a new one anchored now).
     ``clock_unix_usec``: a bare "now" instead (tests, replay: camera stamps are then taken as already in
     that clock). ``max_future_s``, ``max_frame_age_s``, ``max_delay_s``: the admission bounds, seconds.
+    ``journal``: records (or, in a replay, plays back) each :meth:`unit` and the IMU answers inside it
+    (``c5_estimator.journal``); it must also be the estimator's acceleration source.
     """
 
     def __init__(
@@ -130,6 +134,7 @@ class TimeAxis:
         max_future_s: float = DEFAULT_MAX_FUTURE_S,
         clock: DaemonClock | None = None,
         clock_unix_usec: Callable[[], int] | None = None,
+        journal: InputJournal | None = None,
     ) -> None:
         for name, value in (
             ("max_delay_s", max_delay_s),
@@ -146,6 +151,7 @@ class TimeAxis:
             daemon_clock = clock or DaemonClock()
             self._clock = daemon_clock.now_unix_usec
             self._from_wall = daemon_clock.from_wall_usec
+        self._journal = journal
         self._max_future_usec = round(max_future_s * 1e6)
         self._max_frame_age_usec = round(max_frame_age_s * 1e6)
         self._max_delay_usec = round(max_delay_s * 1e6)
@@ -214,6 +220,26 @@ class TimeAxis:
         with self._lock:
             self._est.initialise(pos_ned_m, sigma_m, int(time_unix_usec))
             self._entries.clear()
+
+    @contextlib.contextmanager
+    def unit(self, kind: str, time_unix_usec: int) -> Iterator[dict[str, Any]]:
+        """One atomic visit of a pipeline half (``c5_estimator.journal``): the axis' lock is held for the
+        whole block, so no other thread's input lands inside it, and the journal (if any) records it
+        with the clock now and the IMU answers the estimator got. The block may add fields to the
+        yielded dict; they go into the unit's record."""
+        with self._lock:
+            journal = self._journal
+            extra: dict[str, Any] = {}
+            if journal is None:
+                yield extra
+                return
+            journal.begin(kind, int(time_unix_usec), self._clock())
+            try:
+                yield extra
+            except BaseException:
+                journal.abort()
+                raise
+            journal.end(extra)
 
     # -- measurements ---------------------------------------------------------------------------------
 
