@@ -24,7 +24,7 @@ import math
 import signal
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import structlog
 from pymavlink import mavutil
@@ -66,6 +66,8 @@ class DaemonCounters:
     fix_frames_skipped: int = 0
     estimates_sent: int = 0
     last_latency_ms: float | None = None
+    #: Solved fixes the integrity rule refused, by reason (``IntegrityReason``).
+    fixes_refused_integrity: dict[str, int] = field(default_factory=dict)
 
 
 class NavDaemon:
@@ -338,6 +340,10 @@ class NavDaemon:
     def _note_fix(self, outcome: FixOutcome) -> None:
         self.counters.fix_attempts += 1
         self.counters.fixes_accepted += int(outcome.fix_accepted)
+        verdict = outcome.integrity
+        if verdict is not None and not verdict.accepted and verdict.reason is not None:
+            refused = self.counters.fixes_refused_integrity
+            refused[verdict.reason] = refused.get(verdict.reason, 0) + 1
         self._last_fix = outcome
         self._last_fix_reason = outcome.no_fix_reason
         log.info(

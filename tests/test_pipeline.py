@@ -17,8 +17,9 @@ from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
 from gps_denied_onboard.components.c2_vpr.types import VprQuery, VprResult
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
+from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
-from gps_denied_onboard.config import EstimatorConfig, VprConfig
+from gps_denied_onboard.config import EstimatorConfig, IntegrityConfig, VprConfig
 from gps_denied_onboard.constants import Provenance
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.pipeline import InitialPrior, NavigationPipeline
@@ -97,6 +98,7 @@ def _pipeline(vpr: _Vpr, fdr: _Fdr, vo: object | None = None) -> NavigationPipel
             clock_unix_usec=lambda: T0,
         ),
         fdr=fdr,
+        integrity=FixIntegrity(IntegrityConfig()),
     )
 
 

@@ -124,6 +124,8 @@ class LogEvent:
     TIME_AXIS_REFUSED: Final = "c5.time_axis.refused"
     TIME_AXIS_REWOUND: Final = "c5.time_axis.rewound"
     POSE_REJECTED: Final = "c4.pose.rejected"
+    #: The fix-integrity rule refused a solved fix (reason, evidence).
+    FIX_INTEGRITY_REFUSED: Final = "c4.integrity.refused"
     VPR_READY: Final = "c2.vpr.ready"
     VPR_FAR_TOP1: Final = "c2.vpr.top1_distance_above_threshold"
     VPR_ERROR: Final = "c2.vpr.error"
@@ -156,6 +158,18 @@ class LogEvent:
     C7_WARMUP_SKIPPED: Final = "c7.inference.warmup_skipped"
     C7_WARMUP_FAILED: Final = "c7.inference.warmup_failed"
     LIGHTGLUE_READY: Final = "helpers.lightglue.ready"
+
+
+class IntegrityReason:
+    """Why the fix-integrity rule refused a fix (``components/c4_pose/integrity.py``); recorded as
+    ``no_fix_reason = "integrity:<reason>"`` and counted by reason in ``daemon.status``."""
+
+    TOO_FEW_INLIERS: Final = "too_few_inliers"
+    LOW_INLIER_RATIO: Final = "low_inlier_ratio"
+    NARROW_SPREAD: Final = "narrow_spread"
+    LOW_MATCH_CONFIDENCE: Final = "low_match_confidence"
+    AMBIGUOUS_CANDIDATES: Final = "ambiguous_candidates"
+    PRIOR_DISAGREEMENT: Final = "prior_disagreement"
 
 
 class FdrKind:

@@ -175,7 +175,8 @@ class CandidateLoopMatcher(abc.ABC):
 
     @abc.abstractmethod
     def match_features(self, query: Features, tile: Features) -> np.ndarray:
-        """Putative correspondences (M, 4) float32 (x_query, y_query, x_tile, y_tile), before RANSAC."""
+        """Putative correspondences (M, 4) float32 (x_query, y_query, x_tile, y_tile), before RANSAC;
+        or (M, 5) with the matcher's confidence of each match (0..1) in the last column."""
 
     # --- CrossDomainMatcher ----------------------------------------------------------------------------
     @property
@@ -250,7 +251,7 @@ class CandidateLoopMatcher(abc.ABC):
                 continue
             try:
                 corr = self.match_features(query, tile)
-                corr = _check_correspondences(corr)
+                corr, scores = _check_correspondences(corr)
             except Exception as exc:
                 self._report_backbone_error(
                     frame_id, self._as_backbone_error(exc, tile_id, self.match_phase), log, state
@@ -264,6 +265,9 @@ class CandidateLoopMatcher(abc.ABC):
                 dropped += 1
                 continue
             inliers = np.array(result.inlier_correspondences, dtype=np.float32, copy=True)
+            inlier_scores = None
+            if scores is not None and result.inlier_mask is not None:
+                inlier_scores = np.ascontiguousarray(scores[result.inlier_mask])
             if query_view.to_frame_px is not None:
                 inliers[:, :2] = query_view.to_frame_px(inliers[:, :2])
             survivors.append(
@@ -273,6 +277,7 @@ class CandidateLoopMatcher(abc.ABC):
                     inlier_correspondences=inliers,
                     ransac_outlier_count=int(result.ransac_outlier_count),
                     per_candidate_residual_px=float(result.per_candidate_residual_px),
+                    inlier_scores=inlier_scores,
                 )
             )
 
@@ -454,11 +459,17 @@ class _FrameState:
     health_updated: bool = False
 
 
-def _check_correspondences(corr: np.ndarray) -> np.ndarray:
+def _check_correspondences(corr: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """((M, 4) float32 correspondences, (M,) float32 confidences or None) from a hook's output."""
     arr = np.asarray(corr)
-    if arr.ndim != 2 or arr.shape[1] != 4:
-        raise ValueError(f"strategy returned correspondences of shape {arr.shape}, expected (M, 4)")
-    return arr.astype(np.float32, copy=False)
+    if arr.ndim != 2 or arr.shape[1] not in (4, 5):
+        raise ValueError(
+            f"strategy returned correspondences of shape {arr.shape}, expected (M, 4) or (M, 5)"
+        )
+    arr = arr.astype(np.float32, copy=False)
+    if arr.shape[1] == 4:
+        return arr, None
+    return np.ascontiguousarray(arr[:, :4]), np.ascontiguousarray(arr[:, 4])
 
 
 def no_features(image_size: tuple[int, int], descriptor_dim: int, dtype: type = np.float32) -> Features:
@@ -470,12 +481,13 @@ def no_features(image_size: tuple[int, int], descriptor_dim: int, dtype: type = 
 
 def match_with_lightglue(lightglue_runtime: Any, query: Features, tile: Features) -> np.ndarray:
     """Correspondences (M, 4) float32 (query x, y, tile x, y in original pixels) from the shared LightGlue
-    helper's index pairs; the learned strategies' common ``match_features``. Malformed output from the
+    helper's index pairs, with LightGlue's match score as a fifth column when a LightGlue model ran;
+    the learned strategies' common ``match_features``. Malformed output from the
     helper (wrong shape, indices outside either keypoint set) is a ValueError, which the candidate loop
     treats as a backbone failure of that candidate (drop-and-continue)."""
     if query.count == 0 or tile.count == 0:
         return np.empty((0, 4), dtype=np.float32)
-    matches, _scores = lightglue_runtime.match_pair(
+    matches, scores = lightglue_runtime.match_pair(
         query.keypoints_px,
         query.descriptors,
         tile.keypoints_px,
@@ -493,7 +505,13 @@ def match_with_lightglue(lightglue_runtime: Any, query: Features, tile: Features
         raise ValueError(
             f"LightGlue returned indices outside the keypoint sets ({query.count}, {tile.count})"
         )
-    return np.hstack([query.keypoints_px[idx[:, 0]], tile.keypoints_px[idx[:, 1]]]).astype(np.float32)
+    corr = np.hstack([query.keypoints_px[idx[:, 0]], tile.keypoints_px[idx[:, 1]]]).astype(np.float32)
+    # LightGlue's match scores are the confidences the integrity rule weighs (c4_pose/integrity.py);
+    # the mutual-NN fallback's cosine similarities are not calibrated confidences, so none are given.
+    conf = np.asarray(scores, dtype=np.float32).reshape(-1) if scores is not None else None
+    if getattr(lightglue_runtime, "mode", None) == "lightglue" and conf is not None and conf.size == len(idx):
+        return np.hstack([corr, conf[:, None]])
+    return corr
 
 
 def require_runtimes(label: str, **runtimes: object) -> None:
