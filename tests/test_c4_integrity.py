@@ -138,12 +138,15 @@ def test_a_rival_that_agrees_or_is_weak_is_no_ambiguity() -> None:
     assert v.rival_distance_m == pytest.approx(2.0)
 
 
-def test_rival_distance_is_judged_with_the_evidence_scaled_sigmas() -> None:
-    # 12 m apart: beyond 3 combined sigmas of two 1 m fixes, within them once weak evidence inflates both.
+def test_rival_distance_is_judged_with_the_solvers_sigmas_not_the_inflated_ones() -> None:
+    # 12 m apart: beyond 3 combined sigmas of two 1 m fixes, however weak (inflated) the evidence is;
+    # within them once the solvers' own sigmas say 3 m.
     weak = MatchEvidence(inlier_count=25, putative_count=50, spread_share=0.1, mean_confidence=None)
     rival = CandidateFix(_fix(north_m=12.0), weak)
-    assert not _assess(STRONG, rivals=[dataclasses.replace(rival, evidence=STRONG)]).accepted
-    assert _assess(weak, rivals=[rival]).accepted
+    assert FixIntegrity(CFG).sigma_scale(weak) > 3.0
+    assert not _assess(weak, rivals=[rival]).accepted
+    loose = CandidateFix(_fix(north_m=12.0, sigma_m=3.0), weak)
+    assert _assess(weak, fix=_fix(sigma_m=3.0), rivals=[loose]).accepted
 
 
 def test_weak_fix_far_from_a_confident_prior_is_refused() -> None:
@@ -173,7 +176,7 @@ def test_weaker_evidence_states_a_larger_sigma_capped() -> None:
     assert sigmas[1] < sigmas[2] < sigmas[3]
     assert sigmas[3] == pytest.approx(2.0)  # sqrt(100 / 25)
     low_ratio = MatchEvidence(inlier_count=100, putative_count=1000, spread_share=0.6, mean_confidence=None)
-    assert rule.sigma_scale(low_ratio) == pytest.approx(3.0)  # 0.3 / 0.1
+    assert rule.sigma_scale(low_ratio) == pytest.approx(3.0)  # 0.3 / 0.1 (CFG's full_evidence_ratio)
     hopeless = MatchEvidence(inlier_count=20, putative_count=400, spread_share=0.06, mean_confidence=None)
     assert rule.sigma_scale(hopeless) == pytest.approx(CFG.max_sigma_scale)
 

@@ -281,14 +281,15 @@ class IntegrityConfig:
     #: Refuse a fix from fewer RANSAC inliers than this.
     min_inliers: PosInt = 20
     #: Refuse a fix whose inliers are a smaller share of the putative matches than this.
-    min_inlier_ratio: Fraction = 0.05
+    min_inlier_ratio: Fraction = 0.2
     #: Refuse a fix whose inliers' convex hull covers a smaller share of the nav frame than this.
     min_spread_share: Fraction = 0.05
     #: Refuse a fix whose inliers' mean matcher confidence (LightGlue) is below this; not applied to
     #: matchers that give no confidence (classical, mutual nearest neighbour).
     min_mean_confidence: Fraction = 0.3
     #: A candidate with at least this share of the best candidate's inliers is a rival: its pose is
-    #: solved, and one farther from the best's than ``ambiguity_sigma`` combined sigmas refuses the fix.
+    #: solved, and one farther from the best's than ``ambiguity_sigma`` combined sigmas (the solvers'
+    #: sigmas floored at the map pixel, not inflated) refuses the fix.
     ambiguity_inlier_share: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.5
     ambiguity_sigma: PosFloat = 3.0
     #: A fix with less than full evidence must agree with the prior: horizontal NIS (2 dof) within this
@@ -298,7 +299,7 @@ class IntegrityConfig:
     #: Full evidence: at or above these the sigma is not inflated; below, each scales it up (inliers and
     #: spread by the square root of the shortfall, the inlier ratio linearly).
     full_evidence_inliers: PosInt = 100
-    full_evidence_ratio: Fraction = 0.3
+    full_evidence_ratio: Fraction = 0.5
     full_evidence_spread: Fraction = 0.25
     #: Cap on the sigma factor.
     max_sigma_scale: Annotated[float, Strict(), Field(ge=1)] = 10.0

@@ -24,7 +24,9 @@ The rule (:meth:`FixIntegrity.assess`), in order; the first failing test refuses
 2. ``ambiguous_candidates``: another candidate tile, matched with at least
    ``ambiguity_inlier_share`` of the best's inliers, gives a pose farther from the best's than
    ``ambiguity_sigma`` combined sigmas. Two well-supported answers that disagree mean at least one is
-   wrong, and nothing here says which.
+   wrong, and nothing here says which. The sigmas are the solvers' (floored at the map pixel), not the
+   evidence-inflated ones: two right matches of overlapping tiles agree to their measurement precision,
+   and inflating the tolerance would make the test weakest exactly where the evidence is.
 3. ``prior_disagreement``: a fix with less than full evidence (its sigma is inflated, below) must agree
    with the VO-propagated prior: its Mahalanobis distance (NIS, horizontal, 2 dof) from the prior must be
    within ``prior_gate_chi2``. Only while the prior is informative (sigma <= ``prior_max_sigma_m``). A
@@ -179,11 +181,15 @@ class FixIntegrity:
         k *= max(math.sqrt(cfg.full_evidence_spread / max(ev.spread_share, 1e-6)), 1.0)
         return min(k, cfg.max_sigma_scale)
 
-    def stated_cov(self, fix: PoseFix, ev: MatchEvidence, map_gsd_m_px: float) -> tuple[np.ndarray, float]:
-        """(covariance the fix should state, its sigma scale): floored at the map pixel, then scaled."""
+    def floored_cov(self, fix: PoseFix, map_gsd_m_px: float) -> np.ndarray:
+        """The solver's covariance with each axis floored at ``min_sigma_map_px`` map pixels."""
         cov = np.array(fix.cov_ned_m2, dtype=np.float64, copy=True)
         floor_var = (self._cfg.min_sigma_map_px * float(map_gsd_m_px)) ** 2
-        cov += np.diag(np.maximum(floor_var - np.diag(cov), 0.0))
+        return cov + np.diag(np.maximum(floor_var - np.diag(cov), 0.0))
+
+    def stated_cov(self, fix: PoseFix, ev: MatchEvidence, map_gsd_m_px: float) -> tuple[np.ndarray, float]:
+        """(covariance the fix should state, its sigma scale): floored at the map pixel, then scaled."""
+        cov = self.floored_cov(fix, map_gsd_m_px)
         k = self.sigma_scale(ev)
         return cov * k * k, k
 
@@ -221,13 +227,13 @@ class FixIntegrity:
         rival_d: float | None = None
         rival_n: int | None = None
         ambiguous = False
-        sigma_b = _horiz_sigma_m(cov)
+        sigma_b = _horiz_sigma_m(self.floored_cov(best.fix, map_gsd_m_px))
         for rival in rivals:
             if not self.wants_rival(ev.inlier_count, rival.evidence.inlier_count):
                 continue
             d = float(np.hypot(*(np.asarray(rival.fix.pos_ned_m)[:2] - np.asarray(best.fix.pos_ned_m)[:2])))
-            rcov, _ = self.stated_cov(rival.fix, rival.evidence, map_gsd_m_px)
-            limit = cfg.ambiguity_sigma * math.hypot(sigma_b, _horiz_sigma_m(rcov))
+            sigma_r = _horiz_sigma_m(self.floored_cov(rival.fix, map_gsd_m_px))
+            limit = cfg.ambiguity_sigma * math.hypot(sigma_b, sigma_r)
             far = d > limit
             # Report the disagreeing rival if any, else the nearest one.
             if (far and not ambiguous) or (not ambiguous and (rival_d is None or d < rival_d)):
