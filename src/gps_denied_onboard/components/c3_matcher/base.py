@@ -17,6 +17,7 @@ from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Final, NoReturn
 
+import cv2
 import numpy as np
 import structlog
 
@@ -117,6 +118,9 @@ class QueryView:
     image: np.ndarray
     to_frame_px: Callable[[np.ndarray], np.ndarray] | None
     rectified: bool
+    #: The GSD the query was rectified to, m/px: the coarser of the map's and the frame's (None = not
+    #: rectified). Chips finer than this are downsampled to it before their features are extracted.
+    match_gsd_m_px: float | None = None
 
 
 class _NullFdrClient:
@@ -238,10 +242,19 @@ class CandidateLoopMatcher(abc.ABC):
         for cand in candidates:
             tile_id = cand.tile_id
             handle = cand.tile_pixels_handle
+            # Match at the coarser GSD: a chip finer than the query is brought down to the query's GSD
+            # (same scale for both, and fewer pixels to extract from); its matches are scaled back.
+            chip_scale = 1.0
+            if query_view.match_gsd_m_px is not None:
+                chip_scale = min(1.0, float(handle.gsd_m_px) / query_view.match_gsd_m_px)
             try:
                 chip = handle.pixels()
-                key = TileFeatureCache.key_of(handle, chip.shape)
-                tile = self._tile_cache.get_or_compute(key, functools.partial(self.extract_tile, chip))
+                small = _downsampled_size(chip.shape, chip_scale)
+                key = (TileFeatureCache.key_of(handle, chip.shape), small)
+                tile = self._tile_cache.get_or_compute(
+                    key, functools.partial(self._extract_tile_at, chip, small)
+                )
+                chip_hw = chip.shape[:2]
                 del chip  # never outlive the call: the handle owns the pixels
             except Exception as exc:
                 self._report_backbone_error(
@@ -270,6 +283,10 @@ class CandidateLoopMatcher(abc.ABC):
                 inlier_scores = np.ascontiguousarray(scores[result.inlier_mask])
             if query_view.to_frame_px is not None:
                 inliers[:, :2] = query_view.to_frame_px(inliers[:, :2])
+            if small is not None:
+                # Pixel centres: x_small + 0.5 = (x + 0.5) * small_w / w.
+                factors = np.array([chip_hw[1] / small[0], chip_hw[0] / small[1]], dtype=np.float32)
+                inliers[:, 2:4] = (inliers[:, 2:4] + 0.5) * factors - 0.5
             survivors.append(
                 CandidateMatchSet(
                     tile_id=tile_id,
@@ -346,16 +363,25 @@ class CandidateLoopMatcher(abc.ABC):
     ) -> QueryView:
         if not self.rectify_query or frame.attitude is None or frame.alt_agl_m is None:
             return QueryView(frame.image_bgr, None, rectified=False)
-        # One query extraction serves all candidates, so rectify at the first chip's GSD: candidates
-        # come from one zoom level and differ in GSD by far less than features tolerate.
-        gsd = float(candidates[0].tile_pixels_handle.gsd_m_px)
+        # One query extraction serves all candidates, so rectify at the first chip's GSD (candidates
+        # come from one zoom level and differ in GSD by far less than features tolerate), or at the
+        # frame's own nadir GSD when that is coarser: upsampling the frame to a finer map adds pixels to
+        # extract from and no detail to match (the chips are brought down to it instead).
+        gsd = max(float(candidates[0].tile_pixels_handle.gsd_m_px), frame.alt_agl_m / calibration.fx_px)
         try:
             rect = rectify_to_map_frame(frame.image_bgr, calibration, frame.attitude, frame.alt_agl_m, gsd)
         except RectificationError as exc:
             # Still matchable raw with rotation-invariant features; the reason goes to the debug log.
             log.debug("c3.matcher.rectification_skipped", reason=str(exc))
             return QueryView(frame.image_bgr, None, rectified=False)
-        return QueryView(rect.image, rect.rect_to_frame_px, rectified=True)
+        return QueryView(rect.image, rect.rect_to_frame_px, rectified=True, match_gsd_m_px=gsd)
+
+    def _extract_tile_at(self, chip: np.ndarray, size: tuple[int, int] | None) -> Features:
+        """Tile features of ``chip``, downsampled to ``size`` (width, height) first when given; the
+        keypoints are then in the downsampled chip's pixels (the candidate loop maps matches back)."""
+        if size is None:
+            return self.extract_tile(chip)
+        return self.extract_tile(cv2.resize(chip, size, interpolation=cv2.INTER_AREA))
 
     @staticmethod
     def _as_backbone_error(exc: Exception, tile_id: TileId | None, phase: str) -> MatcherBackboneError:
@@ -457,6 +483,15 @@ class _FrameState:
 
     backbone_errors: int = 0
     health_updated: bool = False
+
+
+def _downsampled_size(shape: tuple[int, ...], scale: float) -> tuple[int, int] | None:
+    """(width, height) of a chip of ``shape`` downsampled by ``scale``; None when it stays as is
+    (``scale`` within 2 % of 1: not worth a resampling)."""
+    if scale >= 0.98:
+        return None
+    h, w = int(shape[0]), int(shape[1])
+    return max(16, round(w * scale)), max(16, round(h * scale))
 
 
 def _check_correspondences(corr: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
