@@ -454,6 +454,7 @@ class NavDaemon:
             horiz_sigma_m=state.horiz_sigma_m if state is not None else math.inf,
             frame_drops=self._queue.dropped,
             fdr_health=self._root.fdr.health().state,
+            integrity_refused=sum(self.counters.fixes_refused_integrity.values()),
         )
 
     def _record_status(self, link_alive: bool, axis: TimeAxisStats, fdr: FdrHealth) -> None:

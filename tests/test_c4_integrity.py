@@ -255,3 +255,21 @@ def test_lightglue_confidences_reach_the_inliers_and_mutual_nn_gives_none() -> N
     assert _check_correspondences(mnn)[1] is None
     with pytest.raises(ValueError, match=r"expected \(M, 4\) or \(M, 5\)"):
         _check_correspondences(np.zeros((3, 6), np.float32))
+
+
+def test_the_ground_sees_the_refusal_count() -> None:
+    """GDN_IREF: the NAMED_VALUE_INT a ground station shows, decoded by pymavlink."""
+    from pymavlink.dialects.v20 import common
+
+    from gps_denied_onboard.components.c8_mavlink.messages import named_values
+    from gps_denied_onboard.components.c13_fdr.recorder import FdrHealthState
+    from gps_denied_onboard.constants import NV_INTEGRITY_REFUSED
+
+    tx = common.MAVLink(None, srcSystem=1, srcComponent=197)
+    rx = common.MAVLink(None)
+    msgs = named_values(tx, time_boot_ms=5, provenance=Provenance.VISUAL_PROPAGATED, inliers=30,
+                        residual_px=1.0, horiz_sigma_m=9.0, frame_drops=0, fdr_health=FdrHealthState.OK,
+                        integrity_refused=7)
+    decoded = [rx.decode(bytearray(m.pack(tx))) for m in msgs]
+    iref = [m for m in decoded if m.get_type() == "NAMED_VALUE_INT" and m.name == NV_INTEGRITY_REFUSED]
+    assert len(iref) == 1 and iref[0].value == 7

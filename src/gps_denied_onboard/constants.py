@@ -28,6 +28,8 @@ NV_HORIZ_SIGMA_M: Final[str] = "GDN_HSIG"
 NV_FRAME_DROPS: Final[str] = "GDN_DROP"
 #: Flight data recorder health: ``FdrHealthState.code`` (0 ok, 1 degraded, 2 failing).
 NV_FDR_HEALTH: Final[str] = "GDN_FDR"
+#: Solved fixes the fix-integrity rule refused since start (all reasons; by reason in daemon.status).
+NV_INTEGRITY_REFUSED: Final[str] = "GDN_IREF"
 
 # --- SITL transport ---------------------------------------------------------------------------------
 #: Magic prefix of a frame message on the SITL camera stream (see camera.stream).
