@@ -273,3 +273,18 @@ def test_the_ground_sees_the_refusal_count() -> None:
     decoded = [rx.decode(bytearray(m.pack(tx))) for m in msgs]
     iref = [m for m in decoded if m.get_type() == "NAMED_VALUE_INT" and m.name == NV_INTEGRITY_REFUSED]
     assert len(iref) == 1 and iref[0].value == 7
+
+
+def test_sitl_analysis_counts_integrity_refusals_by_reason() -> None:
+    from gps_denied_onboard.constants import FdrKind
+    from gps_denied_onboard.sitl.report import analyse
+
+    def fix(seq: int, reason: str | None) -> dict:
+        return {"kind": FdrKind.FIX, "frame_seq": seq, "exposure_time_unix_usec": seq * 10**6,
+                "fix_accepted": reason is None, "no_fix_reason": reason}
+
+    records = [fix(1, "integrity:low_inlier_ratio"), fix(2, "integrity:low_inlier_ratio"),
+               fix(3, "integrity:ambiguous_candidates"), fix(4, "gated:gated"), fix(5, None)]
+    a = analyse({"per_frame": []}, records, lambda t: (0.0, 0.0))
+    assert a["integrity_refused"] == {"ambiguous_candidates": 1, "low_inlier_ratio": 2}
+    assert a["no_fix_reasons"] == {"gated": 1, "integrity": 3}
