@@ -35,6 +35,7 @@ CFG = IntegrityConfig(
     min_mean_confidence=0.3,
     ambiguity_inlier_share=0.5,
     ambiguity_sigma=3.0,
+    weak_evidence_scale=1.5,
     prior_gate_chi2=9.21,
     prior_max_sigma_m=150.0,
     full_evidence_inliers=100,
@@ -150,7 +151,8 @@ def test_rival_distance_is_judged_with_the_solvers_sigmas_not_the_inflated_ones(
 
 
 def test_weak_fix_far_from_a_confident_prior_is_refused() -> None:
-    weak = MatchEvidence(inlier_count=50, putative_count=100, spread_share=0.3, mean_confidence=None)
+    weak = MatchEvidence(inlier_count=30, putative_count=60, spread_share=0.3, mean_confidence=None)
+    assert FixIntegrity(CFG).sigma_scale(weak) >= CFG.weak_evidence_scale
     v = _assess(weak, fix=_fix(north_m=40.0), prior=_prior(sigma_m=5.0))
     assert not v.accepted and v.reason == IntegrityReason.PRIOR_DISAGREEMENT
     assert v.prior_nis is not None and v.prior_nis > CFG.prior_gate_chi2
@@ -159,11 +161,13 @@ def test_weak_fix_far_from_a_confident_prior_is_refused() -> None:
     assert _assess(weak, fix=_fix(north_m=40.0), prior=_prior(sigma_m=200.0)).accepted
 
 
-def test_full_evidence_is_left_to_the_estimators_gate() -> None:
-    # C5's gate (with its recovery from a wrong prior) judges a fully supported fix, not this rule.
-    v = _assess(STRONG, fix=_fix(north_m=40.0), prior=_prior(sigma_m=5.0))
-    assert v.accepted
-    assert v.prior_nis is not None and v.prior_nis > CFG.prior_gate_chi2
+def test_full_or_nearly_full_evidence_is_left_to_the_estimators_gate() -> None:
+    # C5's gate (with its recovery from a wrong prior) judges a well supported fix, not this rule.
+    nearly = dataclasses.replace(STRONG, inlier_count=90)  # sigma scale 1.05 < 1.5
+    for ev in (STRONG, nearly):
+        v = _assess(ev, fix=_fix(north_m=40.0), prior=_prior(sigma_m=5.0))
+        assert v.accepted
+        assert v.prior_nis is not None and v.prior_nis > CFG.prior_gate_chi2
 
 
 def test_weaker_evidence_states_a_larger_sigma_capped() -> None:

@@ -292,8 +292,10 @@ class IntegrityConfig:
     #: sigmas floored at the map pixel, not inflated) refuses the fix.
     ambiguity_inlier_share: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.5
     ambiguity_sigma: PosFloat = 3.0
-    #: A fix with less than full evidence must agree with the prior: horizontal NIS (2 dof) within this
-    #: (9.21 = 99 %), checked while the prior's sigma is at most ``prior_max_sigma_m``.
+    #: A fix with weak evidence (sigma scale at least ``weak_evidence_scale``) must agree with the prior:
+    #: horizontal NIS (2 dof) within ``prior_gate_chi2`` (9.21 = 99 %), checked while the prior's sigma
+    #: is at most ``prior_max_sigma_m``. Stronger fixes are left to the estimator's gate.
+    weak_evidence_scale: Annotated[float, Strict(), Field(ge=1)] = 1.5
     prior_gate_chi2: PosFloat = 9.21
     prior_max_sigma_m: PosFloat = 150.0
     #: Full evidence: at or above these the sigma is not inflated; below, each scales it up (inliers and

@@ -27,10 +27,11 @@ The rule (:meth:`FixIntegrity.assess`), in order; the first failing test refuses
    wrong, and nothing here says which. The sigmas are the solvers' (floored at the map pixel), not the
    evidence-inflated ones: two right matches of overlapping tiles agree to their measurement precision,
    and inflating the tolerance would make the test weakest exactly where the evidence is.
-3. ``prior_disagreement``: a fix with less than full evidence (its sigma is inflated, below) must agree
-   with the VO-propagated prior: its Mahalanobis distance (NIS, horizontal, 2 dof) from the prior must be
-   within ``prior_gate_chi2``. Only while the prior is informative (sigma <= ``prior_max_sigma_m``). A
-   fix with full evidence is left to C5's own gate, which keeps its recovery from a wrong prior.
+3. ``prior_disagreement``: a fix with weak evidence (its sigma is inflated, below, by at least
+   ``weak_evidence_scale``) must agree with the VO-propagated prior: its Mahalanobis distance (NIS,
+   horizontal, 2 dof) from the prior must be within ``prior_gate_chi2``. Only while the prior is
+   informative (sigma <= ``prior_max_sigma_m``). A stronger fix is left to C5's own gate, which keeps
+   its recovery from a wrong prior (a run of gated fixes with no VO inflates the prior).
 
 Covariance (for a fix that passes): the solver's covariance is first floored at
 ``min_sigma_map_px`` map pixels (a match is never better than the map's own pixel), then scaled by
@@ -263,7 +264,7 @@ class FixIntegrity:
         if (
             nis is not None
             and prior is not None
-            and k > 1.0
+            and k >= cfg.weak_evidence_scale
             and prior.horiz_sigma_m <= cfg.prior_max_sigma_m
             and nis > cfg.prior_gate_chi2
         ):
