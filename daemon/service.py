@@ -24,7 +24,7 @@ import math
 import signal
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import structlog
 from pymavlink import mavutil
@@ -68,6 +68,8 @@ class DaemonCounters:
     last_latency_ms: float | None = None
     #: Steps of the host's wall clock against the daemon's clock (detected and recorded, not followed).
     clock_steps: int = 0
+    #: Solved fixes the integrity rule refused, by reason (``IntegrityReason``).
+    fixes_refused_integrity: dict[str, int] = field(default_factory=dict)
 
 
 class NavDaemon:
@@ -347,6 +349,10 @@ class NavDaemon:
     def _note_fix(self, outcome: FixOutcome) -> None:
         self.counters.fix_attempts += 1
         self.counters.fixes_accepted += int(outcome.fix_accepted)
+        verdict = outcome.integrity
+        if verdict is not None and not verdict.accepted and verdict.reason is not None:
+            refused = self.counters.fixes_refused_integrity
+            refused[verdict.reason] = refused.get(verdict.reason, 0) + 1
         self._last_fix = outcome
         self._last_fix_reason = outcome.no_fix_reason
         log.info(
@@ -457,6 +463,7 @@ class NavDaemon:
             horiz_sigma_m=state.horiz_sigma_m if state is not None else math.inf,
             frame_drops=self._queue.dropped,
             fdr_health=self._root.fdr.health().state,
+            integrity_refused=sum(self.counters.fixes_refused_integrity.values()),
         )
 
     def _record_status(self, link_alive: bool, axis: TimeAxisStats, fdr: FdrHealth) -> None:

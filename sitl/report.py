@@ -266,6 +266,7 @@ def analyse(
       frame tracked as ``visual_propagated`` (the issue asks for <= 1; the fix path runs beside VO, so
       the frame whose fix failed was tracked before its fix finished);
     - ``frames_refused``: frames the time axis refused, by reason (future, stale, out of order);
+    - ``integrity_refused``: solved fixes the fix-integrity rule refused, by reason;
     - ``vio_segments``: each VIO-only stretch with the distance flown, the error growth and the drift as
       a percentage of that distance, and how many fixes it took afterwards to get back under the
       nominal p95 error (measured on the anchored frames before the first stretch).
@@ -280,6 +281,11 @@ def analyse(
             err = float(haversine_m(lat_t, lon_t, r["fix_lat_deg"], r["fix_lon_deg"]))
             fix_errors_sigma.append(err / float(r["fix_sigma_m"]))
     reasons = Counter(str(r.get("no_fix_reason")).split(":")[0] for r in fixes if not r.get("fix_accepted"))
+    integrity = Counter(
+        str(r.get("no_fix_reason")).split(":", 1)[1]
+        for r in fixes
+        if str(r.get("no_fix_reason")).startswith("integrity:")
+    )
     refused = Counter(str(r.get("reason")) for r in _of_kind(fdr_records, FdrKind.FRAME_REFUSED))
 
     seqs = [r["frame_seq"] for r in frames]
@@ -351,6 +357,7 @@ def analyse(
         "accepted_fixes_beyond_3sigma": sum(e > 3.0 for e in fix_errors_sigma),
         "max_accepted_fix_error_sigma": max(fix_errors_sigma) if fix_errors_sigma else None,
         "no_fix_reasons": dict(sorted(reasons.items())),
+        "integrity_refused": dict(sorted(integrity.items())),
         "transitions": transitions,
         "provenance_switch_lag_frames": switch_lag,
         "nominal_p95_m": nominal_p95,

@@ -338,8 +338,9 @@ def test_link_outputs_decode_on_autopilot_side(udp_pair: tuple) -> None:
         horiz_sigma_m=state.horiz_sigma_m,
         frame_drops=2,
         fdr_health=FdrHealthState.DEGRADED,
+        integrity_refused=4,
     )
-    assert n == 6
+    assert n == 7
     assert link.send_heartbeat(D.MAV_STATE_ACTIVE)
 
     got = _recv_all(ap, None, 0.4)
@@ -368,6 +369,7 @@ def test_link_outputs_decode_on_autopilot_side(udp_pair: tuple) -> None:
     assert values["GDN_PROV"] == Provenance.SATELLITE_ANCHORED.code == 3
     assert values["GDN_INL"] == 87 and values["GDN_DROP"] == 2
     assert values["GDN_FDR"] == FdrHealthState.DEGRADED.code == 1
+    assert values["GDN_IREF"] == 4
     assert values["GDN_RES"] == pytest.approx(1.25) and values["GDN_HSIG"] == pytest.approx(4.0)
 
     hb = [x for x in got if x.get_type() == "HEARTBEAT" and x.get_srcComponent() == 197]

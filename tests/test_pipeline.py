@@ -17,8 +17,12 @@ from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
 from gps_denied_onboard.components.c2_vpr.types import VprQuery, VprResult
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
+from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, MatchResult
+from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
+from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
-from gps_denied_onboard.config import EstimatorConfig, VprConfig
+from gps_denied_onboard.components.c6_tiles.types import TileId
+from gps_denied_onboard.config import EstimatorConfig, IntegrityConfig, VprConfig
 from gps_denied_onboard.constants import Provenance
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.pipeline import InitialPrior, NavigationPipeline
@@ -97,6 +101,7 @@ def _pipeline(vpr: _Vpr, fdr: _Fdr, vo: object | None = None) -> NavigationPipel
             clock_unix_usec=lambda: T0,
         ),
         fdr=fdr,
+        integrity=FixIntegrity(IntegrityConfig()),
     )
 
 
@@ -161,3 +166,78 @@ def test_pipeline_localises_an_older_frame_at_its_exposure_time() -> None:
     assert fix_record[0] == "pipeline.fix" and fix_record[1]["fused_behind_s"] == pytest.approx(1.0, abs=1e-3)
     assert p.time_axis.head_unix_usec == frames[-1].exposure_time_unix_usec
     assert p.time_axis.stats().rewinds == 1
+
+
+class _Handle:
+    gsd_m_px = 0.3
+
+
+@dataclass
+class _Cand:
+    tile_id: TileId
+    tile_pixels_handle: _Handle = field(default_factory=_Handle)
+
+
+class _OneTileVpr(_Vpr):
+    def retrieve_topk(self, query, k, *, region=None):  # type: ignore[no-untyped-def]
+        return VprResult(query.frame_id, [object()], 0, "fake")  # type: ignore[list-item]
+
+
+class _TwoTiles:
+    """Rerank + matcher double: two candidate tiles, matched with ``inliers`` each."""
+
+    def __init__(self, inliers: tuple[int, int]) -> None:
+        self.inliers = inliers
+
+    def rerank(self, frame, vpr_result):  # type: ignore[no-untyped-def]
+        return RerankResult(frame.frame_id, [_Cand(TILE_A), _Cand(TILE_B)], 0)  # type: ignore[list-item]
+
+    def match(self, frame, rerank_result, calibration):  # type: ignore[no-untyped-def]
+        rng = np.random.default_rng(0)
+        sets = []
+        for tile, n in zip((TILE_A, TILE_B), self.inliers, strict=True):
+            q = rng.uniform((0, 0), (640, 480), size=(n, 2))
+            sets.append(CandidateMatchSet(tile, n, np.hstack([q, q]).astype(np.float32), n // 4, 0.8))
+        return MatchResult(frame.frame_id, sets, 0, 0.8, 0, "fake")
+
+
+class _PosePerTile:
+    """C4 double: tile A solves to the prior's position, tile B 80 m north of it (1 m sigma)."""
+
+    def solve(self, frame, candidate, handle, calibration):  # type: ignore[no-untyped-def]
+        north = 0.0 if candidate.tile_id == TILE_A else 80.0
+        return PoseFix(frame.frame_id, frame.exposure_time_unix_usec, np.array([north, 0.0, -120.0]),
+                       np.eye(3), 47.0, 8.0, 520.0, 0.0, 0.01, 0.0, candidate.inlier_count, 0.8,
+                       candidate.tile_id)
+
+
+TILE_A, TILE_B = TileId(18, 1, 1), TileId(18, 1, 2)
+
+
+@pytest.mark.parametrize(("inliers", "accepted"), [((200, 180), False), ((200, 40), True)])
+def test_pipeline_refuses_an_ambiguous_fix_and_records_the_evidence(
+    inliers: tuple[int, int], accepted: bool
+) -> None:
+    """Two well-supported tiles 80 m apart: the integrity rule refuses the fix, C5 never sees it, the FDR
+    says why with the evidence. With a weak second tile the same fix is fused."""
+    fdr = _Fdr()
+    fakes = _TwoTiles(inliers)
+    p = _pipeline(_OneTileVpr(dim=256), fdr, _HoverVo())
+    p._rerank = fakes  # type: ignore[assignment]
+    p._matcher = fakes  # type: ignore[assignment]
+    p._pose = _PosePerTile()
+    frame = _frame(0, T0)
+    p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test"))
+    out = p.localise(frame)
+    record = fdr.records[-1][1]
+    assert out.fix_accepted is accepted and record["fix_accepted"] is accepted
+    if accepted:  # a tile with 40 of the best's 200 inliers is no rival: its pose is not even solved
+        assert record["integrity"]["rival_inliers"] is None
+        assert out.no_fix_reason is None and record["integrity"]["reason"] is None
+        assert np.isfinite(p.time_axis.state_at(T0).last_fix_age_s)
+    else:
+        assert record["integrity"]["rival_inliers"] == inliers[1]
+        assert record["integrity"]["rival_distance_m"] == pytest.approx(80.0, abs=0.5)
+        assert out.no_fix_reason == "integrity:ambiguous_candidates"
+        assert record["integrity"]["reason"] == "ambiguous_candidates" and out.integrity is not None
+        assert p.time_axis.state_at(T0).last_fix_age_s == float("inf")

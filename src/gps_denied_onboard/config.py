@@ -269,6 +269,47 @@ class PoseConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class IntegrityConfig:
+    """Fix integrity (``components/c4_pose/integrity.py``): when a solved fix is refused, and how its
+    covariance grows with weak evidence."""
+
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: Off: every solved fix goes to the estimator with the solver's covariance (the evidence is still
+    #: recorded). For measurements only; never fly with it off.
+    enabled: Bool = True
+    #: Refuse a fix from fewer RANSAC inliers than this.
+    min_inliers: PosInt = 20
+    #: Refuse a fix whose inliers are a smaller share of the putative matches than this.
+    min_inlier_ratio: Fraction = 0.2
+    #: Refuse a fix whose inliers' convex hull covers a smaller share of the nav frame than this.
+    min_spread_share: Fraction = 0.05
+    #: Refuse a fix whose inliers' mean matcher confidence (LightGlue) is below this; not applied to
+    #: matchers that give no confidence (classical, mutual nearest neighbour).
+    min_mean_confidence: Fraction = 0.3
+    #: A candidate with at least this share of the best candidate's inliers is a rival: its pose is
+    #: solved, and one farther from the best's than ``ambiguity_sigma`` combined sigmas (the solvers'
+    #: sigmas floored at the map pixel, not inflated) refuses the fix.
+    ambiguity_inlier_share: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.5
+    ambiguity_sigma: PosFloat = 3.0
+    #: A fix with weak evidence (sigma scale at least ``weak_evidence_scale``) must agree with the prior:
+    #: horizontal NIS (2 dof) within ``prior_gate_chi2`` (9.21 = 99 %), checked while the prior's sigma
+    #: is at most ``prior_max_sigma_m``. Stronger fixes are left to the estimator's gate.
+    weak_evidence_scale: Annotated[float, Strict(), Field(ge=1)] = 1.5
+    prior_gate_chi2: PosFloat = 9.21
+    prior_max_sigma_m: PosFloat = 150.0
+    #: Full evidence: at or above these the sigma is not inflated; below, each scales it up (inliers and
+    #: spread by the square root of the shortfall, the inlier ratio linearly).
+    full_evidence_inliers: PosInt = 100
+    full_evidence_ratio: Fraction = 0.5
+    full_evidence_spread: Fraction = 0.25
+    #: Cap on the sigma factor.
+    max_sigma_scale: Annotated[float, Strict(), Field(ge=1)] = 10.0
+    #: Floor on the per-axis sigma in map pixels (a match is never better than the map's pixel).
+    min_sigma_map_px: Annotated[float, Strict(), Field(ge=0)] = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
 class EstimatorConfig:
     __pydantic_config__: ClassVar[ConfigDict] = _STRICT
 
@@ -368,6 +409,7 @@ class Config:
     rerank: RerankConfig = dataclasses.field(default_factory=RerankConfig)
     matcher: MatcherConfig = dataclasses.field(default_factory=MatcherConfig)
     pose: PoseConfig = dataclasses.field(default_factory=PoseConfig)
+    integrity: IntegrityConfig = dataclasses.field(default_factory=IntegrityConfig)
     estimator: EstimatorConfig = dataclasses.field(default_factory=EstimatorConfig)
     fdr: FdrConfig = dataclasses.field(default_factory=FdrConfig)
     logging: LoggingConfig = dataclasses.field(default_factory=LoggingConfig)

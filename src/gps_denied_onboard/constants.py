@@ -28,6 +28,8 @@ NV_HORIZ_SIGMA_M: Final[str] = "GDN_HSIG"
 NV_FRAME_DROPS: Final[str] = "GDN_DROP"
 #: Flight data recorder health: ``FdrHealthState.code`` (0 ok, 1 degraded, 2 failing).
 NV_FDR_HEALTH: Final[str] = "GDN_FDR"
+#: Solved fixes the fix-integrity rule refused since start (all reasons; by reason in daemon.status).
+NV_INTEGRITY_REFUSED: Final[str] = "GDN_IREF"
 
 # --- SITL transport ---------------------------------------------------------------------------------
 #: Magic prefix of a frame message on the SITL camera stream (see camera.stream).
@@ -128,6 +130,8 @@ class LogEvent:
     #: A map tile's pixels no longer match the digest taken when the cache was verified: never used.
     CACHE_TILE_CORRUPT: Final = "c6.cache.tile_corrupt"
     POSE_REJECTED: Final = "c4.pose.rejected"
+    #: The fix-integrity rule refused a solved fix (reason, evidence).
+    FIX_INTEGRITY_REFUSED: Final = "c4.integrity.refused"
     VPR_READY: Final = "c2.vpr.ready"
     VPR_FAR_TOP1: Final = "c2.vpr.top1_distance_above_threshold"
     VPR_ERROR: Final = "c2.vpr.error"
@@ -162,6 +166,18 @@ class LogEvent:
     #: The fault-injection test hook is armed (GDNAV_TEST_ORT_FAULT_FILE set): never in flight.
     C7_FAULT_HOOK_ARMED: Final = "c7.inference.fault_hook_armed"
     LIGHTGLUE_READY: Final = "helpers.lightglue.ready"
+
+
+class IntegrityReason:
+    """Why the fix-integrity rule refused a fix (``components/c4_pose/integrity.py``); recorded as
+    ``no_fix_reason = "integrity:<reason>"`` and counted by reason in ``daemon.status``."""
+
+    TOO_FEW_INLIERS: Final = "too_few_inliers"
+    LOW_INLIER_RATIO: Final = "low_inlier_ratio"
+    NARROW_SPREAD: Final = "narrow_spread"
+    LOW_MATCH_CONFIDENCE: Final = "low_match_confidence"
+    AMBIGUOUS_CANDIDATES: Final = "ambiguous_candidates"
+    PRIOR_DISAGREEMENT: Final = "prior_disagreement"
 
 
 class FdrKind:

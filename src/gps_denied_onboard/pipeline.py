@@ -8,6 +8,8 @@ Every stage's failure has one meaning for the estimator:
 - no attitude/altitude at exposure → no absolute fix from this frame (never reuse stale data);
 - VPR/rerank/matcher error or too few inliers → no fix; C5 propagates on VO (``visual_propagated``);
 - pose rejected (degenerate, implausible) → no fix;
+- fix refused by the integrity rule (weak evidence, ambiguous candidates, disagrees with the prior; see
+  ``c4_pose/integrity.py``) → no fix; a fix it passes states a covariance that reflects its evidence;
 - fix outside the estimator's gate → rejected by C5 (a wrong tile cannot teleport the estimate);
 - fix older than the time axis can rewind to → refused as too late (never fused at its arrival time).
 Each half is synchronous and single-threaded by contract (INV-1); the daemon runs them off the loop.
@@ -26,10 +28,18 @@ import structlog
 from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
+from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion, VprStrategy
 from gps_denied_onboard.components.c2_vpr.types import VprError
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
+from gps_denied_onboard.components.c3_matcher.types import MatchResult
+from gps_denied_onboard.components.c4_pose.integrity import (
+    CandidateFix,
+    FixIntegrity,
+    IntegrityVerdict,
+    MatchEvidence,
+)
 from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
 from gps_denied_onboard.components.c5_estimator.journal import UNIT_FIX, UNIT_FIX_PRIOR, UNIT_TRACK
 from gps_denied_onboard.components.c5_estimator.prior import InitialPrior
@@ -78,6 +88,8 @@ class FixOutcome:
     #: How far behind the newest fused input this fix was fused at its own exposure time, s (0: in order).
     fused_behind_s: float
     timings_ms: dict[str, float] = field(default_factory=dict)
+    #: The integrity rule's verdict on the solved fix (None when no fix was solved).
+    integrity: IntegrityVerdict | None = None
 
 
 @dataclass(frozen=True)
@@ -90,6 +102,8 @@ class FixAttempt:
     #: Why there is no fix (None when there is one).
     no_fix_reason: str | None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    #: The integrity rule's verdict on the solved fix (None when no fix was solved).
+    integrity: IntegrityVerdict | None = None
 
 
 @dataclass(frozen=True)
@@ -140,6 +154,7 @@ class NavigationPipeline:
         pose_solver,  # PoseSolver
         time_axis: TimeAxis,
         fdr: FdrClient,
+        integrity: FixIntegrity,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
     ) -> None:
         self._calib = calibration
@@ -153,6 +168,7 @@ class NavigationPipeline:
         self._pose = pose_solver
         self._axis = time_axis
         self._fdr = fdr
+        self._integrity = integrity
         self._clock_ns = clock_ns
         #: F6 re-localisation (corpus-wide VPR) currently active; logged on transitions only.
         self._corpus_wide = False
@@ -275,26 +291,27 @@ class NavigationPipeline:
     def attempt_fix(self, frame: NavCameraFrame) -> FixAttempt:
         """C2 -> C2.5 -> C3 -> C4 on ``frame``, searching around the estimate read when it starts."""
         timings: dict[str, float] = {}
-        fix, inliers, residual, reason = self._absolute_fix(frame, timings)
-        return FixAttempt(fix, inliers, residual, reason, timings)
+        fix, inliers, residual, reason, verdict = self._absolute_fix(frame, timings)
+        return FixAttempt(fix, inliers, residual, reason, timings, verdict)
 
     def fuse_attempt(self, frame: NavCameraFrame, attempt: FixAttempt) -> FixOutcome:
         """Fuse ``attempt`` (from :meth:`attempt_fix` on ``frame``) at the frame's exposure time, or note
         that the attempt gave no fix; records the ``pipeline.fix`` record."""
         t = frame.exposure_time_unix_usec
         timings = dict(attempt.timings_ms)
-        fix, inliers, residual, reason = (
+        fix, inliers, residual, reason, verdict = (
             attempt.fix,
             attempt.inliers,
             attempt.residual_px,
             attempt.no_fix_reason,
+            attempt.integrity,
         )
         mark = self._clock_ns()
         accepted = False
         with self._axis.unit(UNIT_FIX, t) as unit:
             head = self._axis.head_unix_usec
             behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
-            if fix is not None:
+            if fix is not None and reason is None:
                 decision = self._axis.fuse_fix(fix)
                 accepted = bool(decision.accepted)
                 if not accepted:
@@ -304,7 +321,7 @@ class NavigationPipeline:
             unit["accepted"] = accepted
         timings["estimator_fix"] = (self._clock_ns() - mark) / 1e6
         out = FixOutcome(
-            frame.frame_id, frame.seq, t, fix, accepted, inliers, residual, reason, behind_s, timings
+            frame.frame_id, frame.seq, t, fix, accepted, inliers, residual, reason, behind_s, timings, verdict
         )
         self._fdr.record(
             FdrKind.FIX,
@@ -320,6 +337,7 @@ class NavigationPipeline:
                 "fix_lat_deg": fix.lat_deg if fix else None,
                 "fix_lon_deg": fix.lon_deg if fix else None,
                 "fix_sigma_m": fix.horiz_sigma_m if fix else None,
+                "integrity": verdict.fdr_fields() if verdict is not None else None,
                 "timings_ms": timings,
             },
         )
@@ -327,11 +345,11 @@ class NavigationPipeline:
 
     def _absolute_fix(
         self, frame: NavCameraFrame, timings: dict[str, float]
-    ) -> tuple[PoseFix | None, int, float | None, str | None]:
+    ) -> tuple[PoseFix | None, int, float | None, str | None, IntegrityVerdict | None]:
         if self._vpr is None or self._rerank is None or self._matcher is None:
-            return None, 0, None, "no_map"  # a replay without a map cache: VO only, never a fix
+            return None, 0, None, "no_map", None  # a replay without a map cache: VO only, never a fix
         if frame.attitude is None or frame.alt_agl_m is None:
-            return None, 0, None, "no_attitude_or_altitude"
+            return None, 0, None, "no_attitude_or_altitude", None
         with self._axis.unit(UNIT_FIX_PRIOR, frame.exposure_time_unix_usec):
             prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
         t0 = self._clock_ns()
@@ -342,11 +360,11 @@ class NavigationPipeline:
             )
         except VprError as exc:
             log.error(LogEvent.VPR_ERROR, frame=frame.seq, error=str(exc))
-            return None, 0, None, "vpr_error"
+            return None, 0, None, "vpr_error", None
         t1 = self._clock_ns()
         timings["vpr"] = (t1 - t0) / 1e6
         if not vpr_result.candidates:
-            return None, 0, None, "no_tiles_in_region"
+            return None, 0, None, "no_tiles_in_region", None
         rerank_result = self._rerank.rerank(frame, vpr_result)
         t2 = self._clock_ns()
         timings["rerank"] = (t2 - t1) / 1e6
@@ -354,11 +372,11 @@ class NavigationPipeline:
             match = self._matcher.match(frame, rerank_result, self._calib)
         except InsufficientInliersError as exc:
             timings["match"] = (self._clock_ns() - t2) / 1e6
-            return None, exc.best_inlier_count, None, "insufficient_inliers"
+            return None, exc.best_inlier_count, None, "insufficient_inliers", None
         except MatcherError as exc:
             timings["match"] = (self._clock_ns() - t2) / 1e6
             log.error(LogEvent.PIPELINE_FRAME_ERROR, frame=frame.seq, stage="match", error=str(exc))
-            return None, 0, None, "matcher_error"
+            return None, 0, None, "matcher_error", None
         t3 = self._clock_ns()
         timings["match"] = (t3 - t2) / 1e6
         best = match.best
@@ -367,6 +385,60 @@ class NavigationPipeline:
             fix = self._pose.solve(frame, best, handle, self._calib)
         except PoseError as exc:
             timings["pose"] = (self._clock_ns() - t3) / 1e6
-            return None, best.inlier_count, match.reprojection_residual_px, f"pose_rejected:{exc.reason}"
-        timings["pose"] = (self._clock_ns() - t3) / 1e6
-        return fix, best.inlier_count, match.reprojection_residual_px, None
+            return (
+                None,
+                best.inlier_count,
+                match.reprojection_residual_px,
+                f"pose_rejected:{exc.reason}",
+                None,
+            )
+        t4 = self._clock_ns()
+        timings["pose"] = (t4 - t3) / 1e6
+        verdict = self._judge(frame, match, rerank_result, fix, prior_state)
+        timings["integrity"] = (self._clock_ns() - t4) / 1e6
+        if not verdict.accepted:
+            log.warning(
+                LogEvent.FIX_INTEGRITY_REFUSED,
+                frame=frame.seq,
+                reason=verdict.reason,
+                **{k: v for k, v in verdict.fdr_fields().items() if k not in ("accepted", "reason")},
+            )
+            return (
+                verdict.fix,
+                best.inlier_count,
+                match.reprojection_residual_px,
+                (f"integrity:{verdict.reason}"),
+                verdict,
+            )
+        return verdict.fix, best.inlier_count, match.reprojection_residual_px, None, verdict
+
+    def _judge(
+        self,
+        frame: NavCameraFrame,
+        match: MatchResult,
+        rerank_result: RerankResult,
+        fix: PoseFix,
+        prior_state: EstimatorState,
+    ) -> IntegrityVerdict:
+        """The integrity rule on the best candidate's fix: its evidence, the poses of the rival
+        candidates it asks for (solved here; one that cannot be solved is no rival), and the prior."""
+        size = (self._calib.width_px, self._calib.height_px)
+        best = match.best
+        handles = {c.tile_id: c.tile_pixels_handle for c in rerank_result.candidates}
+        rivals = []
+        for i, cand in enumerate(match.per_candidate):
+            if i == match.best_candidate_idx or not self._integrity.wants_rival(
+                best.inlier_count, cand.inlier_count
+            ):
+                continue
+            try:
+                rival_fix = self._pose.solve(frame, cand, handles[cand.tile_id], self._calib)
+            except PoseError:
+                continue
+            rivals.append(CandidateFix(rival_fix, MatchEvidence.of_candidate(cand, size)))
+        return self._integrity.assess(
+            CandidateFix(fix, MatchEvidence.of_candidate(best, size)),
+            map_gsd_m_px=float(handles[best.tile_id].gsd_m_px),
+            rivals=rivals,
+            prior=prior_state,
+        )

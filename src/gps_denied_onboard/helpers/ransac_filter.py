@@ -40,12 +40,14 @@ class RansacResult:
     - ``per_candidate_residual_px``: MEDIAN of ||H(q) - t|| over the inliers, tile pixels;
       ``math.inf`` when there are no inliers.
     - ``homography``: (3, 3) float64 query px -> tile px with H[2, 2] = 1, or None when degenerate.
+    - ``inlier_mask``: (M,) bool, which input rows are the inliers (None when no model was fitted).
     """
 
     inlier_correspondences: np.ndarray
     ransac_outlier_count: int
     per_candidate_residual_px: float
     homography: np.ndarray | None
+    inlier_mask: np.ndarray | None = None
 
     @property
     def inlier_count(self) -> int:
@@ -129,4 +131,5 @@ class RansacFilter:
             ransac_outlier_count=m - int(inliers.shape[0]),
             per_candidate_residual_px=float(np.median(residuals[keep])),
             homography=homography.astype(np.float64),
+            inlier_mask=keep,
         )

@@ -27,6 +27,7 @@ from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.xfeat import XFEAT_DESCRIPTOR_DIM
 from gps_denied_onboard.components.c4_pose import PoseSolver
+from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c5_estimator.journal import RecordingJournal
 from gps_denied_onboard.components.c5_estimator.prior import PreviousRun, read_previous_run
@@ -362,6 +363,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
         time_axis=time_axis,
         fdr=fdr,
+        integrity=FixIntegrity(config.integrity),
     )
     link = MavlinkLink(config.mavlink, tracker, fdr, clock.now_unix_s, ltp=ltp)
     camera = open_camera_source(config)

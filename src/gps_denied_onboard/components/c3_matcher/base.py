@@ -17,6 +17,7 @@ from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Final, NoReturn
 
+import cv2
 import numpy as np
 import structlog
 
@@ -117,6 +118,9 @@ class QueryView:
     image: np.ndarray
     to_frame_px: Callable[[np.ndarray], np.ndarray] | None
     rectified: bool
+    #: The GSD the query was rectified to, m/px: the coarser of the map's and the frame's (None = not
+    #: rectified). Chips finer than this are downsampled to it before their features are extracted.
+    match_gsd_m_px: float | None = None
 
 
 class _NullFdrClient:
@@ -175,7 +179,8 @@ class CandidateLoopMatcher(abc.ABC):
 
     @abc.abstractmethod
     def match_features(self, query: Features, tile: Features) -> np.ndarray:
-        """Putative correspondences (M, 4) float32 (x_query, y_query, x_tile, y_tile), before RANSAC."""
+        """Putative correspondences (M, 4) float32 (x_query, y_query, x_tile, y_tile), before RANSAC;
+        or (M, 5) with the matcher's confidence of each match (0..1) in the last column."""
 
     # --- CrossDomainMatcher ----------------------------------------------------------------------------
     @property
@@ -237,10 +242,19 @@ class CandidateLoopMatcher(abc.ABC):
         for cand in candidates:
             tile_id = cand.tile_id
             handle = cand.tile_pixels_handle
+            # Match at the coarser GSD: a chip finer than the query is brought down to the query's GSD
+            # (same scale for both, and fewer pixels to extract from); its matches are scaled back.
+            chip_scale = 1.0
+            if query_view.match_gsd_m_px is not None:
+                chip_scale = min(1.0, float(handle.gsd_m_px) / query_view.match_gsd_m_px)
             try:
                 chip = handle.pixels()
-                key = TileFeatureCache.key_of(handle, chip.shape)
-                tile = self._tile_cache.get_or_compute(key, functools.partial(self.extract_tile, chip))
+                small = _downsampled_size(chip.shape, chip_scale)
+                key = (TileFeatureCache.key_of(handle, chip.shape), small)
+                tile = self._tile_cache.get_or_compute(
+                    key, functools.partial(self._extract_tile_at, chip, small)
+                )
+                chip_hw = chip.shape[:2]
                 del chip  # never outlive the call: the handle owns the pixels
             except Exception as exc:
                 self._report_backbone_error(
@@ -250,7 +264,7 @@ class CandidateLoopMatcher(abc.ABC):
                 continue
             try:
                 corr = self.match_features(query, tile)
-                corr = _check_correspondences(corr)
+                corr, scores = _check_correspondences(corr)
             except Exception as exc:
                 self._report_backbone_error(
                     frame_id, self._as_backbone_error(exc, tile_id, self.match_phase), log, state
@@ -264,8 +278,15 @@ class CandidateLoopMatcher(abc.ABC):
                 dropped += 1
                 continue
             inliers = np.array(result.inlier_correspondences, dtype=np.float32, copy=True)
+            inlier_scores = None
+            if scores is not None and result.inlier_mask is not None:
+                inlier_scores = np.ascontiguousarray(scores[result.inlier_mask])
             if query_view.to_frame_px is not None:
                 inliers[:, :2] = query_view.to_frame_px(inliers[:, :2])
+            if small is not None:
+                # Pixel centres: x_small + 0.5 = (x + 0.5) * small_w / w.
+                factors = np.array([chip_hw[1] / small[0], chip_hw[0] / small[1]], dtype=np.float32)
+                inliers[:, 2:4] = (inliers[:, 2:4] + 0.5) * factors - 0.5
             survivors.append(
                 CandidateMatchSet(
                     tile_id=tile_id,
@@ -273,6 +294,7 @@ class CandidateLoopMatcher(abc.ABC):
                     inlier_correspondences=inliers,
                     ransac_outlier_count=int(result.ransac_outlier_count),
                     per_candidate_residual_px=float(result.per_candidate_residual_px),
+                    inlier_scores=inlier_scores,
                 )
             )
 
@@ -341,16 +363,25 @@ class CandidateLoopMatcher(abc.ABC):
     ) -> QueryView:
         if not self.rectify_query or frame.attitude is None or frame.alt_agl_m is None:
             return QueryView(frame.image_bgr, None, rectified=False)
-        # One query extraction serves all candidates, so rectify at the first chip's GSD: candidates
-        # come from one zoom level and differ in GSD by far less than features tolerate.
-        gsd = float(candidates[0].tile_pixels_handle.gsd_m_px)
+        # One query extraction serves all candidates, so rectify at the first chip's GSD (candidates
+        # come from one zoom level and differ in GSD by far less than features tolerate), or at the
+        # frame's own nadir GSD when that is coarser: upsampling the frame to a finer map adds pixels to
+        # extract from and no detail to match (the chips are brought down to it instead).
+        gsd = max(float(candidates[0].tile_pixels_handle.gsd_m_px), frame.alt_agl_m / calibration.fx_px)
         try:
             rect = rectify_to_map_frame(frame.image_bgr, calibration, frame.attitude, frame.alt_agl_m, gsd)
         except RectificationError as exc:
             # Still matchable raw with rotation-invariant features; the reason goes to the debug log.
             log.debug("c3.matcher.rectification_skipped", reason=str(exc))
             return QueryView(frame.image_bgr, None, rectified=False)
-        return QueryView(rect.image, rect.rect_to_frame_px, rectified=True)
+        return QueryView(rect.image, rect.rect_to_frame_px, rectified=True, match_gsd_m_px=gsd)
+
+    def _extract_tile_at(self, chip: np.ndarray, size: tuple[int, int] | None) -> Features:
+        """Tile features of ``chip``, downsampled to ``size`` (width, height) first when given; the
+        keypoints are then in the downsampled chip's pixels (the candidate loop maps matches back)."""
+        if size is None:
+            return self.extract_tile(chip)
+        return self.extract_tile(cv2.resize(chip, size, interpolation=cv2.INTER_AREA))
 
     @staticmethod
     def _as_backbone_error(exc: Exception, tile_id: TileId | None, phase: str) -> MatcherBackboneError:
@@ -454,11 +485,26 @@ class _FrameState:
     health_updated: bool = False
 
 
-def _check_correspondences(corr: np.ndarray) -> np.ndarray:
+def _downsampled_size(shape: tuple[int, ...], scale: float) -> tuple[int, int] | None:
+    """(width, height) of a chip of ``shape`` downsampled by ``scale``; None when it stays as is
+    (``scale`` within 2 % of 1: not worth a resampling)."""
+    if scale >= 0.98:
+        return None
+    h, w = int(shape[0]), int(shape[1])
+    return max(16, round(w * scale)), max(16, round(h * scale))
+
+
+def _check_correspondences(corr: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """((M, 4) float32 correspondences, (M,) float32 confidences or None) from a hook's output."""
     arr = np.asarray(corr)
-    if arr.ndim != 2 or arr.shape[1] != 4:
-        raise ValueError(f"strategy returned correspondences of shape {arr.shape}, expected (M, 4)")
-    return arr.astype(np.float32, copy=False)
+    if arr.ndim != 2 or arr.shape[1] not in (4, 5):
+        raise ValueError(
+            f"strategy returned correspondences of shape {arr.shape}, expected (M, 4) or (M, 5)"
+        )
+    arr = arr.astype(np.float32, copy=False)
+    if arr.shape[1] == 4:
+        return arr, None
+    return np.ascontiguousarray(arr[:, :4]), np.ascontiguousarray(arr[:, 4])
 
 
 def no_features(image_size: tuple[int, int], descriptor_dim: int, dtype: type = np.float32) -> Features:
@@ -470,12 +516,13 @@ def no_features(image_size: tuple[int, int], descriptor_dim: int, dtype: type = 
 
 def match_with_lightglue(lightglue_runtime: Any, query: Features, tile: Features) -> np.ndarray:
     """Correspondences (M, 4) float32 (query x, y, tile x, y in original pixels) from the shared LightGlue
-    helper's index pairs; the learned strategies' common ``match_features``. Malformed output from the
+    helper's index pairs, with LightGlue's match score as a fifth column when a LightGlue model ran;
+    the learned strategies' common ``match_features``. Malformed output from the
     helper (wrong shape, indices outside either keypoint set) is a ValueError, which the candidate loop
     treats as a backbone failure of that candidate (drop-and-continue)."""
     if query.count == 0 or tile.count == 0:
         return np.empty((0, 4), dtype=np.float32)
-    matches, _scores = lightglue_runtime.match_pair(
+    matches, scores = lightglue_runtime.match_pair(
         query.keypoints_px,
         query.descriptors,
         tile.keypoints_px,
@@ -493,7 +540,13 @@ def match_with_lightglue(lightglue_runtime: Any, query: Features, tile: Features
         raise ValueError(
             f"LightGlue returned indices outside the keypoint sets ({query.count}, {tile.count})"
         )
-    return np.hstack([query.keypoints_px[idx[:, 0]], tile.keypoints_px[idx[:, 1]]]).astype(np.float32)
+    corr = np.hstack([query.keypoints_px[idx[:, 0]], tile.keypoints_px[idx[:, 1]]]).astype(np.float32)
+    # LightGlue's match scores are the confidences the integrity rule weighs (c4_pose/integrity.py);
+    # the mutual-NN fallback's cosine similarities are not calibrated confidences, so none are given.
+    conf = np.asarray(scores, dtype=np.float32).reshape(-1) if scores is not None else None
+    if getattr(lightglue_runtime, "mode", None) == "lightglue" and conf is not None and conf.size == len(idx):
+        return np.hstack([corr, conf[:, None]])
+    return corr
 
 
 def require_runtimes(label: str, **runtimes: object) -> None:

@@ -20,6 +20,9 @@ class CandidateMatchSet:
     ransac_outlier_count: int
     #: Median (not mean) reprojection residual of the inliers, px.
     per_candidate_residual_px: float
+    #: (I,) float32 matcher confidence of each inlier (LightGlue match scores, 0..1), None when the
+    #: matcher gives none (classical, mutual nearest neighbour).
+    inlier_scores: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -57,6 +57,7 @@ from gps_denied_onboard.constants import (
     NV_FRAME_DROPS,
     NV_HORIZ_SIGMA_M,
     NV_INLIERS,
+    NV_INTEGRITY_REFUSED,
     NV_PROVENANCE,
     NV_RESIDUAL_PX,
     SET_GPS_GLOBAL_ORIGIN_INTERVAL_S,
@@ -92,6 +93,7 @@ _NAMED_VALUE_NAMES: Final[tuple[str, ...]] = (
     NV_HORIZ_SIGMA_M,
     NV_FRAME_DROPS,
     NV_FDR_HEALTH,
+    NV_INTEGRITY_REFUSED,
 )
 #: pymavlink schemes that bind a UDP port to listen on (``udp:`` is pymavlink's alias of ``udpin:``).
 _UDP_LISTEN_SCHEMES: Final[tuple[str, ...]] = ("udpin:", "udp:")
@@ -638,6 +640,7 @@ class MavlinkLink:
         horiz_sigma_m: float,
         frame_drops: int,
         fdr_health: FdrHealthState,
+        integrity_refused: int = 0,
     ) -> int:
         """Send the NAMED_VALUE set the ground station shows (``messages.named_values``); returns the
         number handed to the transport."""
@@ -656,6 +659,7 @@ class MavlinkLink:
             horiz_sigma_m=horiz_sigma_m,
             frame_drops=frame_drops,
             fdr_health=fdr_health,
+            integrity_refused=integrity_refused,
         ):
             sent += self._send(msg)
         return sent

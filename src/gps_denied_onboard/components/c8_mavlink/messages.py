@@ -56,6 +56,7 @@ from gps_denied_onboard.constants import (
     NV_FRAME_DROPS,
     NV_HORIZ_SIGMA_M,
     NV_INLIERS,
+    NV_INTEGRITY_REFUSED,
     NV_PROVENANCE,
     NV_RESIDUAL_PX,
     FdrHealthState,
@@ -377,9 +378,11 @@ def named_values(
     horiz_sigma_m: float,
     frame_drops: int,
     fdr_health: FdrHealthState,
+    integrity_refused: int = 0,
 ) -> list[MavlinkMessage]:
     """NAMED_VALUE_INT/FLOAT set shown by ground stations: GDN_PROV (provenance code), GDN_INL, GDN_RES,
-    GDN_HSIG, GDN_DROP, GDN_FDR (flight data recorder: 0 ok, 1 degraded, 2 failing). A residual of None
+    GDN_HSIG, GDN_DROP, GDN_FDR (flight data recorder: 0 ok, 1 degraded, 2 failing), GDN_IREF (fixes
+    the integrity rule refused). A residual of None
     (no match this frame) and non-finite floats are sent as NaN (the GCS shows "nan", i.e. unknown)."""
     t = int(time_boot_ms) & 0xFFFFFFFF
 
@@ -395,6 +398,7 @@ def named_values(
         mav.named_value_float_encode(t, NV_HORIZ_SIGMA_M.encode(), float(horiz_sigma_m)),
         mav.named_value_int_encode(t, NV_FRAME_DROPS.encode(), _i32(frame_drops)),
         mav.named_value_int_encode(t, NV_FDR_HEALTH.encode(), FdrHealthState(fdr_health).code),
+        mav.named_value_int_encode(t, NV_INTEGRITY_REFUSED.encode(), _i32(integrity_refused)),
     ]
 
 

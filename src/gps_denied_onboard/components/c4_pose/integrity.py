@@ -1,0 +1,272 @@
+"""Fix integrity: an absolute fix leaves C4 only when the evidence behind it supports it.
+
+A real autopilot follows GPS_INPUT completely, so a confident wrong fix moves the aircraft. RANSAC and
+PnP can be fooled in ways their own residuals cannot see: across dates a learned matcher finds a few
+dozen self-consistent matches on the wrong alignment (field edges, roads), the homography explains them
+to a pixel, and the solver's covariance (residuals over Jacobian) states metres where the truth is tens
+of metres away. This module is the one place that judges a solved fix on the evidence the pipeline has,
+and either refuses it with a reason or passes it with a covariance that reflects that evidence.
+
+The evidence (:class:`MatchEvidence`, per matched candidate):
+
+- ``inlier_count`` and ``inlier_ratio`` (RANSAC inliers over putative matches): a true alignment is
+  supported by a large share of the matches; a coincidental one by a small share of many;
+- ``spread_share``: the area of the convex hull of the inliers in the nav frame over the frame's area.
+  Inliers bunched in one corner or along one road constrain the pose weakly in some direction;
+- ``mean_confidence``: the matcher's own per-match confidence (LightGlue's match scores) averaged over
+  the inliers, when the matcher gives one. Classical and mutual-nearest-neighbour matching give none:
+  the rule then does not invent one, it skips that test and says so (``None`` in the FDR).
+
+The rule (:meth:`FixIntegrity.assess`), in order; the first failing test refuses the fix:
+
+1. ``too_few_inliers``, ``low_inlier_ratio``, ``narrow_spread``, ``low_match_confidence``: thresholds
+   on the best candidate's evidence (``integrity.*``).
+2. ``ambiguous_candidates``: another candidate tile, matched with at least
+   ``ambiguity_inlier_share`` of the best's inliers, gives a pose farther from the best's than
+   ``ambiguity_sigma`` combined sigmas. Two well-supported answers that disagree mean at least one is
+   wrong, and nothing here says which. The sigmas are the solvers' (floored at the map pixel), not the
+   evidence-inflated ones: two right matches of overlapping tiles agree to their measurement precision,
+   and inflating the tolerance would make the test weakest exactly where the evidence is.
+3. ``prior_disagreement``: a fix with weak evidence (its sigma is inflated, below, by at least
+   ``weak_evidence_scale``) must agree with the VO-propagated prior: its Mahalanobis distance (NIS,
+   horizontal, 2 dof) from the prior must be within ``prior_gate_chi2``. Only while the prior is
+   informative (sigma <= ``prior_max_sigma_m``). A stronger fix is left to C5's own gate, which keeps
+   its recovery from a wrong prior (a run of gated fixes with no VO inflates the prior).
+
+Covariance (for a fix that passes): the solver's covariance is first floored at
+``min_sigma_map_px`` map pixels (a match is never better than the map's own pixel), then scaled by
+``k**2``, with ``k`` the product of one factor per kind of evidence, each 1 at full evidence and growing
+as the evidence weakens (``full_evidence_inliers``, ``full_evidence_ratio``, ``full_evidence_spread``),
+capped at ``max_sigma_scale``. Weak evidence thus states a larger sigma: the estimator weighs it less,
+and its gate judges it with honest numbers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet
+from gps_denied_onboard.components.c4_pose.types import PoseFix
+from gps_denied_onboard.components.c5_estimator.types import EstimatorState
+from gps_denied_onboard.config import IntegrityConfig
+from gps_denied_onboard.constants import IntegrityReason
+
+
+@dataclass(frozen=True)
+class MatchEvidence:
+    """What one matched candidate offers as evidence (see the module docstring)."""
+
+    inlier_count: int
+    putative_count: int
+    #: Convex-hull area of the inliers (nav-frame px) over the frame's area, 0..1.
+    spread_share: float
+    #: Mean matcher confidence over the inliers (0..1), None when the matcher gives none.
+    mean_confidence: float | None
+
+    @property
+    def inlier_ratio(self) -> float:
+        return self.inlier_count / self.putative_count if self.putative_count > 0 else 0.0
+
+    @classmethod
+    def of_candidate(cls, candidate: CandidateMatchSet, frame_size_px: tuple[int, int]) -> MatchEvidence:
+        """Evidence of ``candidate`` whose query points are pixels of a ``(width, height)`` nav frame."""
+        corr = np.asarray(candidate.inlier_correspondences, dtype=np.float32)
+        n = int(candidate.inlier_count)
+        scores = candidate.inlier_scores
+        mean_conf = None
+        if scores is not None and np.asarray(scores).size:
+            mean_conf = float(np.mean(np.asarray(scores, dtype=np.float64)))
+        return cls(
+            inlier_count=n,
+            putative_count=n + int(candidate.ransac_outlier_count),
+            spread_share=hull_share(corr[:, :2] if corr.ndim == 2 and corr.shape[0] else corr, frame_size_px),
+            mean_confidence=mean_conf,
+        )
+
+    def fdr_fields(self) -> dict[str, Any]:
+        return {
+            "inliers": self.inlier_count,
+            "putative": self.putative_count,
+            "inlier_ratio": round(self.inlier_ratio, 4),
+            "spread_share": round(self.spread_share, 4),
+            "mean_confidence": None if self.mean_confidence is None else round(self.mean_confidence, 4),
+        }
+
+
+def hull_share(points_px: np.ndarray, frame_size_px: tuple[int, int]) -> float:
+    """Area of the convex hull of ``points_px`` (N, 2) over ``width * height``, clipped to 0..1."""
+    pts = np.ascontiguousarray(np.asarray(points_px, dtype=np.float32).reshape(-1, 2))
+    width, height = frame_size_px
+    if pts.shape[0] < 3 or width <= 0 or height <= 0:
+        return 0.0
+    area = float(cv2.contourArea(cv2.convexHull(pts)))
+    return min(max(area / float(width * height), 0.0), 1.0)
+
+
+@dataclass(frozen=True)
+class CandidateFix:
+    """A pose solved from one matched candidate, with that candidate's evidence."""
+
+    fix: PoseFix
+    evidence: MatchEvidence
+
+
+@dataclass(frozen=True)
+class IntegrityVerdict:
+    """The rule's decision on one fix.
+
+    ``fix``: the fix to hand to the estimator when accepted (covariance floored and scaled), else the
+    solver's fix unchanged (for the record). ``reason``: an :class:`IntegrityReason` value when refused
+    (with ``integrity.enabled: false``, the reason it would have been refused for, and ``accepted``).
+    """
+
+    accepted: bool
+    reason: str | None
+    fix: PoseFix
+    evidence: MatchEvidence
+    #: The factor applied to the sigma (1 = full evidence).
+    sigma_scale: float
+    #: The stated horizontal sigma before the rule (the solver's) and after it, metres.
+    solver_sigma_m: float
+    #: Distance to, and inlier count of, the strongest disagreeing (or nearest) rival candidate's pose.
+    rival_distance_m: float | None = None
+    rival_inliers: int | None = None
+    #: Horizontal NIS of the fix against the prior (None when no prior was given).
+    prior_nis: float | None = None
+
+    def fdr_fields(self) -> dict[str, Any]:
+        return {
+            **self.evidence.fdr_fields(),
+            "accepted": self.accepted,
+            "reason": self.reason,
+            "sigma_scale": round(self.sigma_scale, 3),
+            "solver_sigma_m": round(self.solver_sigma_m, 3),
+            "rival_distance_m": None if self.rival_distance_m is None else round(self.rival_distance_m, 2),
+            "rival_inliers": self.rival_inliers,
+            "prior_nis": None if self.prior_nis is None else round(self.prior_nis, 3),
+        }
+
+
+def _horiz_sigma_m(cov: np.ndarray) -> float:
+    return float(np.sqrt(max(np.max(np.linalg.eigvalsh(np.asarray(cov)[:2, :2])), 0.0)))
+
+
+class FixIntegrity:
+    """The fix-integrity rule (module docstring) with its thresholds from the ``integrity`` section."""
+
+    def __init__(self, config: IntegrityConfig) -> None:
+        self._cfg = config
+
+    @property
+    def config(self) -> IntegrityConfig:
+        return self._cfg
+
+    def wants_rival(self, best_inliers: int, rival_inliers: int) -> bool:
+        """Whether a candidate with ``rival_inliers`` is supported well enough to be a rival of the best
+        (then the pipeline solves its pose and passes it to :meth:`assess`)."""
+        return rival_inliers >= self._cfg.ambiguity_inlier_share * best_inliers
+
+    def sigma_scale(self, ev: MatchEvidence) -> float:
+        """The evidence's sigma factor: 1 at full evidence, larger as it weakens, capped."""
+        cfg = self._cfg
+        k = math.sqrt(cfg.full_evidence_inliers / max(ev.inlier_count, 1)) if ev.inlier_count else math.inf
+        k = max(k, 1.0)
+        k *= max(cfg.full_evidence_ratio / max(ev.inlier_ratio, 1e-6), 1.0)
+        k *= max(math.sqrt(cfg.full_evidence_spread / max(ev.spread_share, 1e-6)), 1.0)
+        return min(k, cfg.max_sigma_scale)
+
+    def floored_cov(self, fix: PoseFix, map_gsd_m_px: float) -> np.ndarray:
+        """The solver's covariance with each axis floored at ``min_sigma_map_px`` map pixels."""
+        cov = np.array(fix.cov_ned_m2, dtype=np.float64, copy=True)
+        floor_var = (self._cfg.min_sigma_map_px * float(map_gsd_m_px)) ** 2
+        return cov + np.diag(np.maximum(floor_var - np.diag(cov), 0.0))
+
+    def stated_cov(self, fix: PoseFix, ev: MatchEvidence, map_gsd_m_px: float) -> tuple[np.ndarray, float]:
+        """(covariance the fix should state, its sigma scale): floored at the map pixel, then scaled."""
+        cov = self.floored_cov(fix, map_gsd_m_px)
+        k = self.sigma_scale(ev)
+        return cov * k * k, k
+
+    def assess(
+        self,
+        best: CandidateFix,
+        *,
+        map_gsd_m_px: float,
+        rivals: Sequence[CandidateFix] = (),
+        prior: EstimatorState | None = None,
+    ) -> IntegrityVerdict:
+        """Judge ``best`` (the fix the pipeline would fuse) on its evidence, its ``rivals`` (poses solved
+        from the other well-supported candidates, see :meth:`wants_rival`) and the ``prior`` (the
+        estimate at the frame's exposure time, propagated on VO)."""
+        cfg = self._cfg
+        ev = best.evidence
+        solver_sigma = best.fix.horiz_sigma_m
+        cov, k = self.stated_cov(best.fix, ev, map_gsd_m_px)
+        stated = dataclasses.replace(best.fix, cov_ned_m2=cov)
+
+        def verdict(reason: str | None, **extra: Any) -> IntegrityVerdict:
+            if not cfg.enabled:  # measurements only: the verdict is recorded, the solver's fix passes
+                return IntegrityVerdict(True, reason, best.fix, ev, k, solver_sigma, **extra)
+            accepted = reason is None
+            return IntegrityVerdict(
+                accepted=accepted,
+                reason=reason,
+                fix=stated if accepted else best.fix,
+                evidence=ev,
+                sigma_scale=k,
+                solver_sigma_m=solver_sigma,
+                **extra,
+            )
+
+        rival_d: float | None = None
+        rival_n: int | None = None
+        ambiguous = False
+        sigma_b = _horiz_sigma_m(self.floored_cov(best.fix, map_gsd_m_px))
+        for rival in rivals:
+            if not self.wants_rival(ev.inlier_count, rival.evidence.inlier_count):
+                continue
+            d = float(np.hypot(*(np.asarray(rival.fix.pos_ned_m)[:2] - np.asarray(best.fix.pos_ned_m)[:2])))
+            sigma_r = _horiz_sigma_m(self.floored_cov(rival.fix, map_gsd_m_px))
+            limit = cfg.ambiguity_sigma * math.hypot(sigma_b, sigma_r)
+            far = d > limit
+            # Report the disagreeing rival if any, else the nearest one.
+            if (far and not ambiguous) or (not ambiguous and (rival_d is None or d < rival_d)):
+                rival_d, rival_n = d, rival.evidence.inlier_count
+            ambiguous = ambiguous or far
+
+        nis: float | None = None
+        if prior is not None:
+            innov = np.asarray(stated.pos_ned_m)[:2] - np.asarray(prior.pos_ned_m)[:2]
+            s_mat = np.asarray(prior.cov_pos_ned_m2)[:2, :2] + cov[:2, :2]
+            try:
+                nis = float(innov @ np.linalg.solve(s_mat, innov))
+            except np.linalg.LinAlgError:
+                nis = None
+        extra = {"rival_distance_m": rival_d, "rival_inliers": rival_n, "prior_nis": nis}
+
+        if ev.inlier_count < cfg.min_inliers:
+            return verdict(IntegrityReason.TOO_FEW_INLIERS, **extra)
+        if ev.inlier_ratio < cfg.min_inlier_ratio:
+            return verdict(IntegrityReason.LOW_INLIER_RATIO, **extra)
+        if ev.spread_share < cfg.min_spread_share:
+            return verdict(IntegrityReason.NARROW_SPREAD, **extra)
+        if ev.mean_confidence is not None and ev.mean_confidence < cfg.min_mean_confidence:
+            return verdict(IntegrityReason.LOW_MATCH_CONFIDENCE, **extra)
+        if ambiguous:
+            return verdict(IntegrityReason.AMBIGUOUS_CANDIDATES, **extra)
+        if (
+            nis is not None
+            and prior is not None
+            and k >= cfg.weak_evidence_scale
+            and prior.horiz_sigma_m <= cfg.prior_max_sigma_m
+            and nis > cfg.prior_gate_chi2
+        ):
+            return verdict(IntegrityReason.PRIOR_DISAGREEMENT, **extra)
+        return verdict(None, **extra)
