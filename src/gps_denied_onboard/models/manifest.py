@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from gps_denied_onboard.components.c7_inference.protocol import EngineSignature, TensorSpec
-from gps_denied_onboard.models.registry import KNOWN_WEIGHTS, sha256_file
+from gps_denied_onboard.models.registry import ALL_WEIGHTS, sha256_file
 
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = 1
@@ -160,7 +160,19 @@ def verify_model_dir(model_dir: str | Path) -> tuple[ModelEntry, ...]:
                 f"sha256 {actual} differs from the manifest's {entry.sha256}; re-export the model",
                 path=str(file_path),
             )
-        known = KNOWN_WEIGHTS.get(entry.source.name)
+        data_file = entry.params.get("data_file")
+        if data_file:  # external weights of a large graph (``<file>.data``): hashed like the graph
+            data_path = root / str(data_file)
+            if not data_path.is_file():
+                raise ModelDirError("external weights file of the model is missing", path=str(data_path))
+            data_actual = sha256_file(data_path)
+            if data_actual != entry.params.get("data_sha256"):
+                raise ModelDirError(
+                    f"sha256 {data_actual} differs from the manifest's {entry.params.get('data_sha256')}; "
+                    "re-export the model",
+                    path=str(data_path),
+                )
+        known = ALL_WEIGHTS.get(entry.source.name)
         if known is not None and known.sha256 != entry.source.sha256:
             raise ModelDirError(
                 f"exported from {entry.source.name} weights with sha256 {entry.source.sha256}, "
