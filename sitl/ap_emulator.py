@@ -366,8 +366,16 @@ class ArduPilotEmulator:
         if new_primary != self.primary:
             self._event("gps_primary", instance=new_primary + 1)
             self.primary = new_primary
-        if fixes[self.primary] or (int(self.params["GPS_AUTO_SWITCH"]) and any(fixes)):
-            self.last_pos_source_s = now
+        # the newest position the EKF could use: a MAVLink instance's last accepted GPS_INPUT (the loss
+        # timeouts run from it), the simulated GNSS now while it has a fix
+        usable = range(2) if int(self.params["GPS_AUTO_SWITCH"]) else (0,)
+        newest = [
+            (self.mav_gps[i].last_accepted_s if i in self.mav_gps else (now if fixes[i] else None))
+            for i in usable
+        ]
+        times = [t for t in newest if t is not None]
+        if times and (self.last_pos_source_s is None or max(times) > self.last_pos_source_s):
+            self.last_pos_source_s = max(times)
             if self.first_fix_s is None:
                 self.first_fix_s = now
         # the fused position follows the source (bias included; see the module docstring)
