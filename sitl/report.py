@@ -67,10 +67,12 @@ def score(
     fdr_records: Sequence[Mapping[str, Any]] = (),
     *,
     end_unix_s: float | None = None,
+    gps_types: Mapping[int, int] | None = None,
 ) -> dict[str, Any]:
     """Build the report dict. ``truth_at_unix(t)`` -> (lat_deg, lon_deg) of the truth at Unix time t;
     ``fdr_records``: the daemon's flight data recorder (provenance and per-frame timing);
-    ``end_unix_s``: end of the flight, for judging silence after the last message."""
+    ``end_unix_s``: end of the flight, for judging silence after the last message; ``gps_types``: the
+    autopilot's GPSn_TYPE by instance the stream is judged with (default STREAM_GPS_TYPES)."""
     gps = sorted((m for m in received if m.type == "GPS_INPUT"), key=lambda m: m.recv_time_unix_s)
     prov_by_time = {
         int(r["time_unix_usec"]): str(r.get("provenance"))
@@ -146,7 +148,7 @@ def score(
     t_ref = gps_recv[0] if gps_recv else 0.0
     stream = evaluate_gps_stream(
         [t - t_ref for t in gps_recv],
-        [gps_input_accepted(m.fields, STREAM_GPS_TYPES) for m in gps],
+        [gps_input_accepted(m.fields, STREAM_GPS_TYPES if gps_types is None else gps_types) for m in gps],
         end_s=None if end_unix_s is None or not gps else max(end_unix_s - t_ref, gps_recv[-1] - t_ref),
     )
     fix_ages = [

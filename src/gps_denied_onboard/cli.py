@@ -149,10 +149,20 @@ def _cmd_sitl_run(args: argparse.Namespace) -> int:
 
     configure_logging("warning", json=False)
     try:
+        if getattr(args, "autopilot", None):
+            from gps_denied_onboard.sitl.autopilot_flight import run_autopilot_cli
+
+            return run_autopilot_cli(args)
         return run_sitl_cli(args)
     except SitlError as exc:
         _err(str(exc))
         return EXIT_CONFIG
+
+
+def _cmd_sitl_emulate(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.sitl.ap_emulator import main as emulator_main
+
+    return emulator_main(args.emulator_args)
 
 
 def _cmd_config_check(args: argparse.Namespace) -> int:
@@ -302,7 +312,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     srun.add_argument("--duration", type=float, default=None, help="cut the flight to this many seconds")
     srun.add_argument("--quiet", action="store_true", help="print only the summary")
+    srun.add_argument(
+        "--autopilot",
+        default=None,
+        metavar="URL",
+        help="fly on an external autopilot SITL (ArduPilot SITL or `gdnav sitl emulate`) at this pymavlink "
+        "URL, e.g. tcp:127.0.0.1:5762 or udpout:127.0.0.1:14555: truth from its SIMSTATE, the mission "
+        "driver flies the scenario's waypoints with the GNSS off after take-off",
+    )
     srun.set_defaults(func=_cmd_sitl_run)
+    semu = sitl_sub.add_parser(
+        "emulate",
+        help="the ArduPilot copter emulator (a test double, not ArduPilot) on loopback UDP",
+        description="Run the ArduPilot copter emulator (sitl/ap_emulator.py); arguments as "
+        "`gdnav sitl emulate -- --help` shows.",
+        add_help=False,
+    )
+    semu.add_argument("emulator_args", nargs=argparse.REMAINDER)
+    semu.set_defaults(func=_cmd_sitl_emulate)
 
     from gps_denied_onboard import cli_bench, cli_match, cli_models
 

@@ -1,0 +1,357 @@
+"""``gdnav sitl run --autopilot URL``: the vehicle is an external autopilot SITL, not the scripted path.
+
+The autopilot (a real ArduPilot SITL, or the project's emulator ``sitl.ap_emulator``) flies; this
+module reads its true pose (ArduPilot SITL's SIMSTATE, else SIM_STATE, else the autopilot's own
+GLOBAL_POSITION_INT + ATTITUDE, which is then its estimate, not the truth, and the report says so),
+renders the nav frames at that pose, relays the daemon's MAVLink to the same autopilot
+(``sitl.mission.AutopilotRelay``), flies the scenario's waypoints with the mission driver
+(``sitl.mission.MissionDriver``: GNSS off after take-off, back on before landing) and scores what the
+daemon sent against the truth, with the same report as the scripted flights (``sitl.report.score``).
+
+Flight time 0 (for the scenario's ``link_drops``) is the take-off command. The scenario's waypoints
+are resolved over the map as usual; its speed and altitude become WPNAV_SPEED and the take-off height.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from gps_denied_onboard.camera.stream import encode_frame
+from gps_denied_onboard.camera.types import Attitude
+from gps_denied_onboard.components.c13_fdr import read_records
+from gps_denied_onboard.config import ConfigError, load_config
+from gps_denied_onboard.sitl.frame_server import FrameServer
+from gps_denied_onboard.sitl.mission import AutopilotRelay, MissionDriver, MissionError, MissionPlan
+from gps_denied_onboard.sitl.photometric import PhotometricModel
+from gps_denied_onboard.sitl.render import MapRenderer, RenderError
+from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, score
+from gps_denied_onboard.sitl.runner import (
+    DAEMON_READY_TIMEOUT_S,
+    DAEMON_STOP_TIMEOUT_S,
+    DEFAULT_CONFIG,
+    SitlError,
+    SitlOptions,
+    _Flight,
+    _free_udp_port,
+    _sha_prefix,
+)
+from gps_denied_onboard.sitl.scenario import ScenarioError, load_scenario
+
+#: The camera's height above the ground when the vehicle stands on it, m (the renderer needs > 0).
+CAMERA_GROUND_HEIGHT_M = 0.3
+#: How long to wait for the autopilot's first true pose, s.
+TRUTH_TIMEOUT_S = 30.0
+
+
+def _home_refusal(lat: float, lon: float, bbox: tuple[float, float, float, float], map_path: Path) -> str:
+    west, south, east, north = bbox
+    return (
+        f"the vehicle's home ({lat:.6f}, {lon:.6f}) is off the map {map_path.name} "
+        f"(lat {south:.6f}..{north:.6f}, lon {west:.6f}..{east:.6f}); start the autopilot SITL with "
+        f"--home inside it, e.g. --home {(south + north) / 2:.6f},{(west + east) / 2:.6f},<ground alt m>,0"
+    )
+
+
+def run_sitl_with_autopilot(opts: SitlOptions, autopilot_url: str) -> dict[str, Any]:
+    """Fly the scenario on the external autopilot at ``autopilot_url``; returns the report (also written
+    to ``opts.report_path``). Raises SitlError (bad map/scenario/config, home off the map, no autopilot)
+    and MissionError (the autopilot did not do what the mission needs)."""
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache_from_geotiff
+
+    workdir = opts.workdir or opts.report_path.parent / "work"
+    workdir.mkdir(parents=True, exist_ok=True)
+    opts.report_path.parent.mkdir(parents=True, exist_ok=True)
+    config_path = opts.config_path or DEFAULT_CONFIG
+    if opts.map_path is None:
+        raise SitlError("--autopilot needs --map (the map the autopilot's home must lie on)")
+    try:
+        load_config(config_path, opts.overrides)
+        scenario = load_scenario(opts.scenario)
+        renderer = MapRenderer(opts.map_path)
+    except (ConfigError, ScenarioError, RenderError) as exc:
+        raise SitlError(str(exc)) from exc
+    bbox = renderer.bbox_lonlat
+
+    say = (lambda _m: None) if opts.quiet else (lambda m: print(f"[sitl] {m}", flush=True))
+    daemon_port = _free_udp_port()
+    t0: list[float] = []  # flight time 0: the take-off command
+
+    def link_down(t_unix_s: float) -> bool:
+        return bool(t0) and scenario.link_down_at(t_unix_s - t0[0])
+
+    relay = AutopilotRelay(autopilot_url, daemon_port, link_down=link_down)
+    try:
+        return _fly(
+            opts,
+            autopilot_url,
+            scenario,
+            renderer,
+            bbox,
+            config_path,
+            workdir,
+            relay,
+            t0,
+            say,
+            build_cache_from_geotiff,
+            CacheBuildError,
+        )
+    finally:
+        relay.close()
+
+
+def _fly(
+    opts: SitlOptions,
+    url: str,
+    scenario: Any,
+    renderer: MapRenderer,
+    bbox: Any,
+    config_path: Path,
+    workdir: Path,
+    relay: AutopilotRelay,
+    t0: list[float],
+    say: Any,
+    build_cache: Any,
+    cache_error: Any,
+) -> dict[str, Any]:
+    trajectory = scenario.resolve(bbox, 0.0)
+    plan = MissionPlan(
+        tuple((float(a), float(b)) for a, b in trajectory.waypoints_lat_lon_deg),
+        alt_rel_m=scenario.alt_agl_m,
+        speed_m_s=scenario.speed_m_s,
+    )
+    driver = MissionDriver(relay, plan, say=say)
+    driver.prepare()
+    deadline = time.time() + TRUTH_TIMEOUT_S
+    while (not relay.truth or relay.last("GLOBAL_POSITION_INT") is None) and time.time() < deadline:
+        time.sleep(0.2)
+    pose = relay.truth[-1] if relay.truth else None
+    gp = relay.last("GLOBAL_POSITION_INT")
+    if pose is None or gp is None:
+        raise SitlError(f"no position from the autopilot at {url} in {TRUTH_TIMEOUT_S:.0f} s")
+    west, south, east, north = bbox
+    if not (south <= pose.lat_deg <= north and west <= pose.lon_deg <= east):
+        raise SitlError(_home_refusal(pose.lat_deg, pose.lon_deg, bbox, opts.map_path or Path("?")))
+    ground_alt = (gp.alt - gp.relative_alt) / 1000.0
+    say(
+        f"autopilot at {url}: home {pose.lat_deg:.6f}, {pose.lon_deg:.6f}, ground {ground_alt:.1f} m AMSL, "
+        f"truth from {relay.truth_source}"
+    )
+
+    cache_dir = workdir / f"cache-{_sha_prefix(opts.map_path)}"  # type: ignore[arg-type]
+    try:
+        build_cache(opts.map_path, cache_dir, progress=not opts.quiet)
+    except cache_error as exc:
+        raise SitlError(f"cannot build the cache from {opts.map_path}: {exc}") from exc
+    import shutil
+
+    shutil.rmtree(workdir / "fdr", ignore_errors=True)
+    overrides = (
+        f"terrain.ground_alt_amsl_m={ground_alt}",
+        "mavlink.gps_input_gps_id=1",  # GPS 2 = GPS_INPUT (GPS2_TYPE=14), the in-flight switch
+        *opts.overrides,
+    )
+    fopts = dataclasses.replace(opts, overrides=overrides)
+    flight = _Flight(fopts, scenario, trajectory, renderer, config_path, cache_dir, workdir, ground_alt)
+    cmd = flight._daemon_cmd(relay.daemon_port, 0)
+    frames: list[SentFrame] = []
+    mission: dict[str, Any] = {}
+    result = asyncio.run(
+        _run_flight(flight, cmd, relay, driver, scenario, renderer, ground_alt, frames, t0, say, mission)
+    )
+    end_unix_s, exit_code, stop_s = result
+
+    def truth_at_unix(t: float) -> tuple[float, float]:
+        p = relay.truth_at(t)
+        assert p is not None
+        return p.lat_deg, p.lon_deg
+
+    records = list(read_records(workdir / "fdr"))
+    gps_types = {1: 14}  # GPS 2 = GPS_INPUT
+    report = score(frames, relay.received, truth_at_unix, records, end_unix_s=end_unix_s, gps_types=gps_types)
+    # the stretch where the vehicle flew on the daemon alone: GNSS off .. GNSS back on
+    times = {e["kind"]: e["t_unix_s"] for e in mission.get("log", [])}
+    if "gnss_off" in times:
+        lo, hi = times["gnss_off"], times.get("gnss_on", end_unix_s)
+        off = score(
+            [f for f in frames if lo <= f.exposure_time_unix_usec / 1e6 <= hi],
+            [m for m in relay.received if lo <= m.recv_time_unix_s <= hi],
+            truth_at_unix,
+            records,
+            end_unix_s=hi,
+            gps_types=gps_types,
+        )
+        report["gnss_off"] = {k: v for k, v in off.items() if k not in ("per_frame", "statustext")}
+        report["gnss_off"]["window_unix_s"] = [lo, hi]
+    report["analysis"] = analyse(report, records, truth_at_unix)
+    report.update(
+        {
+            "scenario": scenario.name,
+            "map": str(opts.map_path),
+            "autopilot": {
+                "url": url,
+                "truth_source": relay.truth_source,
+                "truth_note": None
+                if relay.truth_source in ("SIMSTATE", "SIM_STATE")
+                else "no SIMSTATE/SIM_STATE: scored against the autopilot's own estimate, not the truth",
+                "statustext": [{"t_unix_s": round(t, 3), "text": s} for t, s in relay.statustext],
+            },
+            "mission": mission,
+            "matcher": None,
+            "daemon_config": str(config_path),
+            "daemon_overrides": list(overrides),
+            "daemon_exit_code": exit_code,
+            "daemon_stop_s": stop_s,
+            "t0_unix_s": t0[0] if t0 else None,
+            "daemon_log": str(workdir / "daemon.log"),
+            "fdr_dir": str(workdir / "fdr"),
+        }
+    )
+    opts.report_path.write_text(json.dumps(report, indent=2, default=str))
+    with contextlib.suppress(Exception):
+        plot_report(report, opts.report_path.with_suffix(".png"), title=f"{scenario.name} on {url}")
+    return report
+
+
+async def _run_flight(
+    flight: _Flight,
+    cmd: list[str],
+    relay: AutopilotRelay,
+    driver: MissionDriver,
+    scenario: Any,
+    renderer: MapRenderer,
+    ground_alt: float,
+    frames: list[SentFrame],
+    t0: list[float],
+    say: Any,
+    mission: dict[str, Any],
+) -> tuple[float, int | None, float | None]:
+    server = FrameServer()
+    cam_port = await server.start()
+    cmd = [c.replace("tcp://127.0.0.1:0", f"tcp://127.0.0.1:{cam_port}") for c in cmd]
+    log_path = flight.workdir / "daemon.log"
+    calib = flight.calib
+    photometric = PhotometricModel(scenario.photometric)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+
+    def render(index: int) -> tuple[bytes, SentFrame] | None:
+        # the newest true pose, exposed at its own time (not interpolated forward to "now")
+        pose = relay.truth[-1] if relay.truth else None
+        gp = relay.last("GLOBAL_POSITION_INT")
+        if pose is None or gp is None:
+            return None
+        agl = (pose.alt_amsl_m - ground_alt) if pose.alt_amsl_m is not None else gp.relative_alt / 1000.0
+        agl = max(agl, CAMERA_GROUND_HEIGHT_M)
+        img = renderer.render(
+            calib, pose.lat_deg, pose.lon_deg, agl, Attitude(pose.roll_rad, pose.pitch_rad, pose.yaw_rad)
+        )
+        img = photometric.apply(img, index)
+        now = pose.t_unix_s
+        stamp_us = round(now * 1e6)
+        ref = t0[0] if t0 else now
+        return (
+            encode_frame(img, seq=index, exposure_time_unix_usec=stamp_us),
+            SentFrame(index, stamp_us, now - ref, pose.lat_deg, pose.lon_deg, agl),
+        )
+
+    async def camera() -> None:
+        period = 1.0 / scenario.frame_rate_hz
+        next_t = time.time()
+        index = 0
+        while not stop.is_set():
+            await asyncio.sleep(max(0.0, next_t - time.time()))
+            next_t += period
+            out = await loop.run_in_executor(None, render, index)
+            if out is None:
+                continue
+            await server.send(out[0])
+            if t0:  # scored from the take-off on
+                frames.append(out[1])
+            index += 1
+
+    def fly_mission() -> None:
+        driver.wait_ready()
+        orig_event = driver._event
+
+        def event(kind: str, **data: Any) -> None:
+            if kind == "takeoff" and not t0:
+                t0.append(time.time())
+            orig_event(kind, **data)
+
+        driver._event = event  # type: ignore[method-assign]
+        mission.update(driver.fly())
+
+    with log_path.open("wb") as log_file:
+        proc = subprocess.Popen(
+            cmd, stdout=log_file, stderr=log_file, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+        )
+        cam_task = asyncio.create_task(camera())
+        exit_code: int | None = None
+        stop_s: float | None = None
+        try:
+            deadline = time.time() + DAEMON_READY_TIMEOUT_S
+            while not any(m.type == "HEARTBEAT" for m in relay.received):
+                if proc.poll() is not None:
+                    raise SitlError(
+                        f"daemon exited with code {proc.returncode} before its first HEARTBEAT; "
+                        f"see {log_path}"
+                    )
+                if time.time() > deadline:
+                    raise SitlError(f"no HEARTBEAT from the daemon in {DAEMON_READY_TIMEOUT_S:.0f} s")
+                await asyncio.sleep(0.1)
+            say(f"daemon pid {proc.pid} up; flying the mission")
+            await loop.run_in_executor(None, fly_mission)
+            await asyncio.sleep(flight.opts.tail_s)
+            end = time.time()
+        finally:
+            stop.set()
+            with contextlib.suppress(Exception):
+                await cam_task
+            t_term = time.monotonic()
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+            try:
+                exit_code = await loop.run_in_executor(None, lambda: proc.wait(DAEMON_STOP_TIMEOUT_S))
+                stop_s = time.monotonic() - t_term
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                exit_code = proc.wait()
+            await server.close()
+    return end, exit_code, stop_s
+
+
+def run_autopilot_cli(args: Any) -> int:
+    """``gdnav sitl run --autopilot URL``: fly, print the summary, exit 0 when the daemon exited 0 and
+    the mission finished."""
+    from gps_denied_onboard.sitl.runner import summary_lines
+
+    opts = SitlOptions(
+        map_path=args.map,
+        scenario=args.scenario,
+        report_path=args.report,
+        config_path=args.config,
+        overrides=tuple(args.set or ()),
+        workdir=args.workdir,
+        quiet=args.quiet,
+    )
+    try:
+        report = run_sitl_with_autopilot(opts, args.autopilot)
+    except MissionError as exc:
+        print(f"error: mission: {exc}", file=sys.stderr)
+        return 1
+    report.setdefault("matcher", "?")
+    for line in summary_lines({**report, "matcher": report.get("matcher") or "?"}):
+        print(line)
+    print(f"autopilot     {args.autopilot}, truth from {report['autopilot']['truth_source']}")
+    print(f"report        {opts.report_path}")
+    return 0 if report["daemon_exit_code"] == 0 else 1
