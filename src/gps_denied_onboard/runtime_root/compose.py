@@ -308,6 +308,34 @@ def open_camera_source(config: Config) -> FrameSource:
         raise StartupError("camera.source", str(exc)) from exc
 
 
+def _pipeline(
+    config: Config,
+    calibration: CameraCalibration,
+    ltp: LocalTangentPlane,
+    vo: HomographyVo,
+    vpr: VprStrategy | None,
+    rerank: RerankStrategy | None,
+    matcher: CrossDomainMatcher | None,
+    time_axis: TimeAxis,
+    fdr: FdrClient,
+) -> NavigationPipeline:
+    """The F3 pipeline, wired the same way for the daemon and for ``gdnav replay``."""
+    return NavigationPipeline(
+        calibration=calibration,
+        ltp=ltp,
+        ground_alt_amsl_m=config.terrain.ground_alt_amsl_m,
+        vo=vo,
+        vpr=vpr,
+        vpr_config=config.vpr,
+        rerank=rerank,
+        matcher=matcher,
+        pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
+        time_axis=time_axis,
+        fdr=fdr,
+        integrity=FixIntegrity(config.integrity),
+    )
+
+
 def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = None) -> RuntimeRoot:
     """Build every object the daemon needs from ``config``.
 
@@ -351,20 +379,8 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         clock=clock,
         journal=journal,
     )
-    pipeline = NavigationPipeline(
-        calibration=calibration,
-        ltp=ltp,
-        ground_alt_amsl_m=config.terrain.ground_alt_amsl_m,
-        vo=HomographyVo(calibration),
-        vpr=vpr,
-        vpr_config=config.vpr,
-        rerank=rerank,
-        matcher=matcher,
-        pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
-        time_axis=time_axis,
-        fdr=fdr,
-        integrity=FixIntegrity(config.integrity),
-    )
+    vo = HomographyVo(calibration)
+    pipeline = _pipeline(config, calibration, ltp, vo, vpr, rerank, matcher, time_axis, fdr)
     link = MavlinkLink(config.mavlink, tracker, fdr, clock.now_unix_s, ltp=ltp)
     camera = open_camera_source(config)
     return RuntimeRoot(
@@ -445,17 +461,5 @@ def compose_replay(
         journal=journal,
     )
     vo = HomographyVo(calib) if vo_max_gap_s is None else HomographyVo(calib, max_gap_s=vo_max_gap_s)
-    pipeline = NavigationPipeline(
-        calibration=calib,
-        ltp=ltp,
-        ground_alt_amsl_m=config.terrain.ground_alt_amsl_m,
-        vo=vo,
-        vpr=vpr,
-        vpr_config=config.vpr,
-        rerank=rerank,
-        matcher=matcher,
-        pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
-        time_axis=time_axis,
-        fdr=fdr,
-    )
+    pipeline = _pipeline(config, calib, ltp, vo, vpr, rerank, matcher, time_axis, fdr)
     return ReplayRoot(config, calib, ltp, pipeline, time_axis, tiles)
