@@ -108,7 +108,7 @@ def test_replay_sitl_fdr_reproduces_every_frame_exactly(
     rep = report["reproduction"]
     assert report["mode"] == "exact" and report["divergence"] is None, report
     assert rep["frames_recorded"] >= 30
-    assert rep["all_equal"], rep["first_difference"]
+    assert rep["all_equal"] and rep["complete"], rep["first_difference"]
     assert rep["max_position_difference_m"] == 0.0
     assert report["journal"]["units_replayed"] == report["journal"]["units_total"] == len(units)
     m = report["metrics"]

@@ -218,8 +218,11 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
             f"{path}: run {run} has {len(frames_rec)} tracked frames and none of their images; record them "
             "with fdr.frame_jpeg_every_n (and fdr.frames_format: png for an exact replay)"
         )
+    notes: list[str] = []
     if missing:
-        not_exact.append(f"{missing} of {len(frames_rec)} tracked frames have no image in the FDR")
+        # An exact replay still runs up to the first unit whose frame has no image (a run killed between a
+        # frame's record and its image loses the last one; the images budget deletes the oldest).
+        notes.append(f"{missing} of {len(frames_rec)} tracked frames have no image in the FDR")
     if lossy:
         not_exact.append(f"{lossy} frame images are JPEG (lossy); fdr.frames_format: png is needed")
     if not journal:
@@ -246,6 +249,7 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
         if config_rec is not None
         else None,
         not_exact=not_exact,
+        notes=notes,
     )
 
 
