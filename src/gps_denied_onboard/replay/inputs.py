@@ -223,6 +223,10 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
         # An exact replay still runs up to the first unit whose frame has no image (a run killed between a
         # frame's record and its image loses the last one; the images budget deletes the oldest).
         notes.append(f"{missing} of {len(frames_rec)} tracked frames have no image in the FDR")
+    first_track = next((u for u in journal if u.get("unit") == "track"), None)
+    have = {f.exposure_time_unix_usec for f in frames}
+    if first_track is not None and int(first_track["time_unix_usec"]) not in have:
+        not_exact.append("the run's first frame has no image (deleted by the images budget or low disk)")
     if lossy:
         not_exact.append(f"{lossy} frame images are JPEG (lossy); fdr.frames_format: png is needed")
     if not journal:
