@@ -190,7 +190,10 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
     images = {int(r["exposure_time_unix_usec"]): r for r in recs if r.get("kind") == FdrKind.FRAME_IMAGE}
     config_rec = next((r for r in recs if r.get("kind") == FdrKind.CONFIG), None)
     prior_rec = next((r for r in recs if r.get("kind") == FdrKind.PRIOR), None)
-    journal = [r for r in recs if r.get("kind") == FdrKind.ESTIMATOR_INPUT]
+    # In unit order (``n``): each record is written after the axis' lock is released.
+    journal = sorted(
+        (r for r in recs if r.get("kind") == FdrKind.ESTIMATOR_INPUT), key=lambda r: int(r.get("n", 0))
+    )
     not_exact: list[str] = []
     frames: list[ReplayFrame] = []
     missing = lossy = 0
