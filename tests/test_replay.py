@@ -108,7 +108,7 @@ def test_replay_sitl_fdr_reproduces_every_frame_exactly(
     rep = report["reproduction"]
     assert report["mode"] == "exact" and report["divergence"] is None, report
     assert rep["frames_recorded"] >= 30
-    assert rep["all_equal"], rep["first_difference"]
+    assert rep["all_equal"] and rep["complete"], rep["first_difference"]
     assert rep["max_position_difference_m"] == 0.0
     assert report["journal"]["units_replayed"] == report["journal"]["units_total"] == len(units)
     m = report["metrics"]
@@ -152,6 +152,34 @@ def test_replay_sitl_fdr_detects_a_changed_imu_answer(
     assert code == 0, err
     seq = json.loads((sitl_flight / "seq.json").read_text())
     assert seq["mode"] == "sequential" and not seq["reproduction"]["all_equal"]
+
+
+@pytest.mark.sitl
+def test_replay_sitl_fdr_with_missing_images_says_how_far_it_is_exact(
+    sitl_flight: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The last frame's image lost (a kill between its record and its image): exact up to it, and the
+    report says where it stopped. The first frame's image lost (the images budget): frame by frame, and
+    the report says why it is not exact."""
+    from gps_denied_onboard.components.c13_fdr.recorder import list_images
+
+    for which, expect in (("last", "exact"), ("first", "sequential")):
+        copy = sitl_flight / f"fdr_no_{which}"
+        shutil.copytree(sitl_flight / "work" / "fdr", copy, dirs_exist_ok=True)
+        images = list_images(copy)
+        (images[-1] if which == "last" else images[0]).unlink()
+        out = sitl_flight / f"no_{which}.json"
+        code, _, err = _replay(["--fdr", str(copy), "--report", str(out)], capsys)
+        assert code == 0, err
+        report = json.loads(out.read_text())
+        assert report["mode"] == expect, report["not_exact_because"]
+        rep = report["reproduction"]
+        if which == "last":
+            assert rep["all_equal"] and not rep["complete"]
+            assert rep["frames_replayed"] == rep["frames_recorded"] - 1
+            assert "no image" in report["stopped"]
+        else:
+            assert any("first frame has no image" in r for r in report["not_exact_because"])
 
 
 @pytest.mark.sitl

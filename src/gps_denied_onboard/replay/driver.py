@@ -136,6 +136,7 @@ def run_replay(
     if cache_note is not None:
         inp.notes.append(cache_note)
     divergence: str | None = None
+    stopped: str | None = None
     refused: Counter[str] = Counter()
     bad_frames: list[dict[str, Any]] = []
 
@@ -166,9 +167,11 @@ def run_replay(
                 if t not in loaded:
                     f = by_time.get(t)
                     if f is None:
-                        raise ReplayDivergence(
-                            f"unit {unit.get('n')}: no frame image at {t}", unit=unit.get("n")
+                        stopped = (
+                            f"unit {unit.get('n')} of {len(inp.journal)}: the frame exposed at {t} has no "
+                            "image in the FDR; replayed exactly up to there"
                         )
+                        break
                     nav = usable(f)
                     if nav is None:
                         raise ReplayDivergence(
@@ -210,6 +213,7 @@ def run_replay(
     report.update(
         {
             "divergence": divergence,
+            "stopped": stopped,
             "frames_refused": dict(sorted(refused.items())),
             "bad_frames": bad_frames,
             "vo_max_gap_s": vo_max_gap_s,
@@ -344,7 +348,9 @@ def _compare(replayed: list[dict[str, Any]], recorded: Mapping[int, Mapping[str,
         "frames_recorded": len(recorded),
         "frames_replayed": len(replayed),
         "frames_equal": equal,
-        "all_equal": equal == len(recorded) == len(replayed),
+        #: Every replayed frame equals its record (a replay stopped early compares the frames it reached).
+        "all_equal": equal == len(replayed) and len(replayed) > 0,
+        "complete": len(replayed) == len(recorded),
         "max_position_difference_m": max_pos_m,
         "max_sigma_difference_m": max_sigma_m,
         "first_difference": first_diff,
@@ -466,7 +472,8 @@ def summary_lines(report: Mapping[str, Any]) -> list[str]:
     rep = report.get("reproduction")
     if rep is not None:
         lines.append(
-            f"reproduction: {rep['frames_equal']}/{rep['frames_recorded']} frames equal to the recording, "
+            f"reproduction: {rep['frames_equal']}/{rep['frames_replayed']} replayed frames equal to the "
+            f"recording ({rep['frames_recorded']} recorded), "
             f"max position difference {rep['max_position_difference_m']:.3g} m"
             + (
                 f"; first difference at frame {rep['first_difference']['seq']}"
@@ -474,6 +481,8 @@ def summary_lines(report: Mapping[str, Any]) -> list[str]:
                 else ""
             )
         )
+    if report.get("stopped"):
+        lines.append(f"stopped: {report['stopped']}")
     if report.get("divergence"):
         lines.append(f"diverged: {report['divergence']}")
     m = report.get("metrics")

@@ -190,7 +190,10 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
     images = {int(r["exposure_time_unix_usec"]): r for r in recs if r.get("kind") == FdrKind.FRAME_IMAGE}
     config_rec = next((r for r in recs if r.get("kind") == FdrKind.CONFIG), None)
     prior_rec = next((r for r in recs if r.get("kind") == FdrKind.PRIOR), None)
-    journal = [r for r in recs if r.get("kind") == FdrKind.ESTIMATOR_INPUT]
+    # In unit order (``n``): each record is written after the axis' lock is released.
+    journal = sorted(
+        (r for r in recs if r.get("kind") == FdrKind.ESTIMATOR_INPUT), key=lambda r: int(r.get("n", 0))
+    )
     not_exact: list[str] = []
     frames: list[ReplayFrame] = []
     missing = lossy = 0
@@ -218,8 +221,15 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
             f"{path}: run {run} has {len(frames_rec)} tracked frames and none of their images; record them "
             "with fdr.frame_jpeg_every_n (and fdr.frames_format: png for an exact replay)"
         )
+    notes: list[str] = []
     if missing:
-        not_exact.append(f"{missing} of {len(frames_rec)} tracked frames have no image in the FDR")
+        # An exact replay still runs up to the first unit whose frame has no image (a run killed between a
+        # frame's record and its image loses the last one; the images budget deletes the oldest).
+        notes.append(f"{missing} of {len(frames_rec)} tracked frames have no image in the FDR")
+    first_track = next((u for u in journal if u.get("unit") == "track"), None)
+    have = {f.exposure_time_unix_usec for f in frames}
+    if first_track is not None and int(first_track["time_unix_usec"]) not in have:
+        not_exact.append("the run's first frame has no image (deleted by the images budget or low disk)")
     if lossy:
         not_exact.append(f"{lossy} frame images are JPEG (lossy); fdr.frames_format: png is needed")
     if not journal:
@@ -246,6 +256,7 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
         if config_rec is not None
         else None,
         not_exact=not_exact,
+        notes=notes,
     )
 
 

@@ -17,9 +17,10 @@ half to the time axis, under the axis' lock:
 :class:`RecordingJournal` sits between the estimator and the real acceleration source: it passes every
 answer through and, inside a unit, keeps it; at the unit's end it hands one record (``n``, ``unit``,
 ``time_unix_usec``, ``clock_unix_usec``, the ``accel`` answers in the order they were asked) to its sink
-(the FDR's ``estimator.input``). The sink is called with the axis' lock held, so the records are in the
-order the units happened. Queries outside a unit (the output stream's ``state_at(now)``) never change
-the filter and are not kept.
+(the FDR's ``estimator.input``). ``n`` is given under the axis' lock, so it is the order the units
+happened; the record is written after the lock is released (the FDR's write never holds up the other
+thread or the output stream), so a reader orders the records by ``n``. Queries outside a unit (the
+output stream's ``state_at(now)``) never change the filter and are not kept.
 
 :class:`ReplayJournal` plays the records back: the replay performs the same units in the same order,
 and inside each one the estimator gets exactly the recorded answers and the axis the recorded clock.
@@ -49,9 +50,11 @@ class InputJournal(AccelerationSource, Protocol):
 
     def begin(self, unit: str, time_unix_usec: int, clock_unix_usec: int) -> None: ...
 
-    def end(self, extra: Mapping[str, Any]) -> None: ...
+    def end(self, extra: Mapping[str, Any]) -> dict[str, Any] | None: ...
 
-    def abort(self) -> None: ...
+    def abort(self) -> dict[str, Any] | None: ...
+
+    def emit(self, record: dict[str, Any]) -> None: ...
 
 
 class ReplayDivergence(RuntimeError):
@@ -93,14 +96,17 @@ class RecordingJournal:
             "accel": [],
         }
 
-    def end(self, extra: Mapping[str, Any]) -> None:
+    def end(self, extra: Mapping[str, Any]) -> dict[str, Any] | None:
+        """Close the unit; returns its record for :meth:`emit` (called once the axis' lock is released)."""
         rec, self._open, self._owner = self._open, None, None
-        if rec is not None:
-            self._sink({**rec, **dict(extra)})
+        return None if rec is None else {**rec, **dict(extra)}
 
-    def abort(self) -> None:
+    def abort(self) -> dict[str, Any] | None:
         """The unit raised: its record is still written (marked), so the replay knows it happened."""
-        self.end({"aborted": True})
+        return self.end({"aborted": True})
+
+    def emit(self, record: dict[str, Any]) -> None:
+        self._sink(record)
 
     def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray | None:
         a = self._inner.accel_ned_mean(t0_unix_usec, t1_unix_usec) if self._inner is not None else None
@@ -118,7 +124,9 @@ class ReplayJournal:
     """
 
     def __init__(self, records: Sequence[Mapping[str, Any]]) -> None:
-        self._records = list(records)
+        # Written after the lock was released, so two threads' records may be swapped in the file: ``n``
+        # is the order the units happened.
+        self._records = sorted(records, key=lambda r: int(r.get("n", 0)))
         self._next = 0
         self._open: Mapping[str, Any] | None = None
         self._answers: list[Any] = []
@@ -157,17 +165,22 @@ class ReplayJournal:
         self._answers = list(rec.get("accel") or [])
         self._clock = int(rec["clock_unix_usec"])
 
-    def end(self, extra: Mapping[str, Any]) -> None:
+    def end(self, extra: Mapping[str, Any]) -> dict[str, Any] | None:
         rec, self._open = self._open, None
         if rec is not None and self._answers:
             raise ReplayDivergence(
                 f"unit {rec.get('n')}: {len(self._answers)} recorded IMU answers were not asked for",
                 unit=int(rec.get("n", 0)),
             )
+        return None
 
-    def abort(self) -> None:
+    def abort(self) -> dict[str, Any] | None:
         self._open = None
         self._answers = []
+        return None
+
+    def emit(self, record: dict[str, Any]) -> None:
+        """Nothing to write: a replay plays records back."""
 
     def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray | None:
         rec = self._open

@@ -225,21 +225,28 @@ class TimeAxis:
     def unit(self, kind: str, time_unix_usec: int) -> Iterator[dict[str, Any]]:
         """One atomic visit of a pipeline half (``c5_estimator.journal``): the axis' lock is held for the
         whole block, so no other thread's input lands inside it, and the journal (if any) records it
-        with the clock now and the IMU answers the estimator got. The block may add fields to the
-        yielded dict; they go into the unit's record."""
-        with self._lock:
-            journal = self._journal
-            extra: dict[str, Any] = {}
-            if journal is None:
+        with the clock now and the IMU answers the estimator got, numbered in lock order and written
+        once the lock is released. The block may add fields to the yielded dict; they go into the
+        unit's record."""
+        journal = self._journal
+        extra: dict[str, Any] = {}
+        if journal is None:
+            with self._lock:
                 yield extra
-                return
-            journal.begin(kind, int(time_unix_usec), self._clock())
-            try:
-                yield extra
-            except BaseException:
-                journal.abort()
-                raise
-            journal.end(extra)
+            return
+        record: dict[str, Any] | None = None
+        try:
+            with self._lock:
+                journal.begin(kind, int(time_unix_usec), self._clock())
+                try:
+                    yield extra
+                except BaseException:
+                    record = journal.abort()
+                    raise
+                record = journal.end(extra)
+        finally:
+            if record is not None:
+                journal.emit(record)  # outside the lock: the FDR write never holds up another input
 
     # -- measurements ---------------------------------------------------------------------------------
 
