@@ -1009,12 +1009,22 @@ def parse_home(text: str) -> tuple[float, float, float, float]:
     return lat, lon, alt, hdg
 
 
+DESCRIPTION = (
+    "ArduPilot copter EMULATOR (a test double of measured behaviour, not ArduPilot): MAVLink over UDP on "
+    "loopback, one channel per --port."
+)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="gdnav sitl emulate",
-        description="ArduPilot copter EMULATOR (a test double of measured behaviour, not ArduPilot): "
-        "MAVLink over UDP on loopback, one channel per --port.",
+        prog="python -m gps_denied_onboard.sitl.ap_emulator", description=DESCRIPTION
     )
+    add_arguments(ap)
+    return run_from_args(ap.parse_args(argv))
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The emulator's command line (``gdnav sitl emulate`` and ``python -m``)."""
     ap.add_argument(
         "--home", required=True, help="LAT,LON,ALT_AMSL_M,HEADING_DEG (as ArduPilot SITL's --home)"
     )
@@ -1031,7 +1041,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--events", type=Path, default=None, help="write the events (JSON) here on exit")
     ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     ap.add_argument("--quiet", action="store_true")
-    args = ap.parse_args(argv)
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Serve until SIGTERM/SIGINT or ``--duration``; 2 on a bad argument."""
     try:
         lat, lon, alt, hdg = parse_home(args.home)
         params = {}
