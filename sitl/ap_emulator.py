@@ -909,6 +909,7 @@ class ArduPilotEmulator:
         k = 0
         end = None if duration_s is None else time.time() + duration_s
         socks = {c.sock: c for c in self._channels}
+        last_step = time.time()
         while self._running and (end is None or time.time() < end):
             timeout = max(0.0, next_t - time.time())
             ready, _, _ = select.select(list(socks), [], [], timeout)
@@ -926,11 +927,19 @@ class ArduPilotEmulator:
                     self._dispatch(ch, data, now)
             if time.time() < next_t:
                 continue
+            # The vehicle moves with the wall clock: after a stall of this process (a loaded machine) it
+            # is where its velocity took it, in sub-steps, so that the truth and the IMU stay consistent;
+            # one catch-up burst of fixed steps would move it without any acceleration the IMU reported.
+            wall = time.time()
+            elapsed = min(max(wall - last_step, 0.0), 1.0)
+            last_step = wall
             next_t += dt
-            if next_t < time.time() - 1.0:
-                next_t = time.time()  # a long stall: do not try to catch up
+            if next_t < wall:
+                next_t = wall + dt  # behind: the next tick a full period from now, not a burst
             self._update_gps(now)
-            self._step(dt, now)
+            n_sub = math.ceil(elapsed / dt - 1e-9)
+            for _ in range(n_sub):
+                self._step(elapsed / n_sub, now)
             self._send_fast()
             self._send_simstate()
             if k % 5 == 0:
