@@ -159,3 +159,53 @@ def test_link_drop_trips_no_fix_and_recovers_without_failsafe(tmp_path: Path) ->
     assert "ekf_failsafe" not in _kinds(emu)
     assert "gps_recovered" in _kinds(emu)
     assert "landed" in [e["kind"] for e in report["mission"]["log"]]
+
+
+@pytest.mark.sitl
+def test_home_off_the_map_is_refused_with_the_home_to_use(tmp_path: Path) -> None:
+    """An autopilot whose home is off the map: exit 2, one line naming the map's extent and a --home."""
+    ortho = shared_path("data", "geovision_india", "geovision_india_z18.tif")
+    port = _free_port()
+    emu = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gps_denied_onboard.sitl.ap_emulator",
+            "--home",
+            "47.3977,8.5456,400,0",
+            "--port",
+            str(port),
+            "--quiet",
+        ],
+    )
+    try:
+        cli = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "gps_denied_onboard.cli",
+                "sitl",
+                "run",
+                "--autopilot",
+                f"udpout:127.0.0.1:{port}",
+                "--map",
+                str(ortho),
+                "--scenario",
+                str(SQUARE),
+                "--report",
+                str(tmp_path / "report.json"),
+                "--workdir",
+                str(tmp_path / "work"),
+                "--quiet",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        emu.send_signal(signal.SIGTERM)
+        emu.wait(10)
+    assert cli.returncode == 2, cli.stdout + cli.stderr
+    err = cli.stderr.strip().splitlines()
+    assert len(err) == 1 and "off the map" in err[0] and "--home 17." in err[0], cli.stderr
+    assert "Traceback" not in cli.stderr
