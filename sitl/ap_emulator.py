@@ -909,6 +909,7 @@ class ArduPilotEmulator:
         k = 0
         end = None if duration_s is None else time.time() + duration_s
         socks = {c.sock: c for c in self._channels}
+        last_step = time.time()
         while self._running and (end is None or time.time() < end):
             timeout = max(0.0, next_t - time.time())
             ready, _, _ = select.select(list(socks), [], [], timeout)
@@ -926,11 +927,19 @@ class ArduPilotEmulator:
                     self._dispatch(ch, data, now)
             if time.time() < next_t:
                 continue
+            # The vehicle moves with the wall clock: after a stall of this process (a loaded machine) it
+            # is where its velocity took it, in sub-steps, so that the truth and the IMU stay consistent;
+            # one catch-up burst of fixed steps would move it without any acceleration the IMU reported.
+            wall = time.time()
+            elapsed = min(max(wall - last_step, 0.0), 1.0)
+            last_step = wall
             next_t += dt
-            if next_t < time.time() - 1.0:
-                next_t = time.time()  # a long stall: do not try to catch up
+            if next_t < wall:
+                next_t = wall + dt  # behind: the next tick a full period from now, not a burst
             self._update_gps(now)
-            self._step(dt, now)
+            n_sub = math.ceil(elapsed / dt - 1e-9)
+            for _ in range(n_sub):
+                self._step(elapsed / n_sub, now)
             self._send_fast()
             self._send_simstate()
             if k % 5 == 0:
@@ -1009,12 +1018,22 @@ def parse_home(text: str) -> tuple[float, float, float, float]:
     return lat, lon, alt, hdg
 
 
+DESCRIPTION = (
+    "ArduPilot copter EMULATOR (a test double of measured behaviour, not ArduPilot): MAVLink over UDP on "
+    "loopback, one channel per --port."
+)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="gdnav sitl emulate",
-        description="ArduPilot copter EMULATOR (a test double of measured behaviour, not ArduPilot): "
-        "MAVLink over UDP on loopback, one channel per --port.",
+        prog="python -m gps_denied_onboard.sitl.ap_emulator", description=DESCRIPTION
     )
+    add_arguments(ap)
+    return run_from_args(ap.parse_args(argv))
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The emulator's command line (``gdnav sitl emulate`` and ``python -m``)."""
     ap.add_argument(
         "--home", required=True, help="LAT,LON,ALT_AMSL_M,HEADING_DEG (as ArduPilot SITL's --home)"
     )
@@ -1031,7 +1050,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--events", type=Path, default=None, help="write the events (JSON) here on exit")
     ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     ap.add_argument("--quiet", action="store_true")
-    args = ap.parse_args(argv)
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Serve until SIGTERM/SIGINT or ``--duration``; 2 on a bad argument."""
     try:
         lat, lon, alt, hdg = parse_home(args.home)
         params = {}

@@ -37,6 +37,21 @@ from gps_denied_onboard.sitl.autopilot import ReceivedMessage
 MODE_AUTO = 3
 MODE_GUIDED = 4
 MODE_LAND = 9
+#: Message rates asked for with MAV_CMD_SET_MESSAGE_INTERVAL, Hz: the truth (SIMSTATE, SIM_STATE) for
+#: rendering and scoring, ATTITUDE/HIGHRES_IMU for the daemon's prediction, the rest for the driver.
+STREAM_RATES_HZ: dict[int, float] = {
+    mavutil.mavlink.MAVLINK_MSG_ID_SIMSTATE: 50.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_SIM_STATE: 50.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_ATTITUDE: 50.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: 50.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 5.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_GPS2_RAW: 5.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT: 2.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: 2.0,
+    mavutil.mavlink.MAVLINK_MSG_ID_HOME_POSITION: 0.5,  # the daemon's starting prior on the ground
+}
 #: ARMING_CHECK: every check (bits 1..18) but bit 3, "GPS lock".
 ARMING_CHECK_ALL_BUT_GPS = (1 << 19) - 2 - 8
 #: This driver's MAVLink identity: a ground station.
@@ -86,6 +101,7 @@ class AutopilotRelay:
         self._write_lock = threading.Lock()
         self._stop = threading.Event()
         self._att: Any = None
+        self._boot_offset_s: float | None = None
         self._events: list[tuple[float, Any]] = []
         self._thread = threading.Thread(target=self._run, name="autopilot_relay", daemon=True)
         self._thread.start()
@@ -131,8 +147,21 @@ class AutopilotRelay:
                     self.daemon.write(msg.get_msgbuf())
             self._note(msg, mtype, now)
 
+    def _sample_time(self, now: float) -> float:
+        """When a SIMSTATE/SIM_STATE sample was taken (they carry no time): the boot time of the ATTITUDE
+        just before it, mapped to Unix time with SYSTEM_TIME (the autopilot's clock; SITL at speedup 1).
+        The receive time would carry every stall of this process into the truth's timeline."""
+        if self._att is None or self._boot_offset_s is None:
+            return now
+        return min(now, self._att.time_boot_ms / 1000.0 + self._boot_offset_s)
+
     def _note(self, msg: Any, mtype: str, now: float) -> None:
+        if mtype == "SYSTEM_TIME" and msg.time_unix_usec > 0:
+            self._boot_offset_s = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
         if mtype in ("SIMSTATE", "SIM_STATE"):
+            now = self._sample_time(now)
+            if self.truth and now <= self.truth[-1].t_unix_s:
+                return
             if mtype == "SIMSTATE":
                 pose = TruePose(now, msg.lat / 1e7, msg.lng / 1e7, None, msg.roll, msg.pitch, msg.yaw)
             else:
@@ -362,6 +391,9 @@ class MissionDriver:
             if self.link.wait(lambda m: True, ["HEARTBEAT"], timeout_s) is None:
                 raise MissionError("the autopilot did not come back after the reboot")
             rebooted = True
+        # what the daemon and the scorer need, at rates a real ArduPilot does not stream by default
+        for msg_id, hz in STREAM_RATES_HZ.items():
+            self.command(mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz, timeout_s=1.0)
         for name, value in (
             ("GPS_AUTO_SWITCH", 1),
             ("SIM_GPS1_ENABLE", 1),
@@ -386,6 +418,9 @@ class MissionDriver:
                 and not (ekf.flags & mavutil.mavlink.EKF_CONST_POS_MODE)
             )
             if ok_ekf:
+                self.command(
+                    mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE, mavutil.mavlink.MAVLINK_MSG_ID_HOME_POSITION
+                )
                 self._event("ready", ekf_flags=int(ekf.flags), gps2_fix=getattr(gps2, "fix_type", None))
                 return
             time.sleep(0.5)

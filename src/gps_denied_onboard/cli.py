@@ -160,9 +160,9 @@ def _cmd_sitl_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_sitl_emulate(args: argparse.Namespace) -> int:
-    from gps_denied_onboard.sitl.ap_emulator import main as emulator_main
+    from gps_denied_onboard.sitl.ap_emulator import run_from_args
 
-    return emulator_main(args.emulator_args)
+    return run_from_args(args)
 
 
 def _cmd_config_check(args: argparse.Namespace) -> int:
@@ -321,14 +321,15 @@ def build_parser() -> argparse.ArgumentParser:
         "driver flies the scenario's waypoints with the GNSS off after take-off",
     )
     srun.set_defaults(func=_cmd_sitl_run)
+    from gps_denied_onboard.sitl.ap_emulator import DESCRIPTION as EMULATOR_DESCRIPTION
+    from gps_denied_onboard.sitl.ap_emulator import add_arguments as emulator_arguments
+
     semu = sitl_sub.add_parser(
         "emulate",
         help="the ArduPilot copter emulator (a test double, not ArduPilot) on loopback UDP",
-        description="Run the ArduPilot copter emulator (sitl/ap_emulator.py); arguments as "
-        "`gdnav sitl emulate -- --help` shows.",
-        add_help=False,
+        description=EMULATOR_DESCRIPTION,
     )
-    semu.add_argument("emulator_args", nargs=argparse.REMAINDER)
+    emulator_arguments(semu)
     semu.set_defaults(func=_cmd_sitl_emulate)
 
     from gps_denied_onboard import cli_bench, cli_match, cli_models

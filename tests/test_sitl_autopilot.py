@@ -1,0 +1,211 @@
+"""Issue 10: `gdnav sitl run --autopilot` against the ArduPilot emulator (its own process, real UDP).
+
+The emulator is a test double of measured ArduPilot behaviour (sitl/ap_emulator.py), not ArduPilot.
+Its EKF start-up (measured 10 s / 28 s after the first fix) is shortened here to 2 s / 4 s to keep CI
+short; nothing below judges the start-up timing.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from conftest import REPO_ROOT, shared_path
+from gps_denied_onboard.sitl.render import MapRenderer
+from gps_denied_onboard.sitl.scenario import load_scenario
+
+pytestmark = [pytest.mark.sitl, pytest.mark.realdata, pytest.mark.slow]
+SQUARE = REPO_ROOT / "sitl" / "scenarios" / "autopilot_square.yaml"
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _fly(
+    root: Path, scenario: Path
+) -> tuple[dict[str, Any], dict[str, Any], subprocess.CompletedProcess[str]]:
+    ortho = shared_path("data", "geovision_india", "geovision_india_z18.tif")
+    traj = load_scenario(scenario).resolve(MapRenderer(ortho).bbox_lonlat, 0.0)
+    lat, lon = traj.waypoints_lat_lon_deg[0]
+    port = _free_port()
+    events = root / "emulator_events.json"
+    emu = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gps_denied_onboard.sitl.ap_emulator",
+            "--home",
+            f"{lat},{lon},400,0",
+            "--port",
+            str(port),
+            "--ekf-origin-delay-s",
+            "2",
+            "--ekf-using-gps-delay-s",
+            "4",
+            "--events",
+            str(events),
+            "--quiet",
+        ],
+    )
+    try:
+        cli = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "gps_denied_onboard.cli",
+                "sitl",
+                "run",
+                "--autopilot",
+                f"udpout:127.0.0.1:{port}",
+                "--map",
+                str(ortho),
+                "--scenario",
+                str(scenario),
+                "--report",
+                str(root / "report.json"),
+                "--workdir",
+                str(root / "work"),
+                "--set",
+                "matcher.strategy=classical",
+                "--quiet",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=500,
+        )
+    finally:
+        emu.send_signal(signal.SIGTERM)
+        emu.wait(10)
+    assert cli.returncode == 0, cli.stdout + cli.stderr
+    return json.loads((root / "report.json").read_text()), json.loads(events.read_text()), cli
+
+
+def _kinds(emu: dict[str, Any]) -> list[str]:
+    return [e["kind"] for e in emu["events"]]
+
+
+@pytest.fixture(scope="module")
+def square(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], dict[str, Any], Any]:
+    return _fly(tmp_path_factory.mktemp("square"), SQUARE)
+
+
+def test_mission_arms_takes_off_flies_gnss_off_and_lands(square: Any) -> None:
+    report, emu, _cli = square
+    kinds = [e["kind"] for e in report["mission"]["log"]]
+    for k in ("armed", "takeoff", "takeoff_done", "gnss_off", "gnss_on", "landed"):
+        assert k in kinds, kinds
+    assert kinds.index("gnss_off") < kinds.index("gnss_on") < kinds.index("landed")
+    ek = _kinds(emu)
+    assert "armed" in ek and "landed_disarmed" in ek, ek
+    reached = [e["seq"] for e in emu["events"] if e["kind"] == "mission_item_reached"]
+    assert reached[:5] == [1, 2, 3, 4, 5], reached  # the five corners of the square, in AUTO
+    assert report["autopilot"]["truth_source"] == "SIMSTATE"
+    assert report["daemon_exit_code"] == 0
+
+
+def test_emulator_health_and_failsafe_rules_never_trip(square: Any) -> None:
+    """While the vehicle flies on GPS 2 alone (GNSS off .. GNSS back on) GPS 2's health never trips,
+    and the EKF never loses its position source (no NO_FIX, no EKF failsafe) in the whole run.
+
+    (In the last metres of the landing the daemon stops reporting a 3D fix, so GPS 2 times out there,
+    after the GNSS is back on: that is reported by the emulator and is not a failure of this flight.)"""
+    report, emu, _cli = square
+    ev = emu["events"]
+    lo, hi = report["gnss_off"]["window_unix_s"]
+    unhealthy = [
+        e for e in ev if e["kind"] == "gps_health" and not e["healthy"] and lo <= e["t_unix_s"] <= hi
+    ]
+    assert unhealthy == [], unhealthy
+    lost = [e for e in ev if e["kind"] in ("gps_loss", "ekf_failsafe")]
+    assert lost == [], lost
+    assert not any("Failsafe" in e.get("text", "") for e in ev)
+    primary = [e["instance"] for e in ev if e["kind"] == "gps_primary"]
+    assert primary[:1] == [2], primary  # GPS 2 (GPS_INPUT) took over when the GNSS went off
+
+
+def test_gnss_off_stretch_meets_issue_10_bounds(square: Any) -> None:
+    report, _emu, _cli = square
+    off = report["gnss_off"]
+    iv = off["stream"]["interval_ms"]
+    assert iv["mean_ms"] <= 120.0 and iv["p99_ms"] <= 200.0 and iv["max_ms"] <= 245.0, iv
+    assert off["availability"] >= 0.95, off["availability"]
+    assert off["horizontal_error_m"]["p95"] <= 5.0, off["horizontal_error_m"]
+    assert off["consistency"]["beyond_3sigma"] == 0, off["consistency"]
+    assert off["window_unix_s"][1] - off["window_unix_s"][0] > 30.0  # the square was flown GNSS-off
+
+
+def test_link_drop_trips_no_fix_and_recovers_without_failsafe(tmp_path: Path) -> None:
+    """A 6 s cut of the daemon's link while the vehicle flies on GPS_INPUT alone: the emulator reports
+    NO_FIX (4 s, measured), never the EKF failsafe (7.8 s), and the flight completes."""
+    data = yaml.safe_load(SQUARE.read_text())
+    data["name"] = "autopilot_square_link_drop"
+    data["link_drops"] = [{"from_s": 28.0, "to_s": 34.0}]
+    scenario = tmp_path / "square_link_drop.yaml"
+    scenario.write_text(yaml.safe_dump(data))
+    report, emu, _cli = _fly(tmp_path, scenario)
+    losses = [e for e in emu["events"] if e["kind"] == "gps_loss"]
+    assert [e["stage"] for e in losses] == ["NO_FIX"], losses
+    assert "ekf_failsafe" not in _kinds(emu)
+    assert "gps_recovered" in _kinds(emu)
+    assert "landed" in [e["kind"] for e in report["mission"]["log"]]
+
+
+@pytest.mark.sitl
+def test_home_off_the_map_is_refused_with_the_home_to_use(tmp_path: Path) -> None:
+    """An autopilot whose home is off the map: exit 2, one line naming the map's extent and a --home."""
+    ortho = shared_path("data", "geovision_india", "geovision_india_z18.tif")
+    port = _free_port()
+    emu = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gps_denied_onboard.sitl.ap_emulator",
+            "--home",
+            "47.3977,8.5456,400,0",
+            "--port",
+            str(port),
+            "--quiet",
+        ],
+    )
+    try:
+        cli = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "gps_denied_onboard.cli",
+                "sitl",
+                "run",
+                "--autopilot",
+                f"udpout:127.0.0.1:{port}",
+                "--map",
+                str(ortho),
+                "--scenario",
+                str(SQUARE),
+                "--report",
+                str(tmp_path / "report.json"),
+                "--workdir",
+                str(tmp_path / "work"),
+                "--quiet",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        emu.send_signal(signal.SIGTERM)
+        emu.wait(10)
+    assert cli.returncode == 2, cli.stdout + cli.stderr
+    err = cli.stderr.strip().splitlines()
+    assert len(err) == 1 and "off the map" in err[0] and "--home 17." in err[0], cli.stderr
+    assert "Traceback" not in cli.stderr
