@@ -709,3 +709,4 @@ class FlightDataRecorder:
 
     def __exit__(self, *_exc: object) -> None:
         self.close()
+
