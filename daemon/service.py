@@ -89,6 +89,8 @@ class NavDaemon:
         self._last_fix_reason: str | None = None
         #: Worker threads still inside a frame when the daemon stopped (see ``run``).
         self.abandoned_threads: list[str] = []
+        #: Tasks that ignored their cancellation within the stop grace (the caller must not wait on them).
+        self.stuck_tasks: list[str] = []
         #: Set before the tasks are cancelled. asyncio.wait_for can swallow a cancellation that lands as its
         #: inner wait completes (CPython 3.10/3.11), so the I/O loop also checks this flag.
         self._stopping = False
@@ -134,6 +136,7 @@ class NavDaemon:
             # Bounded: a task that ignores cancellation must not hold the process past its stop budget.
             _, stuck = await asyncio.wait(everything, timeout=_STOP_GRACE_S)
             for task in stuck:
+                self.stuck_tasks.append(task.get_name())
                 log.error(
                     LogEvent.DAEMON_TASK_STUCK,
                     task=task.get_name(),

@@ -78,7 +78,9 @@ def score(
         int(r["time_unix_usec"]): str(r.get("provenance"))
         for r in _of_kind(fdr_records, FdrKind.ESTIMATE_SENT)
     }
-    tracked_at = {int(r["frame_seq"]): float(r["t_unix_s"]) for r in _of_kind(fdr_records, FdrKind.FRAME)}
+    tracked_at = {
+        int(r["frame_seq"]): float(r["t_unix_s"]) for r in _of_kind(fdr_records, FdrKind.FRAME)
+    }
 
     def err_m(m: ReceivedMessage) -> float:
         lat_t, lon_t = truth_at_unix(int(m.fields["time_usec"]) / 1e6)

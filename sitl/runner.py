@@ -290,13 +290,17 @@ class _Flight:
         for index, t_s in enumerate(self.traj.frame_times_s()):
             if stop.is_set():
                 return
+            bad = self.scenario.instant_faults(prev_t, float(t_s))
+            if bad:
+                # Half a frame period before the good frame: the daemon's newest-wins queue would drop a
+                # bad frame followed at once by a good one before a busy track worker could take it.
+                t_bad = float(t_s) - (float(t_s) - max(prev_t, 0.0)) / 2.0
+                await asyncio.sleep(max(0.0, self.t0_unix_s + t_bad - time.time()))
+                for fault in bad:
+                    wall_s = self.t0_unix_s + t_bad + self.scenario.wall_step_s(t_bad)
+                    await server.send(self._bad_frame(fault.kind, 10_000_000 + index, round(wall_s * 1e6)))
+                    self.faults_injected.append({"kind": fault.kind.value, "t_s": round(float(t_s), 3)})
             await asyncio.sleep(max(0.0, self.t0_unix_s + float(t_s) - time.time()))
-            for fault in self.scenario.instant_faults(prev_t, float(t_s)):
-                stamp_us = round(
-                    (self.t0_unix_s + float(t_s) + self.scenario.wall_step_s(float(t_s)) - 0.01) * 1e6
-                )
-                await server.send(self._bad_frame(fault.kind, 10_000_000 + index, stamp_us))
-                self.faults_injected.append({"kind": fault.kind.value, "t_s": round(float(t_s), 3)})
             prev_t = float(t_s)
             stall = self.scenario.fault_at(FaultKind.CAMERA_STALL, float(t_s))
             if stall is not None:

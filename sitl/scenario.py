@@ -96,7 +96,8 @@ number is expected.
     would: the daemon process sees the step through libfaketime (its monotonic clock is untouched) and the
     camera, on the same computer, stamps with the stepped clock; the autopilot's clock does not step);
     ``ort_fault`` ``{at_s, count}`` (an instant: the next ``count`` ONNX Runtime runs, default 3, are
-    refused by ONNX Runtime itself through the C7 test hook; only a learned matcher runs ONNX Runtime);
+    refused by ONNX Runtime itself through the C7 test hook; only a learned matcher runs ONNX Runtime:
+    with another the report lists the count as ``not_consumed``);
     ``tile_corrupt`` ``{from_s, to_s}`` (a window: the map cell under the aircraft's position 3 s later is
     overwritten with noise in the daemon's cache file, in place, and its bytes put back at ``to_s``; the
     run uses its own copy of the cache); ``fdr_full`` ``{from_s, to_s}`` (a window: the file system of the

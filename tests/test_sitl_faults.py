@@ -2,34 +2,31 @@
 (daemon process, UDP MAVLink, TCP camera). The daemon keeps flying, records every fault, and never sends
 a fix_type 3 it cannot back (issue 9). The 20-minute form is the `soak` scenario (docs/benchmarks.md).
 
-The matcher is ALIKED on ONNX Runtime, so that the ``ort_fault`` makes a real session raise; the host
-faults (``sitl.host_faults``) step the daemon's wall clock through libfaketime, corrupt a map cell in its
-cache file and fill the FDR's own tmpfs (root is needed to mount it)."""
+The host faults (``sitl.host_faults``) step the daemon's wall clock through libfaketime, corrupt a map
+cell in its cache file and fill the FDR's own tmpfs (root is needed to mount it). The matcher is the
+weights-free one, as before (cheap and steady on 2 shared cores), so the ``ort_fault`` is armed but never
+consumed here; ONNX Runtime raising inside ALIKED is flown in ``test_sitl_slow_fix``."""
 
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter
 from pathlib import Path
 
 import pytest
 
-from aliked_fixture import aliked_t16_onnx  # noqa: F401 - session fixture
 from daemon_harness import fly_small_map
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.sitl.runner import summary_lines
+from gps_denied_onboard.sitl.scenario import load_scenario
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
-def flight(tmp_path_factory: pytest.TempPathFactory, aliked_t16_onnx: Path) -> dict:  # noqa: F811
-    overrides = (
-        "matcher.strategy=aliked_lightglue",
-        f"matcher.aliked_weights_path={aliked_t16_onnx}",
-        "daemon.onnx_intra_op_threads=1",  # 2 cores: one for ALIKED, one for VO and the loop
-    )
-    return fly_small_map(tmp_path_factory.mktemp("faults"), "faults", overrides=overrides)
+def flight(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    return fly_small_map(tmp_path_factory.mktemp("faults"), "faults")
 
 
 def _records(flight: dict) -> list[dict]:
@@ -76,21 +73,11 @@ def test_every_fault_is_in_the_flight_data_recorder(flight: dict) -> None:
     )
 
 
-def test_onnx_runtime_raising_costs_fixes_not_the_flight(flight: dict) -> None:
-    """ONNX Runtime's own Fail inside the ALIKED session is recorded as a backbone error with ORT's message,
-    the armed count is used up, and accepted fixes follow it on the same sessions."""
-    assert flight["matcher"] == "aliked_lightglue", flight["matcher"]
-    records = _records(flight)
-    errors = [r for r in records if r["kind"] == "matcher.backbone_error" and "terminate flag" in r["error"]]
-    assert 1 <= len(errors) <= 3, errors
-    assert not any(f.get("not_consumed") for f in flight["faults_injected"]), flight["faults_injected"]
-    last_error_t = max(r["t_unix_s"] for r in errors)
-    later = [
-        r
-        for r in records
-        if r["kind"] == "pipeline.fix" and r["fix_accepted"] and r["t_unix_s"] > last_error_t
-    ]
-    assert len(later) >= 10, "no accepted fix after ONNX Runtime raised"
+def test_onnx_runtime_fault_is_armed_and_left_unconsumed_without_a_learned_matcher(flight: dict) -> None:
+    """The weights-free matcher runs no ONNX Runtime: the armed count is reported back untouched."""
+    assert flight["matcher"] == "classical", flight["matcher"]
+    left = [f["not_consumed"] for f in flight["faults_injected"] if "not_consumed" in f]
+    assert left == [3], flight["faults_injected"]
 
 
 def test_a_map_cell_corrupted_in_flight_is_masked_and_recorded(flight: dict) -> None:
@@ -117,7 +104,9 @@ def test_host_clock_steps_are_detected_and_cost_no_outage(flight: dict) -> None:
     records = _records(flight)
     steps = [r for r in records if r["kind"] == "daemon.clock_step"]
     assert [round(r["step_s"]) for r in steps] == [-30, 30], steps
-    refused = [r for r in records if r["kind"] == "pipeline.frame_refused"]
+    scenario = load_scenario("faults")
+    lying = {math.ceil(f.at_s * scenario.frame_rate_hz - 1e-9) for f in scenario.timestamp_faults}
+    refused = [r for r in records if r["kind"] == "pipeline.frame_refused" and r["frame_seq"] not in lying]
     assert not [r for r in refused if abs(r["ahead_of_clock_s"]) > 20.0], "a frame mapped across the step"
     for step in steps:
         after = [

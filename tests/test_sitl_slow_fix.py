@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import yaml
 
 from aliked_fixture import aliked_t16_onnx  # noqa: F401 - session fixture
 from daemon_harness import demo_at_frame_rate, fly_small_map
@@ -18,10 +19,17 @@ from gps_denied_onboard.sitl.runner import summary_lines
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 
 
+#: ONNX Runtime refuses 3 runs 8 s into the flight (the SITL's ``ort_fault``, through the C7 test hook).
+ORT_FAULT = {"kind": "ort_fault", "at_s": 8.0, "count": 3}
+
+
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory, aliked_t16_onnx: Path) -> dict:  # noqa: F811
     root = tmp_path_factory.mktemp("slow_fix")
-    return fly_small_map(root, str(demo_at_frame_rate(root, 10.0)), overrides=_aliked(aliked_t16_onnx))
+    scenario = demo_at_frame_rate(root, 10.0)
+    data = yaml.safe_load(scenario.read_text())
+    scenario.write_text(yaml.safe_dump({**data, "faults": [*data.get("faults", []), ORT_FAULT]}))
+    return fly_small_map(root, str(scenario), overrides=_aliked(aliked_t16_onnx))
 
 
 def _aliked(model: Path) -> tuple[str, ...]:
@@ -55,6 +63,23 @@ def test_slow_fixes_are_fused_at_their_exposure_time_and_right(flight: dict) -> 
     assert flight["consistency"]["beyond_3sigma"] == 0, flight["consistency"]
     assert flight["analysis"]["accepted_fixes_beyond_3sigma"] == 0
     assert flight["horizontal_error_m"]["p95"] <= 3.0, summary_lines(flight)
+
+
+def test_onnx_runtime_raising_in_flight_costs_fixes_not_the_flight(flight: dict) -> None:
+    """ONNX Runtime's own Fail inside the ALIKED session (the SITL's ort_fault) is recorded as a backbone
+    error with ORT's message and logged, the armed count is used up, and accepted fixes follow it on the
+    same sessions; the daemon exits 0."""
+    errors = [r for r in _records(flight, "matcher.backbone_error") if "terminate flag" in r["error"]]
+    assert 1 <= len(errors) <= ORT_FAULT["count"], errors
+    assert not any(f.get("not_consumed") for f in flight["faults_injected"]), flight["faults_injected"]
+    log = Path(flight["daemon_log"]).read_text(errors="replace")
+    assert log.count('"c3.matcher.backbone_error"') >= len(errors) and "terminate flag" in log
+    last_error_t = max(r["t_unix_s"] for r in errors)
+    later = [
+        r for r in _records(flight, "pipeline.fix") if r["fix_accepted"] and r["t_unix_s"] > last_error_t
+    ]
+    assert len(later) >= 5, "no accepted fix after ONNX Runtime raised"
+    assert flight["daemon_exit_code"] == 0
 
 
 def test_sigterm_with_a_frame_inside_onnx_runtime_exits_0(

@@ -71,17 +71,23 @@ def _cmd_run(args: argparse.Namespace) -> int:
         root.fdr.record(FdrKind.CONFIG, {"version": __version__, "config": config_to_dict(config), **inputs})
         # The daemon opens its MAVLink link before READY: a UDP port another process holds is refused there.
         daemon = NavDaemon(root)
-        code = asyncio.run(daemon.run())
+        # Not asyncio.run: its teardown waits without bound for tasks that ignored their cancellation
+        # (seen under load: a SIGTERM'd daemon still alive 10 s later, then SIGKILLed).
+        loop = asyncio.new_event_loop()
+        code = loop.run_until_complete(daemon.run())
     except (StartupError, MavlinkConfigError) as exc:
         log.error("daemon.startup_refused", what=getattr(exc, "what", "mavlink.url"), error=str(exc))
         raise  # main() prints the one line and exits 3
-    if daemon.abandoned_threads:
-        # A worker is still inside a frame (e.g. in ONNX Runtime). Interpreter teardown would unwind or
-        # destroy native code under it and abort the process (SIGABRT, seen once after SIGTERM); the
-        # FDR and the link are already closed, so end here with the daemon's own exit code.
+    if daemon.abandoned_threads or daemon.stuck_tasks:
+        # A worker is still inside a frame (e.g. in ONNX Runtime), or a task is stuck. Interpreter
+        # teardown would unwind or destroy native code under it and abort the process (SIGABRT, seen once
+        # after SIGTERM), or wait on the task; the FDR and the link are already closed, so end here with
+        # the daemon's own exit code.
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)
+    loop.run_until_complete(loop.shutdown_asyncgens())
+    loop.close()
     return code
 
 

@@ -181,7 +181,3 @@ class DaemonClock:
         with self._lock:
             return self._unreported.pop(0) if self._unreported else None
 
-
-def system_clock() -> DaemonClock:
-    """The process's clock, anchored now (the composition root builds one per run)."""
-    return DaemonClock()

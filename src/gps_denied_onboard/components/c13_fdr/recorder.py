@@ -726,3 +726,4 @@ class FlightDataRecorder:
 
     def __exit__(self, *_exc: object) -> None:
         self.close()
+

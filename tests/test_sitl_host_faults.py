@@ -1,0 +1,92 @@
+"""The SITL's host faults without a flight: the map cell the tile_corrupt fault overwrites is the one the
+aircraft reaches, the daemon's store masks it, and the run's copy of the cache gets its exact bytes back;
+the shared cache is never touched."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon_harness import build_small_cache
+from gps_denied_onboard.components.c6_tiles.store import TileStore
+from gps_denied_onboard.sitl.host_faults import TILE_CORRUPT_LEAD_S, HostFaults
+from gps_denied_onboard.sitl.render import MapRenderer
+from gps_denied_onboard.sitl.scenario import scenario_from_mapping
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_tile_corrupt_hits_the_cell_ahead_and_restores_its_bytes(tmp_path: Path) -> None:
+    """At the window's start the cell under the aircraft 3 s later is overwritten in the run's copy (the
+    daemon's open store masks it and reports that cell); at its end the copy is byte-identical again."""
+    map_path, cache = build_small_cache(tmp_path)
+    shared_sha = _sha(cache / TileStore.open(cache).manifest.mosaic_name)
+    scenario = scenario_from_mapping(
+        {
+            "name": "t",
+            "alt_agl_m": 100.0,
+            "waypoints": {"frame": "map_relative", "points": [[0.3, 0.3], [0.7, 0.7]]},
+            "faults": [{"kind": "tile_corrupt", "from_s": 5.0, "to_s": 6.0}],
+        }
+    )
+    traj = scenario.resolve(MapRenderer(map_path).bbox_lonlat, 400.0)
+    injected: list[dict] = []
+    host = HostFaults(scenario, traj, tmp_path / "work", cache, injected)
+    (tmp_path / "work").mkdir()
+    setup = host.prepare()
+    assert setup.cache_dir is not None and setup.cache_dir != cache
+    daemon_store = TileStore.open(setup.cache_dir)
+    seen: list[dict] = []
+    daemon_store.on_corrupt = seen.append
+    mosaic = setup.cache_dir / daemon_store.manifest.mosaic_name
+    before = _sha(mosaic)
+    fault = scenario.faults[0]
+    host._inject(fault, True, 5.0)
+    assert _sha(mosaic) != before
+    hit = injected[-1]
+    truth = traj.truth_at(5.0 + TILE_CORRUPT_LEAD_S)
+    tile_id = daemon_store.tiles_near(truth.lat_deg, truth.lon_deg, 200.0, k=1)[0][0]
+    chip = daemon_store.chip(tile_id, 3 * daemon_store.tile_size_px)
+    assert [(s["x"], s["y"]) for s in seen] == [(hit["x"], hit["y"])]
+    assert not np.all(chip.pixels().any(axis=-1)), "the corrupt cell was not masked"
+    host._inject(fault, False, 6.0)
+    assert _sha(mosaic) == before and injected[-1]["restored"] == 1
+    assert _sha(cache / daemon_store.manifest.mosaic_name) == shared_sha
+    host.finish(tmp_path / "work" / "fdr")
+
+
+def test_clock_jump_and_ort_fault_files_are_what_libfaketime_and_the_hook_read(tmp_path: Path) -> None:
+    """clock_jump writes the host's total offset for libfaketime (the daemon preloads it, monotonic left
+    alone); ort_fault writes the count the C7 hook consumes."""
+    pytest.importorskip("libfaketime")
+    scenario = scenario_from_mapping(
+        {
+            "name": "t",
+            "alt_agl_m": 100.0,
+            "waypoints": {"frame": "map_relative", "points": [[0.3, 0.3], [0.7, 0.7]]},
+            "faults": [
+                {"kind": "clock_jump", "at_s": 1.0, "step_s": -30.0},
+                {"kind": "clock_jump", "at_s": 2.0, "step_s": 3600.0},
+                {"kind": "ort_fault", "at_s": 1.5, "count": 4},
+            ],
+        }
+    )
+    host = HostFaults(scenario, None, tmp_path, tmp_path, [])  # type: ignore[arg-type]
+    setup = host.prepare()
+    assert setup.env["LD_PRELOAD"].endswith("libfaketime.so.1") and Path(setup.env["LD_PRELOAD"]).is_file()
+    assert setup.env["FAKETIME_DONT_FAKE_MONOTONIC"] == "1"
+    offset_file = Path(setup.env["FAKETIME_TIMESTAMP_FILE"])
+    assert offset_file.read_text().strip() == "+0"
+    jumps = [f for f in scenario.faults if f.kind.value == "clock_jump"]
+    host._inject(jumps[0], True, 1.0)
+    assert offset_file.read_text().strip() == "-30.000"
+    host._inject(jumps[1], True, 2.0)
+    assert offset_file.read_text().strip() == "+3570.000"
+    ort = next(f for f in scenario.faults if f.kind.value == "ort_fault")
+    host._inject(ort, True, 1.5)
+    assert Path(setup.env["GDNAV_TEST_ORT_FAULT_FILE"]).read_text().strip() == "4"
