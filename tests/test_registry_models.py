@@ -256,3 +256,17 @@ def test_cli_models_verify_prints_figures_and_passes(disk_verified: Path) -> Non
     assert quick.returncode == 0, quick.stderr
     assert "disk_lightglue.onnx" in quick.stdout
     assert set(FAMILIES) >= {"disk"}
+
+
+@pytest.mark.slow
+def test_airborne_profile_runs_disk_lightglue_from_an_exported_dir(disk_verified: Path) -> None:
+    """config/airborne.yaml as shipped (only its model directory pointed at an export) builds the real
+    DISK + LightGlue strategy with its LightGlue model."""
+    from gps_denied_onboard.runtime_root.compose import create_matcher
+
+    config = load_config(REPO_ROOT / "config" / "airborne.yaml", [f"matcher.model_dir={disk_verified}"])
+    resolved = _resolve_matcher(config)
+    assert resolved.matcher.strategy == "disk_lightglue"
+    matcher = create_matcher(resolved, {}, None)  # type: ignore[arg-type]
+    assert isinstance(matcher, DiskLightGlueMatcher)
+    assert matcher._lightglue_runtime.mode == "lightglue"  # type: ignore[attr-defined]
