@@ -133,6 +133,33 @@ def test_family_export_matches_pytorch_reference(
 
 
 @pytest.mark.slow
+@pytest.mark.realdata
+def test_verification_fails_when_the_onnx_side_loses_matches(
+    registry_models: Callable[[str], Path],  # noqa: F811
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The 99 % gate can fail: an ONNX matcher that loses every tenth match is refused and recorded so."""
+    from gps_denied_onboard.models import reference_check as rc
+    from gps_denied_onboard.models.verification import family_verified
+
+    copy = tmp_path / "models"
+    shutil.copytree(registry_models("xfeat"), copy)
+    real = rc._Family.onnx_match
+
+    def lossy(self, f0, f1, sizes):  # type: ignore[no-untyped-def]
+        matches = real(self, f0, f1, sizes)
+        return matches[np.arange(len(matches)) % 10 != 0]
+
+    monkeypatch.setattr(rc._Family, "onnx_match", lossy)
+    check = _verify(copy, "xfeat")
+    assert not check.passed
+    assert 0.85 < check.pairs[0].e2e_identical_share < 0.95
+    extractor, matcher = family_models(verify_model_dir(copy), "xfeat")  # type: ignore[misc]
+    assert not family_verified(copy, "xfeat", extractor, matcher)
+
+
+@pytest.mark.slow
 def test_export_manifest_records_pins_licences_and_external_weights(
     disk_verified: Path, tmp_path: Path
 ) -> None:
