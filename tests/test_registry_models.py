@@ -308,3 +308,22 @@ def test_airborne_profile_runs_disk_lightglue_from_an_exported_dir(disk_verified
     matcher = create_matcher(resolved, {}, None)  # type: ignore[arg-type]
     assert isinstance(matcher, DiskLightGlueMatcher)
     assert matcher._lightglue_runtime.mode == "lightglue"  # type: ignore[attr-defined]
+
+
+def test_cli_export_refuses_unpinned_weights_in_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """gdnav models export with a weights file that is not the pinned one: exit 2, one line naming it,
+    nothing written."""
+    from gps_denied_onboard import cli
+    from gps_denied_onboard.models import learned_export
+
+    def refuse(name: str) -> Path:
+        raise WeightsHashMismatchError(path=f"/site/{name}.pth", expected="a" * 64, actual="b" * 64)
+
+    monkeypatch.setattr(learned_export, "package_weights_path", refuse)
+    code = cli.main(["models", "export", "--family", "xfeat", "--out", str(tmp_path / "m")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1 and "/site/xfeat.pth" in err and "refused" in err
+    assert not (tmp_path / "m").exists()
