@@ -42,6 +42,9 @@ from gps_denied_onboard.runtime_root.compose import _resolve_matcher
 from registry_models_fixture import EXPORT_SECONDS, registry_models  # noqa: F401 - session fixture
 
 NAIP_SUBDIR = ("data", "naip_timeseries", "naip")
+#: A test that is first to ask for a family pays its export and reference check (up to ~4 min on the
+#: shared 2-core machine): more than the suite's 300 s default.
+EXPORT_TIMEOUT_S = 900
 #: Upstream licences of the weights (README "Models").
 LICENCES = {"disk": "Apache-2.0", "xfeat": "Apache-2.0", "aliked": "BSD-3-Clause"}
 
@@ -107,6 +110,7 @@ def test_daemon_side_never_imports_torch_or_the_weight_packages() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
 @pytest.mark.realdata
 def test_disk_export_matches_pytorch_reference(disk_verified: Path) -> None:
     """DISK + LightGlue ONNX give >= 99 % of the PyTorch reference's matches on a NAIP 2009/2020 pair."""
@@ -119,6 +123,7 @@ def test_disk_export_matches_pytorch_reference(disk_verified: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
 @pytest.mark.realdata
 @pytest.mark.parametrize("family", ["aliked", "xfeat"])
 def test_family_export_matches_pytorch_reference(
@@ -133,6 +138,7 @@ def test_family_export_matches_pytorch_reference(
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
 @pytest.mark.realdata
 def test_verification_fails_when_the_onnx_side_loses_matches(
     registry_models: Callable[[str], Path],  # noqa: F811
@@ -160,6 +166,7 @@ def test_verification_fails_when_the_onnx_side_loses_matches(
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
 def test_export_manifest_records_pins_licences_and_external_weights(
     disk_verified: Path, tmp_path: Path
 ) -> None:
@@ -194,6 +201,7 @@ def _auto_config(model_dir: Path):  # type: ignore[no-untyped-def]
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
 def test_auto_picks_verified_disk_lightglue_and_refuses_unverified(
     disk_verified: Path, tmp_path: Path
 ) -> None:
@@ -224,6 +232,7 @@ def _naip_bgr(year: int) -> np.ndarray:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
 @pytest.mark.realdata
 def test_disk_lightglue_matches_naip_2020_frame_to_2009_chip(disk_verified: Path) -> None:
     """The real DISK + LightGlue strategy recovers a rotated, scaled 2020 frame on a 2009 map chip."""
@@ -280,6 +289,7 @@ def test_disk_lightglue_matches_naip_2020_frame_to_2009_chip(disk_verified: Path
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
 @pytest.mark.realdata
 def test_cli_models_verify_prints_figures_and_passes(disk_verified: Path) -> None:
     """gdnav models verify checks the hashes, prints the reference figures and exits 0 for a good export;
@@ -297,6 +307,7 @@ def test_cli_models_verify_prints_figures_and_passes(disk_verified: Path) -> Non
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
 def test_airborne_profile_runs_disk_lightglue_from_an_exported_dir(disk_verified: Path) -> None:
     """config/airborne.yaml as shipped (only its model directory pointed at an export) builds the real
     DISK + LightGlue strategy with its LightGlue model."""
