@@ -204,3 +204,26 @@ def test_bench_resolve_model_paths_from_dir(tmp_path: Path) -> None:
     }
     with pytest.raises(BenchmarkError, match="unknown model key"):
         resolve_model_paths({"superpoint": "a.onnx"}, None)
+
+
+def test_bench_resolve_model_paths_pairs_each_extractor_with_its_lightglue(tmp_path: Path) -> None:
+    """A directory from ``gdnav models export`` gives each learned strategy its own LightGlue."""
+    from gps_denied_onboard.models.learned_export import family_spec
+    from gps_denied_onboard.models.manifest import ModelEntry, ModelSource, write_manifest
+
+    for family in ("disk", "xfeat"):
+        spec = family_spec(family)
+        for role, file, sig in (
+            ("extractor", spec.extractor_file, spec.extractor_signature),
+            ("matcher", spec.matcher_file, spec.matcher_signature),
+        ):
+            (tmp_path / file).write_bytes(b"x")
+            source = ModelSource(name=f"{family}-{role}", sha256="0" * 64, licence="Apache-2.0", url="u")
+            write_manifest(
+                tmp_path, ModelEntry(file, "0" * 64, source, sig, {"family": family, "role": role})
+            )
+    got = resolve_model_paths(None, tmp_path)
+    assert got["disk"] == tmp_path / family_spec("disk").extractor_file
+    assert got["disk_lightglue"] == tmp_path / "disk_lightglue.onnx"
+    assert got["xfeat_lightglue"] == tmp_path / "xfeat_lighterglue.onnx"
+    assert "aliked" not in got and "aliked_lightglue" not in got

@@ -180,7 +180,8 @@ def test_unit_sandbox_fits_the_airborne_profile() -> None:
     models = [
         getattr(PROFILE.matcher, f.name)
         for f in dataclasses.fields(PROFILE.matcher)
-        if f.name.endswith("_weights_path") and getattr(PROFILE.matcher, f.name) is not None
+        if (f.name.endswith("_weights_path") or f.name == "model_dir")
+        and getattr(PROFILE.matcher, f.name) is not None
     ]
     assert models, "the airborne profile names its model files"
     for path in models:

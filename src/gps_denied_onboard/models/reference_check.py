@@ -39,12 +39,12 @@ import numpy as np
 from gps_denied_onboard.helpers.lightglue_runtime import normalize_keypoints
 from gps_denied_onboard.models.learned_export import FAMILIES, family_models
 from gps_denied_onboard.models.manifest import ModelEntry, verify_model_dir
+from gps_denied_onboard.models.verification import VERIFICATION_NAME
 
 #: A family fails below this share of identical matches (matcher alone and end to end).
 MIN_IDENTICAL_SHARE: Final[float] = 0.99
 #: Keypoints of the two sets closer than this are the same keypoint, px.
 SAME_KEYPOINT_PX: Final[float] = 0.5
-VERIFICATION_NAME: Final[str] = "verification.json"
 
 #: Default verification pairs: a 2020 NAIP frame crop (H x W = 480 x 640) vs a 2009 map chip (512 x 512)
 #: of the same ground, shifted: (frame row, frame col, chip row, chip col) in the 724 x 934 rasters.

@@ -42,12 +42,14 @@ from gps_denied_onboard.components.c8_mavlink import (
     load_signing_key,
 )
 from gps_denied_onboard.components.c13_fdr import FdrClient, FlightDataRecorder, read_records_newest_first
-from gps_denied_onboard.config import Config
+from gps_denied_onboard.config import Config, MatcherConfig
 from gps_denied_onboard.constants import FdrKind, LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
-from gps_denied_onboard.models.manifest import ModelDirError, verify_model_dir
+from gps_denied_onboard.models.learned_export import FAMILIES, FAMILY_STRATEGY, family_models
+from gps_denied_onboard.models.manifest import ModelDirError, ModelEntry, verify_model_dir
+from gps_denied_onboard.models.verification import family_verified
 from gps_denied_onboard.pipeline import NavigationPipeline
 
 log = structlog.get_logger(__name__)
@@ -199,22 +201,62 @@ def _matcher_deps(
     return deps
 
 
+#: Config field of each learned strategy's extractor model.
+_EXTRACTOR_FIELD = {
+    "disk_lightglue": "disk_weights_path",
+    "aliked_lightglue": "aliked_weights_path",
+    "xfeat": "xfeat_weights_path",
+}
+
+
+def _family_paths(
+    m: MatcherConfig, entries: tuple[ModelEntry, ...], strategy: str
+) -> tuple[str, str | None] | None:
+    """(extractor path, LightGlue path or None) for ``strategy`` from a verified model directory.
+
+    A family export (extractor + its LightGlue) wins; for ``aliked_lightglue`` a lone ALIKED extractor
+    (``gdnav models export --weights-dir``) is the fallback, matched by mutual nearest neighbour."""
+    family = next(f for f, s in FAMILY_STRATEGY.items() if s == strategy)
+    found = family_models(entries, family)
+    root = Path(str(m.model_dir))
+    if found is not None:
+        return str(root / found[0].file), str(root / found[1].file)
+    if strategy == "aliked_lightglue":
+        lone = [
+            e for e in entries if e.source.name in ("aliked-t16", "aliked-n16") and "role" not in e.params
+        ]
+        if lone:
+            return str(root / lone[0].file), None
+    return None
+
+
 def _resolve_matcher(config: Config) -> Config:
     """Apply ``matcher.model_dir`` and ``matcher.strategy: auto`` (see MatcherConfig).
 
-    The model directory is verified at start-up, and only where it is used: by ``auto``, and by
-    ``aliked_lightglue`` when no explicit ``aliked_weights_path`` is given. With ``auto`` an unusable or
-    model-less directory falls back to the weights-free strategy and says so; a learned strategy that
-    needs the directory refuses to start.
+    The model directory is verified (manifest hashes) at start-up, and only where it is used: by
+    ``auto``, and by a learned strategy whose extractor path is null (it then takes its extractor and,
+    when ``lightglue_weights_path`` is null too, its LightGlue matcher from the directory). ``auto`` picks
+    the first family whose export also passed ``gdnav models verify`` (``verification.json``), in the
+    order disk_lightglue, aliked_lightglue, xfeat; then a lone ALIKED extractor (mutual NN); then the
+    weights-free strategy, and logs the choice and why. A learned strategy that needs the directory
+    refuses to start without it.
     """
     m = config.matcher
-    uses_dir = m.strategy == "auto" or (m.strategy == "aliked_lightglue" and m.aliked_weights_path is None)
+    field = _EXTRACTOR_FIELD.get(m.strategy)
+    uses_dir = m.strategy == "auto" or (field is not None and getattr(m, field) is None)
     if not uses_dir:
         return config
 
     def fallback(reason: str) -> Config:
         log.warning(LogEvent.C3_AUTO_SELECTED, strategy="classical", reason=reason)
         return dataclasses.replace(config, matcher=dataclasses.replace(m, strategy="classical"))
+
+    def use(strategy: str, paths: tuple[str, str | None]) -> Config:
+        extractor: dict[str, Any] = {_EXTRACTOR_FIELD[strategy]: paths[0]}
+        chosen = dataclasses.replace(m, strategy=strategy, **extractor)
+        if m.lightglue_weights_path is None and paths[1] is not None:
+            chosen = dataclasses.replace(chosen, lightglue_weights_path=paths[1])
+        return dataclasses.replace(config, matcher=chosen)
 
     if m.model_dir is None:
         if m.strategy == "auto":
@@ -226,24 +268,47 @@ def _resolve_matcher(config: Config) -> Config:
         if m.strategy == "auto":
             return fallback(f"model directory unusable: {exc}")
         raise StartupError("matcher.model_dir", str(exc)) from exc
-    aliked = [e for e in entries if e.source.name.startswith("aliked")]
-    strategy = m.strategy
-    if strategy == "auto":
-        if not aliked:
-            return fallback(f"no ALIKED model in {m.model_dir}")
-        strategy = "aliked_lightglue"
+    if m.strategy != "auto":
+        paths = _family_paths(m, entries, m.strategy)
+        if paths is None:
+            raise StartupError(
+                "matcher.model_dir",
+                f"{m.model_dir}: no {m.strategy} model in the manifest (run gdnav models export)",
+            )
+        return use(m.strategy, paths)
+    unverified = []
+    for family in FAMILIES:
+        found = family_models(entries, family)
+        if found is None:
+            continue
+        strategy = FAMILY_STRATEGY[family]
+        if not family_verified(Path(m.model_dir), family, *found):
+            unverified.append(strategy)
+            continue
         log.info(
             LogEvent.C3_AUTO_SELECTED,
             strategy=strategy,
             model_dir=m.model_dir,
-            reason="verified ALIKED export found",
+            reason=f"verified {family} export (extractor + LightGlue)",
+            skipped_unverified=unverified,
         )
-    if not aliked:
-        raise StartupError("matcher.model_dir", f"{m.model_dir}: no ALIKED model in the manifest")
-    path = str(Path(m.model_dir) / aliked[0].file)
-    return dataclasses.replace(
-        config, matcher=dataclasses.replace(m, strategy=strategy, aliked_weights_path=path)
-    )
+        return use(strategy, (str(Path(m.model_dir) / found[0].file), str(Path(m.model_dir) / found[1].file)))
+    lone = _family_paths(m, tuple(e for e in entries if "role" not in e.params), "aliked_lightglue")
+    if lone is not None:
+        log.info(
+            LogEvent.C3_AUTO_SELECTED,
+            strategy="aliked_lightglue",
+            model_dir=m.model_dir,
+            reason="ALIKED extractor export without LightGlue: mutual nearest neighbour",
+            skipped_unverified=unverified,
+        )
+        return use("aliked_lightglue", lone)
+    if unverified:
+        return fallback(
+            f"exports in {m.model_dir} not verified against PyTorch ({', '.join(unverified)}): "
+            f"run gdnav models verify --dir {m.model_dir}"
+        )
+    return fallback(f"no learned model in {m.model_dir}")
 
 
 def open_tile_store(config: Config) -> TileStore:

@@ -82,5 +82,7 @@ def create_matcher(name: str, **deps: Any) -> CrossDomainMatcher:
         strategy=name,
         min_inliers_threshold=getattr(config, "min_inliers_threshold", None),
         residual_warn_threshold_px=getattr(config, "residual_warn_threshold_px", None),
+        # "lightglue" (a matcher model) or "mutual_nn" (no matcher model given): what matches the features.
+        pair_matcher=getattr(deps.get("lightglue_runtime"), "mode", None),
     )
     return matcher
