@@ -469,10 +469,9 @@ def _measure_candidates(strategy: _Strategy, bf: BenchFrame, calib: CameraCalibr
         t0 = time.perf_counter()
         tile = m.extract_tile(chip.pixels())
         t1 = time.perf_counter()
-        corr = m.match_features(query, tile)
-        result = strategy.ransac.filter(
-            np.asarray(corr, dtype=np.float32), threshold_px=strategy.config.ransac_threshold_px
-        )
+        # A fifth column, when present, is the matcher's confidence per match: RANSAC takes the points.
+        corr = np.asarray(m.match_features(query, tile), dtype=np.float32)[:, :4]
+        result = strategy.ransac.filter(corr, threshold_px=strategy.config.ransac_threshold_px)
         t2 = time.perf_counter()
         strategy.add("candidate_cold_ms", (t2 - t0) * 1e3)
         strategy.add("candidate_warm_ms", (t2 - t1) * 1e3)
