@@ -40,7 +40,6 @@ CFG = IntegrityConfig(
     prior_max_sigma_m=150.0,
     full_evidence_inliers=100,
     full_evidence_ratio=0.3,
-    full_evidence_spread=0.25,
     max_sigma_scale=10.0,
     min_sigma_map_px=1.0,
 )
@@ -142,7 +141,7 @@ def test_a_rival_that_agrees_or_is_weak_is_no_ambiguity() -> None:
 def test_rival_distance_is_judged_with_the_solvers_sigmas_not_the_inflated_ones() -> None:
     # 12 m apart: beyond 3 combined sigmas of two 1 m fixes, however weak (inflated) the evidence is;
     # within them once the solvers' own sigmas say 3 m.
-    weak = MatchEvidence(inlier_count=25, putative_count=50, spread_share=0.1, mean_confidence=None)
+    weak = MatchEvidence(inlier_count=25, putative_count=250, spread_share=0.1, mean_confidence=None)
     rival = CandidateFix(_fix(north_m=12.0), weak)
     assert FixIntegrity(CFG).sigma_scale(weak) > 3.0
     assert not _assess(weak, rivals=[rival]).accepted
@@ -182,7 +181,10 @@ def test_weaker_evidence_states_a_larger_sigma_capped() -> None:
     low_ratio = MatchEvidence(inlier_count=100, putative_count=1000, spread_share=0.6, mean_confidence=None)
     assert rule.sigma_scale(low_ratio) == pytest.approx(3.0)  # 0.3 / 0.1 (CFG's full_evidence_ratio)
     hopeless = MatchEvidence(inlier_count=20, putative_count=400, spread_share=0.06, mean_confidence=None)
-    assert rule.sigma_scale(hopeless) == pytest.approx(CFG.max_sigma_scale)
+    assert rule.sigma_scale(hopeless) == pytest.approx(CFG.max_sigma_scale)  # sqrt(5) * 6 > 10
+    # The spread is in the solver's covariance already: it has a threshold, not a factor.
+    narrow = dataclasses.replace(STRONG, spread_share=0.06)
+    assert rule.sigma_scale(narrow) == pytest.approx(1.0)
 
 
 def test_the_map_pixel_floors_the_stated_sigma() -> None:

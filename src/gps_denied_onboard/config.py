@@ -300,11 +300,11 @@ class IntegrityConfig:
     weak_evidence_scale: Annotated[float, Strict(), Field(ge=1)] = 1.5
     prior_gate_chi2: PosFloat = 9.21
     prior_max_sigma_m: PosFloat = 150.0
-    #: Full evidence: at or above these the sigma is not inflated; below, each scales it up (inliers and
-    #: spread by the square root of the shortfall, the inlier ratio linearly).
-    full_evidence_inliers: PosInt = 100
+    #: Full evidence: at or above these the sigma is not inflated; below, each scales it up (inliers by
+    #: the square root of the shortfall, the inlier ratio linearly). The inliers' number and geometry
+    #: are already in the solver's covariance: these stand for the risk of a wrong alignment.
+    full_evidence_inliers: PosInt = 50
     full_evidence_ratio: Fraction = 0.5
-    full_evidence_spread: Fraction = 0.25
     #: Cap on the sigma factor.
     max_sigma_scale: Annotated[float, Strict(), Field(ge=1)] = 10.0
     #: Floor on the per-axis sigma in map pixels (a match is never better than the map's pixel).

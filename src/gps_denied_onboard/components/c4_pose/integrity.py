@@ -35,10 +35,14 @@ The rule (:meth:`FixIntegrity.assess`), in order; the first failing test refuses
 
 Covariance (for a fix that passes): the solver's covariance is first floored at
 ``min_sigma_map_px`` map pixels (a match is never better than the map's own pixel), then scaled by
-``k**2``, with ``k`` the product of one factor per kind of evidence, each 1 at full evidence and growing
-as the evidence weakens (``full_evidence_inliers``, ``full_evidence_ratio``, ``full_evidence_spread``),
-capped at ``max_sigma_scale``. Weak evidence thus states a larger sigma: the estimator weighs it less,
-and its gate judges it with honest numbers.
+``k**2``, with ``k`` the product of two factors, each 1 at full evidence and growing as it weakens
+(``full_evidence_ratio``: the inlier ratio, linearly; ``full_evidence_inliers``: the inlier count, by the
+square root), capped at ``max_sigma_scale``. They stand for what the solver's covariance cannot see, the
+risk that the alignment itself is wrong: the number of inliers and their spread over the image are
+already in it (residuals over the Jacobian), so the spread only has its threshold; inflating for it
+again slowed the recovery after a featureless stretch, whose first fixes are right but bunched on one
+side of the frame. Weak evidence thus states a larger sigma: the estimator weighs it less, and its gate
+judges it with honest numbers.
 """
 
 from __future__ import annotations
@@ -179,7 +183,6 @@ class FixIntegrity:
         k = math.sqrt(cfg.full_evidence_inliers / max(ev.inlier_count, 1)) if ev.inlier_count else math.inf
         k = max(k, 1.0)
         k *= max(cfg.full_evidence_ratio / max(ev.inlier_ratio, 1e-6), 1.0)
-        k *= max(math.sqrt(cfg.full_evidence_spread / max(ev.spread_share, 1e-6)), 1.0)
         return min(k, cfg.max_sigma_scale)
 
     def floored_cov(self, fix: PoseFix, map_gsd_m_px: float) -> np.ndarray:
