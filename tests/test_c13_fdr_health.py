@@ -218,6 +218,7 @@ def test_daemon_track_stores_every_nth_frame(tmp_path: Path) -> None:
     pipeline.frame_image record; none when it is 0."""
     from gps_denied_onboard.camera.sources import RawFrame
     from gps_denied_onboard.camera.types import CameraCalibration
+    from gps_denied_onboard.clock import DaemonClock
     from gps_denied_onboard.config import load_config
     from gps_denied_onboard.daemon.service import NavDaemon
 
@@ -233,6 +234,7 @@ def test_daemon_track_stores_every_nth_frame(tmp_path: Path) -> None:
         root = SimpleNamespace(
             config=config,
             time_axis=None,
+            clock=DaemonClock(),
             calibration=CameraCalibration(64, 48, 50.0, 50.0, 32.0, 24.0),
             pipeline=_Pipeline(),
             fdr=fdr,
@@ -240,7 +242,8 @@ def test_daemon_track_stores_every_nth_frame(tmp_path: Path) -> None:
         daemon = NavDaemon(root)  # type: ignore[arg-type]
         try:
             for seq in range(11):
-                result = daemon._track(RawFrame(seq, 1_000_000 * seq, image), 0, None, None, None)
+                t_us = 1_000_000 * seq
+                result = daemon._track(RawFrame(seq, t_us, image), t_us, 0, None, None, None)
                 assert result is not None and result[1] == "tracked"
         finally:
             asyncio.run(_stop_workers(daemon))

@@ -134,6 +134,7 @@ def test_scenario_builtin_files_load() -> None:
     """The three shipped scenarios load, by path and by bare name, with the documented shape."""
     names = sorted(p.stem for p in BUILTIN_SCENARIOS_DIR.glob("*.yaml"))
     assert names == [
+        "autopilot_square",
         "clock_faults",
         "demo",
         "faults",
@@ -237,7 +238,7 @@ def test_scenario_map_gaps_parse_and_validate() -> None:
 
 def test_scenario_file_errors_name_the_file(tmp_path: Path) -> None:
     """A missing file lists the built-ins; broken YAML is a ScenarioError naming the file."""
-    listed = r"built-in scenarios: clock_faults, demo, faults, link_drop, map_gap, .*, smoke"
+    listed = r"built-in scenarios: autopilot_square, clock_faults, demo, faults, link_drop, .*, smoke"
     with pytest.raises(ScenarioError, match=listed):
         load_scenario(tmp_path / "nope.yaml")
     bad = tmp_path / "bad.yaml"
