@@ -21,18 +21,9 @@ from gps_denied_onboard.components.c5_estimator.journal import (
     ReplayJournal,
 )
 from gps_denied_onboard.config import EstimatorConfig
-from test_c5_estimator import LTP, S, _fix, _vo
+from test_c5_estimator import LTP, _fix, _vo
 from test_c5_estimator import T0_USEC as T0
-
-FRAME_US = S // 3
-
-
-class _Clock:
-    def __init__(self, t_usec: int) -> None:
-        self.t = t_usec
-
-    def __call__(self) -> int:
-        return self.t
+from test_c5_time_axis import FRAME_US, _Clock
 
 
 class _DriftingImu:

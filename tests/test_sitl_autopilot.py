@@ -32,34 +32,17 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _fly(
-    root: Path, scenario: Path
-) -> tuple[dict[str, Any], dict[str, Any], subprocess.CompletedProcess[str]]:
+def _sitl_against_emulator(
+    root: Path, scenario: Path, home: str, emulator_args: list[str], timeout_s: float
+) -> subprocess.CompletedProcess[str]:
+    """The emulator (its own process, home ``home`` as lat,lon,alt,yaw) and `gdnav sitl run --autopilot`
+    against it over loopback UDP, over GeoVision; the emulator is stopped afterwards."""
     ortho = shared_path("data", "geovision_india", "geovision_india_z18.tif")
-    traj = load_scenario(scenario).resolve(MapRenderer(ortho).bbox_lonlat, 0.0)
-    lat, lon = traj.waypoints_lat_lon_deg[0]
     port = _free_port()
-    events = root / "emulator_events.json"
-    emu = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "gps_denied_onboard.sitl.ap_emulator",
-            "--home",
-            f"{lat},{lon},400,0",
-            "--port",
-            str(port),
-            "--ekf-origin-delay-s",
-            "2",
-            "--ekf-using-gps-delay-s",
-            "4",
-            "--events",
-            str(events),
-            "--quiet",
-        ],
-    )
+    emulator = [sys.executable, "-m", "gps_denied_onboard.sitl.ap_emulator", "--home", home]
+    emu = subprocess.Popen([*emulator, "--port", str(port), *emulator_args, "--quiet"])
     try:
-        cli = subprocess.run(
+        return subprocess.run(
             [
                 sys.executable,
                 "-m",
@@ -82,11 +65,22 @@ def _fly(
             ],
             capture_output=True,
             text=True,
-            timeout=500,
+            timeout=timeout_s,
         )
     finally:
         emu.send_signal(signal.SIGTERM)
         emu.wait(10)
+
+
+def _fly(
+    root: Path, scenario: Path
+) -> tuple[dict[str, Any], dict[str, Any], subprocess.CompletedProcess[str]]:
+    ortho = shared_path("data", "geovision_india", "geovision_india_z18.tif")
+    traj = load_scenario(scenario).resolve(MapRenderer(ortho).bbox_lonlat, 0.0)
+    lat, lon = traj.waypoints_lat_lon_deg[0]
+    events = root / "emulator_events.json"
+    delays = ["--ekf-origin-delay-s", "2", "--ekf-using-gps-delay-s", "4", "--events", str(events)]
+    cli = _sitl_against_emulator(root, scenario, f"{lat},{lon},400,0", delays, timeout_s=500)
     assert cli.returncode == 0, cli.stdout + cli.stderr
     return json.loads((root / "report.json").read_text()), json.loads(events.read_text()), cli
 
@@ -164,47 +158,7 @@ def test_link_drop_trips_no_fix_and_recovers_without_failsafe(tmp_path: Path) ->
 @pytest.mark.sitl
 def test_home_off_the_map_is_refused_with_the_home_to_use(tmp_path: Path) -> None:
     """An autopilot whose home is off the map: exit 2, one line naming the map's extent and a --home."""
-    ortho = shared_path("data", "geovision_india", "geovision_india_z18.tif")
-    port = _free_port()
-    emu = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "gps_denied_onboard.sitl.ap_emulator",
-            "--home",
-            "47.3977,8.5456,400,0",
-            "--port",
-            str(port),
-            "--quiet",
-        ],
-    )
-    try:
-        cli = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "gps_denied_onboard.cli",
-                "sitl",
-                "run",
-                "--autopilot",
-                f"udpout:127.0.0.1:{port}",
-                "--map",
-                str(ortho),
-                "--scenario",
-                str(SQUARE),
-                "--report",
-                str(tmp_path / "report.json"),
-                "--workdir",
-                str(tmp_path / "work"),
-                "--quiet",
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-    finally:
-        emu.send_signal(signal.SIGTERM)
-        emu.wait(10)
+    cli = _sitl_against_emulator(tmp_path, SQUARE, "47.3977,8.5456,400,0", [], timeout_s=120)
     assert cli.returncode == 2, cli.stdout + cli.stderr
     err = cli.stderr.strip().splitlines()
     assert len(err) == 1 and "off the map" in err[0] and "--home 17." in err[0], cli.stderr

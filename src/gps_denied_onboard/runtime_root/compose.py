@@ -373,6 +373,27 @@ def open_camera_source(config: Config) -> FrameSource:
         raise StartupError("camera.source", str(exc)) from exc
 
 
+def _time_axis(
+    config: Config,
+    ltp: LocalTangentPlane,
+    journal: Any | None,
+    *,
+    clock: DaemonClock | None = None,
+    clock_unix_usec: Callable[[], int] | None = None,
+) -> TimeAxis:
+    """The C5 estimator on its time axis, with the journal as its IMU (the daemon's records, a replay's
+    playback): the one place its bounds are read from config."""
+    return TimeAxis(
+        NavEstimator(config.estimator, ltp, accel_source=journal),
+        max_delay_s=config.estimator.max_fix_delay_s,
+        max_frame_age_s=config.daemon.max_frame_age_s,
+        max_future_s=config.estimator.max_future_s,
+        clock=clock,
+        clock_unix_usec=clock_unix_usec,
+        journal=journal,
+    )
+
+
 def _pipeline(
     config: Config,
     calibration: CameraCalibration,
@@ -436,14 +457,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     tracker = make_tracker(config, clock)
     # Every unit of the time axis and the IMU answers inside it go to the FDR (``gdnav replay``).
     journal = RecordingJournal(tracker, lambda fields: fdr.record(FdrKind.ESTIMATOR_INPUT, fields))
-    time_axis = TimeAxis(
-        NavEstimator(config.estimator, ltp, accel_source=journal),
-        max_delay_s=config.estimator.max_fix_delay_s,
-        max_frame_age_s=config.daemon.max_frame_age_s,
-        max_future_s=config.estimator.max_future_s,
-        clock=clock,
-        journal=journal,
-    )
+    time_axis = _time_axis(config, ltp, journal, clock=clock)
     vo = HomographyVo(calibration)
     pipeline = _pipeline(config, calibration, ltp, vo, vpr, rerank, matcher, time_axis, fdr)
     link = MavlinkLink(config.mavlink, tracker, fdr, clock.now_unix_s, ltp=ltp)
@@ -517,14 +531,7 @@ def compose_replay(
         if ltp_origin_lat_lon is None:
             raise ValueError("a replay without a map needs ltp_origin_lat_lon")
         ltp = LocalTangentPlane(*ltp_origin_lat_lon, config.terrain.ground_alt_amsl_m)
-    time_axis = TimeAxis(
-        NavEstimator(config.estimator, ltp, accel_source=journal),
-        max_delay_s=config.estimator.max_fix_delay_s,
-        max_frame_age_s=config.daemon.max_frame_age_s,
-        max_future_s=config.estimator.max_future_s,
-        clock_unix_usec=clock_unix_usec,
-        journal=journal,
-    )
+    time_axis = _time_axis(config, ltp, journal, clock_unix_usec=clock_unix_usec)
     vo = HomographyVo(calib) if vo_max_gap_s is None else HomographyVo(calib, max_gap_s=vo_max_gap_s)
     pipeline = _pipeline(config, calib, ltp, vo, vpr, rerank, matcher, time_axis, fdr)
     return ReplayRoot(config, calib, ltp, pipeline, time_axis, tiles)
