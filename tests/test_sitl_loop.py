@@ -3,12 +3,15 @@ as its own process with config/sitl.yaml, scored against the truth."""
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
 import pytest
 
 from daemon_harness import fly_small_map
+from gps_denied_onboard.components.c13_fdr.reader import FdrReader
+from gps_denied_onboard.constants import FdrKind
 from gps_denied_onboard.sitl.runner import summary_lines
 
 pytestmark = pytest.mark.sitl
@@ -57,14 +60,24 @@ def test_sitl_daemon_accuracy_fields_are_honest(smoke_report: tuple[dict, Path])
 
 
 def test_sitl_estimate_stream_is_steady_enough_for_ardupilot(smoke_report: tuple[dict, Path]) -> None:
-    """GPS_INPUT arrives at the configured 10 Hz between frames: interval mean <= 120 ms, p99 <= 200 ms,
-    max <= 245 ms, and the ArduPilot health rule (test double) never trips."""
-    report, _ = smoke_report
+    """GPS_INPUT goes out at the configured 10 Hz between frames: the daemon's own send times (its FDR
+    ``mavlink.estimate`` records) never more than 245 ms apart; at the simulated autopilot, interval mean
+    <= 120 ms and p99 <= 200 ms, and the ArduPilot health rule (test double) never trips.
+
+    The receive side's single largest interval is not asserted: it is stamped when the simulator's own
+    loop reads the socket, so a simulator stalled for a moment on this 2-core machine shows a gap the
+    daemon did not make (seen once: 447 ms received while the daemon's sends were at most 102.5 ms apart).
+    The health rule, which tolerates one late message but not two in a row, still judges what arrived."""
+    report, report_path = smoke_report
     iv = report["stream"]["interval_ms"]
     assert report["gps_input_received"] >= 2.5 * report["frames"], report["gps_input_received"]
-    assert iv["mean_ms"] <= 120.0 and iv["p99_ms"] <= 200.0 and iv["max_ms"] <= 245.0, iv
+    assert iv["mean_ms"] <= 120.0 and iv["p99_ms"] <= 200.0, iv
     assert not report["stream"]["health"]["tripped"], report["stream"]
     assert report["stream"]["ekf_failsafe_land_s"] is None
+    fdr = FdrReader(report_path.parent.parent / "work" / "fdr")
+    sent_usec = [r["time_unix_usec"] for r in fdr.records(FdrKind.ESTIMATE_SENT) if r["sent"]]
+    assert len(sent_usec) >= iv["n"], (len(sent_usec), iv["n"])
+    assert max(b - a for a, b in itertools.pairwise(sent_usec)) <= 245_000
 
 
 def test_sitl_daemon_stopped_cleanly(smoke_report: tuple[dict, Path]) -> None:
