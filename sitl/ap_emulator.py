@@ -87,6 +87,7 @@ from gps_denied_onboard.sitl.ardupilot_rules import (
     gps_loss_stage,
     prearm_gps_failures,
 )
+from gps_denied_onboard.sitl.autopilot import send_home_position
 
 GRAVITY_M_S2: Final[float] = 9.80665
 #: Physics and ATTITUDE/HIGHRES_IMU rate, Hz.
@@ -748,18 +749,9 @@ class ArduPilotEmulator:
         return float(lat), float(lon), float(alt)
 
     def _send_home(self) -> None:
-        self._mav.home_position_send(
-            round(self.opts.home_lat_deg * 1e7),
-            round(self.opts.home_lon_deg * 1e7),
-            round(self.opts.home_alt_amsl_m * 1000),
-            0.0,
-            0.0,
-            0.0,
-            [1.0, 0.0, 0.0, 0.0],
-            0.0,
-            0.0,
-            0.0,
-            int(time.time() * 1e6),
+        o = self.opts
+        send_home_position(
+            self._mav, o.home_lat_deg, o.home_lon_deg, o.home_alt_amsl_m, int(time.time() * 1e6)
         )
 
     def _send_fast(self) -> None:

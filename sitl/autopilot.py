@@ -19,6 +19,28 @@ from pymavlink import mavutil
 from gps_denied_onboard.constants import MAV_COMPONENT_ID
 
 
+def send_home_position(
+    mav: Any, lat_deg: float, lon_deg: float, alt_amsl_m: float, time_usec: int | None = None
+) -> None:
+    """HOME_POSITION at (lat, lon, alt AMSL), local frame at home, no approach vector; ``time_usec`` is
+    sent when given (the field is a MAVLink 2 extension)."""
+    args: list[Any] = [
+        round(lat_deg * 1e7),
+        round(lon_deg * 1e7),
+        round(alt_amsl_m * 1000),
+        0.0,
+        0.0,
+        0.0,
+        [1.0, 0.0, 0.0, 0.0],
+        0.0,
+        0.0,
+        0.0,
+    ]
+    if time_usec is not None:
+        args.append(time_usec)
+    mav.home_position_send(*args)
+
+
 @dataclass
 class ReceivedMessage:
     recv_time_unix_s: float
@@ -111,18 +133,7 @@ class SimAutopilot:
         )
 
     def send_home(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> None:
-        self.mav.home_position_send(
-            round(lat_deg * 1e7),
-            round(lon_deg * 1e7),
-            round(alt_amsl_m * 1000),
-            0.0,
-            0.0,
-            0.0,
-            [1.0, 0.0, 0.0, 0.0],
-            0.0,
-            0.0,
-            0.0,
-        )
+        send_home_position(self.mav, lat_deg, lon_deg, alt_amsl_m)
 
     def poll(self, *, discard: bool = False) -> int:
         """Drain what the daemon sent (non-blocking); keeps only the daemon's own component.
