@@ -18,6 +18,7 @@ from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
 from gps_denied_onboard.components.c2_vpr.types import VprQuery, VprResult
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
 from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, MatchResult
+from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
@@ -102,6 +103,7 @@ def _pipeline(vpr: _Vpr, fdr: _Fdr, vo: object | None = None) -> NavigationPipel
         ),
         fdr=fdr,
         integrity=FixIntegrity(IntegrityConfig()),
+        consistency=FixConsistency(IntegrityConfig()),
     )
 
 

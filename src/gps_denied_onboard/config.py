@@ -309,6 +309,19 @@ class IntegrityConfig:
     max_sigma_scale: Annotated[float, Strict(), Field(ge=1)] = 10.0
     #: Floor on the per-axis sigma in map pixels (a match is never better than the map's pixel).
     min_sigma_map_px: Annotated[float, Strict(), Field(ge=0)] = 1.0
+    #: Fix consistency (``components/c4_pose/consistency.py``): each passed fix's covariance is scaled
+    #: by what the last pairs of fixes, compared through VO, measured. Off: the rule's covariance as is.
+    consistency_enabled: Bool = True
+    #: Pairs of consecutive fixes the scale is measured on.
+    consistency_window_pairs: PosInt = 20
+    #: One-sided confidence level of the scale's upper bound (smaller = more conservative).
+    consistency_confidence: Annotated[float, Strict(), Field(gt=0, lt=1)] = 0.05
+    #: One pair's NIS counts at most this much (a wrong-tile outlier is the estimator gate's business).
+    consistency_nis_cap: PosFloat = 100.0
+    #: Two fixes farther apart than this are not paired (VO drift over the gap says little), s.
+    consistency_max_gap_s: PosFloat = 60.0
+    #: Sigma factor for a fix with no pair measured yet (the first of a run, or after VO broke the chain).
+    unverified_sigma_scale: Annotated[float, Strict(), Field(ge=1)] = 3.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,7 +9,8 @@ Every stage's failure has one meaning for the estimator:
 - VPR/rerank/matcher error or too few inliers → no fix; C5 propagates on VO (``visual_propagated``);
 - pose rejected (degenerate, implausible) → no fix;
 - fix refused by the integrity rule (weak evidence, ambiguous candidates, disagrees with the prior; see
-  ``c4_pose/integrity.py``) → no fix; a fix it passes states a covariance that reflects its evidence;
+  ``c4_pose/integrity.py``) → no fix; a fix it passes states a covariance that reflects its evidence,
+  scaled by how consistent the recent fixes were with each other through VO (``c4_pose/consistency.py``);
 - fix outside the estimator's gate → rejected by C5 (a wrong tile cannot teleport the estimate);
 - fix older than the time axis can rewind to → refused as too late (never fused at its arrival time).
 Each half is synchronous and single-threaded by contract (INV-1); the daemon runs them off the loop.
@@ -34,6 +35,7 @@ from gps_denied_onboard.components.c2_vpr.types import VprError
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.types import MatchResult
+from gps_denied_onboard.components.c4_pose.consistency import ConsistencyVerdict, FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import (
     CandidateFix,
     FixIntegrity,
@@ -155,6 +157,7 @@ class NavigationPipeline:
         time_axis: TimeAxis,
         fdr: FdrClient,
         integrity: FixIntegrity,
+        consistency: FixConsistency,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
     ) -> None:
         self._calib = calibration
@@ -169,6 +172,7 @@ class NavigationPipeline:
         self._axis = time_axis
         self._fdr = fdr
         self._integrity = integrity
+        self._consistency = consistency
         self._clock_ns = clock_ns
         #: F6 re-localisation (corpus-wide VPR) currently active; logged on transitions only.
         self._corpus_wide = False
@@ -244,10 +248,14 @@ class NavigationPipeline:
                 self._initialise(prior, frame)
                 unit["initialised"] = True
             if self._axis.is_initialised:
+                fused: VoMotion | None = None
                 if motion is not None:
                     decision = self._axis.fuse_vo(motion, t)
-                    if not decision.accepted:
+                    if decision.accepted:
+                        fused = motion
+                    else:
                         reason = f"estimator:{decision.reason}"
+                self._consistency.note_track(frame.frame_id, t, fused)
                 state = self._axis.state_at(t)
             elif reason is None:
                 reason = "no_prior"
@@ -308,10 +316,13 @@ class NavigationPipeline:
         )
         mark = self._clock_ns()
         accepted = False
+        consistency: ConsistencyVerdict | None = None
         with self._axis.unit(UNIT_FIX, t) as unit:
             head = self._axis.head_unix_usec
             behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
             if fix is not None and reason is None:
+                consistency = self._consistency.assess(fix)
+                fix = consistency.fix
                 decision = self._axis.fuse_fix(fix)
                 accepted = bool(decision.accepted)
                 if not accepted:
@@ -338,6 +349,7 @@ class NavigationPipeline:
                 "fix_lon_deg": fix.lon_deg if fix else None,
                 "fix_sigma_m": fix.horiz_sigma_m if fix else None,
                 "integrity": verdict.fdr_fields() if verdict is not None else None,
+                "consistency": consistency.fdr_fields() if consistency is not None else None,
                 "timings_ms": timings,
             },
         )

@@ -27,6 +27,7 @@ from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.xfeat import XFEAT_DESCRIPTOR_DIM
 from gps_denied_onboard.components.c4_pose import PoseSolver
+from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c5_estimator.journal import RecordingJournal
@@ -419,6 +420,7 @@ def _pipeline(
         time_axis=time_axis,
         fdr=fdr,
         integrity=FixIntegrity(config.integrity),
+        consistency=FixConsistency(config.integrity),
     )
 
 
