@@ -87,6 +87,9 @@ class NavDaemon:
         self._last_state: EstimatorState | None = None
         self._last_fix: FixOutcome | None = None
         self._last_fix_reason: str | None = None
+        #: F8: when the autopilot was first / last asked for its estimate after a restart (daemon clock, s).
+        self._asked_autopilot_first_s: float | None = None
+        self._asked_autopilot_last_s: float | None = None
         #: Worker threads still inside a frame when the daemon stopped (see ``run``).
         self.abandoned_threads: list[str] = []
         #: Tasks that ignored their cancellation within the stop grace (the caller must not wait on them).
@@ -224,6 +227,19 @@ class NavDaemon:
         _west, _south, east, north = tiles.bbox_lonlat
         centre_lon, centre_lat = tiles.center_lonlat
         radius_m = float(haversine_m(centre_lat, centre_lon, north, east))
+        autopilot = None
+        if self._root.previous_run.last_record_unix_s is not None and self._cfg.init.autopilot_wait_s > 0:
+            # A restart, perhaps in flight: ask the autopilot for its estimate, and wait a little for it.
+            now_s = self._clock.now_unix_s()
+            autopilot = tracker.autopilot_position(now_s)
+            if autopilot is None:
+                if self._asked_autopilot_first_s is None:
+                    self._asked_autopilot_first_s = now_s
+                if self._asked_autopilot_last_s is None or now_s - self._asked_autopilot_last_s >= 0.25:
+                    self._root.link.request_autopilot_estimate()
+                    self._asked_autopilot_last_s = now_s
+                if now_s - self._asked_autopilot_first_s < self._cfg.init.autopilot_wait_s:
+                    return None
         prior = choose_prior(
             now_unix_usec=exposure_time_unix_usec,
             init=self._cfg.init,
@@ -232,6 +248,7 @@ class NavDaemon:
             alt_agl_m=alt_agl_m,
             map_centre_lat_lon=(centre_lat, centre_lon),
             map_radius_m=radius_m,
+            autopilot=autopilot,
         )
         if prior.source == PriorSource.MAP_EXTENT and self._root.previous_run.last_record_unix_s is None:
             return None  # a cold start without a start point yet: wait for HOME_POSITION, do not guess
@@ -260,6 +277,7 @@ class NavDaemon:
         text = {
             PriorSource.RESUMED: f"GDN: resumed, sigma {prior.sigma_m:.0f} m",
             PriorSource.MAP_EXTENT: "GDN: no trusted prior, searching map",
+            PriorSource.AUTOPILOT: "GDN: no trusted prior, searching map from AP estimate",
         }.get(prior.source, f"GDN: start at {prior.source}")
         severity = (
             mavutil.mavlink.MAV_SEVERITY_INFO

@@ -518,6 +518,17 @@ class ArduPilotEmulator:
                 self._ack(cmd, result)
                 self._send_home()
                 return
+            # ArduPilot answers REQUEST_MESSAGE with any message it can stream
+            # (GCS_MAVLINK::handle_command_request_message -> try_send_message); the two the daemon asks
+            # for after a restart (F8) are modelled.
+            answers = {
+                m.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._send_position,
+                m.MAVLINK_MSG_ID_EKF_STATUS_REPORT: self._send_ekf,
+            }
+            if wanted in answers:
+                self._ack(cmd, int(m.MAV_RESULT_ACCEPTED))
+                answers[wanted]()
+                return
             result = int(m.MAV_RESULT_FAILED)
         self._ack(cmd, result)
 

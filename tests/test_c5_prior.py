@@ -16,8 +16,11 @@ from gps_denied_onboard.components.c5_estimator.prior import (
     choose_prior,
     read_previous_run,
 )
+from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
+from gps_denied_onboard.components.c8_mavlink.vehicle_state import AutopilotPosition
 from gps_denied_onboard.components.c13_fdr import FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import InitConfig
+from gps_denied_onboard.geo import haversine_m
 
 NOW = 1_800_000_000_000_000
 HOME = (47.0, 8.0, 400.0)
@@ -119,3 +122,109 @@ def test_previous_run_is_read_newest_first_from_a_real_recorder(tmp_path: Path) 
     newest = json.loads(seg.read_bytes().splitlines()[-2])
     assert previous.last_record_unix_s == newest["t_unix_s"]
     assert read_previous_run(read_records_newest_first(tmp_path / "none")) == NO_RUN
+
+
+def _autopilot(lat: float, lon: float, *, flags: int | None = None, age_s: float = 0.2) -> AutopilotPosition:
+    good = DIALECT.EKF_ATTITUDE | DIALECT.EKF_VELOCITY_HORIZ | DIALECT.EKF_POS_HORIZ_ABS
+    return AutopilotPosition(
+        lat, lon, (20.0, 0.0), NOW - round(age_s * 1e6), good if flags is None else flags
+    )
+
+
+def test_prior_resumed_estimate_confirmed_by_the_autopilot_keeps_its_sigma() -> None:
+    """The autopilot's estimate 60 m from the resumed one, inside its 3 sigma (~300 m): kept, and said."""
+    alone = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(), previous=_resume(4.0), home=HOME, alt_agl_m=120.0, **MAP
+    )
+    north_60m = 47.002 + 60.0 / 111_195.0
+    prior = choose_prior(
+        now_unix_usec=NOW,
+        init=InitConfig(),
+        previous=_resume(4.0),
+        home=HOME,
+        alt_agl_m=120.0,
+        autopilot=_autopilot(north_60m, 8.003),
+        **MAP,
+    )
+    assert prior.source == PriorSource.RESUMED
+    assert prior.sigma_m == alone.sigma_m
+    assert "autopilot's estimate agrees (60 m away)" in prior.why
+
+
+def test_prior_resumed_estimate_far_from_the_autopilot_covers_both() -> None:
+    """2 km apart: one of the two is wrong and nothing says which, so the sigma grows to reach the
+    autopilot's estimate (plus what 0.2 s of its age allows at top speed)."""
+    base = math.hypot(2.0, 100.0)
+    north_2km = 47.002 + 2000.0 / 111_195.0
+    prior = choose_prior(
+        now_unix_usec=NOW,
+        init=InitConfig(),
+        previous=_resume(4.0),
+        home=HOME,
+        alt_agl_m=120.0,
+        autopilot=_autopilot(north_2km, 8.003),
+        **MAP,
+    )
+    assert prior.source == PriorSource.RESUMED
+    assert (prior.lat_deg, prior.lon_deg) == (47.002, 8.003)
+    assert prior.sigma_m == pytest.approx(base + 2000.0 + 25.0 * 0.2, abs=2.0)
+    assert "2000 m away: sigma covers both" in prior.why
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [
+        DIALECT.EKF_ATTITUDE | DIALECT.EKF_VELOCITY_VERT,  # no absolute horizontal position
+        DIALECT.EKF_POS_HORIZ_ABS | DIALECT.EKF_CONST_POS_MODE,  # it has lost every position source
+    ],
+)
+def test_prior_ignores_an_autopilot_estimate_its_ekf_does_not_vouch_for(flags: int) -> None:
+    stale = _resume(600.0)
+    previous = PreviousRun(stale.last_3d, NOW / 1e6 - 2.0)
+    prior = choose_prior(
+        now_unix_usec=NOW,
+        init=InitConfig(),
+        previous=previous,
+        home=HOME,
+        alt_agl_m=120.0,
+        autopilot=_autopilot(47.0015, 8.0, flags=flags),
+        **MAP,
+    )
+    assert prior.source == PriorSource.MAP_EXTENT
+    assert (prior.lat_deg, prior.lon_deg) == MAP["map_centre_lat_lon"]
+
+
+def test_prior_restart_with_nothing_of_its_own_searches_the_map_from_the_autopilot() -> None:
+    """Nothing to resume from after a restart in flight: centred on the autopilot's estimate with a
+    sigma that still covers the whole map from there (not a fix: far above the 3D limit)."""
+    stale = _resume(600.0)
+    previous = PreviousRun(stale.last_3d, NOW / 1e6 - 2.0)
+    ap = _autopilot(47.0015, 8.0)
+    prior = choose_prior(
+        now_unix_usec=NOW,
+        init=InitConfig(),
+        previous=previous,
+        home=HOME,
+        alt_agl_m=120.0,
+        autopilot=ap,
+        **MAP,
+    )
+    assert prior.source == PriorSource.AUTOPILOT
+    assert (prior.lat_deg, prior.lon_deg) == (ap.lat_deg, ap.lon_deg)
+    d = float(haversine_m(47.001, 8.001, ap.lat_deg, ap.lon_deg))
+    assert prior.sigma_m == pytest.approx(900.0 + d)
+    assert "autopilot" in prior.why
+
+
+def test_prior_cold_start_does_not_use_the_autopilot_estimate() -> None:
+    """No previous run: the start-up rules are unchanged (home), the autopilot's estimate unused."""
+    prior = choose_prior(
+        now_unix_usec=NOW,
+        init=InitConfig(),
+        previous=NO_RUN,
+        home=HOME,
+        alt_agl_m=0.0,
+        autopilot=_autopilot(47.3, 8.3),
+        **MAP,
+    )
+    assert prior.source == PriorSource.HOME

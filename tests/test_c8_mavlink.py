@@ -217,6 +217,53 @@ def test_tracker_altitude_priority_and_staleness() -> None:
     assert tr.alt_agl_at(T0_UNIX_USEC + 3_500_000) is None  # every source older than 1 s
 
 
+def test_tracker_autopilot_position_with_its_ekf_flags_and_staleness() -> None:
+    """GLOBAL_POSITION_INT lat/lon/velocity with EKF_STATUS_REPORT's flags beside it (F8 restart);
+    older than 2 s it is gone; (0, 0), what an autopilot without a position sends, is never one."""
+    tr = _tracker()
+    recv_s = T0_UNIX_USEC / 1e6
+    tr.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC, BOOT0_MS)), recv_s)
+    tr.handle(
+        _decoded(lambda mav: mav.global_position_int_encode(BOOT0_MS, 0, 0, 0, 110_000, 0, 0, 0, 0)), recv_s
+    )
+    assert tr.autopilot_position(recv_s) is None
+    gpi = _decoded(
+        lambda mav: mav.global_position_int_encode(
+            BOOT0_MS, 504501234, 305234567, 0, 110_000, 1250, -300, 0, 0
+        )
+    )
+    tr.handle(gpi, recv_s)
+    ap = tr.autopilot_position(recv_s + 0.5)
+    assert ap is not None
+    assert (ap.lat_deg, ap.lon_deg) == pytest.approx((50.4501234, 30.5234567))
+    assert ap.vel_ne_m_s == pytest.approx((12.5, -3.0))
+    assert ap.time_unix_usec == pytest.approx(T0_UNIX_USEC, abs=1000)
+    assert ap.ekf_flags is None and not ap.horizontal_position_valid
+    good = D.EKF_ATTITUDE | D.EKF_VELOCITY_HORIZ | D.EKF_POS_HORIZ_ABS
+    tr.handle(_decoded(lambda mav: mav.ekf_status_report_encode(good, 0.1, 0.1, 0.1, 0.1, 0.0)), recv_s)
+    ap = tr.autopilot_position(recv_s + 0.5)
+    assert ap is not None and ap.horizontal_position_valid
+    lost = good | D.EKF_CONST_POS_MODE
+    tr.handle(_decoded(lambda mav: mav.ekf_status_report_encode(lost, 0.1, 0.1, 0.1, 0.1, 0.0)), recv_s)
+    assert not tr.autopilot_position(recv_s + 0.5).horizontal_position_valid  # type: ignore[union-attr]
+    assert tr.autopilot_position(recv_s + 2.5) is None
+
+
+def test_link_asks_the_autopilot_for_its_estimate_over_udp(udp_pair: tuple) -> None:
+    """``request_autopilot_estimate``: two MAV_CMD_REQUEST_MESSAGE to the autopilot (sysid 1, comp 1),
+    for GLOBAL_POSITION_INT and EKF_STATUS_REPORT, received by a real pymavlink endpoint."""
+    link, ap, _clock, _ = udp_pair
+    ap.mav.send(_ap_heartbeat(ap.mav))
+    assert _pump(link, lambda: link.tracker.autopilot_seen)
+    assert link.request_autopilot_estimate()
+    got = _recv_all(ap, "COMMAND_LONG", wait_s=0.5)
+    wanted = {D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, D.MAVLINK_MSG_ID_EKF_STATUS_REPORT}
+    # (The link's periodic GPS_GLOBAL_ORIGIN request may be among them.)
+    requests = [m for m in got if m.command == D.MAV_CMD_REQUEST_MESSAGE and int(m.param1) in wanted]
+    assert sorted(int(m.param1) for m in requests) == sorted(wanted)
+    assert all((m.target_system, m.target_component) == (1, 1) for m in requests)
+
+
 def test_tracker_acceleration_is_imu_rotated_by_attitude_minus_gravity() -> None:
     """HIGHRES_IMU specific force (body FRD) rotated with ATTITUDE at each sample's time plus gravity is
     the NED acceleration the prediction uses; stale IMU or no attitude gives None, never a guess."""
@@ -588,8 +635,16 @@ def test_named_values_without_residual_send_nan() -> None:
     from gps_denied_onboard.constants import NV_RESIDUAL_PX, Provenance
 
     mav = common.MAVLink(None, srcSystem=1, srcComponent=197)
-    msgs = named_values(mav, time_boot_ms=1, provenance=Provenance.VISUAL_PROPAGATED, inliers=16,
-                        residual_px=None, horiz_sigma_m=2.0, frame_drops=0, fdr_health=FdrHealthState.OK)
+    msgs = named_values(
+        mav,
+        time_boot_ms=1,
+        provenance=Provenance.VISUAL_PROPAGATED,
+        inliers=16,
+        residual_px=None,
+        horiz_sigma_m=2.0,
+        frame_drops=0,
+        fdr_health=FdrHealthState.OK,
+    )
     res = [m for m in msgs if m.get_type() == "NAMED_VALUE_FLOAT" and m.name == NV_RESIDUAL_PX]
     assert len(res) == 1 and _math.isnan(res[0].value)
 
@@ -843,8 +898,16 @@ def test_named_values_carry_fdr_health_code() -> None:
 
     for health, code in ((FdrHealthState.OK, 0), (FdrHealthState.DEGRADED, 1), (FdrHealthState.FAILING, 2)):
         tx = common.MAVLink(None, srcSystem=1, srcComponent=197)
-        msgs = named_values(tx, time_boot_ms=5, provenance=Provenance.DEAD_RECKONING, inliers=0,
-                            residual_px=None, horiz_sigma_m=9.0, frame_drops=0, fdr_health=health)
+        msgs = named_values(
+            tx,
+            time_boot_ms=5,
+            provenance=Provenance.DEAD_RECKONING,
+            inliers=0,
+            residual_px=None,
+            horiz_sigma_m=9.0,
+            frame_drops=0,
+            fdr_health=health,
+        )
         rx = common.MAVLink(None)
         decoded = [rx.decode(bytearray(m.pack(tx))) for m in msgs]
         fdr = [m for m in decoded if m.get_type() == "NAMED_VALUE_INT" and m.name == NV_FDR_HEALTH]

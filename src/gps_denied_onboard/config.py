@@ -184,6 +184,10 @@ class InitConfig:
     #: At or below this height above home the vehicle is on the ground (where the configured position
     #: and HOME_POSITION are valid priors even after a restart), m.
     on_ground_max_alt_agl_m: PosFloat = 10.0
+    #: After a restart in flight, ask the autopilot for its estimate (GLOBAL_POSITION_INT and
+    #: EKF_STATUS_REPORT, MAV_CMD_REQUEST_MESSAGE) and wait at most this long for it before starting
+    #: without it; 0 = do not ask, s.
+    autopilot_wait_s: Annotated[float, Strict(), Field(ge=0, le=2)] = 1.0
 
 
 @dataclasses.dataclass(frozen=True)

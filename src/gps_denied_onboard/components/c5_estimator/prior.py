@@ -11,11 +11,20 @@ told the autopilot "3D fix, 30 m" while it was 252 m off. The rules, in order (:
    ``init.resume_max_age_s``: the daemon is started at boot, before take-off) or while the vehicle is on
    the ground (height above home at most ``init.on_ground_max_alt_agl_m``). After a restart in the air
    they say nothing about where the vehicle is now.
+After a restart in flight the autopilot's own estimate (GLOBAL_POSITION_INT, with EKF_STATUS_REPORT
+saying its absolute horizontal position is good) is asked for and used, never believed alone: in GNSS-
+denied flight it is this daemon's earlier output dead-reckoned by the autopilot, with no accuracy
+attached. It confirms a resumed estimate when it lies within 3 sigma of it; when it does not, one of the
+two is wrong and nothing says which, so the sigma grows to cover both. With nothing of the daemon's own
+to resume from, the search for a fix starts from it (rule 3).
+
 3. **Nothing trustworthy**: the whole map. The prior is the cache's centre with a sigma that covers
    the cache, so the output is not a fix (fix_type 1, or 0 above ``estimator.max_output_sigma_m``) and
    the fix path searches widely (corpus-wide with an appearance VPR strategy) until a fix re-anchors it.
    Known edge: a cache smaller than 50 m in radius gives a sigma under the 3D-fix limit, which is honest
-   only while the vehicle is over the map.
+   only while the vehicle is over the map. When the autopilot has a good estimate, the prior is centred
+   on it instead of the map's centre, with a sigma that still covers the whole map from there: the
+   output is no more a fix than before, but the fix path searches where the vehicle most likely is.
 """
 
 from __future__ import annotations
@@ -25,8 +34,10 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
+from gps_denied_onboard.components.c8_mavlink.vehicle_state import AutopilotPosition
 from gps_denied_onboard.config import InitConfig
 from gps_denied_onboard.constants import FdrKind
+from gps_denied_onboard.geo import haversine_m
 
 #: GPS_FIX_TYPE_3D: only estimates sent as a 3D fix are resumed from.
 _FIX_3D: Final[int] = 3
@@ -39,6 +50,8 @@ class PriorSource:
     CONFIG: Final = "config"
     HOME: Final = "home_position"
     MAP_EXTENT: Final = "map_extent"
+    #: The whole map, searched from the autopilot's own estimate (restart with nothing of our own).
+    AUTOPILOT: Final = "autopilot_estimate"
 
 
 @dataclass(frozen=True)
@@ -101,13 +114,16 @@ def choose_prior(
     alt_agl_m: float | None,
     map_centre_lat_lon: tuple[float, float],
     map_radius_m: float,
+    autopilot: AutopilotPosition | None = None,
 ) -> InitialPrior:
     """The start-up prior by the rules in the module docstring.
 
     ``previous``: the FDR's view of the previous run; a record of it within ``init.resume_max_age_s``
     means this start is a restart in flight, unless the vehicle is on the ground. ``home``:
     HOME_POSITION (lat, lon, alt) or None. ``alt_agl_m``: the autopilot's height above home now, or None
-    when unknown. ``map_centre_lat_lon``/``map_radius_m``: the cache's extent.
+    when unknown. ``map_centre_lat_lon``/``map_radius_m``: the cache's extent. ``autopilot``: the
+    autopilot's own estimate; used after a restart in flight only, and only when its EKF says its
+    absolute horizontal position is good.
     """
     now_s = now_unix_usec / 1e6
     notes: list[str] = []
@@ -116,14 +132,21 @@ def choose_prior(
         age_s = now_s - resume.time_unix_usec / 1e6
         if 0.0 <= age_s <= init.resume_max_age_s:
             sigma = math.hypot(resume.horiz_sigma_m, init.max_speed_m_s * age_s)
-            return InitialPrior(
-                resume.lat_deg,
-                resume.lon_deg,
-                sigma,
-                PriorSource.RESUMED,
+            why = (
                 f"last 3D estimate {age_s:.1f} s ago, sigma {resume.horiz_sigma_m:.1f} m grown at "
-                f"{init.max_speed_m_s:g} m/s",
+                f"{init.max_speed_m_s:g} m/s"
             )
+            ap = _usable(autopilot)
+            if ap is not None:
+                # The autopilot's estimate may be up to its own age apart in time from ``now``.
+                slack = init.max_speed_m_s * abs(now_s - ap.time_unix_usec / 1e6)
+                d = float(haversine_m(resume.lat_deg, resume.lon_deg, ap.lat_deg, ap.lon_deg))
+                if d <= 3.0 * sigma + slack:
+                    why += f"; the autopilot's estimate agrees ({d:.0f} m away)"
+                else:
+                    sigma += d + slack
+                    why += f"; the autopilot's estimate is {d:.0f} m away: sigma covers both"
+            return InitialPrior(resume.lat_deg, resume.lon_deg, sigma, PriorSource.RESUMED, why)
         notes.append(f"last 3D estimate {age_s:.0f} s old (limit {init.resume_max_age_s:g} s)")
     restarted = (
         previous.last_record_unix_s is not None
@@ -145,4 +168,22 @@ def choose_prior(
         notes.append(f"{start_point[2]} ignored: restarted in flight")
     lat, lon = map_centre_lat_lon
     why = "; ".join(notes) or "no previous estimate, no start point"
+    ap = _usable(autopilot) if restarted else None
+    if ap is not None:
+        # Centred on the autopilot's estimate, still covering the whole map from there.
+        d = float(haversine_m(lat, lon, ap.lat_deg, ap.lon_deg))
+        return InitialPrior(
+            ap.lat_deg,
+            ap.lon_deg,
+            max(map_radius_m + d, init.sigma_m),
+            PriorSource.AUTOPILOT,
+            why + "; searching the map from the autopilot's estimate",
+        )
     return InitialPrior(lat, lon, max(map_radius_m, init.sigma_m), PriorSource.MAP_EXTENT, why)
+
+
+def _usable(autopilot: AutopilotPosition | None) -> AutopilotPosition | None:
+    """The autopilot's estimate when its EKF vouches for the absolute horizontal position."""
+    if autopilot is None or not autopilot.horizontal_position_valid:
+        return None
+    return autopilot

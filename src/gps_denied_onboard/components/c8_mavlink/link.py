@@ -631,6 +631,25 @@ class MavlinkLink:
         _log.info(LogEvent.MAVLINK_ORIGIN_SENT, **fields)
         self._record_event("origin_sent", **fields)
 
+    def request_autopilot_estimate(self) -> bool:
+        """Ask the autopilot for its position estimate and EKF status now (MAV_CMD_REQUEST_MESSAGE for
+        GLOBAL_POSITION_INT and EKF_STATUS_REPORT): the restart rules in ``c5_estimator.prior``."""
+        target = self._config.autopilot_system_id
+
+        def request(message_id: int) -> Callable[[Any], Any]:
+            return lambda mav: messages.request_message(
+                mav, target_system=target, target_component=AUTOPILOT_COMPONENT_ID, message_id=message_id
+            )
+
+        sent = [
+            self._build_and_send(request(message_id))
+            for message_id in (
+                DIALECT.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+                DIALECT.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
+            )
+        ]
+        return all(sent)
+
     def send_status_values(
         self,
         *,

@@ -63,6 +63,8 @@ OFFSET_RESET_S: Final[float] = 1.0
 IMU_MAX_GAP_S: Final[float] = 0.1
 #: Standard gravity, m/s^2 (NED down is positive; a level accelerometer at rest reads -g on body z).
 GRAVITY_M_S2: Final[float] = 9.80665
+#: The autopilot's position report (and the EKF flags beside it) is used at most this old, s.
+POSITION_MAX_AGE_S: Final[float] = 2.0
 #: time_usec values above this are Unix times (after 2001-09-09), below it times since boot.
 _UNIX_USEC_THRESHOLD: Final[int] = 1_000_000_000_000_000
 
@@ -99,6 +101,31 @@ class ImuSample:
     time_boot_usec: int
     accel_m_s2: tuple[float, float, float]
     gyro_rad_s: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class AutopilotPosition:
+    """The autopilot's own position estimate (GLOBAL_POSITION_INT) and what its EKF says of it
+    (EKF_STATUS_REPORT), for the restart rules (F8) in ``c5_estimator.prior``."""
+
+    lat_deg: float
+    lon_deg: float
+    #: Ground velocity north/east, m/s.
+    vel_ne_m_s: tuple[float, float]
+    #: When the estimate was valid, Unix us (the autopilot's boot time mapped to Unix time).
+    time_unix_usec: int
+    #: EKF_STATUS_REPORT.flags received within ``POSITION_MAX_AGE_S`` of the position, or None.
+    ekf_flags: int | None
+
+    @property
+    def horizontal_position_valid(self) -> bool:
+        """The EKF says its absolute horizontal position is good and it is not in constant-position
+        mode (ArduPilot sets that when it has lost every position source)."""
+        if self.ekf_flags is None:
+            return False
+        good = self.ekf_flags & DIALECT.EKF_POS_HORIZ_ABS
+        const = self.ekf_flags & DIALECT.EKF_CONST_POS_MODE
+        return bool(good) and not const
 
 
 @dataclass(frozen=True)
@@ -221,6 +248,10 @@ class VehicleStateTracker:
         #: The autopilot's local-frame origin from GPS_GLOBAL_ORIGIN (lat_deg, lon_deg, alt_amsl_m).
         self._gps_origin: tuple[float, float, float] | None = None
         self._imu: ImuSample | None = None
+        #: GLOBAL_POSITION_INT: (boot usec, lat_deg, lon_deg, vn_m_s, ve_m_s); EKF_STATUS_REPORT:
+        #: (receive time as boot usec, flags).
+        self._position: tuple[int, float, float, float, float] | None = None
+        self._ekf_flags: tuple[int, int] | None = None
         #: Specific force, body FRD, m/s^2, keyed by boot time.
         self._accel_body = _Series()
         self._sys_offset_usec: float | None = None
@@ -282,6 +313,8 @@ class VehicleStateTracker:
             self._rx_offset_usec = None
             self._imu = None
             self._gps_origin = None  # a rebooted autopilot has no origin until it reports one again
+            self._position = None
+            self._ekf_flags = None
         if last is None or boot_usec > last or boot_usec < last - OFFSET_RESET_S * 1e6:
             self._last_boot_usec = boot_usec
 
@@ -334,6 +367,14 @@ class VehicleStateTracker:
     def _on_global_position_int(self, msg: Any, recv_usec: int) -> bool:
         t = self._timestamped(int(msg.time_boot_ms) * 1000, recv_usec)
         self._alt[AltitudeSource.GLOBAL_POSITION_INT].add(t, (int(msg.relative_alt) / 1000.0,))
+        lat_deg, lon_deg = int(msg.lat) / 1e7, int(msg.lon) / 1e7
+        # (0, 0) is what an autopilot without a position sends.
+        if abs(lat_deg) <= 90.0 and abs(lon_deg) <= 180.0 and (lat_deg, lon_deg) != (0.0, 0.0):
+            self._position = (t, lat_deg, lon_deg, int(msg.vx) / 100.0, int(msg.vy) / 100.0)
+        return True
+
+    def _on_ekf_status_report(self, msg: Any, recv_usec: int) -> bool:
+        self._ekf_flags = (self._recv_as_boot(recv_usec), int(msg.flags))
         return True
 
     def _on_vfr_hud(self, msg: Any, recv_usec: int) -> bool:
@@ -476,6 +517,23 @@ class VehicleStateTracker:
         with self._lock:
             return self._gps_origin
 
+    def autopilot_position(self, now_unix_s: float | None = None) -> AutopilotPosition | None:
+        """The autopilot's latest GLOBAL_POSITION_INT when at most ``POSITION_MAX_AGE_S`` old, with
+        the EKF_STATUS_REPORT flags received within that age of it; None otherwise."""
+        now_s = self._clock() if now_unix_s is None else now_unix_s
+        with self._lock:
+            offset = self._offset_usec()
+            if self._position is None or offset is None:
+                return None
+            t_boot, lat, lon, vn, ve = self._position
+            t_unix = int(t_boot + offset)
+            if abs(now_s * 1e6 - t_unix) > POSITION_MAX_AGE_S * 1e6:
+                return None
+            flags = None
+            if self._ekf_flags is not None and abs(self._ekf_flags[0] - t_boot) <= POSITION_MAX_AGE_S * 1e6:
+                flags = self._ekf_flags[1]
+        return AutopilotPosition(lat, lon, (vn, ve), t_unix, flags)
+
     def latest_imu(self) -> ImuSample | None:
         with self._lock:
             return self._imu
@@ -519,6 +577,7 @@ _HANDLERS: Final[dict[str, Callable[[VehicleStateTracker, Any, int], bool]]] = {
     "ATTITUDE": VehicleStateTracker._on_attitude,
     "ALTITUDE": VehicleStateTracker._on_altitude,
     "GLOBAL_POSITION_INT": VehicleStateTracker._on_global_position_int,
+    "EKF_STATUS_REPORT": VehicleStateTracker._on_ekf_status_report,
     "VFR_HUD": VehicleStateTracker._on_vfr_hud,
     "HOME_POSITION": VehicleStateTracker._on_home_position,
     "GPS_GLOBAL_ORIGIN": VehicleStateTracker._on_gps_global_origin,
