@@ -68,7 +68,8 @@ class DaemonCounters:
     last_latency_ms: float | None = None
     #: Steps of the host's wall clock against the daemon's clock (detected and recorded, not followed).
     clock_steps: int = 0
-    #: Solved fixes the integrity rule refused, by reason (``IntegrityReason``).
+    #: Solved fixes the integrity rule refused, by reason (``IntegrityReason``), and those the consistency
+    #: monitor did not fuse (``unverified``).
     fixes_refused_integrity: dict[str, int] = field(default_factory=dict)
 
 
@@ -371,9 +372,12 @@ class NavDaemon:
         self.counters.fix_attempts += 1
         self.counters.fixes_accepted += int(outcome.fix_accepted)
         verdict = outcome.integrity
+        refused = self.counters.fixes_refused_integrity
         if verdict is not None and not verdict.accepted and verdict.reason is not None:
-            refused = self.counters.fixes_refused_integrity
             refused[verdict.reason] = refused.get(verdict.reason, 0) + 1
+        elif (outcome.no_fix_reason or "").startswith("consistency:"):
+            reason = str(outcome.no_fix_reason).split(":", 1)[1]
+            refused[reason] = refused.get(reason, 0) + 1
         self._last_fix = outcome
         self._last_fix_reason = outcome.no_fix_reason
         log.info(

@@ -69,7 +69,7 @@ def _run(stated: float, true: float, fixes: int, seed: int = 0, **cfg: object) -
     scales = []
     for _ in range(fixes):
         flight.fly(10)
-        scales.append(flight.monitor.assess(flight.fix(stated, true)).sigma_scale)
+        scales.append(flight.monitor.assess(flight.fix(stated, true), full_evidence=True).sigma_scale)
     return scales
 
 
@@ -77,7 +77,7 @@ def test_first_fix_is_scaled_by_the_unverified_factor() -> None:
     flight = _Flight(FixConsistency(IntegrityConfig(unverified_sigma_scale=3.0)))
     flight.fly(5)
     fix = flight.fix(5.0, 5.0)
-    verdict = flight.monitor.assess(fix)
+    verdict = flight.monitor.assess(fix, full_evidence=True)
     assert verdict.pairs == 0 and verdict.pair_nis is None
     assert verdict.sigma_scale == pytest.approx(3.0)
     np.testing.assert_allclose(verdict.fix.cov_ned_m2, fix.cov_ned_m2 * 9.0)
@@ -103,7 +103,7 @@ def test_overconfident_fixes_get_the_sigma_they_really_have() -> None:
     for _ in range(60):
         flight.fly(12)
         fix = flight.fix(6.0, 30.0)
-        verdict = flight.monitor.assess(fix)
+        verdict = flight.monitor.assess(fix, full_evidence=True)
         scales.append(verdict.sigma_scale)
         err = float(np.hypot(fix.pos_ned_m[0] - flight.true_n, fix.pos_ned_m[1]))
         errors_sigma.append(err / verdict.fix.horiz_sigma_m)
@@ -119,23 +119,23 @@ def test_a_broken_vo_chain_pairs_nothing() -> None:
     prediction, the thing being checked."""
     flight = _Flight(FixConsistency(IntegrityConfig()))
     flight.fly(10)
-    flight.monitor.assess(flight.fix(5.0, 5.0))
+    flight.monitor.assess(flight.fix(5.0, 5.0), full_evidence=True)
     flight.fly(1, vo=False)
     flight.fly(9)
-    verdict = flight.monitor.assess(flight.fix(5.0, 5.0))
+    verdict = flight.monitor.assess(flight.fix(5.0, 5.0), full_evidence=True)
     assert verdict.pair_nis is None and verdict.pairs == 0
     assert verdict.pair_gap_s == pytest.approx(10 * FRAME_DT_US / 1e6)
     # The chain restarted at the gap: the next fix pairs with this one.
     flight.fly(10)
-    assert flight.monitor.assess(flight.fix(5.0, 5.0)).pairs == 1
+    assert flight.monitor.assess(flight.fix(5.0, 5.0), full_evidence=True).pairs == 1
 
 
 def test_pairs_too_far_apart_are_not_formed() -> None:
     flight = _Flight(FixConsistency(IntegrityConfig(consistency_max_gap_s=2.0)))
     flight.fly(3)
-    flight.monitor.assess(flight.fix(5.0, 5.0))
+    flight.monitor.assess(flight.fix(5.0, 5.0), full_evidence=True)
     flight.fly(7)  # 2.33 s
-    assert flight.monitor.assess(flight.fix(5.0, 5.0)).pair_nis is None
+    assert flight.monitor.assess(flight.fix(5.0, 5.0), full_evidence=True).pair_nis is None
 
 
 def test_the_scale_is_the_confidence_bound_over_the_capped_pairs() -> None:
@@ -146,7 +146,7 @@ def test_the_scale_is_the_confidence_bound_over_the_capped_pairs() -> None:
     last = None
     for _ in range(5):
         flight.fly(10)
-        last = flight.monitor.assess(flight.fix(2.0, 8.0))
+        last = flight.monitor.assess(flight.fix(2.0, 8.0), full_evidence=True)
         if last.pair_nis is not None:
             nis.append(last.pair_nis)
     assert last is not None and len(nis) == 4 and last.pairs == 3
@@ -161,13 +161,13 @@ def test_one_wrong_fix_is_capped() -> None:
     flight = _Flight(FixConsistency(cfg), seed=11)
     for _ in range(12):
         flight.fly(10)
-        flight.monitor.assess(flight.fix(2.0, 2.0))
+        flight.monitor.assess(flight.fix(2.0, 2.0), full_evidence=True)
     flight.fly(10)
     wrong = flight.fix(2.0, 2.0)
     wrong = PoseFix(**{**wrong.__dict__, "pos_ned_m": wrong.pos_ned_m + np.array([0.0, 300.0, 0.0])})
-    assert flight.monitor.assess(wrong).pair_nis > 1000  # type: ignore[operator]
+    assert flight.monitor.assess(wrong, full_evidence=True).pair_nis > 1000  # type: ignore[operator]
     flight.fly(10)
-    after = flight.monitor.assess(flight.fix(2.0, 2.0))
+    after = flight.monitor.assess(flight.fix(2.0, 2.0), full_evidence=True)
     assert after.pair_nis is not None and after.pair_nis > 1000
     # Two capped pairs among 13: sum <= 2 * 100 + 11 honest pairs.
     assert after.pairs == 13
@@ -177,3 +177,17 @@ def test_one_wrong_fix_is_capped() -> None:
 def test_off_keeps_the_covariance() -> None:
     scales = _run(stated=5.0, true=30.0, fixes=5, consistency_enabled=False)
     assert scales == [1.0] * 5
+
+
+def test_an_unverified_fix_with_weak_evidence_is_not_fused_but_anchors_the_next_pair() -> None:
+    """No pair yet and the integrity rule inflated its sigma: refused as ``unverified``; the next fix
+    pairs with it and is fused with what that pair measured."""
+    flight = _Flight(FixConsistency(IntegrityConfig()), seed=5)
+    flight.fly(10)
+    first = flight.monitor.assess(flight.fix(6.0, 30.0), full_evidence=False)
+    assert not first.accepted and first.reason == "unverified" and first.pairs == 0
+    assert first.fdr_fields()["reason"] == "unverified"
+    flight.fly(10)
+    second = flight.monitor.assess(flight.fix(6.0, 30.0), full_evidence=False)
+    assert second.accepted and second.pairs == 1 and second.pair_nis is not None
+    assert second.sigma_scale == pytest.approx(np.sqrt(max(1.0, second.pair_nis / chi2.ppf(0.05, 2))))

@@ -321,12 +321,16 @@ class NavigationPipeline:
             head = self._axis.head_unix_usec
             behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
             if fix is not None and reason is None:
-                consistency = self._consistency.assess(fix)
+                full_evidence = verdict is None or verdict.sigma_scale <= 1.0
+                consistency = self._consistency.assess(fix, full_evidence=full_evidence)
                 fix = consistency.fix
-                decision = self._axis.fuse_fix(fix)
-                accepted = bool(decision.accepted)
-                if not accepted:
-                    reason = f"gated:{decision.reason}"
+                if consistency.accepted:
+                    decision = self._axis.fuse_fix(fix)
+                    accepted = bool(decision.accepted)
+                    if not accepted:
+                        reason = f"gated:{decision.reason}"
+                else:
+                    reason = f"consistency:{consistency.reason}"
             if not accepted:
                 self._axis.note_no_fix(t)
             unit["accepted"] = accepted

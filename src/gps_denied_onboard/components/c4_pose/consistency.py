@@ -25,7 +25,11 @@ interval for the scale, so a few lucky pairs cannot talk it down, and it tends t
 accumulate (with ``alpha`` 0.05: 1.8 for 10 pairs of mean NIS 2). The cap bounds what one wrong-tile
 fix (an outlier, which is the estimator gate's business) does to the scale of the fixes after it. Before
 any pair (the first fix of a run, or after VO broke the chain to every kept fix) nothing has been
-measured yet, and the fix is scaled by ``unverified_sigma_scale``.
+measured yet. A fix with full evidence (the integrity rule did not inflate its sigma) is then scaled by
+``unverified_sigma_scale``; one with weaker evidence is not fused at all (``unverified``): it is kept
+as the first fix of the next pair, which is fused with what that pair measured. On the cross-date
+flights the first fix of the run, scaled by 3, was still 2.6-2.9 sigma off (ALIKED + LightGlue 49 m
+against 19 m, XFeat + LighterGlue 71 m against 25 m) and held the estimate 45 m off for a minute.
 
 A pair needs an unbroken VO chain between the two fixes' frames (every frame between them tracked with
 a VO motion the estimator accepted), at most ``consistency_max_gap_s`` apart: without one, the motion in
@@ -64,6 +68,8 @@ class ConsistencyVerdict:
 
     #: The fix with its covariance scaled by ``sigma_scale**2``.
     fix: PoseFix
+    #: False: not to be fused (``reason`` says why); it still anchors the next pair.
+    accepted: bool
     #: Factor applied to the fix's sigma (1 = its stated covariance was kept).
     sigma_scale: float
     #: Pairs of fixes the scale was measured on (0: nothing measured yet, ``unverified_sigma_scale``).
@@ -73,8 +79,13 @@ class ConsistencyVerdict:
     #: Seconds between the previous fix and this one (None: no previous fix).
     pair_gap_s: float | None
 
+    #: Why it was not accepted: ``unverified`` (no pair measured yet and less than full evidence).
+    reason: str | None = None
+
     def fdr_fields(self) -> dict[str, object]:
         return {
+            "accepted": self.accepted,
+            "reason": self.reason,
             "sigma_scale": round(self.sigma_scale, 4),
             "pairs": self.pairs,
             "pair_nis": None if self.pair_nis is None else round(self.pair_nis, 3),
@@ -151,10 +162,11 @@ class FixConsistency:
         bound = float(chi2.ppf(self._cfg.consistency_confidence, 2 * n))
         return max(1.0, total / bound)
 
-    def assess(self, fix: PoseFix) -> ConsistencyVerdict:
+    def assess(self, fix: PoseFix, *, full_evidence: bool) -> ConsistencyVerdict:
         """Pair ``fix`` with the previous fix through VO, keep the pair's NIS, and return the fix with
         its covariance scaled by what the kept pairs measured. ``fix`` must have passed the integrity
-        rule; its frame must already have been tracked (``note_track``)."""
+        rule (``full_evidence``: it did not inflate the fix's sigma); its frame must already have been
+        tracked (``note_track``)."""
         t = fix.exposure_time_unix_usec
         pos = np.asarray(fix.pos_ned_m[:2], dtype=np.float64)
         cov = np.asarray(fix.cov_ned_m2[:2, :2], dtype=np.float64)
@@ -179,7 +191,10 @@ class FixConsistency:
         if t > (prev.time_unix_usec if prev is not None else -1):
             self._last_fix = _KeptFix(t, pos, cov)
         if not self._cfg.consistency_enabled:
-            return ConsistencyVerdict(fix, 1.0, 0, None, gap_s)
+            return ConsistencyVerdict(fix, True, 1.0, 0, None, gap_s)
+        n = len(self._nis)
+        if n == 0 and not full_evidence:
+            return ConsistencyVerdict(fix, False, 1.0, 0, None, gap_s, reason="unverified")
         k2 = self.scale_squared()
         scaled = dataclasses.replace(fix, cov_ned_m2=np.asarray(fix.cov_ned_m2, dtype=np.float64) * k2)
-        return ConsistencyVerdict(scaled, math.sqrt(k2), len(self._nis), nis, gap_s)
+        return ConsistencyVerdict(scaled, True, math.sqrt(k2), n, nis, gap_s)
