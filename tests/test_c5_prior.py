@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from gps_denied_onboard.components.c5_estimator.prior import (
+    InitialPrior,
     PreviousRun,
     PriorSource,
     ResumeState,
@@ -131,21 +132,29 @@ def _autopilot(lat: float, lon: float, *, flags: int | None = None, age_s: float
     )
 
 
-def test_prior_resumed_estimate_confirmed_by_the_autopilot_keeps_its_sigma() -> None:
-    """The autopilot's estimate 60 m from the resumed one, inside its 3 sigma (~300 m): kept, and said."""
-    alone = choose_prior(
-        now_unix_usec=NOW, init=InitConfig(), previous=_resume(4.0), home=HOME, alt_agl_m=120.0, **MAP
-    )
-    north_60m = 47.002 + 60.0 / 111_195.0
-    prior = choose_prior(
+def _after_restart(
+    previous: PreviousRun, autopilot: AutopilotPosition | None, alt_agl_m: float = 120.0
+) -> InitialPrior:
+    return choose_prior(
         now_unix_usec=NOW,
         init=InitConfig(),
-        previous=_resume(4.0),
+        previous=previous,
         home=HOME,
-        alt_agl_m=120.0,
-        autopilot=_autopilot(north_60m, 8.003),
-        **MAP,
+        alt_agl_m=alt_agl_m,
+        autopilot=autopilot,
+        **MAP,  # type: ignore[arg-type]
     )
+
+
+#: Killed 2 s ago, its last 3D estimate too old to resume from.
+NOTHING_TO_RESUME = PreviousRun(_resume(600.0).last_3d, NOW / 1e6 - 2.0)
+
+
+def test_prior_resumed_estimate_confirmed_by_the_autopilot_keeps_its_sigma() -> None:
+    """The autopilot's estimate 60 m from the resumed one, inside its 3 sigma (~300 m): kept, and said."""
+    alone = _after_restart(_resume(4.0), None)
+    north_60m = 47.002 + 60.0 / 111_195.0
+    prior = _after_restart(_resume(4.0), _autopilot(north_60m, 8.003))
     assert prior.source == PriorSource.RESUMED
     assert prior.sigma_m == alone.sigma_m
     assert "autopilot's estimate agrees (60 m away)" in prior.why
@@ -156,15 +165,7 @@ def test_prior_resumed_estimate_far_from_the_autopilot_covers_both() -> None:
     autopilot's estimate (plus what 0.2 s of its age allows at top speed)."""
     base = math.hypot(2.0, 100.0)
     north_2km = 47.002 + 2000.0 / 111_195.0
-    prior = choose_prior(
-        now_unix_usec=NOW,
-        init=InitConfig(),
-        previous=_resume(4.0),
-        home=HOME,
-        alt_agl_m=120.0,
-        autopilot=_autopilot(north_2km, 8.003),
-        **MAP,
-    )
+    prior = _after_restart(_resume(4.0), _autopilot(north_2km, 8.003))
     assert prior.source == PriorSource.RESUMED
     assert (prior.lat_deg, prior.lon_deg) == (47.002, 8.003)
     assert prior.sigma_m == pytest.approx(base + 2000.0 + 25.0 * 0.2, abs=2.0)
@@ -179,17 +180,7 @@ def test_prior_resumed_estimate_far_from_the_autopilot_covers_both() -> None:
     ],
 )
 def test_prior_ignores_an_autopilot_estimate_its_ekf_does_not_vouch_for(flags: int) -> None:
-    stale = _resume(600.0)
-    previous = PreviousRun(stale.last_3d, NOW / 1e6 - 2.0)
-    prior = choose_prior(
-        now_unix_usec=NOW,
-        init=InitConfig(),
-        previous=previous,
-        home=HOME,
-        alt_agl_m=120.0,
-        autopilot=_autopilot(47.0015, 8.0, flags=flags),
-        **MAP,
-    )
+    prior = _after_restart(NOTHING_TO_RESUME, _autopilot(47.0015, 8.0, flags=flags))
     assert prior.source == PriorSource.MAP_EXTENT
     assert (prior.lat_deg, prior.lon_deg) == MAP["map_centre_lat_lon"]
 
@@ -197,18 +188,8 @@ def test_prior_ignores_an_autopilot_estimate_its_ekf_does_not_vouch_for(flags: i
 def test_prior_restart_with_nothing_of_its_own_searches_the_map_from_the_autopilot() -> None:
     """Nothing to resume from after a restart in flight: centred on the autopilot's estimate with a
     sigma that still covers the whole map from there (not a fix: far above the 3D limit)."""
-    stale = _resume(600.0)
-    previous = PreviousRun(stale.last_3d, NOW / 1e6 - 2.0)
     ap = _autopilot(47.0015, 8.0)
-    prior = choose_prior(
-        now_unix_usec=NOW,
-        init=InitConfig(),
-        previous=previous,
-        home=HOME,
-        alt_agl_m=120.0,
-        autopilot=ap,
-        **MAP,
-    )
+    prior = _after_restart(NOTHING_TO_RESUME, ap)
     assert prior.source == PriorSource.AUTOPILOT
     assert (prior.lat_deg, prior.lon_deg) == (ap.lat_deg, ap.lon_deg)
     d = float(haversine_m(47.001, 8.001, ap.lat_deg, ap.lon_deg))
@@ -218,13 +199,5 @@ def test_prior_restart_with_nothing_of_its_own_searches_the_map_from_the_autopil
 
 def test_prior_cold_start_does_not_use_the_autopilot_estimate() -> None:
     """No previous run: the start-up rules are unchanged (home), the autopilot's estimate unused."""
-    prior = choose_prior(
-        now_unix_usec=NOW,
-        init=InitConfig(),
-        previous=NO_RUN,
-        home=HOME,
-        alt_agl_m=0.0,
-        autopilot=_autopilot(47.3, 8.3),
-        **MAP,
-    )
+    prior = _after_restart(NO_RUN, _autopilot(47.3, 8.3), alt_agl_m=0.0)
     assert prior.source == PriorSource.HOME

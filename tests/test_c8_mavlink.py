@@ -635,16 +635,8 @@ def test_named_values_without_residual_send_nan() -> None:
     from gps_denied_onboard.constants import NV_RESIDUAL_PX, Provenance
 
     mav = common.MAVLink(None, srcSystem=1, srcComponent=197)
-    msgs = named_values(
-        mav,
-        time_boot_ms=1,
-        provenance=Provenance.VISUAL_PROPAGATED,
-        inliers=16,
-        residual_px=None,
-        horiz_sigma_m=2.0,
-        frame_drops=0,
-        fdr_health=FdrHealthState.OK,
-    )
+    msgs = named_values(mav, time_boot_ms=1, provenance=Provenance.VISUAL_PROPAGATED, inliers=16,
+                        residual_px=None, horiz_sigma_m=2.0, frame_drops=0, fdr_health=FdrHealthState.OK)
     res = [m for m in msgs if m.get_type() == "NAMED_VALUE_FLOAT" and m.name == NV_RESIDUAL_PX]
     assert len(res) == 1 and _math.isnan(res[0].value)
 
@@ -898,16 +890,8 @@ def test_named_values_carry_fdr_health_code() -> None:
 
     for health, code in ((FdrHealthState.OK, 0), (FdrHealthState.DEGRADED, 1), (FdrHealthState.FAILING, 2)):
         tx = common.MAVLink(None, srcSystem=1, srcComponent=197)
-        msgs = named_values(
-            tx,
-            time_boot_ms=5,
-            provenance=Provenance.DEAD_RECKONING,
-            inliers=0,
-            residual_px=None,
-            horiz_sigma_m=9.0,
-            frame_drops=0,
-            fdr_health=health,
-        )
+        msgs = named_values(tx, time_boot_ms=5, provenance=Provenance.DEAD_RECKONING, inliers=0,
+                            residual_px=None, horiz_sigma_m=9.0, frame_drops=0, fdr_health=health)
         rx = common.MAVLink(None)
         decoded = [rx.decode(bytearray(m.pack(tx))) for m in msgs]
         fdr = [m for m in decoded if m.get_type() == "NAMED_VALUE_INT" and m.name == NV_FDR_HEALTH]
