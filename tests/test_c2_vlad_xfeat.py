@@ -265,3 +265,37 @@ def test_vlad_vocabulary_of_xfeat_round_trips_and_checks_its_shape(tmp_path: Pat
     )
     with pytest.raises(VladError, match=r"centroids have shape \(32, 128\)"):
         VladVocabulary.load(tmp_path / "bad.npz")
+
+
+def test_cli_bench_vpr_refuses_unknown_strategy_and_missing_model(tmp_path: Path) -> None:
+    """`gdnav bench vpr`: an unknown --strategy is exit 2; vlad_xfeat without an XFeat export is exit 3,
+    both before any cache is built."""
+    base = [sys.executable, "-m", "gps_denied_onboard.cli", "bench", "vpr", "--map", str(tmp_path / "m.tif")]
+    proc = subprocess.run([*base, "--strategy", "vlad,netvlad"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "netvlad" in proc.stderr and "vlad_xfeat" in proc.stderr, proc.stderr
+    proc = subprocess.run(
+        [*base, "--strategy", "vlad_xfeat", "--model-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 3 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert str(tmp_path) in proc.stderr, proc.stderr
+
+
+def test_cli_cache_vpr_xfeat_without_a_model_exits_3(small_cache: Path, tmp_path: Path) -> None:
+    """`gdnav cache vpr --descriptor xfeat` with a model directory holding no export: exit 3 naming it;
+    --xfeat without --descriptor xfeat: exit 2. The cache is left without a VPR index."""
+    base = [sys.executable, "-m", "gps_denied_onboard.cli", "cache", "vpr", "--cache", str(small_cache)]
+    proc = subprocess.run(
+        [*base, "--descriptor", "xfeat", "--model-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 3 and str(tmp_path) in proc.stderr, proc.stderr[-2000:]
+    proc = subprocess.run(
+        [*base, "--xfeat", str(tmp_path / "x.onnx")], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 2 and "--descriptor xfeat" in proc.stderr, proc.stderr[-2000:]
+    assert CacheManifest.load(small_cache).vpr.backbone == "geo_prior"

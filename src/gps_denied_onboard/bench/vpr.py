@@ -1,9 +1,11 @@
 """VPR benchmark: Recall@K of C2 (corpus-wide and prior-gated) and C2.5, and HNSW latency/memory.
 
-``run_vpr_benchmark(map_path)``:
+``run_vpr_benchmark(map_path, strategies=("vlad", "vlad_xfeat"))``:
 
-1. builds a tile cache from the GeoTIFF ``map_path`` (C10) and the VLAD descriptors + HNSW index
-   (``c10_cache_build.vpr_index``) in ``out`` (a temporary directory when None), timing both;
+1. builds a tile cache from the GeoTIFF ``map_path`` (C10) in ``out`` (a temporary directory when None),
+   then, for each strategy in turn on that cache, its VLAD vocabulary, descriptors and HNSW index
+   (``c10_cache_build.vpr_index``; ``vlad_xfeat`` with the XFeat extractor of ``model_dir``), timing
+   each, and measures it (3.) on the same query frames;
 2. renders ``n_queries`` nav frames with the SITL renderer (``sitl.render.MapRenderer``) from
    ``frames_path`` (default: the map itself; another date of the same area gives the cross-date
    figure): camera 640x480, 70 deg HFOV, altitude uniform in ``alt_range_m``, heading uniform in
@@ -20,9 +22,10 @@
    - corpus-wide (F6: ``region=None``) and prior-gated (prior = truth + N(0, ``prior_sigma_m``) per
      axis; radius as ``pipeline._search_region``: 3 sigma + half footprint, clamped to [60, 2000] m);
    - post-rerank Recall@1/3: ``InlierRerank`` (K=10 -> N=3) on the corpus-wide top-10;
-   - per-frame latency of ``embed_query``, ``retrieve_topk`` and ``rerank`` (p50/p95);
+   - per-frame latency of ``embed_query`` (query normalisation + description), ``retrieve_topk`` and
+     ``rerank`` (p50/p95);
 
-4. HNSW synthetic figures (``synthetic_n`` random unit vectors of the default dim): build time, file
+4. HNSW synthetic figures (``synthetic_n`` random unit vectors of the first strategy's dim): build time, file
    size, resident memory after a memory-mapped load, top-10 latency p50/p95 and recall@10 of the graph
    search against exact search.
 

@@ -27,6 +27,11 @@ corpus-wide Recall@1/@10; ``bench.vpr``, 2 shared cores):
 ``VladEncoder`` is the image -> descriptor function (used by C10 for every tile chip and by ``VladVpr``
 for the normalised query); ``VladVocabulary`` is its learned state, saved as a cache artifact whose
 sha256 is the manifest's ``vpr.model_sha256``.
+
+Where the local descriptors come from is a seam, ``LocalDescriber`` (``VladParams.descriptor`` names
+it): ``RootSiftDescriber`` here, and ``learned_local.XFeatDescriber`` for strategy ``vlad_xfeat`` (a
+registry model's keypoint descriptors, far better across dates; measured there). With a learned
+describer the manifest's ``vpr.model_sha256`` is the extractor model's, so another model is refused.
 """
 
 from __future__ import annotations
