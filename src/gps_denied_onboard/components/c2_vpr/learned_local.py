@@ -34,9 +34,9 @@ under load 5-8)::
     k=128                                      0.67 / 0.92 / 0.95  0.85 / 0.98 / 1.00   (2x index, 2x PCA)
     512 keypoints                              0.55 / 0.85 / 0.88  0.63 / 0.83 / 0.92
     2048 keypoints                             0.72 / 0.90 / 0.93  0.82 / 0.97 / 1.00
-    input 384 px (chip 512 px)                 0.67 / 0.88 / 0.93  0.92 / 1.00 / 1.00   (~0.6x the cost)
+    input 384 px (chip 512 px)                 0.67 / 0.88 / 0.93  0.92 / 1.00 / 1.00   (0.56x the pixels)
     whiten_eps 0.1                             0.53 / 0.88 / 0.95  0.65 / 0.92 / 0.97
-    dense RootSIFT ``vlad`` (same frames)      0.28 / 0.48 / 0.55  0.18 / 0.38 / 0.55   (300 training chips)
+    dense RootSIFT ``vlad`` (its defaults)     0.13 / 0.27 / 0.35  0.20 / 0.37 / 0.53
 
 The query is already north-up at the map's GSD (``query_norm``), so no rotation search or rescaling is
 done; keypoints near the footprint's edge are dropped (``INVALID_MARGIN_PX``) because the zero border of a
