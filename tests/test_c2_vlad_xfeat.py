@@ -197,6 +197,29 @@ def test_cli_run_with_another_xfeat_model_than_the_cache_exits_3(
     assert "vpr.strategy" in line and "another 'vlad_xfeat' model" in line, line
 
 
+@pytest.mark.slow
+@pytest.mark.realdata
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
+def test_compose_builds_vlad_xfeat_from_the_matcher_model_dir(xfeat_cache: Path, xfeat_onnx: Path) -> None:
+    """The composition root takes the XFeat extractor from matcher.model_dir (manifest verified) when
+    vpr.xfeat_weights_path is null, and the strategy it builds retrieves a real cross-date frame."""
+    from gps_denied_onboard.config import load_config
+    from gps_denied_onboard.runtime_root.compose import create_vpr, open_tile_store
+
+    config = load_config(
+        None,
+        [f"cache.dir={xfeat_cache}", "vpr.strategy=vlad_xfeat", f"matcher.model_dir={xfeat_onnx.parent}"],
+    )
+    tiles = open_tile_store(config)
+    vpr = create_vpr(tiles, config)
+    assert isinstance(vpr, VladVpr) and vpr.label == "vlad_xfeat"
+    (query,) = render_queries(
+        shared_path(*NAIP, FRAMES_2020), tiles, CALIB, n=1, alt_range_m=(1500.0, 2000.0), seed=11
+    )
+    result = vpr.retrieve_topk(vpr.embed_query(query.frame, CALIB), 10)
+    assert result.backbone_label == "vlad_xfeat" and len(result.candidates) == 10
+
+
 # --- fast: no model needed --------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def small_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
