@@ -141,8 +141,32 @@ def _cmd_cache_vpr(args: argparse.Namespace) -> int:
     from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
 
     configure_logging("info", json=False)
+    describer = None
+    params = None
+    if args.descriptor == "xfeat":
+        from gps_denied_onboard.components.c2_vpr.learned_local import (
+            XFeatDescriber,
+            default_xfeat_params,
+            find_xfeat_extractor,
+        )
+        from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
+        from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
+        from gps_denied_onboard.models.manifest import ModelDirError
+
+        try:
+            path = Path(args.xfeat) if args.xfeat else find_xfeat_extractor(args.model_dir)
+            describer = XFeatDescriber(OnnxInferenceRuntime(intra_op_threads=args.threads), path)
+        except (ModelDirError, EngineLoadError, OSError) as exc:
+            _err(str(exc))
+            return EXIT_RESOURCE
+        params = default_xfeat_params()
+    elif args.xfeat:
+        _err("--xfeat is used only with --descriptor xfeat")
+        return EXIT_CONFIG
     try:
-        manifest = build_vlad_index(Path(args.cache), force=args.force, progress=not args.quiet)
+        manifest = build_vlad_index(
+            Path(args.cache), params, describer=describer, force=args.force, progress=not args.quiet
+        )
     except CacheBuildError as exc:
         _err(str(exc))
         return EXIT_CONFIG
@@ -269,11 +293,31 @@ def build_parser() -> argparse.ArgumentParser:
     build.set_defaults(func=_cmd_cache_build)
     vpr = cache_sub.add_parser(
         "vpr",
-        help="add the weights-free VLAD place-recognition index to a cache",
+        help="add the VLAD place-recognition index to a cache",
         description="Train a VLAD vocabulary on the cache's own tiles, describe every tile and build the "
-        "FAISS HNSW index (needed by vpr.strategy: vlad). Idempotent.",
+        "FAISS HNSW index (needed by vpr.strategy: vlad, or vlad_xfeat with --descriptor xfeat; the "
+        "manifest records the XFeat model's sha256 and the daemon refuses another model). Idempotent.",
     )
     vpr.add_argument("--cache", required=True, help="cache directory made by `gdnav cache build`")
+    vpr.add_argument(
+        "--descriptor",
+        choices=("rootsift", "xfeat"),
+        default="rootsift",
+        help="local descriptors: rootsift (weights-free, vpr.strategy vlad; default) or xfeat (the "
+        "exported XFeat extractor, vpr.strategy vlad_xfeat)",
+    )
+    vpr.add_argument(
+        "--model-dir",
+        default="models",
+        metavar="DIR",
+        help="--descriptor xfeat: model directory made by `gdnav models export` (default: models)",
+    )
+    vpr.add_argument(
+        "--xfeat", default=None, metavar="ONNX", help="--descriptor xfeat: this extractor file instead"
+    )
+    vpr.add_argument(
+        "--threads", type=int, default=2, metavar="N", help="ONNX Runtime intra-op threads (default 2)"
+    )
     vpr.add_argument("--force", action="store_true", help="rebuild even when the index is up to date")
     vpr.add_argument("--quiet", action="store_true", help="no progress bar")
     vpr.set_defaults(func=_cmd_cache_vpr)

@@ -156,6 +156,19 @@ def _add_vpr_arguments(p: argparse.ArgumentParser) -> None:
         help="descriptors in the synthetic HNSW latency test (default 100000; 0 = skip)",
     )
     p.add_argument("--no-rerank", action="store_true", help="skip the C2.5 rerank measurement")
+    p.add_argument(
+        "--strategy",
+        default="vlad",
+        metavar="NAMES",
+        help="comma-separated VPR strategies measured on the same cache and frames: vlad, vlad_xfeat "
+        "(default vlad)",
+    )
+    p.add_argument(
+        "--model-dir",
+        type=Path,
+        default=Path("models"),
+        help="vlad_xfeat: model directory made by `gdnav models export` (default: models)",
+    )
     p.add_argument("--seed", type=int, default=0, help="query poses (default 0)")
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every figure to OUT")
     p.add_argument(
@@ -167,15 +180,21 @@ def _add_vpr_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_vpr(args: argparse.Namespace) -> int:
-    from gps_denied_onboard.bench.vpr import run_vpr_benchmark
+    from gps_denied_onboard.bench.vpr import BENCH_STRATEGIES, run_vpr_benchmark
+    from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
     from gps_denied_onboard.logging_setup import configure_logging
+    from gps_denied_onboard.models.manifest import ModelDirError
 
     configure_logging("warning", json=False)
     try:
         lo, hi = (float(v) for v in args.alt.split(","))
     except ValueError:
         _err(f"--alt {args.alt!r}: expected LO,HI in metres")
+        return EXIT_CONFIG
+    strategies = [name.strip() for name in args.strategy.split(",") if name.strip()]
+    if not strategies or any(name not in BENCH_STRATEGIES for name in strategies):
+        _err(f"--strategy {args.strategy!r}: expected some of {', '.join(BENCH_STRATEGIES)}")
         return EXIT_CONFIG
     try:
         figures = run_vpr_benchmark(
@@ -189,7 +208,12 @@ def _run_vpr(args: argparse.Namespace) -> int:
             tile_size_px=args.tile_size,
             synthetic_n=args.synthetic,
             rerank=not args.no_rerank,
+            strategies=strategies,
+            model_dir=args.model_dir,
         )
+    except (ModelDirError, EngineLoadError) as exc:
+        _err(str(exc))
+        return EXIT_RESOURCE
     except (CacheBuildError, OSError) as exc:
         _err(str(exc))
         return EXIT_CONFIG

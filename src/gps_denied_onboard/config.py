@@ -194,9 +194,13 @@ class InitConfig:
 class VprConfig:
     __pydantic_config__: ClassVar[ConfigDict] = _STRICT
 
-    #: C2 strategy: geo_prior (tiles nearest the prior, no index) or vlad (appearance, weights-free; needs
-    #: `gdnav cache vpr` to have added its index to the cache).
-    strategy: Str = "geo_prior"
+    #: C2 strategy: geo_prior (tiles nearest the prior, no index), vlad (appearance, weights-free dense
+    #: RootSIFT) or vlad_xfeat (appearance, VLAD over the XFeat extractor's descriptors: works across
+    #: dates). Both vlad strategies need `gdnav cache vpr [--descriptor xfeat]` to have added their index
+    #: to the cache; vlad_xfeat refuses a cache built with another XFeat model.
+    strategy: Literal["geo_prior", "vlad", "vlad_xfeat"] = "geo_prior"
+    #: vlad_xfeat: XFeat extractor ONNX file; null = the XFeat extractor of matcher.model_dir (verified).
+    xfeat_weights_path: Str | None = None
     #: Candidates retrieved per frame (K).
     top_k: PosInt = 10
     #: Search radius = clamp(sigma_scale x horizontal sigma, min, max) around the prior.
@@ -209,6 +213,12 @@ class VprConfig:
     #: WARN when the best candidate's descriptor distance exceeds this (possible false retrieval). For
     #: vlad, correct top-1 distances measured p50 1.09 / p95 1.25 (wrong ones p50 1.16: a weak signal).
     top1_distance_warn: PosFloat = 1.25
+
+    def __post_init__(self) -> None:
+        if self.xfeat_weights_path is not None and self.strategy != "vlad_xfeat":
+            raise SettingError(
+                "xfeat_weights_path", f"is used only by strategy vlad_xfeat, strategy is {self.strategy!r}"
+            )
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,9 +1,11 @@
 """VPR benchmark: Recall@K of C2 (corpus-wide and prior-gated) and C2.5, and HNSW latency/memory.
 
-``run_vpr_benchmark(map_path)``:
+``run_vpr_benchmark(map_path, strategies=("vlad", "vlad_xfeat"))``:
 
-1. builds a tile cache from the GeoTIFF ``map_path`` (C10) and the VLAD descriptors + HNSW index
-   (``c10_cache_build.vpr_index``) in ``out`` (a temporary directory when None), timing both;
+1. builds a tile cache from the GeoTIFF ``map_path`` (C10) in ``out`` (a temporary directory when None),
+   then, for each strategy in turn on that cache, its VLAD vocabulary, descriptors and HNSW index
+   (``c10_cache_build.vpr_index``; ``vlad_xfeat`` with the XFeat extractor of ``model_dir``), timing
+   each, and measures it (3.) on the same query frames;
 2. renders ``n_queries`` nav frames with the SITL renderer (``sitl.render.MapRenderer``) from
    ``frames_path`` (default: the map itself; another date of the same area gives the cross-date
    figure): camera 640x480, 70 deg HFOV, altitude uniform in ``alt_range_m``, heading uniform in
@@ -20,9 +22,10 @@
    - corpus-wide (F6: ``region=None``) and prior-gated (prior = truth + N(0, ``prior_sigma_m``) per
      axis; radius as ``pipeline._search_region``: 3 sigma + half footprint, clamped to [60, 2000] m);
    - post-rerank Recall@1/3: ``InlierRerank`` (K=10 -> N=3) on the corpus-wide top-10;
-   - per-frame latency of ``embed_query``, ``retrieve_topk`` and ``rerank`` (p50/p95);
+   - per-frame latency of ``embed_query`` (query normalisation + description), ``retrieve_topk`` and
+     ``rerank`` (p50/p95);
 
-4. HNSW synthetic figures (``synthetic_n`` random unit vectors of the default dim): build time, file
+4. HNSW synthetic figures (``synthetic_n`` random unit vectors of the first strategy's dim): build time, file
    size, resident memory after a memory-mapped load, top-10 latency p50/p95 and recall@10 of the graph
    search against exact search.
 
@@ -46,7 +49,7 @@ import numpy as np
 from gps_denied_onboard.camera.types import Attitude, CameraCalibration, NavCameraFrame
 from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion, VprStrategy
-from gps_denied_onboard.components.c2_vpr.vlad import VladParams, VladVpr
+from gps_denied_onboard.components.c2_vpr.vlad import LocalDescriber, VladParams, VladVpr
 from gps_denied_onboard.components.c6_tiles.descriptor_index import DescriptorIndex, l2_normalise
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.helpers.frame_rectifier import frame_to_ground_homography
@@ -269,6 +272,10 @@ def hnsw_figures(
     }
 
 
+#: Strategies ``run_vpr_benchmark`` can measure (``vpr.strategy`` names).
+BENCH_STRATEGIES: tuple[str, ...] = ("vlad", "vlad_xfeat")
+
+
 def run_vpr_benchmark(
     map_path: Path,
     *,
@@ -280,19 +287,44 @@ def run_vpr_benchmark(
     alt_range_m: tuple[float, float] = (100.0, 150.0),
     tile_size_px: int = 256,
     chip_size_px: int = 512,
+    strategies: Sequence[str] = ("vlad",),
     vlad_params: VladParams | None = None,
+    xfeat_params: VladParams | None = None,
+    model_dir: Path | None = None,
+    intra_op_threads: int = 2,
     synthetic_n: int = 100_000,
     rerank: bool = True,
 ) -> dict[str, Any]:
-    """Build a cache + VLAD index from ``map_path`` and measure recall and latency (module docstring).
+    """Build a cache from ``map_path``, then for each of ``strategies`` its VLAD index, and measure recall
+    and latency on the same rendered frames (module docstring).
 
-    For NAIP-like 5 m/px maps use ``alt_range_m`` of ~1500-2500 m (a 640 px frame then spans a few
-    hundred map pixels) with ``zoom=16, tile_size_px=128`` (3.3 m/px ground, 420 m tiles).
+    ``vlad_params`` / ``xfeat_params``: the ``vlad`` / ``vlad_xfeat`` parameters (defaults:
+    ``VladParams(chip_size_px=...)`` / ``default_xfeat_params``). ``model_dir``: the verified model
+    directory holding the XFeat extractor (``vlad_xfeat``). For NAIP-like 5 m/px maps use
+    ``alt_range_m`` of ~1500-2500 m (a 640 px frame then spans a few hundred map pixels) with
+    ``zoom=16, tile_size_px=128`` (3.3 m/px ground, 420 m tiles).
     """
     from gps_denied_onboard.components.c10_cache_build.geotiff import build_cache_from_geotiff
     from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
 
-    params = vlad_params or VladParams(chip_size_px=chip_size_px)
+    unknown = [name for name in strategies if name not in BENCH_STRATEGIES]
+    if unknown or not strategies:
+        raise ValueError(f"strategies {list(strategies)}: expected some of {', '.join(BENCH_STRATEGIES)}")
+    runs: list[tuple[str, VladParams, LocalDescriber | None]] = []
+    for name in strategies:
+        if name == "vlad":
+            runs.append((name, vlad_params or VladParams(chip_size_px=chip_size_px), None))
+        else:
+            from gps_denied_onboard.components.c2_vpr.learned_local import (
+                XFeatDescriber,
+                default_xfeat_params,
+                find_xfeat_extractor,
+            )
+            from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
+
+            path = find_xfeat_extractor(Path(model_dir) if model_dir is not None else Path("models"))
+            xfeat = XFeatDescriber(OnnxInferenceRuntime(intra_op_threads=intra_op_threads), path)
+            runs.append((name, xfeat_params or default_xfeat_params(chip_size_px), xfeat))
     tmp = None
     if out is None:
         tmp = tempfile.TemporaryDirectory(prefix="gdnav-vpr-bench-")
@@ -303,28 +335,44 @@ def run_vpr_benchmark(
         t0 = time.perf_counter()
         build_cache_from_geotiff(Path(map_path), cache, zoom=zoom, tile_size_px=tile_size_px, progress=False)
         tiles_s = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        build_vlad_index(cache, params, progress=False)
-        vpr_build_s = time.perf_counter() - t0
-        store = TileStore.open(cache)
-        vpr = VladVpr.from_cache(store, top1_distance_warn=2.0)
         calib = CameraCalibration.from_hfov(640, 480, 70.0)
         queries = render_queries(
-            Path(frames_path or map_path), store, calib, n=n_queries, alt_range_m=alt_range_m, seed=seed
+            Path(frames_path or map_path),
+            TileStore.open(cache),
+            calib,
+            n=n_queries,
+            alt_range_m=alt_range_m,
+            seed=seed,
         )
-        rr = None
-        if rerank:
-            rr = InlierRerank(
-                store,
-                calibration=calib,
-                ransac_filter=RansacFilter(),
-                top_n=3,
-                chip_size_px=params.chip_size_px,
-                normaliser=vpr.normaliser,
+        per_strategy: dict[str, Any] = {}
+        dim = 0
+        for name, params, describer in runs:
+            t0 = time.perf_counter()
+            build_vlad_index(cache, params, describer=describer, progress=False, force=True)
+            vpr_build_s = time.perf_counter() - t0
+            store = TileStore.open(cache)
+            vpr = VladVpr.from_cache(store, top1_distance_warn=2.0, describer=describer)
+            rr = None
+            if rerank:
+                rr = InlierRerank(
+                    store,
+                    calibration=calib,
+                    ransac_filter=RansacFilter(),
+                    top_n=3,
+                    chip_size_px=params.chip_size_px,
+                    normaliser=vpr.normaliser,
+                )
+            figures = evaluate_recall(
+                store, vpr, calib, queries, rerank=rr, chip_size_px=params.chip_size_px, seed=seed
             )
-        figures = evaluate_recall(
-            store, vpr, calib, queries, rerank=rr, chip_size_px=params.chip_size_px, seed=seed
-        )
+            dim = dim or vpr.descriptor_dim()
+            per_strategy[name] = {
+                "params": asdict(params),
+                "dim": vpr.descriptor_dim(),
+                "vpr_build_s": round(vpr_build_s, 2),
+                **figures,
+            }
+        store = TileStore.open(cache)
         result: dict[str, Any] = {
             "map": str(map_path),
             "frames": str(frames_path or map_path),
@@ -333,14 +381,11 @@ def run_vpr_benchmark(
             "gsd_m_px": round(store.gsd_m_px, 3),
             "tiles": len(store),
             "alt_range_m": list(alt_range_m),
-            "vlad": asdict(params),
-            "dim": vpr.descriptor_dim(),
             "cache_build_s": round(tiles_s, 2),
-            "vpr_build_s": round(vpr_build_s, 2),
-            **figures,
+            "strategies": per_strategy,
         }
         if synthetic_n > 0:
-            result["hnsw"] = hnsw_figures(vpr.descriptor_dim(), synthetic_n, seed=seed, work_dir=out)
+            result["hnsw"] = hnsw_figures(dim, synthetic_n, seed=seed, work_dir=out)
         _print_table(result)
         (out / "vpr_bench.json").write_text(json.dumps(result, indent=1), encoding="utf-8")
         return result
@@ -353,16 +398,24 @@ def _print_table(r: dict[str, Any]) -> None:
     rows = [
         ("map", f"{r['map']} (frames: {r['frames']})"),
         ("cache", f"z{r['zoom']} tile {r['tile_size_px']} px, {r['gsd_m_px']} m/px, {r['tiles']} tiles"),
-        ("descriptor", f"vlad k={r['vlad']['n_clusters']} dim={r['dim']}"),
-        ("build", f"tiles {r['cache_build_s']} s, vpr {r['vpr_build_s']} s"),
-        ("queries", f"{r['queries']} at {r['alt_range_m']} m AGL"),
-        ("recall corpus", _fmt(r["recall_corpus"])),
-        ("recall gated", _fmt(r["recall_gated"])),
+        ("build", f"tiles {r['cache_build_s']} s"),
     ]
-    if "recall_rerank" in r:
-        rows.append(("recall rerank", _fmt(r["recall_rerank"])))
-        rows.append(("rerank ms", _fmt(r["rerank_ms"])))
-    rows += [("embed ms", _fmt(r["embed_ms"])), ("search ms", _fmt(r["search_ms"]))]
+    for name, f in r["strategies"].items():
+        p = f["params"]
+        rows += [
+            (
+                name,
+                f"{p['descriptor']} k={p['n_clusters']} pca={p['pca_dim']} dim={f['dim']} "
+                f"work {p['work_size_px']} px; vpr build {f['vpr_build_s']} s; {f['queries']} queries "
+                f"at {r['alt_range_m']} m AGL",
+            ),
+            (f"{name} recall corpus", _fmt(f["recall_corpus"])),
+            (f"{name} recall gated", _fmt(f["recall_gated"])),
+        ]
+        if "recall_rerank" in f:
+            rows.append((f"{name} recall rerank", _fmt(f["recall_rerank"])))
+            rows.append((f"{name} rerank ms", _fmt(f["rerank_ms"])))
+        rows += [(f"{name} embed ms", _fmt(f["embed_ms"])), (f"{name} search ms", _fmt(f["search_ms"]))]
     if "hnsw" in r:
         h = r["hnsw"]
         rows += [

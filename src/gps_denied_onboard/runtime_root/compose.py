@@ -18,7 +18,9 @@ from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
 from gps_denied_onboard.components.c2_5_rerank.passthrough import PassthroughRerank
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
 from gps_denied_onboard.components.c2_vpr.geo_prior import GeoPriorVpr
+from gps_denied_onboard.components.c2_vpr.learned_local import XFeatDescriber, find_xfeat_extractor
 from gps_denied_onboard.components.c2_vpr.protocol import VprStrategy
+from gps_denied_onboard.components.c2_vpr.types import IndexUnavailableError
 from gps_denied_onboard.components.c2_vpr.vlad import VladVpr
 from gps_denied_onboard.components.c3_matcher import registry as matcher_registry
 from gps_denied_onboard.components.c3_matcher.aliked_lightglue import ALIKED_MNN_MIN_SIMILARITY
@@ -138,11 +140,48 @@ def preflight(config: Config) -> None:
 #: C3 strategies that need no model file (and so no ONNX runtime objects).
 WEIGHTS_FREE_MATCHERS = frozenset({"classical"})
 
+def _vlad_xfeat(tiles: TileStore, config: Config) -> VprStrategy:
+    """``vlad_xfeat``: the XFeat extractor from ``vpr.xfeat_weights_path``, else from the verified
+    ``matcher.model_dir``; the cache must have been built with that very model (sha256)."""
+    path = config.vpr.xfeat_weights_path
+    if path is None:
+        if config.matcher.model_dir is None:
+            raise StartupError(
+                "vpr.xfeat_weights_path",
+                "vpr.strategy vlad_xfeat needs an XFeat extractor: set vpr.xfeat_weights_path or "
+                "matcher.model_dir (gdnav models export)",
+            )
+        try:
+            path = str(find_xfeat_extractor(config.matcher.model_dir))
+        except (ModelDirError, OSError, ValueError) as exc:
+            raise StartupError("matcher.model_dir", str(exc)) from exc
+    runtime = OnnxInferenceRuntime(intra_op_threads=config.daemon.onnx_intra_op_threads)
+    try:
+        describer = XFeatDescriber(runtime, path)
+    except EngineLoadError as exc:
+        raise StartupError("vpr.xfeat_weights_path", str(exc)) from exc
+    return VladVpr.from_cache(tiles, top1_distance_warn=config.vpr.top1_distance_warn, describer=describer)
+
+
 #: C2 strategies by config name.
 VPR_STRATEGIES: Mapping[str, Callable[[TileStore, Config], VprStrategy]] = {
     "geo_prior": lambda tiles, cfg: GeoPriorVpr(tiles),
     "vlad": lambda tiles, cfg: VladVpr.from_cache(tiles, top1_distance_warn=cfg.vpr.top1_distance_warn),
+    "vlad_xfeat": _vlad_xfeat,
 }
+
+
+def create_vpr(tiles: TileStore, config: Config) -> VprStrategy:
+    """The C2 strategy of ``config``. Raises ``StartupError`` for an unknown strategy, a missing or
+    unusable extractor model, or a cache whose VPR index was built otherwise (another strategy, another
+    model, no index: rebuild it with ``gdnav cache vpr``)."""
+    factory = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)
+    try:
+        vpr: VprStrategy = factory(tiles, config)
+    except IndexUnavailableError as exc:
+        log.error(LogEvent.VPR_ERROR, backbone=config.vpr.strategy, error=str(exc))
+        raise StartupError("vpr.strategy", f"{config.vpr.strategy}: {exc}") from exc
+    return vpr
 #: C2.5 strategies by config name.
 RERANK_STRATEGIES: Mapping[str, Callable[[TileStore, Config], RerankStrategy]] = {
     "passthrough": lambda tiles, cfg: PassthroughRerank(
@@ -454,7 +493,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     tiles.on_corrupt = lambda info: fdr.record(FdrKind.TILE_CORRUPT, info)
     matcher = create_matcher(config, pre, fdr)
 
-    vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)
+    vpr = create_vpr(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
     tracker = make_tracker(config, clock)
     # Every unit of the time axis and the IMU answers inside it go to the FDR (``gdnav replay``).
@@ -527,7 +566,7 @@ def compose_replay(
         lon, lat = tiles.center_lonlat
         ltp = LocalTangentPlane(lat, lon, config.terrain.ground_alt_amsl_m)
         matcher = create_matcher(config, {}, fdr)
-        vpr = _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)(tiles, config)
+        vpr = create_vpr(tiles, config)
         rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
     else:
         if ltp_origin_lat_lon is None:

@@ -5,11 +5,12 @@ Adds to the cache directory (names in ``c2_vpr.retrieval`` / ``c2_vpr.vlad``)::
     vpr_descriptors.npy          float32 (N, D): global descriptor of every tile's chip, row i = tile i
     vpr_index.faiss              FAISS IndexHNSWFlat over those rows (C6 ``DescriptorIndex``)
     vpr_meta.json                backbone label, model sha256, dim, chip size, parameters, tile count
-    vpr_vlad_vocabulary.npz      (``vlad`` only) vocabulary + PCA-whitening learned from this cache
+    vpr_vlad_vocabulary.npz      (``vlad``, ``vlad_xfeat``) vocabulary + PCA-whitening learned from this cache
 
-and updates the manifest's ``vpr`` block (backbone label + model sha256: the VLAD vocabulary's or the
-ONNX file's) and ``artifacts`` (size + sha256 of each file), so the daemon refuses a cache whose
-descriptors come from another backbone and C6's hash gate covers the index.
+and updates the manifest's ``vpr`` block (backbone label + model sha256: the VLAD vocabulary's for the
+weights-free ``vlad``, the XFeat extractor's ONNX file for ``vlad_xfeat``, the ONNX file's for a global
+model) and ``artifacts`` (size + sha256 of each file), so the daemon refuses a cache whose descriptors
+come from another backbone or model, and C6's hash gate covers the index.
 
 Crash safety: the manifest is first rewritten *without* VPR artifacts (backbone ``geo_prior``), then the
 files are written (temporary name + fsync + rename), then the manifest with them is written last. A run
@@ -41,6 +42,7 @@ from gps_denied_onboard.components.c2_vpr.retrieval import (
 )
 from gps_denied_onboard.components.c2_vpr.vlad import (
     VLAD_VOCABULARY_NAME,
+    LocalDescriber,
     VladEncoder,
     VladError,
     VladParams,
@@ -71,22 +73,36 @@ _NO_VPR = VprInfo(backbone="geo_prior", model_sha256=None)
 
 
 def build_vlad_index(
-    cache_dir: Path, params: VladParams | None = None, *, force: bool = False, progress: bool = True
+    cache_dir: Path,
+    params: VladParams | None = None,
+    *,
+    describer: LocalDescriber | None = None,
+    force: bool = False,
+    progress: bool = True,
 ) -> CacheManifest:
     """Train a VLAD vocabulary on the cache's own mosaic, describe every tile, build the HNSW index.
 
-    Returns the updated manifest. Raises ``CacheBuildError`` for an unusable cache or map.
+    ``describer`` gives the local descriptors ``params.descriptor`` names (default: dense RootSIFT,
+    strategy ``vlad``; an ``XFeatDescriber`` for ``vlad_xfeat``, whose model sha256 the manifest then
+    records). Returns the updated manifest. Raises ``CacheBuildError`` for an unusable cache or map, or a
+    describer that does not give ``params.descriptor``.
     """
     params = params or VladParams()
     cache_dir = Path(cache_dir)
-    wanted = {"backbone": "vlad", "params": asdict(params), "chip_size_px": params.chip_size_px}
+    wanted: dict[str, Any] = {
+        "backbone": params.label,
+        "params": asdict(params),
+        "chip_size_px": params.chip_size_px,
+    }
+    if describer is not None and describer.model_sha256 is not None:
+        wanted["model_sha256"] = describer.model_sha256
     existing = _up_to_date(cache_dir, wanted)
     if existing is not None and not force:
         return existing
     t0 = time.monotonic()
     store = _open_base(cache_dir)
     try:
-        vocab = train_vocabulary(store, params)
+        vocab = train_vocabulary(store, params, describer=describer)
     except VladError as exc:
         raise CacheBuildError(f"cannot train the VLAD vocabulary: {exc}", path=str(cache_dir)) from exc
     vocab_path = cache_dir / VLAD_VOCABULARY_NAME
@@ -95,7 +111,7 @@ def build_vlad_index(
     except OSError as exc:
         raise CacheBuildError(f"cannot write the VLAD vocabulary: {exc}", path=str(vocab_path)) from exc
     train_s = time.monotonic() - t0
-    encoder = VladEncoder(vocab, model_sha256=sha256_file(vocab_path))
+    encoder = VladEncoder(vocab, model_sha256=sha256_file(vocab_path), describer=describer)
     return _describe_and_index(
         store,
         encoder,

@@ -27,6 +27,11 @@ corpus-wide Recall@1/@10; ``bench.vpr``, 2 shared cores):
 ``VladEncoder`` is the image -> descriptor function (used by C10 for every tile chip and by ``VladVpr``
 for the normalised query); ``VladVocabulary`` is its learned state, saved as a cache artifact whose
 sha256 is the manifest's ``vpr.model_sha256``.
+
+Where the local descriptors come from is a seam, ``LocalDescriber`` (``VladParams.descriptor`` names
+it): ``RootSiftDescriber`` here, and ``learned_local.XFeatDescriber`` for strategy ``vlad_xfeat`` (a
+registry model's keypoint descriptors, far better across dates; measured there). With a learned
+describer the manifest's ``vpr.model_sha256`` is the extractor model's, so another model is refused.
 """
 
 from __future__ import annotations
@@ -34,10 +39,10 @@ from __future__ import annotations
 import io
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Final
+from typing import Final, Protocol, runtime_checkable
 
 import cv2
 import faiss
@@ -63,6 +68,10 @@ LABEL: Final[str] = "vlad"
 VLAD_VOCABULARY_NAME: Final[str] = "vpr_vlad_vocabulary.npz"
 _SIFT_DIM: Final[int] = 128
 _N_BINS: Final[int] = 8
+#: Local descriptors VLAD aggregates (``VladParams.descriptor``) -> their dimension.
+LOCAL_DESCRIPTOR_DIMS: Final[Mapping[str, int]] = {"rootsift": _SIFT_DIM, "xfeat": 64}
+#: C2 strategy label (``vpr.strategy``, the manifest's ``vpr.backbone``) of VLAD over each descriptor.
+STRATEGY_LABELS: Final[Mapping[str, str]] = {"rootsift": LABEL, "xfeat": "vlad_xfeat"}
 
 
 class VladError(ValueError):
@@ -77,13 +86,17 @@ class VladError(ValueError):
 class VladParams:
     """How chips are described.
 
-    ``n_clusters``: vocabulary size k (VLAD dim = 128 k before PCA). ``pca_dim``: output dim after
-    PCA-whitening (0 = no PCA, output 128 k). ``work_size_px``: chips (and queries) are resized to this
-    square before extraction (cost control). ``grid_step_px`` / ``patch_px``: dense grid spacing and SIFT
-    patch size, px at ``work_size_px``. ``chip_size_px``: map chip side the descriptors are computed on
-    (the query is normalised to the same). ``train_samples``: chips sampled at random mosaic positions to
-    learn the vocabulary and PCA. ``whiten_eps``: added to each PCA eigenvalue (relative to the largest)
-    before whitening, so near-zero directions are not blown up. ``seed``: k-means and sampling seed.
+    ``descriptor``: the local descriptors aggregated (``LOCAL_DESCRIPTOR_DIMS``: dense RootSIFT, or a
+    learned extractor's keypoint descriptors, see ``LocalDescriber``). ``max_keypoints``: learned
+    extractors keep at most this many keypoints (top scores) per image.
+    ``n_clusters``: vocabulary size k (VLAD dim = d k before PCA, d = the local descriptor's dim).
+    ``pca_dim``: output dim after PCA-whitening (0 = no PCA, output d k). ``work_size_px``: chips (and
+    queries) are resized to this square before extraction (cost control; XFeat: its input side).
+    ``grid_step_px`` / ``patch_px``: dense grid spacing and SIFT patch size, px at ``work_size_px``.
+    ``chip_size_px``: map chip side the descriptors are computed on (the query is normalised to the
+    same). ``train_samples``: chips sampled at random mosaic positions to learn the vocabulary and PCA.
+    ``whiten_eps``: added to each PCA eigenvalue (relative to the largest) before whitening, so near-zero
+    directions are not blown up. ``seed``: k-means and sampling seed.
     """
 
     n_clusters: int = 64
@@ -95,8 +108,16 @@ class VladParams:
     train_samples: int = 600
     whiten_eps: float = 1.0
     seed: int = 0
+    descriptor: str = "rootsift"
+    max_keypoints: int = 1024
 
     def __post_init__(self) -> None:
+        if self.descriptor not in LOCAL_DESCRIPTOR_DIMS:
+            raise ValueError(
+                f"descriptor must be one of {sorted(LOCAL_DESCRIPTOR_DIMS)}, got {self.descriptor!r}"
+            )
+        if self.max_keypoints < 16:
+            raise ValueError(f"max_keypoints must be >= 16, got {self.max_keypoints}")
         if not 2 <= self.n_clusters <= 1024:
             raise ValueError(f"n_clusters must be in 2..1024, got {self.n_clusters}")
         if self.pca_dim < 0:
@@ -111,14 +132,24 @@ class VladParams:
             raise ValueError(f"whiten_eps must be >= 0, got {self.whiten_eps}")
 
     @property
+    def local_dim(self) -> int:
+        return LOCAL_DESCRIPTOR_DIMS[self.descriptor]
+
+    @property
     def vlad_dim(self) -> int:
-        return self.n_clusters * _SIFT_DIM
+        return self.n_clusters * self.local_dim
+
+    @property
+    def label(self) -> str:
+        """The C2 strategy these parameters make (``vlad``, ``vlad_xfeat``)."""
+        return STRATEGY_LABELS[self.descriptor]
 
 
 @dataclass(frozen=True, eq=False)
 class VladVocabulary:
-    """Learned state: ``centroids`` (k, 128) float32 RootSIFT words; ``pca_mean`` (128k,) float32 and
-    ``pca_proj`` (128k, d) float32 (whitening folded in), both empty when ``params.pca_dim == 0``."""
+    """Learned state: ``centroids`` (k, d) float32 words of the local descriptor (d = 128 for RootSIFT,
+    64 for XFeat); ``pca_mean`` (d k,) float32 and ``pca_proj`` (d k, D) float32 (whitening folded in),
+    both empty when ``params.pca_dim == 0``."""
 
     params: VladParams
     centroids: np.ndarray
@@ -159,7 +190,7 @@ class VladVocabulary:
                 pca_proj = np.asarray(data["pca_proj"], dtype=np.float32)
         except (OSError, KeyError, ValueError, TypeError) as exc:
             raise VladError(f"cannot read VLAD vocabulary: {exc}", path=str(p)) from exc
-        if centroids.shape != (params.n_clusters, _SIFT_DIM):
+        if centroids.shape != (params.n_clusters, params.local_dim):
             raise VladError(
                 f"centroids have shape {centroids.shape}, params say k={params.n_clusters}", path=str(p)
             )
@@ -170,22 +201,80 @@ class VladVocabulary:
         return cls(params, centroids, pca_mean, pca_proj)
 
 
+@runtime_checkable
+class LocalDescriber(Protocol):
+    """The seam between VLAD and where its local descriptors come from.
+
+    ``name``: the ``VladParams.descriptor`` it implements. ``model_sha256``: sha256 of the weights the
+    descriptors come from (None for a weights-free describer); the cache records it and a cache built
+    with another model is refused. ``describe``: (H, W, 3) uint8 BGR image (0 = invalid) and the
+    cache's parameters -> (n, d) float32 local descriptors of its valid area (n may be 0). Must be
+    thread-safe.
+    """
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def model_sha256(self) -> str | None: ...
+
+    def describe(self, image_bgr: np.ndarray, params: VladParams) -> np.ndarray: ...
+
+
+class RootSiftDescriber:
+    """``LocalDescriber`` of dense upright RootSIFT (``local_descriptors``); weights-free."""
+
+    name: Final[str] = "rootsift"
+
+    def __init__(self) -> None:
+        self._grids: dict[tuple[int, int, int], np.ndarray] = {}
+
+    @property
+    def model_sha256(self) -> str | None:
+        return None
+
+    def describe(self, image_bgr: np.ndarray, params: VladParams) -> np.ndarray:
+        key = (params.work_size_px, params.grid_step_px, params.patch_px)
+        grid = self._grids.get(key)
+        if grid is None:
+            grid = self._grids.setdefault(key, _dense_grid(params))
+        return local_descriptors(image_bgr, params, grid)
+
+
+def _check_describer(describer: LocalDescriber, params: VladParams) -> None:
+    if describer.name != params.descriptor:
+        raise VladError(
+            f"the vocabulary was learned on {params.descriptor!r} descriptors, "
+            f"the describer gives {describer.name!r}"
+        )
+
+
 class VladEncoder:
     """Image (chip or normalised query) -> L2-normalised VLAD descriptor (see the module docstring).
 
-    Thread-safe: the vocabulary is read-only.
+    ``describer``: where the local descriptors come from (default: dense RootSIFT); it must give the
+    descriptor the vocabulary was learned on (``VladError`` otherwise). ``model_sha256``: what the cache
+    records for this encoder: the describer's model hash when it has weights, else the sha256 of the
+    vocabulary file (None when built in memory). Thread-safe: the vocabulary is read-only.
     """
 
-    def __init__(self, vocabulary: VladVocabulary, *, model_sha256: str | None = None) -> None:
+    def __init__(
+        self,
+        vocabulary: VladVocabulary,
+        *,
+        model_sha256: str | None = None,
+        describer: LocalDescriber | None = None,
+    ) -> None:
         self._vocab = vocabulary
-        self._model_sha256 = model_sha256
-        self._words = faiss.IndexFlatL2(_SIFT_DIM)
+        self._describer: LocalDescriber = describer if describer is not None else RootSiftDescriber()
+        _check_describer(self._describer, vocabulary.params)
+        self._model_sha256 = self._describer.model_sha256 or model_sha256
+        self._words = faiss.IndexFlatL2(vocabulary.params.local_dim)
         self._words.add(np.ascontiguousarray(vocabulary.centroids))
-        self._grid = _dense_grid(vocabulary.params)
 
     @property
     def label(self) -> str:
-        return LABEL
+        return self._vocab.params.label
 
     @property
     def dim(self) -> int:
@@ -193,7 +282,7 @@ class VladEncoder:
 
     @property
     def model_sha256(self) -> str | None:
-        """sha256 of the vocabulary file this encoder was loaded from (None when built in memory)."""
+        """The describer's model sha256, else the vocabulary file's (None when built in memory)."""
         return self._model_sha256
 
     @property
@@ -203,9 +292,9 @@ class VladEncoder:
     def embed_image(self, image_bgr: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8 BGR image, 0 = invalid -> (D,) float32 unit-norm descriptor.
 
-        An image with no valid patch gives the zero vector (it matches nothing, distance ~1.41).
+        An image with no valid local descriptor gives the zero vector (it matches nothing, distance ~1.41).
         """
-        desc = local_descriptors(image_bgr, self._vocab.params, self._grid)
+        desc = self._describer.describe(image_bgr, self._vocab.params)
         vlad = _vlad(desc, self._vocab.centroids, self._words)
         return _project(vlad[None, :], self._vocab)[0]
 
@@ -273,9 +362,9 @@ def _dense_grid(params: VladParams) -> np.ndarray:
 
 
 def _vlad(desc: np.ndarray, centroids: np.ndarray, words: faiss.IndexFlatL2) -> np.ndarray:
-    """(n, 128) local descriptors -> (128 k,) float32 VLAD, intra-normalised + power-law + L2."""
-    k = centroids.shape[0]
-    out = np.zeros((k, _SIFT_DIM), np.float32)
+    """(n, d) local descriptors -> (d k,) float32 VLAD, intra-normalised + power-law + L2."""
+    k, d = centroids.shape
+    out = np.zeros((k, d), np.float32)
     if desc.shape[0] == 0:
         return out.ravel()
     _, assign = words.search(np.ascontiguousarray(desc), 1)
@@ -287,7 +376,7 @@ def _vlad(desc: np.ndarray, centroids: np.ndarray, words: faiss.IndexFlatL2) -> 
 
 
 def _project(vlad: np.ndarray, vocab: VladVocabulary) -> np.ndarray:
-    """(n, 128 k) VLAD -> (n, D) final descriptors (PCA-whitened when learned), L2-normalised."""
+    """(n, d k) VLAD -> (n, D) final descriptors (PCA-whitened when learned), L2-normalised."""
     if vocab.pca_proj.size == 0:
         return l2_normalise(vlad)
     return l2_normalise((vlad - vocab.pca_mean) @ vocab.pca_proj)
@@ -318,20 +407,27 @@ def sample_training_chips(store: TileStore, params: VladParams) -> list[np.ndarr
 
 
 def train_vocabulary(
-    store: TileStore, params: VladParams, *, progress: Callable[[str, int, int], None] | None = None
+    store: TileStore,
+    params: VladParams,
+    *,
+    describer: LocalDescriber | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> VladVocabulary:
     """Learn words and PCA-whitening from the cache's own mosaic (see ``sample_training_chips``).
 
-    Raises ``VladError`` when the map has too little texture for ``n_clusters`` words.
+    ``describer`` gives the local descriptors (default: dense RootSIFT; it must implement
+    ``params.descriptor``). Raises ``VladError`` when the map has too little texture for ``n_clusters``
+    words.
     """
+    describer = describer if describer is not None else RootSiftDescriber()
+    _check_describer(describer, params)
     chips = sample_training_chips(store, params)
     if len(chips) < 8:
         raise VladError(
             f"only {len(chips)} valid training chips in the mosaic; the map is too small or empty",
             path=str(store.cache_dir),
         )
-    grid = _dense_grid(params)
-    per_chip = [local_descriptors(chip, params, grid) for chip in chips]
+    per_chip = [describer.describe(chip, params) for chip in chips]
     if progress is not None:
         progress("vlad_local_features", len(chips), len(chips))
     pool = np.concatenate(per_chip, axis=0)
@@ -344,13 +440,13 @@ def train_vocabulary(
     rng = np.random.default_rng(params.seed)
     take = min(pool.shape[0], 200 * params.n_clusters)
     subset = np.ascontiguousarray(pool[rng.choice(pool.shape[0], take, replace=False)])
-    kmeans = faiss.Kmeans(_SIFT_DIM, params.n_clusters, niter=25, seed=params.seed, verbose=False)
+    kmeans = faiss.Kmeans(params.local_dim, params.n_clusters, niter=25, seed=params.seed, verbose=False)
     kmeans.train(subset)
     centroids = np.asarray(kmeans.centroids, dtype=np.float32)
     no_pca = VladVocabulary(params, centroids, np.empty(0, np.float32), np.empty((0, 0), np.float32))
     if params.pca_dim == 0:
         return no_pca
-    words = faiss.IndexFlatL2(_SIFT_DIM)
+    words = faiss.IndexFlatL2(params.local_dim)
     words.add(centroids)
     vlads = np.stack([_vlad(d, centroids, words) for d in per_chip])
     n_comp = min(params.pca_dim, vlads.shape[0] - 1, params.vlad_dim)
@@ -366,35 +462,47 @@ def train_vocabulary(
 
 
 class VladVpr(IndexedVpr):
-    """C2 strategy ``vlad``: VLAD descriptors of the normalised query against the cache's HNSW index.
+    """C2 strategies ``vlad`` (dense RootSIFT) and ``vlad_xfeat`` (a learned extractor's descriptors):
+    VLAD descriptors of the normalised query against the cache's HNSW index.
 
     Build with ``VladVpr.from_cache`` (daemon) or directly from an encoder and index (tests, bench).
     """
 
     @classmethod
     def from_cache(
-        cls, tile_store: TileStore, *, top1_distance_warn: float, ef_search: int | None = None
+        cls,
+        tile_store: TileStore,
+        *,
+        top1_distance_warn: float,
+        ef_search: int | None = None,
+        describer: LocalDescriber | None = None,
     ) -> VladVpr:
         """Load the vocabulary and index recorded in the cache's manifest.
 
-        Raises ``IndexUnavailableError`` when the cache was built with another backbone (or without
-        descriptors), or when an artifact is missing, unreadable or inconsistent.
+        ``describer``: the local descriptors (default dense RootSIFT, strategy ``vlad``; e.g. an
+        ``XFeatDescriber`` for ``vlad_xfeat``). Raises ``IndexUnavailableError`` when the cache was
+        built with another strategy, with another extractor model (sha256), without descriptors, or
+        when an artifact is missing, unreadable or inconsistent.
         """
+        describer = describer if describer is not None else RootSiftDescriber()
+        label = STRATEGY_LABELS.get(describer.name)
+        if label is None:
+            raise IndexUnavailableError(f"no VLAD strategy aggregates {describer.name!r} descriptors")
         cache_dir = tile_store.cache_dir
         manifest = tile_store.manifest
         vocab_path = cache_dir / VLAD_VOCABULARY_NAME
         check_cache_backbone(
             manifest,
-            LABEL,
-            None,
+            label,
+            describer.model_sha256,
             cache_dir=cache_dir,
             required_artifacts=(VLAD_VOCABULARY_NAME, VPR_INDEX_NAME, VPR_DESCRIPTORS_NAME),
         )
         try:
             vocab = VladVocabulary.load(vocab_path)
+            encoder = VladEncoder(vocab, model_sha256=manifest.vpr.model_sha256, describer=describer)
         except VladError as exc:
             raise IndexUnavailableError(str(exc), path=str(vocab_path)) from exc
-        encoder = VladEncoder(vocab, model_sha256=manifest.vpr.model_sha256)
         index = DescriptorIndex.load(
             cache_dir / VPR_INDEX_NAME,
             expected_dim=encoder.dim,
@@ -402,6 +510,6 @@ class VladVpr(IndexedVpr):
             ef_search=HNSW_EF_SEARCH if ef_search is None else ef_search,
         )
         normaliser = QueryNormaliser(
-            gsd_m_px=tile_store.gsd_m_px, chip_size_px=vocab.params.chip_size_px, backbone=LABEL
+            gsd_m_px=tile_store.gsd_m_px, chip_size_px=vocab.params.chip_size_px, backbone=label
         )
         return cls(encoder, tile_store, index, normaliser, top1_distance_warn=top1_distance_warn)

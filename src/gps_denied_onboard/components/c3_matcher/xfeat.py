@@ -217,7 +217,7 @@ class XFeatMatcher(LearnedPairMatcher):
         h, w = image_bgr.shape[:2]
         tensor, (sx, sy) = preprocess_xfeat(image_bgr, self._long_side_px, self._channels)
         outputs = self._runtime.run(self._engine_id, {"image": tensor})
-        pts, scores, desc = _unpack_outputs(outputs)
+        pts, scores, desc = unpack_xfeat_outputs(outputs)
         if pts.shape[0] == 0:
             return no_features((w, h), XFEAT_DESCRIPTOR_DIM)
         # Exports with a fixed top-k may emit points off the tensor (or NaN) for empty slots.
@@ -238,7 +238,7 @@ class XFeatMatcher(LearnedPairMatcher):
         return Features(pts, np.ascontiguousarray(desc, dtype=np.float32), (w, h))
 
 
-def _unpack_outputs(outputs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def unpack_xfeat_outputs(outputs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Model outputs -> keypoints (N, 2) float32, scores (N,) float32, descriptors (N, 64) float32."""
     try:
         kpts = np.asarray(outputs["keypoints"])
