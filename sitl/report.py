@@ -273,7 +273,7 @@ def analyse(
     - ``integrity_refused``: solved fixes the fix-integrity rule refused, by reason;
     - ``vio_segments``: each VIO-only stretch with the distance flown, the error growth and the drift as
       a percentage of that distance, and how many fixes it took afterwards to get back under the
-      nominal p95 error (measured on the anchored frames before the first stretch).
+      nominal p95 error (measured on the anchored frames before the first stretch that follows one).
     """
     frames = sorted(_of_kind(fdr_records, FdrKind.FRAME), key=lambda r: r["frame_seq"])
     fixes = sorted(_of_kind(fdr_records, FdrKind.FIX), key=lambda r: r["frame_seq"])
@@ -313,9 +313,13 @@ def analyse(
         return None if row is None else row.get("horizontal_error_m")
 
     segments = _run_segments(seqs, labels, "visual_propagated")
+    # The nominal error: anchored frames before the first VIO stretch that follows an anchored frame
+    # (frames tracked at start-up before the first fix landed are a VIO stretch too, with nothing before).
+    first_anchored = next((i for i, lab in enumerate(labels) if lab == "satellite_anchored"), len(seqs))
+    first_gap = next((a for a, _ in segments if a > first_anchored), len(seqs))
     before = [
         err(seqs[i])
-        for i in range(segments[0][0] if segments else len(seqs))
+        for i in range(first_gap)
         if labels[i] == "satellite_anchored" and err(seqs[i]) is not None
     ]
     nominal_p95 = _pct([e for e in before if e is not None], 95)
