@@ -37,7 +37,7 @@ import numpy as np
 
 from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.components.c13_fdr import read_records
-from gps_denied_onboard.config import ConfigError, load_config
+from gps_denied_onboard.config import Config, ConfigError, load_config
 from gps_denied_onboard.constants import FRAME_STREAM_MAGIC
 from gps_denied_onboard.sitl.autopilot import SimAutopilot
 from gps_denied_onboard.sitl.frame_server import FrameServer
@@ -450,6 +450,33 @@ class _Flight:
         return ap
 
 
+def _build_vpr_index(daemon_cfg: Config, cache_dir: Path, *, progress: bool) -> None:
+    """The appearance index the daemon's VPR strategy will search (``gdnav cache vpr`` does the same):
+    dense RootSIFT for ``vlad``, the exported XFeat extractor (``vpr.xfeat_weights_path`` or the one in
+    ``matcher.model_dir``) for ``vlad_xfeat``; nothing for ``geo_prior``."""
+    from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
+
+    strategy = daemon_cfg.vpr.strategy
+    if strategy == "vlad":
+        build_vlad_index(cache_dir, progress=progress)
+    elif strategy == "vlad_xfeat":
+        from gps_denied_onboard.components.c2_vpr.learned_local import (
+            XFeatDescriber,
+            default_xfeat_params,
+            find_xfeat_extractor,
+        )
+        from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
+        from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
+        from gps_denied_onboard.models.manifest import ModelDirError
+
+        try:
+            path = daemon_cfg.vpr.xfeat_weights_path or find_xfeat_extractor(daemon_cfg.matcher.model_dir)
+            describer = XFeatDescriber(OnnxInferenceRuntime(intra_op_threads=2), Path(path))
+        except (ModelDirError, EngineLoadError, OSError) as exc:
+            raise SitlError(f"vpr.strategy vlad_xfeat: {exc}") from exc
+        build_vlad_index(cache_dir, default_xfeat_params(), describer=describer, progress=progress)
+
+
 def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     """Fly one scenario and return the report (also written to ``opts.report_path`` with a PNG)."""
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache_from_geotiff
@@ -504,10 +531,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     t_cache = time.monotonic()
     try:
         build_cache_from_geotiff(cache_source, cache_dir, progress=not opts.quiet)
-        if daemon_cfg.vpr.strategy == "vlad":  # the appearance index the daemon's VPR will search
-            from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
-
-            build_vlad_index(cache_dir, progress=not opts.quiet)
+        _build_vpr_index(daemon_cfg, cache_dir, progress=not opts.quiet)
     except CacheBuildError as exc:
         raise SitlError(f"cannot build the cache from {map_path}: {exc}") from exc
     cache_s = time.monotonic() - t_cache
