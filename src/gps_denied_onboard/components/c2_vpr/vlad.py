@@ -341,6 +341,9 @@ def local_descriptors(
         channel = mag * ((lo == b) * (1.0 - frac) + (hi == b) * frac)
         # Pool over one cell (box of the cell's size centred on each pixel).
         pooled[b] = cv2.blur(channel, (max(round(cell), 1),) * 2, borderType=cv2.BORDER_REFLECT)
+    # The box filter's float sums leave values like -1e-17 where the gradient is zero; RootSIFT's square
+    # root turns those into NaN (seen on the procedural demo map's flat areas: the index build failed).
+    np.maximum(pooled, 0.0, out=pooled)
     offsets = (np.arange(4, dtype=np.float32) - 1.5) * cell
     cx = np.clip(np.rint(pts[:, 0:1] + offsets[None, :]), 0, size - 1).astype(np.int64)  # (n, 4)
     cy = np.clip(np.rint(pts[:, 1:2] + offsets[None, :]), 0, size - 1).astype(np.int64)
@@ -431,6 +434,11 @@ def train_vocabulary(
     if progress is not None:
         progress("vlad_local_features", len(chips), len(chips))
     pool = np.concatenate(per_chip, axis=0)
+    if not np.isfinite(pool).all():
+        raise VladError(
+            f"the {params.descriptor} describer gave non-finite descriptors for the training chips",
+            path=str(store.cache_dir),
+        )
     if pool.shape[0] < 20 * params.n_clusters:
         raise VladError(
             f"{pool.shape[0]} local descriptors are too few for {params.n_clusters} words",
