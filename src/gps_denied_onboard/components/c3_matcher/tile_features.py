@@ -282,8 +282,9 @@ class PrecomputedTileFeatures:
         if not same_chip:
             return self._miss()
         with self._lock:
-            if row in self._bad:
-                return self._miss()
+            known_bad = row in self._bad
+        if known_bad:
+            return self._miss()
         start, count = int(entry["offset"]), int(entry["count"])
         # Copies out of the mapping: the bytes checked are the bytes the matcher gets.
         kp = np.array(self._keypoints[start : start + count], dtype=np.float32)
