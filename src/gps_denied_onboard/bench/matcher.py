@@ -293,23 +293,23 @@ def with_cache_candidates(
     frames: Sequence[BenchFrame], store: Any, *, n_candidates: int, chip_size_px: int, seed: int
 ) -> list[BenchFrame]:
     """The same frames with their candidates taken from a map cache (``TileStore``) instead of the
-    GeoTIFF: the chip of the tile nearest to the frame's centre first (the tile a good prior gives),
-    then chips of random tiles at least two chip diagonals away (none sees the frame's footprint). These
-    are the chips the daemon matches, so precomputed tile features apply to them."""
+    GeoTIFF: the chip of the tile nearest to the frame's centre first (the tile a good prior gives), then
+    chips of random tiles more than a chip diagonal away (on a map too small for that, the farthest
+    tiles). These are the chips the daemon matches, so precomputed tile features apply to them."""
     rng = np.random.default_rng(seed + 1)
     out = []
     diag_m = chip_size_px * float(store.gsd_m_px) * math.sqrt(2.0)
+    everything = 1e8
     for bf in frames:
         lon, lat = bf.centre_lonlat
-        nearest = store.tiles_near(lat, lon, 2.0 * diag_m, k=1)
-        if not nearest:
-            raise BenchmarkError(f"frame {bf.frame.frame_id}: no cache tile near ({lat:.6f}, {lon:.6f})")
-        near = {t for t, _ in store.tiles_near(lat, lon, 2.0 * diag_m)}
-        far = [t for t in store.tile_ids if t not in near]
+        by_distance = store.tiles_near(lat, lon, everything)
+        if len(by_distance) < n_candidates:
+            raise BenchmarkError(f"the cache has {len(by_distance)} tiles, fewer than {n_candidates}")
+        far = [t for t, d in by_distance[1:] if d > diag_m]
         if len(far) < n_candidates - 1:
-            raise BenchmarkError(f"cache has no room for {n_candidates - 1} chips away from the frames")
+            far = [t for t, _ in by_distance[-(n_candidates - 1) :]] if n_candidates > 1 else []
         picks = [far[i] for i in rng.choice(len(far), size=n_candidates - 1, replace=False)]
-        chips = tuple(store.chip(t, chip_size_px) for t in [nearest[0][0], *picks])
+        chips = tuple(store.chip(t, chip_size_px) for t in [by_distance[0][0], *picks])
         out.append(BenchFrame(bf.frame, chips, bf.footprint_px, bf.centre_lonlat))
     return out
 
