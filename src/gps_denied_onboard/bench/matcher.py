@@ -670,7 +670,8 @@ def run_matcher_benchmark(
         Path(map_path),
         calib,
         n_frames=n_frames,
-        n_candidates=n_candidates,
+        # With a cache the candidates are its chips: only the frames (and their centres) are needed here.
+        n_candidates=1 if cache_dir is not None else n_candidates,
         chip_size_px=chip_size_px,
         alt_agl_m=alt_agl_m,
         seed=seed,
