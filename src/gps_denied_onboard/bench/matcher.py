@@ -837,8 +837,8 @@ def format_report(report: Mapping[str, Any]) -> str:
         "",
     ]
     header = (
-        f"{'strategy':<17}{'frame cold':>15}{'frame warm':>15}{'frame pre':>15}{'cand cold':>15}"
-        f"{'cand warm':>15}{'query':>13}"
+        f"{'strategy':<17}{'frame cold':>17}{'frame warm':>17}{'frame pre':>17}{'cand cold':>17}"
+        f"{'cand warm':>17}{'query':>15}"
         f"{'x classical':>13}{'inl true':>10}{'inl wrong':>10}{'true 1st':>9}{'py heap':>9}{'rss load':>9}"
     )
     lines += [header + "   (ms p50/p95; x classical = frame cold p95; inliers p50; MB)", "-" * len(header)]
@@ -850,9 +850,9 @@ def format_report(report: Mapping[str, Any]) -> str:
         ratio = r["ratio_to_classical"]["frame_cold_ms"].get("p95")
         rss = r["memory"]["rss_on_build_mb"]
         lines.append(
-            f"{name:<17}{pair(r['frame_cold_ms']):>15}{pair(r['frame_warm_ms']):>15}"
-            f"{pair(r['frame_precomputed_ms']):>15}"
-            f"{pair(r['candidate_cold_ms']):>15}{pair(r['candidate_warm_ms']):>15}{pair(r['query_ms']):>13}"
+            f"{name:<17}{pair(r['frame_cold_ms']):>17}{pair(r['frame_warm_ms']):>17}"
+            f"{pair(r['frame_precomputed_ms']):>17}"
+            f"{pair(r['candidate_cold_ms']):>17}{pair(r['candidate_warm_ms']):>17}{pair(r['query_ms']):>15}"
             f"{'-' if ratio is None else f'{ratio:.2f}':>13}"
             f"{r['inliers']['true_chip']['p50']:>10.0f}{r['inliers']['wrong_chip_max']['p50']:>10.0f}"
             f"{r['inliers']['true_chip_ranked_first']:>9.2f}{r['memory']['python_heap_peak_cold_frame_mb']:>9.1f}"
