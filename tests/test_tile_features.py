@@ -458,3 +458,27 @@ def test_real_xfeat_precomputed_equals_live_on_a_2020_frame(
     _same_result(result_pre, result_live)
     assert pre_rt.extractor_calls == 1
     assert live_rt.extractor_calls == len(store) + 1 + len(near)  # build + query + N
+
+
+def test_composition_root_wires_the_verified_set_into_the_matcher(
+    cache: Path, stand_in_models: dict[str, Path]
+) -> None:
+    """The matcher the composition root builds (here for a replay) holds the cache's set when it was
+    made by its extractor, and none (live extraction) when the set is of another model."""
+    from gps_denied_onboard.runtime_root.compose import compose_replay
+
+    config_a = _matcher_config(stand_in_models["a"], stand_in_models["lightglue"])
+    build_tile_features(cache, _xfeat(config_a)[0], progress=False)
+    for matcher_config, expect_used in (
+        (config_a, True),
+        (dataclasses.replace(config_a, max_keypoints=64), False),
+    ):
+        fdr = RecordingFdr()
+        root = compose_replay(
+            _daemon_config(cache, matcher_config),
+            fdr=fdr,  # type: ignore[arg-type]
+            clock_unix_usec=lambda: 0,
+        )
+        matcher = root.pipeline._matcher  # type: ignore[attr-defined]
+        assert (matcher.tile_features is not None) is expect_used
+        assert fdr.of(FdrKind.TILE_FEATURES)[0]["used"] is expect_used
