@@ -107,6 +107,59 @@ def test_bench_matcher_learned_strategy_with_self_built_models(geovision: Path, 
     assert learned["ratio_to_classical"]["frame_cold_ms"]["p95"] > 0
 
 
+def test_bench_matcher_times_precomputed_tile_features_from_a_cache(geovision: Path, tmp_path: Path) -> None:
+    """--cache: candidates are the cache's chips, and a strategy whose precomputed tile features the cache
+    holds is timed with them beside the cold frame, with the same best inliers as live extraction."""
+    pytest.importorskip("onnx")
+    from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
+    from gps_denied_onboard.components.c3_matcher.registry import create_matcher
+    from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
+    from gps_denied_onboard.components.c10_cache_build import build_cache
+    from gps_denied_onboard.components.c10_cache_build.tile_features import build_tile_features
+    from gps_denied_onboard.config import MatcherConfig
+    from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
+    from gps_denied_onboard.helpers.ransac_filter import RansacFilter
+    from onnx_builders import build_fake_extractor, build_fake_lightglue
+
+    xfeat = build_fake_extractor(
+        tmp_path / "xfeat.onnx", channels=1, dim=64, num_keypoints=256, keypoint_dtype="float32"
+    )
+    lightglue = build_fake_lightglue(tmp_path / "lighterglue.onnx", dim=64, min_similarity=0.9)
+    cache = tmp_path / "cache"
+    build_cache(geovision, cache, progress=False)
+    runtime = OnnxInferenceRuntime(intra_op_threads=1, providers=["CPUExecutionProvider"])
+    config = MatcherConfig(
+        strategy="xfeat",
+        xfeat_weights_path=str(xfeat),
+        lightglue_weights_path=str(lightglue),
+        chip_size_px=256,
+    )
+    matcher = create_matcher(
+        "xfeat",
+        config=config,
+        inference_runtime=runtime,
+        lightglue_runtime=LightGlueRuntime(runtime, str(lightglue), descriptor_dim=64),
+        ransac_filter=RansacFilter(),
+        health_window=RollingHealthWindow(25),
+    )
+    build_tile_features(cache, matcher, progress=False)  # type: ignore[arg-type]
+    report = run_matcher_benchmark(
+        map_path=geovision,
+        model_paths={"xfeat": xfeat, "lightglue": lightglue},
+        n_frames=2,
+        chip_size_px=256,
+        intra_op_threads=1,
+        cache_dir=cache,
+        echo=None,
+    )
+    learned = report["strategies"]["xfeat"]
+    assert learned["frame_precomputed_ms"]["n"] == 2 and learned["frame_cold_ms"]["n"] == 2
+    assert learned["precomputed_same_best_inliers"] == 1.0
+    assert report["strategies"]["classical"]["frame_precomputed_ms"] == {}
+    assert report["tile_features"]["xfeat"]["tiles"] == 136
+    assert "frame pre" in format_report(report)
+
+
 def test_bench_matcher_missing_model_file_is_skipped_with_reason(geovision: Path, tmp_path: Path) -> None:
     """A model path that does not exist: classical still runs, the strategy is skipped with the path."""
     missing = tmp_path / "nope.onnx"

@@ -174,6 +174,47 @@ def _cmd_cache_vpr(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_cache_features(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from gps_denied_onboard.components.c3_matcher.base import NULL_FDR, LearnedPairMatcher
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.tile_features import build_tile_features
+    from gps_denied_onboard.runtime_root.compose import _resolve_matcher, create_matcher
+
+    config = load_config(args.config, args.set or ())
+    configure_logging("info", json=False)
+    if args.strategy is not None:
+        config = dataclasses.replace(
+            config, matcher=dataclasses.replace(config.matcher, strategy=args.strategy)
+        )
+    config = _resolve_matcher(config)
+    cache_dir = Path(args.cache if args.cache is not None else config.cache.dir)
+    # The matcher is built exactly as the daemon builds it (same model, same settings), so the features
+    # are those its candidate loop would extract.
+    matcher = create_matcher(config, {}, NULL_FDR)
+    if not isinstance(matcher, LearnedPairMatcher):
+        _err(
+            f"matcher.strategy {config.matcher.strategy!r} has no precomputable tile features; "
+            "expected a learned strategy (disk_lightglue, aliked_lightglue, xfeat)"
+        )
+        return EXIT_CONFIG
+    try:
+        result = build_tile_features(cache_dir, matcher, force=args.force, progress=not args.quiet)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_RESOURCE
+    ident = matcher.extractor_identity
+    what = "built" if result.built else "up to date"
+    print(
+        f"cache: {cache_dir}: {ident.strategy} tile features {what}: {result.manifest.tile_count} tiles, "
+        f"{result.stats.get('keypoints', 0)} keypoints, {result.bytes / 2**20:.1f} MiB, "
+        f"{result.stats.get('total_s', 0.0):.1f} s to build (model sha256 {ident.model_sha256[:12]}..., "
+        f"chip {ident.chip_size_px} px, max {ident.max_keypoints} keypoints)"
+    )
+    return EXIT_OK
+
+
 def _cmd_sitl_run(args: argparse.Namespace) -> int:
     from gps_denied_onboard.sitl.runner import SitlError, run_sitl_cli
 
@@ -321,6 +362,28 @@ def build_parser() -> argparse.ArgumentParser:
     vpr.add_argument("--force", action="store_true", help="rebuild even when the index is up to date")
     vpr.add_argument("--quiet", action="store_true", help="no progress bar")
     vpr.set_defaults(func=_cmd_cache_vpr)
+    feats = cache_sub.add_parser(
+        "features",
+        help="precompute the learned matcher's tile features into a cache",
+        description="Run the configured learned strategy's extractor once over every tile's chip and store "
+        "the keypoints and descriptors memory-mapped in the cache, tied to the model's sha256, the chip size "
+        "and the keypoint cap (used by the daemon when matcher.tile_features is auto or require). "
+        "Idempotent; a set made by another model is replaced.",
+    )
+    feats.add_argument("--config", required=True, type=Path, help="daemon profile naming the matcher")
+    feats.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="override one setting")
+    feats.add_argument(
+        "--cache", default=None, help="cache directory (default: the profile's cache.dir)"
+    )
+    feats.add_argument(
+        "--strategy",
+        default=None,
+        choices=("auto", "disk_lightglue", "aliked_lightglue", "xfeat"),
+        help="learned strategy (default: the profile's matcher.strategy)",
+    )
+    feats.add_argument("--force", action="store_true", help="rebuild even when the set is up to date")
+    feats.add_argument("--quiet", action="store_true", help="no progress bar")
+    feats.set_defaults(func=_cmd_cache_features)
 
     sitl = sub.add_parser(
         "sitl",

@@ -79,6 +79,15 @@ def _add_matcher_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model-dir", type=Path, default=None, help="look here for models not given explicitly")
     p.add_argument("--threads", type=int, default=2, help="ONNX Runtime intra-op threads (default 2)")
     p.add_argument("--seed", type=int, default=0, help="poses and chips (default 0)")
+    p.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="map cache of the same map (gdnav cache build): candidates are its chips, and strategies "
+        "with precomputed tile features in it (gdnav cache features) are also timed with them",
+    )
+    p.add_argument("--chip-size", type=int, default=512, help="chip side, px (default 512)")
+    p.add_argument("--alt", type=float, default=120.0, help="frames' height above ground, m (default 120)")
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every figure to OUT")
 
 
@@ -106,6 +115,9 @@ def _run_matcher(args: argparse.Namespace) -> int:
             n_candidates=args.candidates,
             intra_op_threads=args.threads,
             seed=args.seed,
+            cache_dir=args.cache,
+            chip_size_px=args.chip_size,
+            alt_agl_m=args.alt,
         )
     except BenchmarkError as exc:
         _err(str(exc))

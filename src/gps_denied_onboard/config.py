@@ -268,6 +268,11 @@ class MatcherConfig:
     input_long_side_px: Annotated[int, Strict(), Field(ge=64, le=4096)] = 640
     #: Keypoints kept per image by learned extractors (top scores).
     max_keypoints: PosInt = 2048
+    #: Learned strategies: the cache's precomputed tile features (`gdnav cache features`). auto = use
+    #: them when the cache has a set made by this very extractor (model sha256, chip size, keypoints)
+    #: and it verifies, else extract live (logged, recorded); require = refuse to start without such a
+    #: set (exit 3); off = always extract live.
+    tile_features: Literal["auto", "require", "off"] = "auto"
 
 
 @dataclasses.dataclass(frozen=True)

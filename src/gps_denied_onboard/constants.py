@@ -140,6 +140,15 @@ class LogEvent:
     VPR_PRIOR_GATED: Final = "c2.vpr.prior_gated_search"
     VPR_INDEX_BUILT: Final = "c10.cache.vpr_index_built"
     VPR_INDEX_UP_TO_DATE: Final = "c10.cache.vpr_index_up_to_date"
+    #: ``gdnav cache features``: a strategy's precomputed tile features written (or already up to date).
+    TILE_FEATURES_BUILT: Final = "c10.cache.tile_features_built"
+    TILE_FEATURES_UP_TO_DATE: Final = "c10.cache.tile_features_up_to_date"
+    #: The matcher uses the cache's precomputed tile features (which set, how many tiles).
+    TILE_FEATURES_READY: Final = "c3.tile_features.ready"
+    #: The cache's precomputed tile features are absent, of another extractor or damaged: extracted live.
+    TILE_FEATURES_REFUSED: Final = "c3.tile_features.refused"
+    #: One tile's precomputed features failed their CRC-32 on read: that tile is extracted live.
+    TILE_FEATURES_CORRUPT: Final = "c3.tile_features.corrupt"
     RERANK_DONE: Final = "c2_5.rerank.done"
     CACHE_OPENED: Final = "c6.cache.opened"
     CACHE_REFUSED: Final = "c6.cache.refused"
@@ -214,3 +223,7 @@ class FdrKind:
     CLOCK_STEP: Final = "daemon.clock_step"
     #: A map tile failed its digest on read (corrupted after the cache was verified): masked, never used.
     TILE_CORRUPT: Final = "cache.tile_corrupt"
+    #: At start: whether the learned matcher uses the cache's precomputed tile features, or why not.
+    TILE_FEATURES: Final = "cache.tile_features"
+    #: One tile's precomputed features failed their CRC-32 on read: never used again, extracted live.
+    TILE_FEATURES_CORRUPT: Final = "cache.tile_features_corrupt"

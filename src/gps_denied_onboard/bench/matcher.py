@@ -61,7 +61,7 @@ from gps_denied_onboard.components.c3_matcher.base import CandidateLoopMatcher
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.registry import available_strategies, create_matcher
-from gps_denied_onboard.components.c6_tiles.types import TileId
+from gps_denied_onboard.components.c6_tiles.types import TileId, TilePixelsHandle
 from gps_denied_onboard.config import MatcherConfig
 from gps_denied_onboard.helpers.frame_rectifier import (
     RectificationError,
@@ -201,8 +201,10 @@ class BenchFrame:
     """
 
     frame: NavCameraFrame
-    candidates: tuple[RasterChip, ...]
+    candidates: tuple[TilePixelsHandle, ...]
     footprint_px: np.ndarray
+    #: (lon_deg, lat_deg) of the ground under the principal point.
+    centre_lonlat: tuple[float, float] = (math.nan, math.nan)
 
     def rerank_result(self) -> RerankResult:
         cands = [RerankCandidate(c.tile_id, c, -1, float(i)) for i, c in enumerate(self.candidates)]
@@ -283,7 +285,32 @@ def render_bench_frames(
             for x0, y0 in origins
         )
         frame = NavCameraFrame(uuid.uuid4(), i, 0, image, att, alt_agl_m, time.monotonic_ns())
-        out.append(BenchFrame(frame, chips, footprint))
+        out.append(BenchFrame(frame, chips, footprint, (float(lons[4]), float(lats[4]))))
+    return out
+
+
+def with_cache_candidates(
+    frames: Sequence[BenchFrame], store: Any, *, n_candidates: int, chip_size_px: int, seed: int
+) -> list[BenchFrame]:
+    """The same frames with their candidates taken from a map cache (``TileStore``) instead of the
+    GeoTIFF: the chip of the tile nearest to the frame's centre first (the tile a good prior gives), then
+    chips of random tiles more than a chip diagonal away (on a map too small for that, the farthest
+    tiles). These are the chips the daemon matches, so precomputed tile features apply to them."""
+    rng = np.random.default_rng(seed + 1)
+    out = []
+    diag_m = chip_size_px * float(store.gsd_m_px) * math.sqrt(2.0)
+    everything = 1e8
+    for bf in frames:
+        lon, lat = bf.centre_lonlat
+        by_distance = store.tiles_near(lat, lon, everything)
+        if len(by_distance) < n_candidates:
+            raise BenchmarkError(f"the cache has {len(by_distance)} tiles, fewer than {n_candidates}")
+        far = [t for t, d in by_distance[1:] if d > diag_m]
+        if len(far) < n_candidates - 1:
+            far = [t for t, _ in by_distance[-(n_candidates - 1) :]] if n_candidates > 1 else []
+        picks = [far[i] for i in rng.choice(len(far), size=n_candidates - 1, replace=False)]
+        chips = tuple(store.chip(t, chip_size_px) for t in [by_distance[0][0], *picks])
+        out.append(BenchFrame(bf.frame, chips, bf.footprint_px, bf.centre_lonlat))
     return out
 
 
@@ -297,6 +324,8 @@ class _Strategy:
     rss_load_mb: float | None
     lightglue_mode: str | None
     samples: dict[str, list[float]] = field(default_factory=dict)
+    #: The same strategy built with the cache's precomputed tile features (``--cache``), if it has a set.
+    precomputed: CandidateLoopMatcher | None = None
 
     def add(self, key: str, value: float) -> None:
         self.samples.setdefault(key, []).append(float(value))
@@ -368,8 +397,12 @@ def _build_strategies(
     intra_op_threads: int,
     providers: Sequence[str] | None,
     config_overrides: Mapping[str, Any],
+    store: Any = None,
+    notes: dict[str, str] | None = None,
 ) -> tuple[list[_Strategy], dict[str, str]]:
-    """Build what can be built; the rest goes to ``skipped`` with the reason."""
+    """Build what can be built; the rest goes to ``skipped`` with the reason. With a ``store`` (a
+    ``TileStore``), each learned strategy whose precomputed tile features the cache holds (made by its
+    extractor, verified) is built a second time with them; why not goes to ``notes``."""
     from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
     from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
     from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
@@ -420,15 +453,55 @@ def _build_strategies(
             continue
         rss_after = _rss_mb()
         rss_load = None if rss_before is None or rss_after is None else rss_after - rss_before
-        built.append(
-            _Strategy(name, matcher, ransac, config, rss_load, None if lightglue is None else lightglue.mode)
-        )
+        mode = None if lightglue is None else lightglue.mode
+        entry = _Strategy(name, matcher, ransac, config, rss_load, mode)
+        if store is not None and name in LEARNED:
+            entry.precomputed = _with_tile_features(name, matcher, store, config, runtime, lightglue, notes)
+        built.append(entry)
     return built, skipped
+
+
+def _with_tile_features(
+    name: str,
+    matcher: CandidateLoopMatcher,
+    store: Any,
+    config: MatcherConfig,
+    runtime: Any,
+    lightglue: Any,
+    notes: dict[str, str] | None,
+) -> CandidateLoopMatcher | None:
+    """``name`` built again with the cache's precomputed tile features, or None (reason in ``notes``)."""
+    from gps_denied_onboard.components.c3_matcher.tile_features import (
+        PrecomputedTileFeatures,
+        TileFeaturesRefused,
+    )
+
+    try:
+        identity = matcher.extractor_identity  # type: ignore[attr-defined]
+        feats = PrecomputedTileFeatures.open(store, identity, verify_hashes=True)
+    except TileFeaturesRefused as exc:
+        if notes is not None:
+            notes[name] = f"no precomputed tile features: {exc}"
+        return None
+    twin = create_matcher(
+        name,
+        config=config,
+        ransac_filter=RansacFilter("usac_magsac", config.ransac_confidence, config.ransac_max_iters),
+        health_window=RollingHealthWindow(config.min_inliers_threshold),
+        inference_runtime=runtime,
+        lightglue_runtime=lightglue,
+        fdr_client=None,
+        tile_features=feats,
+    )
+    return twin if isinstance(twin, CandidateLoopMatcher) else None
 
 
 # --- measurement -------------------------------------------------------------------------------------------
 def _timed_match(
-    strategy: _Strategy, bf: BenchFrame, calib: CameraCalibration
+    strategy: _Strategy,
+    bf: BenchFrame,
+    calib: CameraCalibration,
+    matcher: CandidateLoopMatcher | None = None,
 ) -> tuple[float, float, int, bool]:
     """(wall ms, process CPU ms, best inliers or 0, best == true chip) of one ``match()`` call.
 
@@ -438,7 +511,7 @@ def _timed_match(
     rerank = bf.rerank_result()
     c0, t0 = time.process_time(), time.perf_counter()
     try:
-        result = strategy.matcher.match(bf.frame, rerank, calib)
+        result = (matcher or strategy.matcher).match(bf.frame, rerank, calib)
     except InsufficientInliersError:
         return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3, 0, False
     ms, cpu_ms = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
@@ -517,6 +590,7 @@ def _ratio(value: Mapping[str, float], baseline: Mapping[str, float]) -> dict[st
 _LATENCY_KEYS: Final[tuple[str, ...]] = (
     "frame_cold_ms",
     "frame_warm_ms",
+    "frame_precomputed_ms",
     "candidate_cold_ms",
     "candidate_warm_ms",
     "query_ms",
@@ -565,6 +639,7 @@ def run_matcher_benchmark(
     providers: Sequence[str] | None = ("CPUExecutionProvider",),
     config_overrides: Mapping[str, Any] | None = None,
     echo: Callable[[str], None] | None = print,
+    cache_dir: Path | str | None = None,
 ) -> dict[str, Any]:
     """Run the benchmark described in the module docstring; returns the figures (JSON-serialisable).
 
@@ -573,6 +648,11 @@ def run_matcher_benchmark(
     ``model_dir``: where to look for models not given explicitly (``resolve_model_paths``).
     ``config_overrides``: extra ``MatcherConfig`` fields for every strategy. ``echo``: where the table
     goes (None = silent). A strategy that cannot be built is reported under ``skipped`` with the reason.
+    ``cache_dir``: a map cache of the same map (``gdnav cache build``): the candidates are its chips
+    (``with_cache_candidates``) and each learned strategy whose precomputed tile features it holds
+    (``gdnav cache features``) is also timed with them (``frame_precomputed_ms``: query extraction + N x
+    (read the tile's features + match + RANSAC), with an empty in-memory cache), side by side with the cold
+    frame (N live tile extractions).
     Raises ``BenchmarkError`` for an unusable map or bad arguments.
     """
     if n_frames < 1 or n_candidates < 1:
@@ -590,12 +670,34 @@ def run_matcher_benchmark(
         Path(map_path),
         calib,
         n_frames=n_frames,
-        n_candidates=n_candidates,
+        # With a cache the candidates are its chips: only the frames (and their centres) are needed here.
+        n_candidates=1 if cache_dir is not None else n_candidates,
         chip_size_px=chip_size_px,
         alt_agl_m=alt_agl_m,
         seed=seed,
     )
     render_s = time.perf_counter() - t_render
+    store = None
+    notes: dict[str, str] = {}
+    tile_features: dict[str, Any] = {}
+    if cache_dir is not None:
+        from gps_denied_onboard.components.c6_tiles.store import TileStore
+        from gps_denied_onboard.components.c6_tiles.types import TileStoreError
+
+        try:
+            store = TileStore.open(Path(cache_dir), verify_hashes=True)
+        except TileStoreError as exc:
+            raise BenchmarkError(f"cannot use the benchmark cache: {exc}") from exc
+        frames = with_cache_candidates(
+            frames, store, n_candidates=n_candidates, chip_size_px=chip_size_px, seed=seed
+        )
+        for label, info in store.manifest.tile_features.items():
+            tile_features[label] = {
+                "tiles": info.tile_count,
+                "bytes": sum(f.bytes for f in info.files.values()),
+                "identity": dict(info.identity),
+                **dict(info.stats),
+            }
     rss_start = _rss_mb()
     built, skipped = _build_strategies(
         wanted,
@@ -604,6 +706,8 @@ def run_matcher_benchmark(
         intra_op_threads=intra_op_threads,
         providers=providers,
         config_overrides=dict(config_overrides or {}),
+        store=store,
+        notes=notes,
     )
     if not built or built[0].name != BASELINE:
         raise BenchmarkError(f"the {BASELINE} baseline could not be built: {skipped.get(BASELINE)}")
@@ -612,6 +716,8 @@ def run_matcher_benchmark(
     # steady state.
     for s in built:
         _timed_match(s, frames[0], calib)
+        if s.precomputed is not None:
+            _timed_match(s, frames[0], calib, s.precomputed)
     for bf in frames:
         for s in built:
             s.matcher.tile_cache.clear()
@@ -621,6 +727,12 @@ def run_matcher_benchmark(
             s.add("frame_cold_ms", cold_ms)
             s.add("frame_cold_cpu_ms", cold_cpu_ms)
             s.add("frame_warm_ms", warm_ms)
+            if s.precomputed is not None:
+                s.precomputed.tile_cache.clear()
+                gc.collect()
+                pre_ms, _, pre_inliers, _ = _timed_match(s, bf, calib, s.precomputed)
+                s.add("frame_precomputed_ms", pre_ms)
+                s.add("precomputed_same_best_inliers", float(pre_inliers == best_inliers))
             s.add("best_inliers", best_inliers)
             s.add("best_is_true_chip", float(best_is_true))
             _measure_candidates(s, bf, calib)
@@ -646,6 +758,10 @@ def run_matcher_benchmark(
             "python_heap_peak_cold_frame_mb": heap[s.name],
         }
         entry["lightglue_mode"] = s.lightglue_mode
+        if "precomputed_same_best_inliers" in s.samples:
+            entry["precomputed_same_best_inliers"] = round(
+                float(np.mean(s.samples["precomputed_same_best_inliers"])), 3
+            )
         results[s.name] = entry
 
     frame_p95 = results[BASELINE]["frame_cold_ms"]["p95"]
@@ -689,7 +805,10 @@ def run_matcher_benchmark(
             "providers": None if providers is None else list(providers),
             "models": {k: str(v) for k, v in models.items()},
             "render_s": round(render_s, 2),
+            "cache": None if cache_dir is None else str(cache_dir),
         },
+        "tile_features": tile_features,
+        "notes": notes,
         "strategies": results,
         "skipped": skipped,
         "memory": {
@@ -718,7 +837,8 @@ def format_report(report: Mapping[str, Any]) -> str:
         "",
     ]
     header = (
-        f"{'strategy':<17}{'frame cold':>15}{'frame warm':>15}{'cand cold':>15}{'cand warm':>15}{'query':>13}"
+        f"{'strategy':<17}{'frame cold':>17}{'frame warm':>17}{'frame pre':>17}{'cand cold':>17}"
+        f"{'cand warm':>17}{'query':>15}"
         f"{'x classical':>13}{'inl true':>10}{'inl wrong':>10}{'true 1st':>9}{'py heap':>9}{'rss load':>9}"
     )
     lines += [header + "   (ms p50/p95; x classical = frame cold p95; inliers p50; MB)", "-" * len(header)]
@@ -730,8 +850,9 @@ def format_report(report: Mapping[str, Any]) -> str:
         ratio = r["ratio_to_classical"]["frame_cold_ms"].get("p95")
         rss = r["memory"]["rss_on_build_mb"]
         lines.append(
-            f"{name:<17}{pair(r['frame_cold_ms']):>15}{pair(r['frame_warm_ms']):>15}"
-            f"{pair(r['candidate_cold_ms']):>15}{pair(r['candidate_warm_ms']):>15}{pair(r['query_ms']):>13}"
+            f"{name:<17}{pair(r['frame_cold_ms']):>17}{pair(r['frame_warm_ms']):>17}"
+            f"{pair(r['frame_precomputed_ms']):>17}"
+            f"{pair(r['candidate_cold_ms']):>17}{pair(r['candidate_warm_ms']):>17}{pair(r['query_ms']):>15}"
             f"{'-' if ratio is None else f'{ratio:.2f}':>13}"
             f"{r['inliers']['true_chip']['p50']:>10.0f}{r['inliers']['wrong_chip_max']['p50']:>10.0f}"
             f"{r['inliers']['true_chip_ranked_first']:>9.2f}{r['memory']['python_heap_peak_cold_frame_mb']:>9.1f}"
@@ -762,6 +883,26 @@ def format_report(report: Mapping[str, Any]) -> str:
             f"candidate p95 {j['candidate_cold_p95_ms']:.1f} ms <= 60: "
             f"{'yes' if j['candidate_p95_le_60ms'] else 'no'} (measured on this CPU)"
         )
+    if setup.get("cache"):
+        lines.append(
+            f"candidates: chips of the cache {setup['cache']}; frame pre = the frame with the cache's "
+            "precomputed tile features (empty in-memory cache)"
+        )
+    for name, r in report["strategies"].items():
+        if "precomputed_same_best_inliers" in r:
+            lines.append(
+                f"{name}: frame pre p50 {r['frame_precomputed_ms']['p50']:.1f} ms vs cold "
+                f"{r['frame_cold_ms']['p50']:.1f} ms; same best inliers as live in "
+                f"{r['precomputed_same_best_inliers']:.0%} of frames"
+            )
+    for label, tf in report.get("tile_features", {}).items():
+        lines.append(
+            f"tile features {label}: {tf['tiles']} tiles, {tf.get('keypoints', '?')} keypoints, "
+            f"{tf['bytes'] / 2**20:.1f} MiB, built in {tf.get('total_s', '?')} s "
+            f"(chip {tf['identity'].get('chip_size_px')} px, max {tf['identity'].get('max_keypoints')} kp)"
+        )
+    for name, note in report.get("notes", {}).items():
+        lines.append(f"{name}: {note}")
     for name, reason in report["skipped"].items():
         lines.append(f"skipped {name}: {reason}")
     return "\n".join(lines)

@@ -27,6 +27,11 @@ from gps_denied_onboard.components.c3_matcher.aliked_lightglue import ALIKED_MNN
 from gps_denied_onboard.components.c3_matcher.errors import StrategyNotLinkedError
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
+from gps_denied_onboard.components.c3_matcher.tile_features import (
+    ExtractorIdentity,
+    PrecomputedTileFeatures,
+    TileFeaturesRefused,
+)
 from gps_denied_onboard.components.c3_matcher.xfeat import XFEAT_DESCRIPTOR_DIM
 from gps_denied_onboard.components.c4_pose import PoseSolver
 from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
@@ -213,6 +218,7 @@ def _matcher_deps(
     ransac: RansacFilter,
     fdr: FdrClient,
     health: RollingHealthWindow,
+    tile_features: PrecomputedTileFeatures | None = None,
 ) -> dict[str, Any]:
     """The superset of collaborators a C3 strategy may ask for; ONNX objects only for learned strategies
     (the weights-free default must start on a machine without any model file)."""
@@ -221,6 +227,7 @@ def _matcher_deps(
         "ransac_filter": ransac,
         "fdr_client": fdr,
         "health_window": health,
+        "tile_features": tile_features,
     }
     if config.matcher.strategy in WEIGHTS_FREE_MATCHERS:
         return deps
@@ -369,17 +376,74 @@ def open_tile_store(config: Config) -> TileStore:
     return tiles
 
 
-def create_matcher(config: Config, pre: Mapping[str, Any], fdr: FdrClient) -> CrossDomainMatcher:
+def open_tile_features(
+    config: Config, tiles: TileStore, fdr: FdrClient
+) -> PrecomputedTileFeatures | None:
+    """The cache's precomputed tile features for the resolved learned strategy, verified against its
+    extractor (``matcher.tile_features``); None when they are off, absent or refused, and the matcher
+    then extracts every chip live. What was decided is logged and recorded (``cache.tile_features``);
+    ``require`` turns a refusal into ``StartupError``."""
+    m = config.matcher
+    field = _EXTRACTOR_FIELD.get(m.strategy)
+    if m.tile_features == "off":
+        return None
+    if field is None:
+        if m.tile_features == "require":
+            raise StartupError(
+                "matcher.tile_features",
+                f"require: the {m.strategy} strategy has no precomputed tile features "
+                "(learned strategies only)",
+            )
+        return None
+    path = getattr(m, field)
+    try:
+        identity = ExtractorIdentity.of(m.strategy, path, m) if path is not None else None
+    except OSError:
+        identity = None  # the strategy's factory refuses the missing model file, naming it
+    if identity is None:
+        return None
+    try:
+        feats = PrecomputedTileFeatures.open(tiles, identity, verify_hashes=config.cache.verify_hashes)
+    except TileFeaturesRefused as exc:
+        fields = {"strategy": m.strategy, "used": False, "reason": str(exc), "mode": m.tile_features}
+        if exc.absent:
+            log.info(LogEvent.TILE_FEATURES_REFUSED, action="tiles extracted live", **fields)
+        else:
+            log.error(LogEvent.TILE_FEATURES_REFUSED, action="tiles extracted live", **fields)
+        fdr.record(FdrKind.TILE_FEATURES, fields)
+        if m.tile_features == "require":
+            raise StartupError("matcher.tile_features", str(exc)) from exc
+        return None
+    feats.on_corrupt = lambda info: fdr.record(FdrKind.TILE_FEATURES_CORRUPT, info)
+    fields = {
+        "strategy": m.strategy,
+        "used": True,
+        "model_sha256": identity.model_sha256,
+        "chip_size_px": identity.chip_size_px,
+        "tiles": len(feats),
+        "verified_hashes": config.cache.verify_hashes,
+    }
+    log.info(LogEvent.TILE_FEATURES_READY, **fields)
+    fdr.record(FdrKind.TILE_FEATURES, fields)
+    return feats
+
+
+def create_matcher(
+    config: Config,
+    pre: Mapping[str, Any],
+    fdr: FdrClient,
+    tile_features: PrecomputedTileFeatures | None = None,
+) -> CrossDomainMatcher:
     """The C3 strategy of an already resolved ``config`` (``_resolve_matcher``), with its ONNX Runtime
-    sessions for a learned strategy. Raises ``StartupError`` for an unknown strategy or a model that
-    does not load."""
+    sessions for a learned strategy and ``tile_features`` (``open_tile_features``). Raises
+    ``StartupError`` for an unknown strategy or a model that does not load."""
     ransac = pre.get("c282_ransac_filter") or RansacFilter(
         confidence=config.matcher.ransac_confidence, max_iters=config.matcher.ransac_max_iters
     )
     health = RollingHealthWindow(low_inlier_threshold=config.matcher.min_inliers_threshold)
     try:
         matcher: CrossDomainMatcher = matcher_registry.create_matcher(
-            config.matcher.strategy, **_matcher_deps(config, pre, ransac, fdr, health)
+            config.matcher.strategy, **_matcher_deps(config, pre, ransac, fdr, health, tile_features)
         )
     except StrategyNotLinkedError as exc:
         raise StartupError("matcher.strategy", str(exc)) from exc
@@ -491,7 +555,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     )
     # A map cell corrupted after verification is masked by the store; the FDR keeps which and when.
     tiles.on_corrupt = lambda info: fdr.record(FdrKind.TILE_CORRUPT, info)
-    matcher = create_matcher(config, pre, fdr)
+    matcher = create_matcher(config, pre, fdr, open_tile_features(config, tiles, fdr))
 
     vpr = create_vpr(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
@@ -565,7 +629,7 @@ def compose_replay(
         tiles = open_tile_store(config)
         lon, lat = tiles.center_lonlat
         ltp = LocalTangentPlane(lat, lon, config.terrain.ground_alt_amsl_m)
-        matcher = create_matcher(config, {}, fdr)
+        matcher = create_matcher(config, {}, fdr, open_tile_features(config, tiles, fdr))
         vpr = create_vpr(tiles, config)
         rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
     else:

@@ -8,8 +8,11 @@ A cache is a directory::
     tile_valid_fraction.npy    float32 (rows, cols): valid-pixel fraction of every tile in the range
 
 Every artifact is listed in ``manifest.artifacts`` with its size and sha256; C6 refuses a cache whose
-artifacts do not match (D-C10-3). This module is deliberately light (json + hashlib) because the
-daemon imports it at start-up.
+artifacts do not match (D-C10-3). Precomputed tile features (``gdnav cache features``) are an optional
+accelerator listed apart, in ``tile_features`` (one set per C3 strategy, with the identity of the
+extractor that made it and its own files' sizes and sha256): the matcher verifies and uses a set, or
+refuses it and extracts live; a damaged set never refuses the cache itself. This module is deliberately
+light (json + hashlib) because the daemon imports it at start-up.
 """
 
 from __future__ import annotations
@@ -119,6 +122,53 @@ class ArtifactInfo:
 
 
 @dataclass(frozen=True)
+class TileFeatureSetInfo:
+    """One set of precomputed tile features (``c3_matcher.tile_features``): what made it, and its files.
+
+    ``identity`` names the extractor and everything its output depends on (strategy, model sha256, chip
+    size, keypoint cap, input long side: ``ExtractorIdentity.to_json``); ``tiles_sha256`` and
+    ``mosaic_sha256`` tie it to this cache's tiles; ``files`` maps each file to its size and sha256.
+    ``stats`` holds build figures (keypoints, seconds), for people, not checked.
+    """
+
+    identity: Mapping[str, Any]
+    tiles_sha256: str
+    mosaic_sha256: str
+    tile_count: int
+    files: Mapping[str, ArtifactInfo]
+    stats: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "identity": dict(self.identity),
+            "tiles_sha256": self.tiles_sha256,
+            "mosaic_sha256": self.mosaic_sha256,
+            "tile_count": self.tile_count,
+            "files": {name: vars(info).copy() for name, info in sorted(self.files.items())},
+            "stats": dict(self.stats),
+        }
+
+    @classmethod
+    def from_json(cls, payload: Mapping[str, Any]) -> TileFeatureSetInfo:
+        return cls(
+            identity=dict(payload["identity"]),
+            tiles_sha256=str(payload["tiles_sha256"]),
+            mosaic_sha256=str(payload["mosaic_sha256"]),
+            tile_count=int(payload["tile_count"]),
+            files={
+                str(name): ArtifactInfo(sha256=str(info["sha256"]), bytes=int(info["bytes"]))
+                for name, info in payload["files"].items()
+            },
+            stats=dict(payload.get("stats", {})),
+        )
+
+    def verify_files(self, cache_dir: Path, *, verify_hashes: bool = True) -> None:
+        """Every file present with its recorded size and (optionally) sha256; CacheManifestError names
+        the first that is not."""
+        _verify_files(Path(cache_dir), self.files, verify_hashes=verify_hashes)
+
+
+@dataclass(frozen=True)
 class CacheManifest:
     """In-memory form of ``manifest.json`` (field names mirror the JSON keys).
 
@@ -141,6 +191,8 @@ class CacheManifest:
     resampling: str
     vpr: VprInfo
     artifacts: Mapping[str, ArtifactInfo] = field(default_factory=dict)
+    #: Precomputed tile features by C3 strategy label (optional; absent in caches made before them).
+    tile_features: Mapping[str, TileFeatureSetInfo] = field(default_factory=dict)
 
     @property
     def mosaic_name(self) -> str:
@@ -162,6 +214,7 @@ class CacheManifest:
             "resampling": self.resampling,
             "vpr": vars(self.vpr).copy(),
             "artifacts": {name: vars(info).copy() for name, info in sorted(self.artifacts.items())},
+            "tile_features": {name: info.to_json() for name, info in sorted(self.tile_features.items())},
         }
 
     @classmethod
@@ -196,6 +249,10 @@ class CacheManifest:
                 artifacts={
                     str(name): ArtifactInfo(sha256=str(info["sha256"]), bytes=int(info["bytes"]))
                     for name, info in payload["artifacts"].items()
+                },
+                tile_features={
+                    str(name): TileFeatureSetInfo.from_json(info)
+                    for name, info in payload.get("tile_features", {}).items()
                 },
             )
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -238,23 +295,27 @@ class CacheManifest:
                 raise CacheManifestError(
                     f"manifest does not list required artifact {name!r}", path=str(cache_dir)
                 )
-        for name, info in sorted(self.artifacts.items()):
-            path = cache_dir / name
-            try:
-                size = path.stat().st_size
-            except FileNotFoundError as exc:
-                raise CacheManifestError(f"cache artifact {name!r} is missing", path=str(path)) from exc
-            if size != info.bytes:
+        _verify_files(cache_dir, self.artifacts, verify_hashes=verify_hashes)
+
+
+def _verify_files(cache_dir: Path, files: Mapping[str, ArtifactInfo], *, verify_hashes: bool) -> None:
+    for name, info in sorted(files.items()):
+        path = cache_dir / name
+        try:
+            size = path.stat().st_size
+        except FileNotFoundError as exc:
+            raise CacheManifestError(f"cache artifact {name!r} is missing", path=str(path)) from exc
+        if size != info.bytes:
+            raise CacheManifestError(
+                f"cache artifact {name!r} has {size} bytes, manifest records {info.bytes} "
+                "(truncated or replaced)",
+                path=str(path),
+            )
+        if verify_hashes:
+            actual = sha256_file(path)
+            if actual != info.sha256:
                 raise CacheManifestError(
-                    f"cache artifact {name!r} has {size} bytes, manifest records {info.bytes} "
-                    "(truncated or replaced)",
+                    f"cache artifact {name!r} sha256 mismatch: {actual[:16]}..., "
+                    f"manifest records {info.sha256[:16]}... (tampered or corrupted)",
                     path=str(path),
                 )
-            if verify_hashes:
-                actual = sha256_file(path)
-                if actual != info.sha256:
-                    raise CacheManifestError(
-                        f"cache artifact {name!r} sha256 mismatch: {actual[:16]}..., "
-                        f"manifest records {info.sha256[:16]}... (tampered or corrupted)",
-                        path=str(path),
-                    )

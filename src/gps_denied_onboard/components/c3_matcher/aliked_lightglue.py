@@ -38,6 +38,7 @@ import numpy as np
 from gps_denied_onboard.components.c3_matcher.base import (
     Features,
     LearnedPairMatcher,
+    TileFeatureSource,
     no_features,
     require_runtimes,
 )
@@ -157,6 +158,7 @@ class AlikedLightGlueMatcher(LearnedPairMatcher):
         fdr_client: FdrClient | None,
         health_window: RollingHealthWindow,
         config: MatcherConfig,
+        tile_features: TileFeatureSource | None = None,
     ) -> None:
         """Loads the ALIKED engine from ``config.aliked_weights_path`` (raises C7's ``EngineLoadError``)."""
         super().__init__(
@@ -175,6 +177,7 @@ class AlikedLightGlueMatcher(LearnedPairMatcher):
         self._input_hw, self._descriptor_dim = self._model_layout()
         self._long_side_px = int(config.input_long_side_px)
         self._max_keypoints = int(config.max_keypoints)
+        self._init_tile_features(str(self._model_path), tile_features)
 
     @property
     def engine_id(self) -> str:
@@ -270,6 +273,7 @@ def create(
     inference_runtime: InferenceRuntime,
     health_window: RollingHealthWindow,
     fdr_client: FdrClient | None = None,
+    tile_features: TileFeatureSource | None = None,
 ) -> AlikedLightGlueMatcher:
     """Registry factory for ``aliked_lightglue``: builds the strategy, which loads the ALIKED engine now
     (``inference_runtime.load_engine(config.aliked_weights_path, ALIKED_SIGNATURE)``)."""
@@ -277,5 +281,5 @@ def create(
         "aliked_lightglue", inference_runtime=inference_runtime, lightglue_runtime=lightglue_runtime
     )
     return AlikedLightGlueMatcher(
-        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config
+        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config, tile_features
     )

@@ -15,7 +15,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Final, NoReturn
+from typing import Any, ClassVar, Final, NoReturn, Protocol
 
 import cv2
 import numpy as np
@@ -123,6 +123,15 @@ class QueryView:
     match_gsd_m_px: float | None = None
 
 
+class TileFeatureSource(Protocol):
+    """Precomputed tile features (``c3_matcher.tile_features.PrecomputedTileFeatures``)."""
+
+    @property
+    def identity(self) -> Any: ...
+
+    def lookup(self, handle: TilePixelsHandle, chip_wh: tuple[int, int]) -> Features | None: ...
+
+
 class _NullFdrClient:
     """Used when the composition root wires no recorder (tools, tests): records go nowhere."""
 
@@ -167,6 +176,8 @@ class CandidateLoopMatcher(abc.ABC):
         self._health_window = health_window
         self._config = config
         self._tile_cache = TileFeatureCache(tile_cache_size)
+        #: Precomputed features of the cache's chips (learned strategies; see ``LearnedPairMatcher``).
+        self._tile_features: TileFeatureSource | None = None
 
     # --- hooks ---------------------------------------------------------------------------------------
     @abc.abstractmethod
@@ -186,6 +197,11 @@ class CandidateLoopMatcher(abc.ABC):
     @property
     def tile_cache(self) -> TileFeatureCache:
         return self._tile_cache
+
+    @property
+    def tile_features(self) -> TileFeatureSource | None:
+        """The precomputed tile features this matcher uses, if any."""
+        return self._tile_features
 
     def health_snapshot(self) -> MatcherHealth:
         return self._health_window.snapshot()
@@ -252,7 +268,7 @@ class CandidateLoopMatcher(abc.ABC):
                 small = _downsampled_size(chip.shape, chip_scale)
                 key = (TileFeatureCache.key_of(handle, chip.shape), small)
                 tile = self._tile_cache.get_or_compute(
-                    key, functools.partial(self._extract_tile_at, chip, small)
+                    key, functools.partial(self._tile_features_of, handle, chip, small, state, log)
                 )
                 chip_hw = chip.shape[:2]
                 del chip  # never outlive the call: the handle owns the pixels
@@ -303,6 +319,7 @@ class CandidateLoopMatcher(abc.ABC):
             candidates=[(s.inlier_count, round(s.per_candidate_residual_px, 3)) for s in survivors],
             dropped=dropped,
             rectified=query_view.rectified,
+            tiles_precomputed=state.tiles_precomputed,
         )
         best_inliers = max((s.inlier_count for s in survivors), default=0)
         if not survivors or best_inliers < cfg.min_inliers_threshold:
@@ -375,6 +392,34 @@ class CandidateLoopMatcher(abc.ABC):
             log.debug("c3.matcher.rectification_skipped", reason=str(exc))
             return QueryView(frame.image_bgr, None, rectified=False)
         return QueryView(rect.image, rect.rect_to_frame_px, rectified=True, match_gsd_m_px=gsd)
+
+    def _tile_features_of(
+        self,
+        handle: TilePixelsHandle,
+        chip: np.ndarray,
+        small: tuple[int, int] | None,
+        state: _FrameState,
+        log: structlog.typing.FilteringBoundLogger,
+    ) -> Features:
+        """A chip's features: precomputed when the chip is used as cut (no downsampling) and the set has
+        this very chip, else extracted now."""
+        source = self._tile_features
+        if small is None and source is not None:
+            try:
+                found = source.lookup(handle, (int(chip.shape[1]), int(chip.shape[0])))
+            except Exception as exc:
+                # An unreadable entry costs a live extraction, never the candidate.
+                log.error(
+                    LogEvent.TILE_FEATURES_CORRUPT,
+                    tile_id=list(handle.tile_id),
+                    error=f"{type(exc).__name__}: {exc}",
+                    action="extracted live",
+                )
+                found = None
+            if found is not None:
+                state.tiles_precomputed += 1
+                return found
+        return self._extract_tile_at(chip, small)
 
     def _extract_tile_at(self, chip: np.ndarray, size: tuple[int, int] | None) -> Features:
         """Tile features of ``chip``, downsampled to ``size`` (width, height) first when given; the
@@ -462,6 +507,8 @@ class LearnedPairMatcher(CandidateLoopMatcher):
     are matched by the shared LightGlue helper (``self._lightglue_runtime``): DISK, ALIKED, XFeat."""
 
     _lightglue_runtime: Any
+    _identity: Any = None
+    _model_file: str = ""
 
     @abc.abstractmethod
     def _forward(self, image_bgr: np.ndarray) -> Features:
@@ -476,6 +523,29 @@ class LearnedPairMatcher(CandidateLoopMatcher):
     def match_features(self, query: Features, tile: Features) -> np.ndarray:
         return match_with_lightglue(self._lightglue_runtime, query, tile)
 
+    @property
+    def extractor_identity(self) -> Any:
+        """``tile_features.ExtractorIdentity`` of this strategy's tile features (model sha256, chip size,
+        keypoint cap, input size): what a precomputed set must have been made with. Hashes the model
+        file on first use (OSError when it cannot be read)."""
+        if self._identity is None:
+            from gps_denied_onboard.components.c3_matcher.tile_features import ExtractorIdentity
+
+            self._identity = ExtractorIdentity.of(self.label, self._model_file, self._config)
+        return self._identity
+
+    def _init_tile_features(self, model_path: str, tile_features: TileFeatureSource | None) -> None:
+        """Called by each learned strategy once its extractor is loaded: takes ``tile_features`` only
+        when they were made by this very extractor (ValueError otherwise: a set of another model must
+        never be mixed in; the composition root opens the set for this identity)."""
+        self._model_file = model_path
+        if tile_features is not None and tile_features.identity != self.extractor_identity:
+            raise ValueError(
+                f"precomputed tile features made by {tile_features.identity} given to the {self.label} "
+                f"strategy whose extractor is {self.extractor_identity}"
+            )
+        self._tile_features = tile_features
+
 
 @dataclass
 class _FrameState:
@@ -483,6 +553,8 @@ class _FrameState:
 
     backbone_errors: int = 0
     health_updated: bool = False
+    #: Candidates whose tile features came from the precomputed set (not from the in-memory LRU).
+    tiles_precomputed: int = 0
 
 
 def _downsampled_size(shape: tuple[int, ...], scale: float) -> tuple[int, int] | None:

@@ -20,6 +20,7 @@ import numpy as np
 from gps_denied_onboard.components.c3_matcher.base import (
     Features,
     LearnedPairMatcher,
+    TileFeatureSource,
     require_runtimes,
 )
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
@@ -92,6 +93,7 @@ class DiskLightGlueMatcher(LearnedPairMatcher):
         fdr_client: FdrClient | None,
         health_window: RollingHealthWindow,
         config: MatcherConfig,
+        tile_features: TileFeatureSource | None = None,
     ) -> None:
         """Loads the DISK engine from ``config.disk_weights_path`` (raises C7's ``EngineLoadError``)."""
         super().__init__(
@@ -107,6 +109,7 @@ class DiskLightGlueMatcher(LearnedPairMatcher):
         self._engine_id = runtime.load_engine(config.disk_weights_path, DISK_SIGNATURE)
         self._long_side_px = int(config.input_long_side_px)
         self._max_keypoints = int(config.max_keypoints)
+        self._init_tile_features(str(config.disk_weights_path), tile_features)
 
     @property
     def engine_id(self) -> str:
@@ -152,6 +155,7 @@ def create(
     inference_runtime: InferenceRuntime,
     health_window: RollingHealthWindow,
     fdr_client: FdrClient | None = None,
+    tile_features: TileFeatureSource | None = None,
 ) -> DiskLightGlueMatcher:
     """Registry factory for ``disk_lightglue``: builds the strategy, which loads the DISK engine now
     (``inference_runtime.load_engine(config.disk_weights_path, DISK_SIGNATURE)``)."""
@@ -159,5 +163,5 @@ def create(
         "disk_lightglue", inference_runtime=inference_runtime, lightglue_runtime=lightglue_runtime
     )
     return DiskLightGlueMatcher(
-        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config
+        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config, tile_features
     )

@@ -31,6 +31,7 @@ import structlog
 from gps_denied_onboard.components.c3_matcher.base import (
     Features,
     LearnedPairMatcher,
+    TileFeatureSource,
     no_features,
     require_runtimes,
 )
@@ -181,6 +182,7 @@ class XFeatMatcher(LearnedPairMatcher):
         fdr_client: FdrClient | None,
         health_window: RollingHealthWindow,
         config: MatcherConfig,
+        tile_features: TileFeatureSource | None = None,
     ) -> None:
         """Loads the XFeat engine from ``config.xfeat_weights_path`` and reads its input C.
 
@@ -202,6 +204,7 @@ class XFeatMatcher(LearnedPairMatcher):
         _check_lightglue_descriptor_dim(runtime, lightglue_runtime)
         self._long_side_px = int(config.input_long_side_px)
         self._max_keypoints = int(config.max_keypoints)
+        self._init_tile_features(str(path), tile_features)
 
     @property
     def engine_id(self) -> str:
@@ -264,11 +267,12 @@ def create(
     inference_runtime: InferenceRuntime,
     health_window: RollingHealthWindow,
     fdr_client: FdrClient | None = None,
+    tile_features: TileFeatureSource | None = None,
 ) -> XFeatMatcher:
     """Registry factory for ``xfeat``: builds the strategy, which loads the XFeat engine now."""
     require_runtimes("xfeat", inference_runtime=inference_runtime, lightglue_runtime=lightglue_runtime)
     matcher = XFeatMatcher(
-        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config
+        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config, tile_features
     )
     _LOG.debug(
         "c3.matcher.xfeat_engine",
