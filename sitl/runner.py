@@ -477,6 +477,23 @@ def _build_vpr_index(daemon_cfg: Config, cache_dir: Path, *, progress: bool) -> 
         build_vlad_index(cache_dir, default_xfeat_params(), describer=describer, progress=progress)
 
 
+def _build_tile_features(daemon_cfg: Config, cache_dir: Path, *, progress: bool) -> None:
+    """The learned matcher's precomputed tile features (``gdnav cache features`` does the same), built
+    with the matcher the daemon will build."""
+    from gps_denied_onboard.components.c3_matcher.base import NULL_FDR, LearnedPairMatcher
+    from gps_denied_onboard.components.c10_cache_build.tile_features import build_tile_features
+    from gps_denied_onboard.runtime_root.compose import StartupError, _resolve_matcher, create_matcher
+
+    try:
+        config = _resolve_matcher(daemon_cfg)
+        matcher = create_matcher(config, {}, NULL_FDR)
+    except StartupError as exc:
+        raise SitlError(f"matcher.tile_features require: {exc}") from exc
+    if not isinstance(matcher, LearnedPairMatcher):
+        raise SitlError(f"matcher.tile_features require: {config.matcher.strategy!r} has no tile features")
+    build_tile_features(cache_dir, matcher, progress=progress)
+
+
 def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     """Fly one scenario and return the report (also written to ``opts.report_path`` with a PNG)."""
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache_from_geotiff
@@ -532,6 +549,8 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     try:
         build_cache_from_geotiff(cache_source, cache_dir, progress=not opts.quiet)
         _build_vpr_index(daemon_cfg, cache_dir, progress=not opts.quiet)
+        if daemon_cfg.matcher.tile_features == "require":  # the daemon refuses to start without them
+            _build_tile_features(daemon_cfg, cache_dir, progress=not opts.quiet)
     except CacheBuildError as exc:
         raise SitlError(f"cannot build the cache from {map_path}: {exc}") from exc
     cache_s = time.monotonic() - t_cache
