@@ -17,6 +17,10 @@ import pytest
 
 #: Families exported so far in this run, and how long each took (printed by the tests).
 EXPORT_SECONDS: dict[str, float] = {}
+#: The one directory they are exported to. Each test module that imports the fixture gets its own
+#: fixture instance (pytest scopes a fixture to where it is defined), so the directory is kept here:
+#: a second module's instance must find the families the first one exported, not an empty directory.
+_MODEL_DIR: list[Path] = []
 
 
 def _missing_export_extra() -> str | None:
@@ -36,7 +40,9 @@ def registry_models(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str],
     from gps_denied_onboard.models.learned_export import export_family
 
     torch.set_num_threads(2)
-    model_dir = tmp_path_factory.mktemp("registry_models")
+    if not _MODEL_DIR:
+        _MODEL_DIR.append(tmp_path_factory.mktemp("registry_models"))
+    model_dir = _MODEL_DIR[0]
 
     def ensure(family: str) -> Path:
         if family not in EXPORT_SECONDS:

@@ -51,6 +51,7 @@ from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 from gps_denied_onboard.runtime_root.compose import StartupError, open_tile_features
 from onnx_builders import build_fake_extractor, build_fake_lightglue
 from registry_models_fixture import registry_models  # noqa: F401 - session fixture
+from test_c3_matcher_contract import FakeFdrClient
 
 NAIP = ("data", "naip_timeseries", "naip")
 NAIP_2009 = "m_4709963_se_14_1_20090818.tif"
@@ -78,17 +79,6 @@ class CountingRuntime:
 
     def engine_info(self, engine_id: str) -> object:
         return self._inner.engine_info(engine_id)
-
-
-class RecordingFdr:
-    def __init__(self) -> None:
-        self.records: list[tuple[str, dict[str, object]]] = []
-
-    def record(self, kind: str, fields: Mapping[str, object]) -> None:
-        self.records.append((kind, dict(fields)))
-
-    def of(self, kind: str) -> list[dict[str, object]]:
-        return [f for k, f in self.records if k == kind]
 
 
 @pytest.fixture(scope="module")
@@ -202,7 +192,7 @@ def test_tile_features_built_then_used_instead_of_extracting(
         assert np.load(cache / name, mmap_mode="r") is not None
 
     store = TileStore.open(cache)
-    fdr = RecordingFdr()
+    fdr = FakeFdrClient()
     feats = open_tile_features(_daemon_config(cache, config), store, fdr)  # type: ignore[arg-type]
     assert feats is not None
     assert fdr.of(FdrKind.TILE_FEATURES)[0]["used"] is True
@@ -241,7 +231,7 @@ def test_tile_features_of_another_model_are_refused_and_rebuilt(
     build_tile_features(cache, matcher_a, progress=False)
     store = TileStore.open(cache)
 
-    fdr = RecordingFdr()
+    fdr = FakeFdrClient()
     assert open_tile_features(_daemon_config(cache, config_b), store, fdr) is None  # type: ignore[arg-type]
     (record,) = fdr.of(FdrKind.TILE_FEATURES)
     assert record["used"] is False and "model_sha256" in str(record["reason"])
@@ -249,14 +239,14 @@ def test_tile_features_of_another_model_are_refused_and_rebuilt(
         open_tile_features(
             _daemon_config(cache, dataclasses.replace(config_b, tile_features="require")),
             store,
-            RecordingFdr(),  # type: ignore[arg-type]
+            FakeFdrClient(),  # type: ignore[arg-type]
         )
     # The same set is refused for A too when its keypoint cap differs (the features depend on it).
     with pytest.raises(TileFeaturesRefused, match="max_keypoints"):
         PrecomputedTileFeatures.open(
             store, _xfeat(dataclasses.replace(config_a, max_keypoints=100))[0].extractor_identity
         )
-    feats_a = open_tile_features(_daemon_config(cache, config_a), store, RecordingFdr())  # type: ignore[arg-type]
+    feats_a = open_tile_features(_daemon_config(cache, config_a), store, FakeFdrClient())  # type: ignore[arg-type]
     assert feats_a is not None
     with pytest.raises(ValueError, match="precomputed tile features made by"):
         _xfeat(config_b, tile_features=feats_a)
@@ -266,7 +256,7 @@ def test_tile_features_of_another_model_are_refused_and_rebuilt(
     assert rebuilt.built
     assert rebuilt.manifest.tile_features["xfeat"].identity == matcher_b.extractor_identity.to_json()
     store = TileStore.open(cache)
-    assert open_tile_features(_daemon_config(cache, config_b), store, RecordingFdr()) is not None  # type: ignore[arg-type]
+    assert open_tile_features(_daemon_config(cache, config_b), store, FakeFdrClient()) is not None  # type: ignore[arg-type]
     assert not build_tile_features(cache, matcher_b, progress=False).built  # now up to date
 
 
@@ -291,7 +281,7 @@ def test_tampered_tile_features_refused_at_open_and_on_read(
 
     with pytest.raises(TileFeaturesRefused, match="sha256 mismatch"):
         PrecomputedTileFeatures.open(store, identity, verify_hashes=True)
-    fdr = RecordingFdr()
+    fdr = FakeFdrClient()
     assert open_tile_features(_daemon_config(cache, config), TileStore.open(cache), fdr) is None  # type: ignore[arg-type]
     assert "sha256 mismatch" in str(fdr.of(FdrKind.TILE_FEATURES)[0]["reason"])
 
@@ -417,7 +407,7 @@ def test_real_xfeat_precomputed_equals_live_on_a_2020_frame(
     build_tile_features(cache, live, progress=False)
     build_s = time.perf_counter() - t0
     store = TileStore.open(cache)
-    feats = open_tile_features(_daemon_config(cache, config), store, RecordingFdr())  # type: ignore[arg-type]
+    feats = open_tile_features(_daemon_config(cache, config), store, FakeFdrClient())  # type: ignore[arg-type]
     assert feats is not None
     pre, pre_rt = _xfeat(config, tile_features=feats)
 
@@ -473,7 +463,7 @@ def test_composition_root_wires_the_verified_set_into_the_matcher(
         (config_a, True),
         (dataclasses.replace(config_a, max_keypoints=64), False),
     ):
-        fdr = RecordingFdr()
+        fdr = FakeFdrClient()
         root = compose_replay(
             _daemon_config(cache, matcher_config),
             fdr=fdr,  # type: ignore[arg-type]
