@@ -60,30 +60,28 @@ class DaemonProcess:
             return self.proc.wait()
 
 
+def daemon_command(mav_port: int, cam_port: int, fdr_dir: Path, *overrides: str) -> list[str]:
+    """`gdnav run --config config/sitl.yaml` on loopback ports and an FDR directory of its own, plus
+    ``overrides`` (KEY.PATH=VALUE)."""
+    profile = REPO / "config" / "sitl.yaml"
+    cmd = [sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", str(profile)]
+    for item in (
+        f"camera.source=tcp://127.0.0.1:{cam_port}",
+        f"mavlink.url=udpin:127.0.0.1:{mav_port}",
+        f"fdr.dir={fdr_dir}",
+        *overrides,
+    ):
+        cmd += ["--set", item]
+    return cmd
+
+
 def start_daemon(
     workdir: Path, cache: Path, *, extra_env: dict[str, str] | None = None, overrides: tuple[str, ...] = ()
 ) -> DaemonProcess:
     mav_port, cam_port = free_udp_port(), free_tcp_port()
     log_path = workdir / "daemon.log"
     fdr_dir = workdir / "fdr"
-    cmd = [
-        sys.executable,
-        "-m",
-        "gps_denied_onboard.cli",
-        "run",
-        "--config",
-        str(REPO / "config" / "sitl.yaml"),
-        "--set",
-        f"camera.source=tcp://127.0.0.1:{cam_port}",
-        "--set",
-        f"mavlink.url=udpin:127.0.0.1:{mav_port}",
-        "--set",
-        f"cache.dir={cache}",
-        "--set",
-        f"fdr.dir={fdr_dir}",
-    ]
-    for o in overrides:
-        cmd += ["--set", o]
+    cmd = daemon_command(mav_port, cam_port, fdr_dir, f"cache.dir={cache}", *overrides)
     with log_path.open("wb") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=log, env={**os.environ, **(extra_env or {})})
     return DaemonProcess(proc, mav_port, cam_port, log_path, fdr_dir)

@@ -22,7 +22,7 @@ import pytest
 from onnx import numpy_helper
 
 from conftest import REPO_ROOT, shared_path
-from daemon_harness import build_small_cache, free_tcp_port, free_udp_port
+from daemon_harness import build_small_cache, daemon_command, free_tcp_port, free_udp_port
 from gps_denied_onboard.bench.vpr import evaluate_recall, render_queries
 from gps_denied_onboard.camera.types import CameraCalibration
 from gps_denied_onboard.components.c2_vpr.learned_local import XFeatDescriber, find_xfeat_extractor
@@ -58,21 +58,7 @@ EXPORT_TIMEOUT_S = 900
 
 def _gdnav_run(cwd: Path, *overrides: str) -> subprocess.CompletedProcess[str]:
     """`gdnav run --config sitl.yaml` with ports and directories of its own plus ``overrides``."""
-    cmd = [
-        sys.executable,
-        "-m",
-        "gps_denied_onboard.cli",
-        "run",
-        "--config",
-        str(REPO_ROOT / "config" / "sitl.yaml"),
-    ]
-    for item in (
-        f"camera.source=tcp://127.0.0.1:{free_tcp_port()}",
-        f"mavlink.url=udpin:127.0.0.1:{free_udp_port()}",
-        f"fdr.dir={cwd / 'fdr'}",
-        *overrides,
-    ):
-        cmd += ["--set", item]
+    cmd = daemon_command(free_udp_port(), free_tcp_port(), cwd / "fdr", *overrides)
     return subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=cwd)
 
 
