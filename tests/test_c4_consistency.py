@@ -61,6 +61,7 @@ class _Flight:
             inlier_count=150,
             residual_px=1.5,
             tile_id=TileId(16, 1, 2),
+            shared_sigma_m=stated_sigma_m,
         )
 
 
@@ -153,6 +154,8 @@ def test_the_scale_is_the_confidence_bound_over_the_capped_pairs() -> None:
     kept = [min(v, 50.0) for v in nis[-3:]]
     expected = max(1.0, sum(kept) / chi2.ppf(0.1, 6))
     assert last.sigma_scale == pytest.approx(np.sqrt(expected))
+    # The error every fix shares grows with the same scale as the covariance.
+    assert last.fix.shared_sigma_m == pytest.approx(2.0 * np.sqrt(expected))
 
 
 def test_one_wrong_fix_is_capped() -> None:

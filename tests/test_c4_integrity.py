@@ -63,6 +63,7 @@ def _fix(north_m: float = 0.0, east_m: float = 0.0, sigma_m: float = 1.0) -> Pos
         inlier_count=200,
         residual_px=0.8,
         tile_id=TileId(18, 1, 2),
+        shared_sigma_m=sigma_m,
     )
 
 
@@ -174,7 +175,10 @@ def test_weaker_evidence_states_a_larger_sigma_capped() -> None:
     sigmas = []
     for n in (200, 100, 50, 25):
         ev = MatchEvidence(inlier_count=n, putative_count=2 * n, spread_share=0.6, mean_confidence=None)
-        sigmas.append(_assess(ev).fix.horiz_sigma_m)
+        v = _assess(ev)
+        sigmas.append(v.fix.horiz_sigma_m)
+        # The error every fix shares (1 m here) is scaled with the rest.
+        assert v.fix.shared_sigma_m == pytest.approx(v.sigma_scale * 1.0)
     assert sigmas[0] == pytest.approx(sigmas[1]) == pytest.approx(1.0)
     assert sigmas[1] < sigmas[2] < sigmas[3]
     assert sigmas[3] == pytest.approx(2.0)  # sqrt(100 / 25)
@@ -193,6 +197,9 @@ def test_the_map_pixel_floors_the_stated_sigma() -> None:
     assert k == pytest.approx(1.0)
     assert np.sqrt(np.diag(cov)[:2]) == pytest.approx([5.0, 5.0])
     assert np.sqrt(cov[2, 2]) == pytest.approx(5.0)  # vertical 2 m < 5 m floor
+    # The map's pixel is its own georeference: the shared error is floored at it too.
+    v = FixIntegrity(CFG).assess(CandidateFix(fix, STRONG), map_gsd_m_px=5.0)
+    assert v.fix.shared_sigma_m == pytest.approx(5.0)
 
 
 def test_disabled_rule_records_the_verdict_but_passes_the_solvers_fix() -> None:

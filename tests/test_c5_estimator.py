@@ -22,7 +22,9 @@ T0_USEC = 1_700_000_000_000_000
 S = 1_000_000  # one second in microseconds
 
 
-def _fix(pos_ned: np.ndarray, sigma_m: float, t_usec: int, *, yaw_rad: float = 0.3) -> PoseFix:
+def _fix(
+    pos_ned: np.ndarray, sigma_m: float, t_usec: int, *, yaw_rad: float = 0.3, shared_sigma_m: float = 0.0
+) -> PoseFix:
     lat, lon, alt = LTP.to_geodetic(pos_ned)
     return PoseFix(
         frame_id=uuid.uuid4(),
@@ -38,6 +40,7 @@ def _fix(pos_ned: np.ndarray, sigma_m: float, t_usec: int, *, yaw_rad: float = 0
         inlier_count=80,
         residual_px=0.8,
         tile_id=TileId.of(18, float(lat), float(lon)),
+        shared_sigma_m=shared_sigma_m,
     )
 
 
@@ -77,6 +80,49 @@ def test_estimator_converges_on_constant_velocity_truth() -> None:
     assert st.provenance is Provenance.SATELLITE_ANCHORED
     assert st.yaw_rad == pytest.approx(0.3)
     assert st.last_fix_age_s == 0.0
+
+
+def _fly_with_common_bias(shared_sigma_m: float) -> list[float]:
+    """Fixes at 3 Hz whose 1 m floor is one common 0.95 m offset plus small independent noise (the
+    square flight's situation): the error of each output in units of its stated horizontal sigma."""
+    rng = np.random.default_rng(3)
+    bias = np.array([0.95 / np.sqrt(2), 0.95 / np.sqrt(2), 0.0])
+    vel = np.array([10.0, 0.0, 0.0])
+    est = _estimator()
+    est.initialise(np.array([0.0, 0.0, -80.0]), 5.0, T0_USEC)
+    ratios = []
+    for k in range(1, 91):
+        t = T0_USEC + k * S // 3
+        truth = vel * (k / 3) + np.array([0.0, 0.0, -80.0])
+        assert est.update_vo(_vo(vel[:2] / 3, 0.05, 1 / 3), time_unix_usec=t).accepted
+        fix = _fix(truth + bias + rng.normal(0, 0.1, 3), 1.04, t, shared_sigma_m=shared_sigma_m)
+        assert est.update_fix(fix).accepted
+        st = est.state()
+        ratios.append(float(np.linalg.norm(st.pos_ned_m[:2] - truth[:2])) / st.horiz_sigma_m)
+    return ratios
+
+
+def test_an_error_every_fix_shares_is_not_averaged_away() -> None:
+    """Treated as independent, fixes (with VO) sharing one 0.95 m offset take the stated sigma to about
+    0.4 m and the output to 2.4 sigma off; carried as shared, it is never beyond 1.5 sigma."""
+    assert max(_fly_with_common_bias(0.0)[-30:]) > 2.0
+    honest = _fly_with_common_bias(1.0)
+    assert max(honest) < 1.5
+
+
+def test_the_shared_error_survives_a_checkpoint_and_resets_on_initialise() -> None:
+    est = _estimator()
+    est.initialise(np.array([0.0, 0.0, -80.0]), 5.0, T0_USEC)
+    est.update_fix(_fix(np.array([1.0, 0.0, -80.0]), 1.0, T0_USEC + S, shared_sigma_m=2.0))
+    after_fix = est.state().horiz_sigma_m
+    cp = est.checkpoint()
+    assert after_fix > 0.8 * 2.0  # the fix's common error is most of the stated sigma (gain ~0.96)
+    est.initialise(np.array([0.0, 0.0, -80.0]), 0.5, T0_USEC + 2 * S)
+    assert est.state().horiz_sigma_m == pytest.approx(0.5)
+    est.restore(cp)
+    assert est.state().horiz_sigma_m == pytest.approx(after_fix)
+    bad = _fix(np.array([1.0, 0.0, -80.0]), 1.0, T0_USEC + 3 * S, shared_sigma_m=float("nan"))
+    assert est.update_fix(bad).reason == FixReason.INVALID_MEASUREMENT
 
 
 def test_estimator_gate_rejects_far_fix_and_accepts_consistent_one() -> None:

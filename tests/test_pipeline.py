@@ -210,7 +210,7 @@ class _PosePerTile:
         north = 0.0 if candidate.tile_id == TILE_A else 80.0
         return PoseFix(frame.frame_id, frame.exposure_time_unix_usec, np.array([north, 0.0, -120.0]),
                        np.eye(3), 47.0, 8.0, 520.0, 0.0, 0.01, 0.0, candidate.inlier_count, 0.8,
-                       candidate.tile_id)
+                       candidate.tile_id, 1.0)
 
 
 TILE_A, TILE_B = TileId(18, 1, 1), TileId(18, 1, 2)

@@ -285,7 +285,8 @@ class PoseConfig:
     max_attitude_disagreement_deg: PosFloat = 15.0
     #: Solved height above ground vs autopilot AGL: larger relative difference = rejected.
     max_alt_disagreement_frac: Fraction = 0.35
-    #: Floor on the per-axis position sigma (model error the residuals cannot see), metres.
+    #: Floor on the per-axis position sigma (model error the residuals cannot see), metres; also the
+    #: error every fix shares, never averaged away (set it to at least the map's absolute accuracy).
     min_sigma_m: PosFloat = 1.0
 
 

@@ -196,5 +196,9 @@ class FixConsistency:
         if n == 0 and not full_evidence:
             return ConsistencyVerdict(fix, False, 1.0, 0, None, gap_s, reason="unverified")
         k2 = self.scale_squared()
-        scaled = dataclasses.replace(fix, cov_ned_m2=np.asarray(fix.cov_ned_m2, dtype=np.float64) * k2)
+        scaled = dataclasses.replace(
+            fix,
+            cov_ned_m2=np.asarray(fix.cov_ned_m2, dtype=np.float64) * k2,
+            shared_sigma_m=fix.shared_sigma_m * math.sqrt(k2),
+        )
         return ConsistencyVerdict(scaled, True, math.sqrt(k2), n, nis, gap_s)

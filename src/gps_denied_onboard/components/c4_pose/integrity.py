@@ -42,7 +42,8 @@ risk that the alignment itself is wrong: the number of inliers and their spread 
 already in it (residuals over the Jacobian), so the spread only has its threshold; inflating for it
 again slowed the recovery after a featureless stretch, whose first fixes are right but bunched on one
 side of the frame. Weak evidence thus states a larger sigma: the estimator weighs it less, and its gate
-judges it with honest numbers.
+judges it with honest numbers. ``PoseFix.shared_sigma_m``, the part of the error every fix against
+the map shares, is floored at the same map pixel and scaled by the same ``k``.
 """
 
 from __future__ import annotations
@@ -212,7 +213,9 @@ class FixIntegrity:
         ev = best.evidence
         solver_sigma = best.fix.horiz_sigma_m
         cov, k = self.stated_cov(best.fix, ev, map_gsd_m_px)
-        stated = dataclasses.replace(best.fix, cov_ned_m2=cov)
+        # The map pixel is the map's own georeference: common to every fix, like the solver's floor.
+        shared = max(best.fix.shared_sigma_m, cfg.min_sigma_map_px * float(map_gsd_m_px)) * k
+        stated = dataclasses.replace(best.fix, cov_ned_m2=cov, shared_sigma_m=shared)
 
         def verdict(reason: str | None, **extra: Any) -> IntegrityVerdict:
             if not cfg.enabled:  # measurements only: the verdict is recorded, the solver's fix passes

@@ -13,7 +13,9 @@ Pipeline per candidate
    the camera centre ``C = -R^T t`` with a numerical Jacobian, then floored per axis by
    ``PoseConfig.min_sigma_m``. The floor stands for error the residuals cannot see: the map's own
    georeference error, terrain that is not flat, and matches that are consistently biased (the same
-   model error gives small residuals but a shifted pose).
+   model error gives small residuals but a shifted pose). That error is common to every fix against
+   the map, so the fix also carries it apart as ``PoseFix.shared_sigma_m``: the estimator must not
+   average it away over many fixes.
 4. Plausibility gates (each a ``PoseError`` with a :class:`PoseRejectReason`): enough inliers, a 2-D
    spread of the inliers in the image, a solver result in front of the camera, height above ground
    vs the autopilot's AGL, optical axis vs the autopilot's attitude, a finite covariance.
@@ -236,6 +238,7 @@ class PoseSolver:
             inlier_count=n_pts,
             residual_px=residual_med_px,
             tile_id=candidate.tile_id,
+            shared_sigma_m=self._config.min_sigma_m,
         )
 
     @staticmethod

@@ -29,6 +29,11 @@ class PoseFix:
     inlier_count: int
     residual_px: float
     tile_id: TileId
+    #: Per-axis horizontal 1-sigma, metres, of the part of this fix's error that every fix against the
+    #: same map shares (the map's georeference, terrain that is not flat, consistently biased matches).
+    #: It is inside ``cov_ned_m2`` too; it is carried apart because fusing more fixes does not average
+    #: it away, so the estimator keeps it out of the reduction (see ``c5_estimator/ekf.py``).
+    shared_sigma_m: float
 
     @property
     def horiz_sigma_m(self) -> float:

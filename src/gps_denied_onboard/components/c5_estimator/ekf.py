@@ -36,6 +36,22 @@ Measurements
   not change speed much within one frame interval), with covariance ``vo_noise_scale * cov / dt^2``.
 - Altitude: the autopilot's AGL plus the flat-ground height, as a scalar update on ``d``.
 
+Error shared by every fix (``PoseFix.shared_sigma_m``)
+-----------------------------------------------------
+Part of a fix's error is the same for every fix against the map: the map's georeference, terrain that
+is not flat, matches that are consistently biased. The Kalman update treats fixes as independent, so
+three fixes a second took the stated sigma from the fixes' 1.04 m (the ``pose.min_sigma_m`` floor) to
+0.34 m; in the emulator's square flight the errors at a corner then reached 0.9 m, and one CI run sent
+a GPS_INPUT beyond 3 sigma. The filter therefore keeps
+``shared_sigma_m``, a bound on how much of that common error its position carries: an accepted fix
+with gain ``K`` (horizontal block) gives ``s <- ||I - K|| s + ||K|| s_fix`` (spectral norms; the
+triangle inequality for fully correlated errors, so it never understates), VO and prediction leave it
+alone (they move the state by relative amounts), and :meth:`NavEstimator.initialise` sets it to 0 (an
+initial sigma is already absolute). Every output adds ``s**2`` to the horizontal position covariance,
+so the stated accuracy can never drop below the fixes' own common error, however many are fused. The
+fixes' covariances still carry that part too: the output is conservative by up to that much, never
+optimistic.
+
 Provenance (what was actually fused, see :meth:`NavEstimator.provenance_at`)
 ---------------------------------------------------------------------------
 ``satellite_anchored`` while the newest absolute-fix attempt was accepted and that fix's exposure is
@@ -130,6 +146,7 @@ class EstimatorCheckpoint:
     last_vo_usec: int | None
     consecutive_gated: int
     yaw_rad: float | None
+    shared_sigma_m: float
 
 
 class NavEstimator:
@@ -165,6 +182,8 @@ class NavEstimator:
         self._consecutive_gated = 0
         self._last_vo_usec: int | None = None
         self._yaw_rad: float | None = None
+        #: Bound on the fixes' common (map) error the position carries, metres per axis (see above).
+        self._shared_sigma_m = 0.0
         self._provenance = Provenance.NO_ESTIMATE
         #: False while the time axis re-applies measurements after a rewind: their events were logged
         #: when they first arrived, so a replay must not log them again.
@@ -217,6 +236,7 @@ class NavEstimator:
         self._consecutive_gated = 0
         self._last_vo_usec = None
         self._yaw_rad = None
+        self._shared_sigma_m = 0.0
         self._emit(
             "info",
             LogEvent.ESTIMATOR_INITIALISED,
@@ -238,6 +258,7 @@ class NavEstimator:
             self._last_vo_usec,
             self._consecutive_gated,
             self._yaw_rad,
+            self._shared_sigma_m,
         )
 
     def restore(self, cp: EstimatorCheckpoint) -> None:
@@ -250,6 +271,7 @@ class NavEstimator:
         self._last_vo_usec = cp.last_vo_usec
         self._consecutive_gated = cp.consecutive_gated
         self._yaw_rad = cp.yaw_rad
+        self._shared_sigma_m = cp.shared_sigma_m
 
     # -- prediction ---------------------------------------------------------------------------------------
 
@@ -323,7 +345,13 @@ class NavEstimator:
             return FixDecision(False, math.nan, FixReason.NOT_INITIALISED)
         pos = np.asarray(fix.pos_ned_m, dtype=np.float64).reshape(-1)
         cov = np.asarray(fix.cov_ned_m2, dtype=np.float64)
-        if pos.shape != (3,) or not np.all(np.isfinite(pos)) or not _is_covariance(cov, 3):
+        shared = float(fix.shared_sigma_m)
+        if (
+            pos.shape != (3,)
+            or not np.all(np.isfinite(pos))
+            or not _is_covariance(cov, 3)
+            or not (math.isfinite(shared) and shared >= 0.0)
+        ):
             self._emit(
                 "warning", LogEvent.ESTIMATOR_FIX_REJECTED, reason=FixReason.INVALID_MEASUREMENT, nis=None
             )
@@ -396,6 +424,11 @@ class NavEstimator:
             reason = FixReason.ACCEPTED
 
         self._kf.update(pos.reshape(3, 1), R=cov, H=_H_POS)
+        gain_ne = self._kf.K[:2, :2]
+        self._shared_sigma_m = (
+            float(np.linalg.norm(np.eye(2) - gain_ne, 2)) * self._shared_sigma_m
+            + float(np.linalg.norm(gain_ne, 2)) * shared
+        )
         self._consecutive_gated = 0
         self._last_fix_usec = self._time_usec
         if math.isfinite(fix.yaw_rad):
@@ -517,8 +550,14 @@ class NavEstimator:
         _, p_mat, t = self._predicted(t)
         return self._label(p_mat, t)
 
+    def _output_cov_pos(self, p_mat: np.ndarray) -> np.ndarray:
+        """The position covariance an output states: the filter's plus the shared fix error."""
+        cov = p_mat[:3, :3].copy()
+        cov[:2, :2] += np.eye(2) * self._shared_sigma_m**2
+        return cov
+
     def _label(self, p_mat: np.ndarray, t: int) -> Provenance:
-        if _horiz_sigma_m(p_mat) > self._config.max_output_sigma_m:
+        if _horiz_sigma_m(self._output_cov_pos(p_mat)) > self._config.max_output_sigma_m:
             return Provenance.NO_ESTIMATE
         if (
             self._last_fix_usec is not None
@@ -577,7 +616,7 @@ class NavEstimator:
             provenance=label,
             pos_ned_m=x[:3].copy(),
             vel_ned_m_s=x[3:].copy(),
-            cov_pos_ned_m2=p_mat[:3, :3].copy(),
+            cov_pos_ned_m2=self._output_cov_pos(p_mat),
             cov_vel_ned_m2_s2=p_mat[3:, 3:].copy(),
             lat_deg=float(lat),
             lon_deg=float(lon),
