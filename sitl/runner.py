@@ -17,6 +17,7 @@ import asyncio
 import contextlib
 import dataclasses
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -142,6 +143,8 @@ class _Flight:
         self.faults_injected: list[dict[str, Any]] = []
         #: (flight time s, daemon RSS MiB), sampled every RSS_SAMPLE_S.
         self.rss_mib: list[tuple[float, float]] = []
+        #: (flight time s, host stall counters), sampled with the RSS (see ``host_stall_counters``).
+        self.host_samples: list[tuple[float, dict[str, float]]] = []
         #: Unix times at which the daemon was killed, and at which its replacement was started.
         self.restarts: list[dict[str, float]] = []
         self._imu_rng = np.random.default_rng(11)
@@ -358,10 +361,14 @@ class _Flight:
                 status = Path(f"/proc/{procs[-1].pid}/status").read_text()
             except OSError:
                 return
+            t_s = round(time.time() - self.t0_unix_s, 1)
             for line in status.splitlines():
                 if line.startswith("VmRSS:"):
                     kib = float(line.split()[1])
-                    self.rss_mib.append((round(time.time() - self.t0_unix_s, 1), round(kib / 1024.0, 1)))
+                    self.rss_mib.append((t_s, round(kib / 1024.0, 1)))
+            counters = host_stall_counters()
+            if counters is not None:
+                self.host_samples.append((t_s, counters))
             # wake at once when the flight ends: the final poll of the autopilot side must not wait
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(stop.wait(), RSS_SAMPLE_S)
@@ -588,6 +595,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
             "faults_injected": flight.faults_injected,
             "t0_unix_s": flight.t0_unix_s,
             "daemon_rss_mib": _rss_summary(flight.rss_mib),
+            "host_stalls": host_stall_summary(flight.host_samples),
             "daemon_stop_s": flight.daemon_stop_s,
             "cache_build_s": round(cache_s, 2),
             "heartbeats_received": len(ap.of_type("HEARTBEAT")),
@@ -623,6 +631,45 @@ def _restart_gaps(restarts: list[dict[str, float]], received: list[Any]) -> list
             }
         )
     return out
+
+
+def host_stall_counters(proc: Path = Path("/proc")) -> dict[str, float] | None:
+    """Cumulative counters of the host that tell a stall of the whole machine from one of the daemon, in
+    seconds: the pressure-stall time during which every task waited on I/O (``io_full_s``) or on memory
+    reclaim (``memory_full_s``), during which some task waited for a CPU (``cpu_some_s``) (Linux PSI,
+    ``/proc/pressure``), and the CPU time the hypervisor gave to other guests (``steal_s``, ``/proc/stat``,
+    at USER_HZ 100). A counter the kernel does not offer is left out; None when there is none at all."""
+    out: dict[str, float] = {}
+    for resource, line_kind in (("io", "full"), ("memory", "full"), ("cpu", "some")):
+        try:
+            text = (proc / "pressure" / resource).read_text()
+        except OSError:
+            continue
+        for line in text.splitlines():
+            fields = line.split()
+            if fields and fields[0] == line_kind:
+                total = next((f for f in fields if f.startswith("total=")), None)
+                if total is not None:
+                    out[f"{resource}_{line_kind}_s"] = int(total.split("=", 1)[1]) / 1e6
+    try:
+        cpu = (proc / "stat").read_text().splitlines()[0].split()
+        if cpu[0] == "cpu" and len(cpu) > 8:
+            out["steal_s"] = int(cpu[8]) / 100.0
+    except (OSError, IndexError, ValueError):
+        pass
+    return out or None
+
+
+def host_stall_summary(samples: list[tuple[float, dict[str, float]]]) -> dict[str, Any]:
+    """For each host counter, its largest increase between two consecutive samples and where (flight
+    time of the later sample): a stall of the daemon that coincides with one of these was the machine's."""
+    worst: dict[str, dict[str, float]] = {}
+    for (_t0, a), (t1, b) in itertools.pairwise(samples):
+        for key in a.keys() & b.keys():
+            inc = round(b[key] - a[key], 3)
+            if key not in worst or inc > worst[key]["increase_s"]:
+                worst[key] = {"increase_s": inc, "at_s": t1}
+    return {"sample_s": RSS_SAMPLE_S, "samples": len(samples), "largest_increase": worst}
 
 
 def _rss_summary(samples: list[tuple[float, float]]) -> dict[str, Any]:
