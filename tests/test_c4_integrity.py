@@ -67,19 +67,23 @@ def _fix(north_m: float = 0.0, east_m: float = 0.0, sigma_m: float = 1.0) -> Pos
     )
 
 
-def _prior(north_m: float = 0.0, east_m: float = 0.0, sigma_m: float = 5.0) -> EstimatorState:
+def _prior(
+    north_m: float = 0.0, east_m: float = 0.0, sigma_m: float = 5.0, shared_sigma_m: float = 0.0
+) -> EstimatorState:
+    """``sigma_m``: the filter's own horizontal sigma; the stated covariance adds ``shared_sigma_m``."""
     return EstimatorState(
         time_unix_usec=1_000_000,
         provenance=Provenance.VISUAL_PROPAGATED,
         pos_ned_m=np.array([north_m, east_m, -120.0]),
         vel_ned_m_s=np.zeros(3),
-        cov_pos_ned_m2=np.diag([sigma_m**2, sigma_m**2, 4.0]),
+        cov_pos_ned_m2=np.diag([sigma_m**2 + shared_sigma_m**2, sigma_m**2 + shared_sigma_m**2, 4.0]),
         cov_vel_ned_m2_s2=np.eye(3),
         lat_deg=17.0,
         lon_deg=78.0,
         alt_amsl_m=620.0,
         yaw_rad=None,
         last_fix_age_s=3.0,
+        shared_sigma_m=shared_sigma_m,
     )
 
 
@@ -159,6 +163,18 @@ def test_weak_fix_far_from_a_confident_prior_is_refused() -> None:
     # The same fix near the prior passes; so does it when the prior is too uncertain to judge it.
     assert _assess(weak, fix=_fix(north_m=3.0), prior=_prior(sigma_m=5.0)).accepted
     assert _assess(weak, fix=_fix(north_m=40.0), prior=_prior(sigma_m=200.0)).accepted
+
+
+def test_the_prior_is_judged_without_the_map_error_it_shares_with_the_fix() -> None:
+    """A prior 5 m sure relative to the map, stated 30 m because of the map's common error (a
+    cross-date flight): a weak fix 40 m off disagrees with it. Counting the common error, which the fix
+    carries too, would let it pass (NIS 1.7 instead of 59)."""
+    weak = MatchEvidence(inlier_count=30, putative_count=60, spread_share=0.3, mean_confidence=None)
+    prior = _prior(sigma_m=5.0, shared_sigma_m=30.0)
+    assert prior.horiz_sigma_m == pytest.approx(np.hypot(5.0, 30.0))
+    v = _assess(weak, fix=_fix(north_m=40.0), prior=prior)
+    assert not v.accepted and v.reason == IntegrityReason.PRIOR_DISAGREEMENT
+    assert v.prior_nis is not None and v.prior_nis > 50.0
 
 
 def test_full_or_nearly_full_evidence_is_left_to_the_estimators_gate() -> None:

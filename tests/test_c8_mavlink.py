@@ -80,6 +80,7 @@ def _state(
         alt_amsl_m=250.0,
         yaw_rad=yaw_rad,
         last_fix_age_s=0.2,
+        shared_sigma_m=1.0,
     )
 
 
@@ -701,6 +702,7 @@ def _state_at(
         alt_amsl_m=280.0,
         yaw_rad=None,
         last_fix_age_s=0.1,
+        shared_sigma_m=1.0,
     )
 
 

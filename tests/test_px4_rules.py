@@ -36,6 +36,7 @@ def _state(provenance: Provenance = Provenance.SATELLITE_ANCHORED, sigma_m: floa
         alt_amsl_m=250.0,
         yaw_rad=None,
         last_fix_age_s=0.1,
+        shared_sigma_m=1.0,
     )
 
 

@@ -250,7 +250,8 @@ class FixIntegrity:
         nis: float | None = None
         if prior is not None:
             innov = np.asarray(stated.pos_ned_m)[:2] - np.asarray(prior.pos_ned_m)[:2]
-            s_mat = np.asarray(prior.cov_pos_ned_m2)[:2, :2] + cov[:2, :2]
+            # Relative to the map: the prior and the fix carry the same map error, which cancels here.
+            s_mat = prior.map_frame_cov_ne_m2 + cov[:2, :2]
             try:
                 nis = float(innov @ np.linalg.solve(s_mat, innov))
             except np.linalg.LinAlgError:
@@ -271,7 +272,7 @@ class FixIntegrity:
             nis is not None
             and prior is not None
             and k >= cfg.weak_evidence_scale
-            and prior.horiz_sigma_m <= cfg.prior_max_sigma_m
+            and _horiz_sigma_m(prior.map_frame_cov_ne_m2) <= cfg.prior_max_sigma_m
             and nis > cfg.prior_gate_chi2
         ):
             return verdict(IntegrityReason.PRIOR_DISAGREEMENT, **extra)

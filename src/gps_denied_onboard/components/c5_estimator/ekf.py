@@ -47,10 +47,11 @@ a GPS_INPUT beyond 3 sigma. The filter therefore keeps
 with gain ``K`` (horizontal block) gives ``s <- ||I - K|| s + ||K|| s_fix`` (spectral norms; the
 triangle inequality for fully correlated errors, so it never understates), VO and prediction leave it
 alone (they move the state by relative amounts), and :meth:`NavEstimator.initialise` sets it to 0 (an
-initial sigma is already absolute). Every output adds ``s**2`` to the horizontal position covariance,
-so the stated accuracy can never drop below the fixes' own common error, however many are fused. The
-fixes' covariances still carry that part too: the output is conservative by up to that much, never
-optimistic.
+initial sigma is already absolute). Every output adds ``s**2`` to the horizontal position covariance
+(and states ``s`` as ``EstimatorState.shared_sigma_m``), so fusing more fixes never averages the
+common error away. The fixes' covariances still carry that part too: the output is conservative by up
+to that much, never optimistic. What compares the state with a map fix (the integrity rule's prior
+check) leaves ``s`` out, as this filter's own gate does: the fix carries the same map error.
 
 Provenance (what was actually fused, see :meth:`NavEstimator.provenance_at`)
 ---------------------------------------------------------------------------
@@ -602,6 +603,7 @@ class NavEstimator:
                 alt_amsl_m=math.nan,
                 yaw_rad=None,
                 last_fix_age_s=math.inf,
+                shared_sigma_m=0.0,
             )
         t_req = self._time_usec if time_unix_usec is None else int(time_unix_usec)
         x, p_mat, t = self._predicted(t_req)
@@ -623,4 +625,5 @@ class NavEstimator:
             alt_amsl_m=float(alt),
             yaw_rad=self._yaw_rad,
             last_fix_age_s=fix_age,
+            shared_sigma_m=self._shared_sigma_m,
         )

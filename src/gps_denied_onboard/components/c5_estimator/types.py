@@ -29,6 +29,15 @@ class EstimatorState:
     yaw_rad: float | None
     #: Seconds since the last accepted absolute fix (inf when none yet).
     last_fix_age_s: float
+    #: Per-axis horizontal 1-sigma, metres, of the map's common error that ``cov_pos_ned_m2`` includes
+    #: (``PoseFix.shared_sigma_m``, see ``ekf.py``). A map fix carries the same error, so a comparison
+    #: with one uses :attr:`map_frame_cov_ne_m2`, which leaves it out.
+    shared_sigma_m: float
+
+    @property
+    def map_frame_cov_ne_m2(self) -> np.ndarray:
+        """(2, 2) horizontal covariance, m^2, relative to the map (without the map's common error)."""
+        return self.cov_pos_ned_m2[:2, :2] - np.eye(2) * self.shared_sigma_m**2
 
     @property
     def horiz_sigma_m(self) -> float:
