@@ -182,7 +182,7 @@ def test_estimator_rejects_invalid_and_uninitialised_fixes() -> None:
 def test_estimator_provenance_transitions() -> None:
     """no_estimate -> dead_reckoning -> satellite_anchored -> visual_propagated -> dead_reckoning ->
     no_estimate, each change logged with from/to."""
-    est = _estimator()
+    est = _estimator(anchored_window_s=2.0)
     assert est.state(T0_USEC).provenance is Provenance.NO_ESTIMATE
     with structlog.testing.capture_logs() as logs:
         est.initialise(np.array([0.0, 0.0, -100.0]), 20.0, T0_USEC, vel_sigma_m_s=2.0)

@@ -18,8 +18,9 @@ import structlog
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator import FixReason, NavEstimator, Refusal, TimeAxis
-from gps_denied_onboard.config import EstimatorConfig
+from gps_denied_onboard.config import ConfigError, EstimatorConfig, load_config
 from gps_denied_onboard.constants import LogEvent, Provenance
+from conftest import REPO_ROOT
 from test_c5_estimator import LTP, S, _fix, _vo
 from test_c5_estimator import T0_USEC as T0
 
@@ -397,3 +398,39 @@ def test_vo_velocity_is_moved_to_the_end_of_its_interval_with_the_imu() -> None:
         v += 2.0 / 3
         assert est.update_vo(_vo(np.array([v_mean / 3.0, 0.0]), 0.05, 1 / 3), time_unix_usec=t).accepted
     assert est.state().vel_ned_m_s[0] == pytest.approx(v, abs=0.05)
+
+
+def test_a_slow_matchers_late_fixes_anchor_the_output_until_the_window_ends() -> None:
+    """Fixes that land 1.7 s after their exposure (XFeat + LighterGlue on a 2-core CPU), each attempt on
+    the newest frame when the previous one is done: the output stays anchored from one fix to the next,
+    stops being anchored once the newest fix's exposure is older than ``anchored_window_s``, and at once
+    when an attempt gives no fix. A 1 s window never labelled such a flight anchored."""
+    clock = _Clock(T0)
+    axis = _axis(clock, anchored_window_s=4.0)
+    start = np.array([0.0, 0.0, -120.0])
+    axis.initialise(start, 30.0, T0)
+    latency, exposure, last_fix = int(1.7 * S), T0, T0
+
+    def vo_until(t_usec: int) -> None:  # VO at 10 Hz
+        while clock.t < t_usec:
+            clock.t += S // 10
+            assert axis.fuse_vo(_vo(np.zeros(2), 0.05, 0.1), clock.t).accepted
+
+    for _ in range(4):
+        vo_until(exposure + latency)  # while the matcher works
+        assert axis.fuse_fix(_fix(start, 2.0, exposure)).accepted
+        for dt in (0, S // 2, latency - S // 10):  # until the next fix lands
+            assert axis.state_at(clock.t + dt).provenance is Provenance.SATELLITE_ANCHORED
+        last_fix, exposure = exposure, clock.t  # the next attempt takes the newest frame
+    vo_until(last_fix + 4 * S)  # the matcher has gone quiet: no fix, no failed attempt
+    assert axis.state_at().provenance is Provenance.SATELLITE_ANCHORED
+    vo_until(clock.t + S // 10)
+    assert axis.state_at().provenance is Provenance.VISUAL_PROPAGATED
+    axis.fuse_fix(_fix(start, 2.0, clock.t))
+    assert axis.state_at().provenance is Provenance.SATELLITE_ANCHORED
+    vo_until(clock.t + S // 10)
+    axis.note_no_fix(clock.t)  # the next frame's attempt gave no fix
+    assert axis.state_at().provenance is Provenance.VISUAL_PROPAGATED
+
+    with pytest.raises(ConfigError, match="anchored_window_s"):
+        load_config(REPO_ROOT / "config" / "sitl.yaml", ["estimator.anchored_window_s=0"])

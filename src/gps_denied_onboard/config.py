@@ -369,6 +369,12 @@ class EstimatorConfig:
     #: Time axis: how far behind the newest input a late one (a slow absolute fix) may still be fused
     #: at its own exposure time; older ones are refused as too late, s.
     max_fix_delay_s: Annotated[float, Strict(), Field(gt=0, le=60)] = 5.0
+    #: Provenance: an accepted fix keeps the output ``satellite_anchored`` until its exposure is this
+    #: old, while no later fix attempt has failed (a failed one ends it at once), s. It must cover the
+    #: fix path's own period: a fix arrives its latency after its exposure, and the next one a period
+    #: later. XFeat + LighterGlue on a 2-core CPU answers 1.6-1.8 s after the exposure (3.4 s p95
+    #: under the soak's faults), so a 1 s window never labelled its output anchored.
+    anchored_window_s: Annotated[float, Strict(), Field(gt=0, le=60)] = 5.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -2,7 +2,6 @@
 provenance."""
 
 from gps_denied_onboard.components.c5_estimator.ekf import (
-    DEFAULT_FIX_RECENT_S,
     DEFAULT_VO_RECENT_S,
     EstimatorCheckpoint,
     FixReason,
@@ -18,7 +17,6 @@ from gps_denied_onboard.components.c5_estimator.time_axis import (
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState, FixDecision
 
 __all__ = [
-    "DEFAULT_FIX_RECENT_S",
     "DEFAULT_VO_RECENT_S",
     "AccelerationSource",
     "Admission",

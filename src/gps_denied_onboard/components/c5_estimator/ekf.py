@@ -56,7 +56,7 @@ check) leaves ``s`` out, as this filter's own gate does: the fix carries the sam
 Provenance (what was actually fused, see :meth:`NavEstimator.provenance_at`)
 ---------------------------------------------------------------------------
 ``satellite_anchored`` while the newest absolute-fix attempt was accepted and that fix's exposure is
-at most ``fix_recent_s`` old (an attempt that gave no fix, :meth:`NavEstimator.note_no_fix`, ends it
+at most ``estimator.anchored_window_s`` old (an attempt that gave no fix, :meth:`NavEstimator.note_no_fix`, ends it
 at once); ``visual_propagated`` while VO updates are being fused (the last at most ``vo_recent_s``
 old); ``dead_reckoning`` when neither (prediction only); ``no_estimate`` when not initialised or when
 the horizontal sigma exceeds ``max_output_sigma_m``. Propagating the state to a later time changes the
@@ -84,8 +84,6 @@ from gps_denied_onboard.geo import LocalTangentPlane
 
 _log = structlog.get_logger(__name__)
 
-#: An accepted fix younger than this keeps the output ``satellite_anchored``, seconds.
-DEFAULT_FIX_RECENT_S: Final[float] = 1.0
 #: A VO update younger than this makes the output ``visual_propagated``, seconds.
 DEFAULT_VO_RECENT_S: Final[float] = 2.0
 #: Longest prediction step; each step asks the acceleration source for its own mean acceleration, s.
@@ -155,7 +153,8 @@ class NavEstimator:
 
     ``config``: the ``estimator`` section; ``ltp``: the flight's NED frame (geodetic output).
     ``accel_source``: measured acceleration for the prediction (None: constant velocity only).
-    ``fix_recent_s`` / ``vo_recent_s``: provenance windows (see the module docstring).
+    ``vo_recent_s``: the provenance window of VO (see the module docstring; the fix's window is
+    ``config.anchored_window_s``).
     Not thread-safe: the time axis owns it and serialises every call.
     """
 
@@ -165,16 +164,14 @@ class NavEstimator:
         ltp: LocalTangentPlane,
         *,
         accel_source: AccelerationSource | None = None,
-        fix_recent_s: float = DEFAULT_FIX_RECENT_S,
         vo_recent_s: float = DEFAULT_VO_RECENT_S,
     ) -> None:
-        for name, value in (("fix_recent_s", fix_recent_s), ("vo_recent_s", vo_recent_s)):
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number of seconds, got {value!r}")
+        if not (math.isfinite(vo_recent_s) and vo_recent_s > 0):
+            raise ValueError(f"vo_recent_s must be a positive number of seconds, got {vo_recent_s!r}")
         self._config = config
         self._ltp = ltp
         self._accel = accel_source
-        self._fix_recent_s = fix_recent_s
+        self._fix_recent_s = config.anchored_window_s
         self._vo_recent_s = vo_recent_s
         self._kf = KalmanFilter(dim_x=6, dim_z=3)
         self._time_usec: int | None = None
