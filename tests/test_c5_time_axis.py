@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import structlog
 
+from conftest import REPO_ROOT
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator import FixReason, NavEstimator, Refusal, TimeAxis
 from gps_denied_onboard.config import ConfigError, EstimatorConfig, load_config
 from gps_denied_onboard.constants import LogEvent, Provenance
-from conftest import REPO_ROOT
 from test_c5_estimator import LTP, S, _fix, _vo
 from test_c5_estimator import T0_USEC as T0
 

@@ -55,12 +55,12 @@ check) leaves ``s`` out, as this filter's own gate does: the fix carries the sam
 
 Provenance (what was actually fused, see :meth:`NavEstimator.provenance_at`)
 ---------------------------------------------------------------------------
-``satellite_anchored`` while the newest absolute-fix attempt was accepted and that fix's exposure is
-at most ``estimator.anchored_window_s`` old (an attempt that gave no fix, :meth:`NavEstimator.note_no_fix`, ends it
-at once); ``visual_propagated`` while VO updates are being fused (the last at most ``vo_recent_s``
-old); ``dead_reckoning`` when neither (prediction only); ``no_estimate`` when not initialised or when
-the horizontal sigma exceeds ``max_output_sigma_m``. Propagating the state to a later time changes the
-label only through these ages and the sigma, never by itself.
+``satellite_anchored`` while the newest absolute-fix attempt was accepted and that fix's exposure is at
+most ``estimator.anchored_window_s`` old (an attempt that gave no fix, :meth:`NavEstimator.note_no_fix`,
+ends it at once); ``visual_propagated`` while VO updates are being fused (the last at most
+``vo_recent_s`` old); ``dead_reckoning`` when neither (prediction only); ``no_estimate`` when not
+initialised or when the horizontal sigma exceeds ``max_output_sigma_m``. Propagating the state to a
+later time changes the label only through these ages and the sigma, never by itself.
 """
 
 from __future__ import annotations
