@@ -90,6 +90,9 @@ class SitlOptions:
     quiet: bool = False
     #: Seconds between the last frame and SIGTERM; 0 stops the daemon while it is still in frames.
     tail_s: float = TAIL_S
+    #: Where the map caches (one per map, named by its hash) are kept; default: the workdir. Flights over
+    #: the same map may share one (``gdnav bench flights``), one flight at a time.
+    cache_root: Path | None = None
 
 
 def _free_udp_port() -> int:
@@ -551,7 +554,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
             )
         except MapEditError as exc:
             raise SitlError(str(exc)) from exc
-    cache_dir = workdir / f"cache-{_sha_prefix(cache_source)}"
+    cache_dir = (opts.cache_root or workdir) / f"cache-{_sha_prefix(cache_source)}"
     t_cache = time.monotonic()
     try:
         build_cache_from_geotiff(cache_source, cache_dir, progress=not opts.quiet)

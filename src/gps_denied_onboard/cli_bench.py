@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -243,8 +244,87 @@ VPR_COMMAND: Final[BenchCommand] = BenchCommand(
     run=_run_vpr,
 )
 
+
+# --- bench flights ---------------------------------------------------------------------------------------
+def _add_flights_arguments(p: argparse.ArgumentParser) -> None:
+    from gps_denied_onboard.bench.flights import DEFAULT_STRATEGIES
+
+    p.add_argument(
+        "--strategies",
+        default=",".join(DEFAULT_STRATEGIES),
+        metavar="A,B",
+        help=f"matcher strategies, one flight each (default {','.join(DEFAULT_STRATEGIES)})",
+    )
+    p.add_argument(
+        "--flights",
+        default=None,
+        metavar="A,B",
+        help="flights of the plan to fly (default: all; soak and autopilot_square are not in it)",
+    )
+    p.add_argument(
+        "--shared",
+        type=Path,
+        default=Path(os.environ.get("GDNAV_SHARED_DIR", "../shared")),
+        help="the shared data folder with the real imagery (default $GDNAV_SHARED_DIR or ../shared)",
+    )
+    p.add_argument("--out", type=Path, default=Path("out/bench_flights"), help="reports and work dirs")
+    p.add_argument("--config", type=Path, default=None, help="daemon profile (default: config/sitl.yaml)")
+    p.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="daemon override, every flight")
+    p.add_argument("--resume", action="store_true", help="reuse the rows whose report is already in --out")
+    p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every figure to OUT")
+
+
+def _run_flights(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.bench.flights import (
+        FlightPlanError,
+        default_flights,
+        run_flights_benchmark,
+        select_flights,
+    )
+    from gps_denied_onboard.logging_setup import configure_logging
+
+    configure_logging("warning", json=False)
+    strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
+    names = [s.strip() for s in args.flights.split(",") if s.strip()] if args.flights else None
+    try:
+        flights = select_flights(default_flights(args.shared), names)
+    except FlightPlanError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    figures = run_flights_benchmark(
+        flights,
+        strategies,
+        args.out,
+        overrides=tuple(args.set or ()),
+        config_path=args.config,
+        resume=args.resume,
+    )
+    print(
+        f"accepted fixes beyond 3 sigma: {figures['accepted_fixes_beyond_3sigma']}; 3D GPS_INPUT beyond "
+        f"3 sigma: {figures['gps_input_beyond_3sigma']}; not flown: {figures['not_flown'] or 'none'}"
+    )
+    if args.json is not None:
+        write_json(args.json, figures)
+        print(f"figures written to {args.json}")
+    if figures["not_flown"]:
+        return EXIT_RESOURCE
+    flown = [r for r in figures["rows"] if "error" not in r]
+    if figures["accepted_fixes_beyond_3sigma"] or figures["gps_input_beyond_3sigma"]:
+        return EXIT_FAILURE
+    return EXIT_OK if all(r["daemon_exit_code"] == 0 for r in flown) else EXIT_FAILURE
+
+
+FLIGHTS_COMMAND: Final[BenchCommand] = BenchCommand(
+    name="flights",
+    help="every scenario with every matcher strategy: integrity, accuracy, latency",
+    description="Fly the bundled SITL scenarios with each matcher strategy (one real gdnav sitl run per "
+    "row) and print accepted fixes and GPS_INPUTs beyond 3 sigma, error, latency and fix age side by side.",
+    add_arguments=_add_flights_arguments,
+    run=_run_flights,
+)
+
 #: Subcommands of ``gdnav bench``; append a ``BenchCommand`` to add one.
-BENCH_COMMANDS: tuple[BenchCommand, ...] = (MATCHER_COMMAND, VPR_COMMAND)
+BENCH_COMMANDS: tuple[BenchCommand, ...] = (MATCHER_COMMAND, VPR_COMMAND, FLIGHTS_COMMAND)
 
 
 def register(
