@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import pytest
 
 from daemon_harness import REPO, build_small_cache, free_tcp_port, free_udp_port
 from gps_denied_onboard.cli_preflight import CHECKS, ONLINE_CHECKS
+from registry_models_fixture import registry_models  # noqa: F401 - session fixture
 
 #: The camera size of config/sitl.yaml's intrinsics.
 FRAME_W_PX, FRAME_H_PX = 640, 480
@@ -95,6 +97,8 @@ def test_preflight_offline_passes_without_camera_or_autopilot(tmp_path: Path, sm
         assert rows[name][0] == "PASS", proc.stdout
     assert "35 tiles" in rows["cache"][1] and "hashes verified" in rows["cache"][1]
     assert rows["models"][0] == "SKIP" and rows["models"][1].endswith("not needed (classical)")
+    assert rows["vpr"][0] == "PASS" and "geo_prior" in rows["vpr"][1]
+    assert rows["tile_features"][0] == "SKIP" and "classical extracts chips live" in rows["tile_features"][1]
     for name in ONLINE_CHECKS:
         assert rows[name][0] == "SKIP" and rows[name][1].endswith("skipped (--offline)")
     assert not (tmp_path / "fdr").exists(), "the FDR check must not leave the directory behind"
@@ -253,6 +257,45 @@ def test_preflight_learned_matcher_without_model_manifest_exits_3(tmp_path: Path
     )
     row = _failure(proc, 3, "models")
     assert "matcher.model_dir" in row
+
+
+def test_preflight_vlad_without_its_index_fails_the_vpr_row(tmp_path: Path, small_cache: Path) -> None:
+    """The cache has no VLAD index (it was never built with `gdnav cache vpr`): the daemon would refuse
+    to start, so the preflight's vpr row fails with exit 3 and says how to build it."""
+    row = _failure(_preflight(tmp_path, small_cache, "vpr.strategy=vlad"), 3, "vpr")
+    assert "gdnav cache vpr" in row, row
+
+
+@pytest.mark.slow
+def test_preflight_reports_xfeat_tile_features_absent_then_built(
+    tmp_path: Path,
+    small_cache: Path,
+    registry_models: Callable[[str], Path],  # noqa: F811
+) -> None:
+    """XFeat from the registry export: without precomputed tile features the row passes under ``auto``
+    and says every chip is extracted live, fails under ``require``; after `gdnav cache features` it
+    passes with every tile's features verified."""
+    model_dir = registry_models("xfeat")
+    cache = tmp_path / "cache"
+    shutil.copytree(small_cache, cache)
+    xfeat = ("matcher.strategy=xfeat", f"matcher.model_dir={model_dir}", f"cache.dir={cache}")
+    rows = _rows(_preflight(tmp_path, cache, *xfeat).stdout)
+    assert rows["models"][0] == "PASS", rows
+    assert rows["tile_features"][0] == "PASS" and "extracted live" in rows["tile_features"][1], rows
+    row = _failure(_preflight(tmp_path, cache, *xfeat, "matcher.tile_features=require"), 3, "tile_features")
+    assert "gdnav cache features" in row or "no precomputed" in row or "absent" in row, row
+
+    build = [sys.executable, "-m", "gps_denied_onboard.cli", "cache", "features", "--quiet"]
+    build += ["--config", str(REPO / "config" / "sitl.yaml"), "--cache", str(cache)]
+    for item in xfeat:
+        build += ["--set", item]
+    done = subprocess.run(build, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    proc = _preflight(tmp_path, cache, *xfeat, "matcher.tile_features=require")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = _rows(proc.stdout)
+    assert rows["tile_features"][0] == "PASS", rows
+    assert "35 tiles of precomputed features, hashes verified" in rows["tile_features"][1], rows
 
 
 def test_preflight_bad_config_exits_2(tmp_path: Path, small_cache: Path) -> None:

@@ -8,6 +8,11 @@ probe, so a pass means ``gdnav run`` gets past the same step:
 - ``cache``: the map cache opens and its manifest hashes verify, as at start-up (tile count, seconds);
 - ``models``: a learned matcher's model directory verifies against its manifest and its ONNX Runtime
   sessions are created; a weights-free matcher needs none;
+- ``vpr``: the C2 strategy opens over the cache as at start-up (an index built for another strategy or
+  model, or none, fails and says to run ``gdnav cache vpr``);
+- ``tile_features``: the learned matcher's precomputed tile features (``gdnav cache features``) open and
+  verify against its extractor; absent or refused under ``matcher.tile_features: auto`` passes and says
+  that every chip will be extracted live (a frame then costs N extractions more), under ``require`` fails;
 - ``calibration``: the calibration file (or the ``intrinsics`` block) gives a usable camera model;
 - ``signing_key``: the MAVLink signing key file, when configured, is a private 32-byte key;
 - ``fdr``: the FDR directory is writable by this user and its file system has room for ``fdr.max_bytes``;
@@ -56,6 +61,8 @@ CHECKS: Final[tuple[str, ...]] = (
     "config",
     "cache",
     "models",
+    "vpr",
+    "tile_features",
     "calibration",
     "signing_key",
     "fdr",
@@ -143,12 +150,13 @@ def _mib(n_bytes: float) -> str:
 # --- offline checks -------------------------------------------------------------------------------------
 
 
-def _check_cache(config: Config) -> str:
+def _check_cache(config: Config, opened: dict[str, Any]) -> str:
     from gps_denied_onboard.runtime_root.compose import open_tile_store
 
     t0 = time.monotonic()
     tiles = open_tile_store(config)
     dt = time.monotonic() - t0
+    opened["tiles"] = tiles
     how = (
         f"manifest hashes verified in {dt:.2f} s"
         if config.cache.verify_hashes
@@ -185,6 +193,50 @@ def _check_models(config: Config) -> str:
     )
     manifest = f"manifest of {resolved.matcher.model_dir} verified; " if resolved.matcher.model_dir else ""
     return f"{strategy}: {manifest}{', '.join(files) or 'no model file'} loaded in {dt:.2f} s"
+
+
+def _opened_tiles(opened: dict[str, Any]) -> Any:
+    if "tiles" not in opened:
+        raise _Skipped("not checked (the cache did not open)")
+    return opened["tiles"]
+
+
+def _check_vpr(config: Config, opened: dict[str, Any]) -> str:
+    from gps_denied_onboard.runtime_root.compose import create_vpr
+
+    tiles = _opened_tiles(opened)
+    t0 = time.monotonic()
+    vpr = create_vpr(tiles, config)
+    dt = time.monotonic() - t0
+    if config.vpr.strategy == "geo_prior":
+        return "geo_prior: searches the tiles around the prior, no index needed"
+    return f"{config.vpr.strategy}: index of {len(tiles)} tiles opened in {dt:.2f} s ({type(vpr).__name__})"
+
+
+def _check_tile_features(config: Config, opened: dict[str, Any]) -> str:
+    from gps_denied_onboard.runtime_root.compose import (
+        WEIGHTS_FREE_MATCHERS,
+        _resolve_matcher,
+        open_tile_features,
+    )
+
+    tiles = _opened_tiles(opened)
+    resolved = _resolve_matcher(config)
+    strategy, mode = resolved.matcher.strategy, resolved.matcher.tile_features
+    if strategy in WEIGHTS_FREE_MATCHERS:
+        raise _Skipped(f"not needed ({strategy} extracts chips live, cheaply)")
+    if mode == "off":
+        raise _Skipped("matcher.tile_features: off (every chip extracted live)")
+    t0 = time.monotonic()
+    feats = open_tile_features(resolved, tiles, _DiscardFdr())
+    dt = time.monotonic() - t0
+    if feats is None:  # auto, and absent or refused: open_tile_features raises under require
+        return (
+            f"{strategy}: none usable in the cache (matcher.tile_features: {mode}): every chip is "
+            f"extracted live; build them with `gdnav cache features`"
+        )
+    verified = "hashes verified" if config.cache.verify_hashes else "hashes NOT verified"
+    return f"{strategy}: {len(feats)} tiles of precomputed features, {verified}, opened in {dt:.2f} s"
 
 
 def _check_calibration(config: Config) -> str:
@@ -368,10 +420,17 @@ async def _online(config: Config, timeout_s: float) -> tuple[CheckResult, CheckR
 
 def run_checks(config: Config, checked_config: str, *, offline: bool, timeout_s: float) -> list[CheckResult]:
     """Every check after ``config`` (already loaded), in ``CHECKS`` order."""
+    opened: dict[str, Any] = {}  # the cache, once, for the checks that use it
     results = [
         CheckResult("config", Status.PASS, checked_config, f"valid (profile {config.profile})"),
-        _run_check("cache", config.cache.dir, lambda: _check_cache(config)),
+        _run_check("cache", config.cache.dir, lambda: _check_cache(config, opened)),
         _run_check("models", f"matcher.strategy {config.matcher.strategy}", lambda: _check_models(config)),
+        _run_check("vpr", f"vpr.strategy {config.vpr.strategy}", lambda: _check_vpr(config, opened)),
+        _run_check(
+            "tile_features",
+            f"matcher.tile_features {config.matcher.tile_features}",
+            lambda: _check_tile_features(config, opened),
+        ),
         _run_check(
             "calibration",
             config.camera.calibration_file or "camera.intrinsics",
