@@ -7,10 +7,17 @@ happen for real, to the unmodified daemon process, without touching the machine 
 ``clock_jump``
     The host's wall clock (``CLOCK_REALTIME``) steps, as NTP/chrony or ``date -s`` would step it. The
     machine's clock is never changed: the daemon process runs with libfaketime preloaded (the
-    ``libfaketime`` package's library), reading its offset from a file this module rewrites at the
-    fault's time; its monotonic clock is not faked. The SITL camera, a process on the same host, stamps
-    its frames with the stepped clock (``Scenario.wall_step_s``). The autopilot's clock (SYSTEM_TIME) is
-    its own and does not step.
+    ``libfaketime`` package's library), reading its offset from a file this module rewrites just before
+    the fault's time; its monotonic clock is not faked. libfaketime's file reader is not thread-safe:
+    re-read on every clock call (``FAKETIME_NO_CACHE``) from the daemon's threads, one read saw a torn
+    buffer and libfaketime ended the daemon ("failed to parse FAKETIME timestamp", exit 1; 1 of 4
+    ``faults`` flights of ``gdnav bench flights``). It is therefore re-read once per wall second
+    (``FAKETIME_CACHE_DURATION=0``: at the first clock call of each new second). So that a step lands at
+    its flight time, a flight with clock steps starts on a whole second (``sitl.runner``), steps are at
+    whole seconds (``sitl.scenario`` refuses others), and the file is rewritten ``CLOCK_STEP_LEAD_S``
+    before the second it takes effect in. The SITL camera, a process on the same host, stamps its frames
+    with the stepped clock (``Scenario.wall_step_s``). The autopilot's clock (SYSTEM_TIME) is its own and
+    does not step.
 ``ort_fault``
     ONNX Runtime refuses the next ``count`` runs, through the C7 test hook (``GDNAV_TEST_ORT_FAULT_FILE``):
     ONNX Runtime itself raises from inside the real session. Only a learned matcher runs ONNX Runtime;
@@ -40,7 +47,7 @@ import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
@@ -79,8 +86,13 @@ def libfaketime_path() -> Path:
     return lib
 
 
+#: How long before the whole second a clock step takes effect in its offset file is rewritten, s: the
+#: daemon reads the clock many times a second, so it has read the old offset in the second before.
+CLOCK_STEP_LEAD_S: Final[float] = 0.25
+
+
 def _write_atomic(path: Path, text: str) -> None:
-    """Readers never see a half-written file (libfaketime rereads it on every clock read)."""
+    """Readers never see a half-written file (libfaketime rereads it once per wall second)."""
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
     os.replace(tmp, path)
@@ -142,8 +154,8 @@ class HostFaults:
                     "LD_PRELOAD": str(libfaketime_path()),
                     "FAKETIME_TIMESTAMP_FILE": str(self._faketime_file),
                     "FAKETIME_DONT_FAKE_MONOTONIC": "1",
-                    # re-read on every clock read: the step lands at once (measured: ~5 us per read)
-                    "FAKETIME_NO_CACHE": "1",
+                    # re-read at the first clock read of each wall second (see the module docstring)
+                    "FAKETIME_CACHE_DURATION": "0",
                 }
             )
         if FaultKind.ORT_FAULT in kinds:
@@ -182,7 +194,9 @@ class HostFaults:
         """Inject every host fault at its flight time (windows: start and end)."""
         events: list[tuple[float, int, Fault, bool]] = []
         for i, f in enumerate(self.scenario.faults):
-            if f.kind in (FaultKind.CLOCK_JUMP, FaultKind.ORT_FAULT):
+            if f.kind is FaultKind.CLOCK_JUMP:  # read by the daemon at the next whole second, at_s
+                events.append((f.from_s - CLOCK_STEP_LEAD_S, i, f, True))
+            elif f.kind is FaultKind.ORT_FAULT:
                 events.append((f.from_s, i, f, True))
             elif f.kind in (FaultKind.TILE_CORRUPT, FaultKind.FDR_FULL):
                 events.append((f.from_s, i, f, True))
@@ -192,7 +206,7 @@ class HostFaults:
                 await asyncio.wait_for(stop.wait(), max(0.0, t0_unix_s + at_s - time.time()))
             if stop.is_set():
                 return
-            self._inject(fault, start, at_s)
+            self._inject(fault, start, fault.from_s if fault.kind is FaultKind.CLOCK_JUMP else at_s)
 
     def _inject(self, fault: Fault, start: bool, at_s: float) -> None:
         entry: dict[str, Any] = {"kind": fault.kind.value, "t_s": round(at_s, 3)}

@@ -418,6 +418,8 @@ class _Flight:
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(server.client_connected.wait(), 10.0)
                 self.t0_unix_s = time.time() + 0.2
+                if FaultKind.CLOCK_JUMP in self.host.kinds:  # steps land at whole seconds (host_faults)
+                    self.t0_unix_s = float(math.ceil(self.t0_unix_s))
                 self._say(
                     f"flying '{self.scenario.name}': {self.traj.duration_s:.0f} s, "
                     f"{len(self.traj.frame_times_s())} frames"

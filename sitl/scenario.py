@@ -91,13 +91,13 @@ number is expected.
     default 500). Instants ``{at_s}``, sent before the frame exposed at or after ``at_s``:
     ``corrupt_frame`` (a valid header with a destroyed JPEG), ``bomb_frame`` (a small PNG that claims
     20000x20000), ``wrong_size_frame`` (a 100x100 image).
-    Faults of the companion computer the daemon runs on (``sitl.host_faults``): ``clock_jump``
-    ``{at_s, step_s}`` (an instant: its wall clock steps by ``step_s`` != 0 seconds, as NTP or ``date -s``
-    would: the daemon process sees the step through libfaketime (its monotonic clock is untouched) and the
-    camera, on the same computer, stamps with the stepped clock; the autopilot's clock does not step);
-    ``ort_fault`` ``{at_s, count}`` (an instant: the next ``count`` ONNX Runtime runs, default 3, are
-    refused by ONNX Runtime itself through the C7 test hook; only a learned matcher runs ONNX Runtime:
-    with another the report lists the count as ``not_consumed``);
+    Faults of the companion computer the daemon runs on (``sitl.host_faults``): ``clock_jump`` ``{at_s,
+    step_s}`` (an instant, at a whole second: its wall clock steps by ``step_s`` != 0 seconds, as NTP or
+    ``date -s`` would: the daemon process sees the step through libfaketime (its monotonic clock is
+    untouched) and the camera, on the same computer, stamps with the stepped clock; the autopilot's clock
+    does not step); ``ort_fault`` ``{at_s, count}`` (an instant: the next ``count`` ONNX Runtime runs,
+    default 3, are refused by ONNX Runtime itself through the C7 test hook; only a learned matcher runs
+    ONNX Runtime: with another the report lists the count as ``not_consumed``);
     ``tile_corrupt`` ``{from_s, to_s}`` (a window: the map cell under the aircraft's position 3 s later is
     overwritten with noise in the daemon's cache file, in place, and its bytes put back at ``to_s``; the
     run uses its own copy of the cache); ``fdr_full`` ``{from_s, to_s}`` (a window: the file system of the
@@ -1005,6 +1005,10 @@ def _read_faults(value: object, source: str | None) -> tuple[Fault, ...]:
             raise b.error("kind", f"expected one of: {valid}; got {kind_raw!r}") from exc
         if kind is FaultKind.CLOCK_JUMP:
             at = b.number("at_s", ge=0.0)
+            if at != round(at):
+                # libfaketime re-reads the daemon's offset at whole seconds (sitl.host_faults), and the
+                # flight starts on a whole second, so a step lands at its at_s only on a whole second.
+                raise b.error("at_s", f"expected a whole number of seconds, got {at}")
             step = b.number("step_s")
             if step == 0.0:
                 raise b.error("step_s", "expected a non-zero step in seconds, got 0")

@@ -5,6 +5,7 @@ the shared cache is never touched."""
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -90,3 +91,64 @@ def test_clock_jump_and_ort_fault_files_are_what_libfaketime_and_the_hook_read(t
     ort = next(f for f in scenario.faults if f.kind.value == "ort_fault")
     host._inject(ort, True, 1.5)
     assert Path(setup.env["GDNAV_TEST_ORT_FAULT_FILE"]).read_text().strip() == "4"
+
+
+#: A process that reads the wall clock from four threads for ``argv[1]`` seconds and prints how far its
+#: wall clock is from true time (its monotonic clock is not faked) at the start and at the end.
+_CLOCK_READERS = """
+import sys, threading, time
+def offset():
+    return time.time() - (time.monotonic() + BASE)
+BASE = time.time() - time.monotonic()
+start = offset()
+end_at = time.monotonic() + float(sys.argv[1])
+def read():
+    while time.monotonic() < end_at:
+        time.time()
+threads = [threading.Thread(target=read) for _ in range(4)]
+[t.start() for t in threads]
+[t.join() for t in threads]
+print(f"{start:.3f} {offset():.3f}")
+"""
+
+
+@pytest.mark.slow
+def test_a_clock_step_reaches_a_process_reading_the_clock_from_many_threads(tmp_path: Path) -> None:
+    """The daemon's environment for clock_jump (libfaketime preloaded): four threads read the wall clock
+    without pause while the offset file is rewritten with each step, and the process lives and sees the
+    step. libfaketime re-reading the file on every read (FAKETIME_NO_CACHE) ended such a process within
+    6 s in 3 of 3 runs ("failed to parse FAKETIME timestamp", exit 1), as it ended one daemon in a
+    `faults` flight; once per wall second it survived 3 of 3 (about 3 million reads each)."""
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("libfaketime")
+    scenario = scenario_from_mapping(
+        {
+            "name": "t",
+            "alt_agl_m": 100.0,
+            "waypoints": {"frame": "map_relative", "points": [[0.3, 0.3], [0.7, 0.7]]},
+            "faults": [
+                {"kind": "clock_jump", "at_s": 1.0, "step_s": 30.0},
+                {"kind": "clock_jump", "at_s": 2.0, "step_s": -10.0},
+                {"kind": "clock_jump", "at_s": 3.0, "step_s": 20.0},
+            ],
+        }
+    )
+    host = HostFaults(scenario, None, tmp_path, tmp_path, [])  # type: ignore[arg-type]
+    setup = host.prepare()
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _CLOCK_READERS, "6"],
+        env={**os.environ, **setup.env},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    for fault in scenario.faults:  # one step about every 0.4 s, then the last one stays
+        time.sleep(0.4)
+        host._inject(fault, True, fault.from_s)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    start, end = (float(v) for v in out.split())
+    assert abs(start) < 0.5 and end == pytest.approx(40.0, abs=0.5), out

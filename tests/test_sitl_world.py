@@ -126,6 +126,8 @@ def test_scenario_host_faults_parse_and_never_reach_the_camera() -> None:
     assert sc.instant_faults(0.0, 10.0) == []
     err = _error_for({**BASE, "faults": [{"kind": "clock_jump", "at_s": 1.0, "step_s": 0}]})
     assert "faults[0].step_s" in str(err)
+    err = _error_for({**BASE, "faults": [{"kind": "clock_jump", "at_s": 1.5, "step_s": 30}]})
+    assert "faults[0].at_s" in str(err) and "whole number of seconds" in str(err)
     err = _error_for({**BASE, "faults": [{"kind": "ort_fault", "at_s": 1.0, "count": 0}]})
     assert "faults[0].count" in str(err)
 
