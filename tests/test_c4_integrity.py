@@ -186,6 +186,23 @@ def test_full_or_nearly_full_evidence_is_left_to_the_estimators_gate() -> None:
         assert v.prior_nis is not None and v.prior_nis > CFG.prior_gate_chi2
 
 
+def test_a_fix_short_of_full_evidence_must_agree_with_the_prior_by_default() -> None:
+    """The evidence of the cross-date XFeat + LighterGlue fix that was accepted 4.0 sigma off (NAIP map
+    2009, frames 2014: 145 of 413 matches, confidence 0.31, prior NIS 15): with the default rule it must
+    agree with the prior and is refused; with the old 1.5 it was left to the estimator's gate."""
+    cfg = IntegrityConfig()
+    ev = MatchEvidence(inlier_count=145, putative_count=413, spread_share=0.385, mean_confidence=0.313)
+    k = FixIntegrity(cfg).sigma_scale(ev)
+    assert 1.1 <= k < 1.5
+    fix, prior = _fix(north_m=30.0, sigma_m=5.0), _prior(sigma_m=5.0)
+    v = _assess(ev, fix=fix, prior=prior, config=cfg)
+    assert not v.accepted and v.reason == IntegrityReason.PRIOR_DISAGREEMENT, v
+    old = dataclasses.replace(cfg, weak_evidence_scale=1.5)
+    assert _assess(ev, fix=fix, prior=prior, config=old).accepted
+    # Full evidence (every same-date fix flown) is still the estimator's to judge.
+    assert _assess(STRONG, fix=fix, prior=prior, config=cfg).accepted
+
+
 def test_weaker_evidence_states_a_larger_sigma_capped() -> None:
     rule = FixIntegrity(CFG)
     sigmas = []
