@@ -20,6 +20,7 @@ from gps_denied_onboard.components.c4_pose.integrity import (
     FixIntegrity,
     MatchEvidence,
     hull_share,
+    with_regional_error,
 )
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
@@ -192,15 +193,47 @@ def test_a_fix_short_of_full_evidence_must_agree_with_the_prior_by_default() -> 
     agree with the prior and is refused; with the old 1.5 it was left to the estimator's gate."""
     cfg = IntegrityConfig()
     ev = MatchEvidence(inlier_count=145, putative_count=413, spread_share=0.385, mean_confidence=0.313)
-    k = FixIntegrity(cfg).sigma_scale(ev)
-    assert 1.1 <= k < 1.5
-    fix, prior = _fix(north_m=30.0, sigma_m=5.0), _prior(sigma_m=5.0)
+    old = dataclasses.replace(cfg, weak_evidence_scale=1.5, full_evidence_confidence=0.0)
+    assert 1.1 <= FixIntegrity(old).sigma_scale(ev) < 1.5  # the confidence did not count
+    assert FixIntegrity(cfg).sigma_scale(ev) == pytest.approx(0.5 / (145 / 413) * 0.6 / 0.313)
+    fix, prior = _fix(north_m=60.0, sigma_m=5.0), _prior(sigma_m=5.0)
     v = _assess(ev, fix=fix, prior=prior, config=cfg)
     assert not v.accepted and v.reason == IntegrityReason.PRIOR_DISAGREEMENT, v
-    old = dataclasses.replace(cfg, weak_evidence_scale=1.5)
     assert _assess(ev, fix=fix, prior=prior, config=old).accepted
     # Full evidence (every same-date fix flown) is still the estimator's to judge.
     assert _assess(STRONG, fix=fix, prior=prior, config=cfg).accepted
+
+
+def test_a_low_match_confidence_is_weaker_evidence() -> None:
+    """Below ``full_evidence_confidence`` the mean LightGlue confidence scales the sigma linearly; a
+    matcher that gives no confidence is not scaled for it."""
+    cfg = IntegrityConfig()
+    rule = FixIntegrity(cfg)
+    full = MatchEvidence(inlier_count=200, putative_count=250, spread_share=0.5, mean_confidence=0.9)
+    assert rule.sigma_scale(full) == 1.0
+    assert rule.sigma_scale(dataclasses.replace(full, mean_confidence=None)) == 1.0
+    assert rule.sigma_scale(dataclasses.replace(full, mean_confidence=0.48)) == pytest.approx(1.25)
+
+
+def test_weak_evidence_states_a_regional_error_after_the_comparisons() -> None:
+    """A fix short of full evidence carries ``regional_sigma_map_px`` map pixels of regional error, to be
+    added (:func:`with_regional_error`) after the map fixes are compared: the prior check still judges it
+    without that term. A fix with full evidence carries none."""
+    cfg = IntegrityConfig()
+    weak = MatchEvidence(inlier_count=180, putative_count=400, spread_share=0.5, mean_confidence=0.48)
+    near = _assess(weak, fix=_fix(north_m=3.0, sigma_m=5.0), prior=_prior(sigma_m=5.0), config=cfg)
+    assert near.accepted and near.regional_sigma_m == pytest.approx(cfg.regional_sigma_map_px * GSD)
+    far = _assess(weak, fix=_fix(north_m=40.0, sigma_m=5.0), prior=_prior(sigma_m=5.0), config=cfg)
+    assert far.reason == IntegrityReason.PRIOR_DISAGREEMENT  # 8 px of regional error would hide it
+    assert _assess(STRONG, prior=_prior(), config=cfg).regional_sigma_m == 0.0
+    assert near.fdr_fields()["regional_sigma_m"] == pytest.approx(round(8 * GSD, 3))
+
+    fix = near.fix
+    more = with_regional_error(fix, 20.0)
+    assert more.horiz_sigma_m == pytest.approx(np.hypot(fix.horiz_sigma_m, 20.0))
+    assert more.shared_sigma_m == pytest.approx(np.hypot(fix.shared_sigma_m, 20.0))
+    assert more.cov_ned_m2[2, 2] == fix.cov_ned_m2[2, 2]
+    assert with_regional_error(fix, 0.0) is fix
 
 
 def test_weaker_evidence_states_a_larger_sigma_capped() -> None:

@@ -327,6 +327,15 @@ class IntegrityConfig:
     #: are already in the solver's covariance: these stand for the risk of a wrong alignment.
     full_evidence_inliers: PosInt = 50
     full_evidence_ratio: Fraction = 0.5
+    #: The same for the inliers' mean matcher confidence (LightGlue; linearly). Every same-date fix of
+    #: `gdnav bench flights` had 0.58 or more, the cross-date ones 0.25-0.64.
+    full_evidence_confidence: Fraction = 0.6
+    #: A fix short of full evidence (sigma scale at least ``weak_evidence_scale``) also states this
+    #: regional error, in map pixels, on top of the rest, and carries it as error every nearby fix shares
+    #: (it is left out where map fixes are compared: the prior check, the consistency pairs). Measured:
+    #: cross-date XFeat fixes (NAIP 2009 vs 2014 and 2020, 3.26 m/px) shared offsets of 20-50 m over
+    #: runs of consecutive fixes, which neither comparison can see. 0 = off.
+    regional_sigma_map_px: Annotated[float, Strict(), Field(ge=0)] = 8.0
     #: Cap on the sigma factor.
     max_sigma_scale: Annotated[float, Strict(), Field(ge=1)] = 10.0
     #: Floor on the per-axis sigma in map pixels (a match is never better than the map's pixel).

@@ -41,6 +41,7 @@ from gps_denied_onboard.components.c4_pose.integrity import (
     FixIntegrity,
     IntegrityVerdict,
     MatchEvidence,
+    with_regional_error,
 )
 from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
 from gps_denied_onboard.components.c5_estimator.journal import UNIT_FIX, UNIT_FIX_PRIOR, UNIT_TRACK
@@ -323,7 +324,8 @@ class NavigationPipeline:
             if fix is not None and reason is None:
                 full_evidence = verdict is None or verdict.sigma_scale <= 1.0
                 consistency = self._consistency.assess(fix, full_evidence=full_evidence)
-                fix = consistency.fix
+                # The regional error cancels between map fixes: added after both comparisons.
+                fix = with_regional_error(consistency.fix, verdict.regional_sigma_m if verdict else 0.0)
                 if consistency.accepted:
                     decision = self._axis.fuse_fix(fix)
                     accepted = bool(decision.accepted)
