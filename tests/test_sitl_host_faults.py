@@ -15,11 +15,23 @@ from daemon_harness import build_small_cache
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.sitl.host_faults import TILE_CORRUPT_LEAD_S, HostFaults
 from gps_denied_onboard.sitl.render import MapRenderer
-from gps_denied_onboard.sitl.scenario import scenario_from_mapping
+from gps_denied_onboard.sitl.scenario import Scenario, scenario_from_mapping
 
 
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _scenario(faults: list[dict[str, object]]) -> Scenario:
+    """A short straight flight over the map with ``faults``."""
+    return scenario_from_mapping(
+        {
+            "name": "t",
+            "alt_agl_m": 100.0,
+            "waypoints": {"frame": "map_relative", "points": [[0.3, 0.3], [0.7, 0.7]]},
+            "faults": faults,
+        }
+    )
 
 
 def test_tile_corrupt_hits_the_cell_ahead_and_restores_its_bytes(tmp_path: Path) -> None:
@@ -27,14 +39,7 @@ def test_tile_corrupt_hits_the_cell_ahead_and_restores_its_bytes(tmp_path: Path)
     daemon's open store masks it and reports that cell); at its end the copy is byte-identical again."""
     map_path, cache = build_small_cache(tmp_path)
     shared_sha = _sha(cache / TileStore.open(cache).manifest.mosaic_name)
-    scenario = scenario_from_mapping(
-        {
-            "name": "t",
-            "alt_agl_m": 100.0,
-            "waypoints": {"frame": "map_relative", "points": [[0.3, 0.3], [0.7, 0.7]]},
-            "faults": [{"kind": "tile_corrupt", "from_s": 5.0, "to_s": 6.0}],
-        }
-    )
+    scenario = _scenario([{"kind": "tile_corrupt", "from_s": 5.0, "to_s": 6.0}])
     traj = scenario.resolve(MapRenderer(map_path).bbox_lonlat, 400.0)
     injected: list[dict] = []
     host = HostFaults(scenario, traj, tmp_path / "work", cache, injected)
@@ -65,17 +70,12 @@ def test_clock_jump_and_ort_fault_files_are_what_libfaketime_and_the_hook_read(t
     """clock_jump writes the host's total offset for libfaketime (the daemon preloads it, monotonic left
     alone); ort_fault writes the count the C7 hook consumes."""
     pytest.importorskip("libfaketime")
-    scenario = scenario_from_mapping(
-        {
-            "name": "t",
-            "alt_agl_m": 100.0,
-            "waypoints": {"frame": "map_relative", "points": [[0.3, 0.3], [0.7, 0.7]]},
-            "faults": [
-                {"kind": "clock_jump", "at_s": 1.0, "step_s": -30.0},
-                {"kind": "clock_jump", "at_s": 2.0, "step_s": 3600.0},
-                {"kind": "ort_fault", "at_s": 1.5, "count": 4},
-            ],
-        }
+    scenario = _scenario(
+        [
+            {"kind": "clock_jump", "at_s": 1.0, "step_s": -30.0},
+            {"kind": "clock_jump", "at_s": 2.0, "step_s": 3600.0},
+            {"kind": "ort_fault", "at_s": 1.5, "count": 4},
+        ]
     )
     host = HostFaults(scenario, None, tmp_path, tmp_path, [])  # type: ignore[arg-type]
     setup = host.prepare()
@@ -124,17 +124,12 @@ def test_a_clock_step_reaches_a_process_reading_the_clock_from_many_threads(tmp_
     import time
 
     pytest.importorskip("libfaketime")
-    scenario = scenario_from_mapping(
-        {
-            "name": "t",
-            "alt_agl_m": 100.0,
-            "waypoints": {"frame": "map_relative", "points": [[0.3, 0.3], [0.7, 0.7]]},
-            "faults": [
-                {"kind": "clock_jump", "at_s": 1.0, "step_s": 30.0},
-                {"kind": "clock_jump", "at_s": 2.0, "step_s": -10.0},
-                {"kind": "clock_jump", "at_s": 3.0, "step_s": 20.0},
-            ],
-        }
+    scenario = _scenario(
+        [
+            {"kind": "clock_jump", "at_s": 1.0, "step_s": 30.0},
+            {"kind": "clock_jump", "at_s": 2.0, "step_s": -10.0},
+            {"kind": "clock_jump", "at_s": 3.0, "step_s": 20.0},
+        ]
     )
     host = HostFaults(scenario, None, tmp_path, tmp_path, [])  # type: ignore[arg-type]
     setup = host.prepare()
