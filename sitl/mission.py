@@ -225,16 +225,26 @@ class AutopilotRelay:
             self._stop.wait(1.0)
 
     # --- the driver's side ----------------------------------------------------------------------
-    def send(self, fn: Callable[[Any], None]) -> None:
-        """Send one message of this ground station's: ``fn(mav)`` calls a ``*_send`` of pymavlink's."""
+    def send(self, fn: Callable[[Any], None]) -> int:
+        """Send one message of this ground station's: ``fn(mav)`` calls a ``*_send`` of pymavlink's.
+
+        Returns how many messages had been received when it was sent: :meth:`wait` from there sees the
+        reply even when it arrives before the wait begins (the emulator answers within a millisecond,
+        and a COMMAND_ACK missed that way read as a refused take-off)."""
+        with self._cond:
+            mark = len(self._events)
         with self._write_lock, contextlib.suppress(OSError):
             fn(self.ap.mav)
+        return mark
 
-    def wait(self, pred: Callable[[Any], bool], types: Sequence[str], timeout_s: float) -> Any:
-        """The first message of ``types`` after now for which ``pred`` holds, or None at the timeout."""
+    def wait(
+        self, pred: Callable[[Any], bool], types: Sequence[str], timeout_s: float, *, since: int | None = None
+    ) -> Any:
+        """The first message of ``types`` received after ``since`` (a :meth:`send`'s return; default: now)
+        for which ``pred`` holds, or None at the timeout."""
         deadline = time.time() + timeout_s
         with self._cond:
-            start = len(self._events)
+            start = len(self._events) if since is None else since
             while True:
                 for _, msg in self._events[start:]:
                     if msg.get_type() in types and pred(msg):
@@ -317,20 +327,20 @@ class MissionDriver:
     # --- parameters -----------------------------------------------------------------------------
     def get_param(self, name: str, timeout_s: float = 3.0) -> float | None:
         for _ in range(3):
-            self.link.send(lambda mav: mav.param_request_read_send(*self._target(), name.encode(), -1))
-            msg = self.link.wait(lambda m: _pid(m.param_id) == name, ["PARAM_VALUE"], timeout_s)
+            sent = self.link.send(lambda mav: mav.param_request_read_send(*self._target(), name.encode(), -1))
+            msg = self.link.wait(lambda m: _pid(m.param_id) == name, ["PARAM_VALUE"], timeout_s, since=sent)
             if msg is not None:
                 return float(msg.param_value)
         return None
 
     def set_param(self, name: str, value: float) -> None:
         for _ in range(3):
-            self.link.send(
+            sent = self.link.send(
                 lambda mav: mav.param_set_send(
                     *self._target(), name.encode(), float(value), mavutil.mavlink.MAV_PARAM_TYPE_REAL32
                 )
             )
-            msg = self.link.wait(lambda m: _pid(m.param_id) == name, ["PARAM_VALUE"], 3.0)
+            msg = self.link.wait(lambda m: _pid(m.param_id) == name, ["PARAM_VALUE"], 3.0, since=sent)
             if msg is not None and abs(float(msg.param_value) - value) < 1e-3:
                 self._event("param_set", name=name, value=value)
                 return
@@ -342,8 +352,8 @@ class MissionDriver:
     # --- commands -------------------------------------------------------------------------------
     def command(self, cmd: int, *params: float, timeout_s: float = 3.0) -> int | None:
         p = [*params, *([0.0] * (7 - len(params)))]
-        self.link.send(lambda mav: mav.command_long_send(*self._target(), cmd, 0, *p))
-        msg = self.link.wait(lambda m: int(m.command) == cmd, ["COMMAND_ACK"], timeout_s)
+        sent = self.link.send(lambda mav: mav.command_long_send(*self._target(), cmd, 0, *p))
+        msg = self.link.wait(lambda m: int(m.command) == cmd, ["COMMAND_ACK"], timeout_s, since=sent)
         return None if msg is None else int(msg.result)
 
     def set_mode(self, mode: int) -> None:
@@ -439,11 +449,11 @@ class MissionDriver:
         items.append((mavutil.mavlink.MAV_CMD_NAV_LAND, 0, 0, 0))
         sys_id, comp = self._target()
         for _attempt in range(3):
-            self.link.send(lambda mav: mav.mission_count_send(sys_id, comp, len(items), 0))
+            mark = self.link.send(lambda mav: mav.mission_count_send(sys_id, comp, len(items), 0))
             sent = -1
             while True:
                 msg = self.link.wait(
-                    lambda m: True, ["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], 5.0
+                    lambda m: True, ["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], 5.0, since=mark
                 )
                 if msg is None:
                     break
@@ -456,7 +466,7 @@ class MissionDriver:
                 if not 0 <= seq < len(items):
                     break
                 cmd, lat, lon, alt = items[seq]
-                self.link.send(
+                mark = self.link.send(
                     lambda mav, seq=seq, cmd=cmd, lat=lat, lon=lon, alt=alt: mav.mission_item_int_send(  # type: ignore[misc]
                         sys_id,
                         comp,

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import structlog
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GDNAV_SHARED_DIR", REPO_ROOT.parent / "shared"))
@@ -17,3 +19,13 @@ def shared_path(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"shared data not available: {path}")
     return path
+
+
+@pytest.fixture(autouse=True)
+def _restore_structlog() -> Iterator[None]:
+    """The CLI configures logging for its process; a test that runs it in-process must not leave the
+    next test a filtering level or a closed capture (tests that read logs with ``capture_logs`` then see
+    nothing: a `gdnav bench flights` refusal did that to nine tests)."""
+    saved = structlog.get_config()
+    yield
+    structlog.configure(**saved)

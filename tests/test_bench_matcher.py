@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-import structlog
 
 from conftest import shared_path
 from gps_denied_onboard.bench.matcher import (
@@ -25,14 +23,6 @@ from gps_denied_onboard.components.c6_tiles.types import TilePixelsHandle
 pytestmark = pytest.mark.realdata
 
 LATENCY_KEYS = ("frame_cold_ms", "frame_warm_ms", "candidate_cold_ms", "candidate_warm_ms", "query_ms")
-
-
-@pytest.fixture(autouse=True)
-def _restore_structlog() -> Iterator[None]:
-    """The CLI configures logging for the process; give the next test the configuration it had."""
-    saved = structlog.get_config()
-    yield
-    structlog.configure(**saved)
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,6 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-import structlog
 import yaml
 
 from daemon_harness import build_small_cache, fly_small_map
@@ -27,15 +26,6 @@ SNOWPEAK = Path("/work/shared/data/snowpeak_ebee")
 #: Ground height of the snowpeak site: the median altitude of the eBee's own track (snowpea1.kml) while it
 #: stood at the launch point, 06:15-06:19 UTC (121.1-124.2 m over 2410 points).
 SNOWPEAK_GROUND_AMSL_M = 122.7
-
-
-@pytest.fixture(autouse=True)
-def _restore_logging() -> Any:
-    """``gdnav replay`` runs in-process here and points structlog at the captured stderr; later tests must
-    not log into that closed capture."""
-    saved = structlog.get_config()
-    yield
-    structlog.configure(**saved)
 
 
 def _replay(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
