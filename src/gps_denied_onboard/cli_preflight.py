@@ -165,7 +165,7 @@ def _check_cache(config: Config, opened: dict[str, Any]) -> str:
     return f"{len(tiles)} tiles, zoom {tiles.zoom}, {tiles.gsd_m_px:.2f} m/px; {how}"
 
 
-def _check_models(config: Config) -> str:
+def _check_models(config: Config, opened: dict[str, Any]) -> str:
     # The same two steps as compose_root: resolve model_dir/auto (verifies the manifest), then build the
     # strategy, which creates its ONNX Runtime sessions.
     from gps_denied_onboard.runtime_root.compose import (
@@ -175,6 +175,7 @@ def _check_models(config: Config) -> str:
     )
 
     resolved = _resolve_matcher(config)
+    opened["matcher_config"] = resolved  # the model directory is hashed once, for tile_features too
     strategy = resolved.matcher.strategy
     if strategy in WEIGHTS_FREE_MATCHERS:
         chose = (
@@ -214,14 +215,12 @@ def _check_vpr(config: Config, opened: dict[str, Any]) -> str:
 
 
 def _check_tile_features(config: Config, opened: dict[str, Any]) -> str:
-    from gps_denied_onboard.runtime_root.compose import (
-        WEIGHTS_FREE_MATCHERS,
-        _resolve_matcher,
-        open_tile_features,
-    )
+    from gps_denied_onboard.runtime_root.compose import WEIGHTS_FREE_MATCHERS, open_tile_features
 
     tiles = _opened_tiles(opened)
-    resolved = _resolve_matcher(config)
+    if "matcher_config" not in opened:
+        raise _Skipped("not checked (the matcher's model directory did not verify)")
+    resolved = opened["matcher_config"]
     strategy, mode = resolved.matcher.strategy, resolved.matcher.tile_features
     if strategy in WEIGHTS_FREE_MATCHERS:
         raise _Skipped(f"not needed ({strategy} extracts chips live, cheaply)")
@@ -420,11 +419,13 @@ async def _online(config: Config, timeout_s: float) -> tuple[CheckResult, CheckR
 
 def run_checks(config: Config, checked_config: str, *, offline: bool, timeout_s: float) -> list[CheckResult]:
     """Every check after ``config`` (already loaded), in ``CHECKS`` order."""
-    opened: dict[str, Any] = {}  # the cache, once, for the checks that use it
+    opened: dict[str, Any] = {}  # the cache and the resolved matcher, once, for the checks that use them
     results = [
         CheckResult("config", Status.PASS, checked_config, f"valid (profile {config.profile})"),
         _run_check("cache", config.cache.dir, lambda: _check_cache(config, opened)),
-        _run_check("models", f"matcher.strategy {config.matcher.strategy}", lambda: _check_models(config)),
+        _run_check(
+            "models", f"matcher.strategy {config.matcher.strategy}", lambda: _check_models(config, opened)
+        ),
         _run_check("vpr", f"vpr.strategy {config.vpr.strategy}", lambda: _check_vpr(config, opened)),
         _run_check(
             "tile_features",
