@@ -68,6 +68,18 @@ GRAVITY_M_S2 = 9.80665
 #: The simulated accelerometer's fixed bias and white noise (1-sigma per sample), body FRD, m/s^2.
 IMU_BIAS_M_S2 = np.array([0.02, -0.02, 0.03])
 IMU_NOISE_M_S2 = 0.05
+#: The simulated autopilot's roll and pitch error in ATTITUDE, radians: a fixed bias (an AHRS a little off
+#: level plus a camera mount calibrated to a fraction of a degree), a slow wander (first-order
+#: Gauss-Markov: 1-sigma, correlation time s) and a little white noise per message. An AHRS's attitude is
+#: a filter's output, smooth from one message to the next: the daemon's VO assumes 0.05 deg between
+#: frames (``c1_vio/homography_vo.py``), and this gives about 0.04. The nav camera sees the true
+#: attitude; only what the autopilot reports is off. The daemon leans on this attitude when the image
+#: cannot pin the camera's tilt (``c4_pose/solver.py``), so a perfect one here would hide its error:
+#: ``pose.attitude_sigma_deg`` (0.5) must cover bias and wander together.
+ATTITUDE_BIAS_RAD = (math.radians(0.2), math.radians(-0.15))
+ATTITUDE_WANDER_RAD = math.radians(0.1)
+ATTITUDE_WANDER_TAU_S = 5.0
+ATTITUDE_NOISE_RAD = math.radians(0.01)
 ALTITUDE_HZ = 10.0
 #: Default seconds between the last frame and the daemon's SIGTERM (its last outputs still arrive).
 TAIL_S = 1.5
@@ -151,6 +163,8 @@ class _Flight:
         #: Unix times at which the daemon was killed, and at which its replacement was started.
         self.restarts: list[dict[str, float]] = []
         self._imu_rng = np.random.default_rng(11)
+        self._attitude_rng = np.random.default_rng(12)
+        self._attitude_wander_rad = self._attitude_rng.normal(0.0, ATTITUDE_WANDER_RAD, 2)
         self.daemon_stop_s: float | None = None
         #: Faults of the daemon's host (clock, ONNX Runtime, map cells, FDR disk: ``sitl.host_faults``).
         self.host = HostFaults(scenario, trajectory, workdir, cache_dir, self.faults_injected)
@@ -198,6 +212,17 @@ class _Flight:
         body = body + IMU_BIAS_M_S2 + self._imu_rng.normal(0.0, IMU_NOISE_M_S2, 3)
         return float(body[0]), float(body[1]), float(body[2])
 
+    def _attitude_error_rad(self) -> tuple[float, float]:
+        """(roll, pitch) error of the next ATTITUDE message (see ``ATTITUDE_BIAS_RAD``); one step of the
+        wander per message, at ``ATTITUDE_HZ``."""
+        a = math.exp(-1.0 / (ATTITUDE_HZ * ATTITUDE_WANDER_TAU_S))
+        rng = self._attitude_rng
+        self._attitude_wander_rad = a * self._attitude_wander_rad + math.sqrt(1.0 - a * a) * rng.normal(
+            0.0, ATTITUDE_WANDER_RAD, 2
+        )
+        err = np.asarray(ATTITUDE_BIAS_RAD) + self._attitude_wander_rad + rng.normal(0.0, ATTITUDE_NOISE_RAD, 2)
+        return float(err[0]), float(err[1])
+
     def _send_telemetry(self, ap: SimAutopilot, now: float, *, full: bool) -> None:
         t_s = max(0.0, now - self.t0_unix_s) if self.t0_unix_s else 0.0
         truth = self.traj.truth_at(t_s)
@@ -206,7 +231,8 @@ class _Flight:
             if flying and self.scenario.fault_at(FaultKind.ATTITUDE_NAN, t_s):
                 ap.send_attitude(now, math.nan, math.nan, math.nan)
             else:
-                ap.send_attitude(now, truth.roll_rad, truth.pitch_rad, truth.yaw_rad)
+                d_roll, d_pitch = self._attitude_error_rad()
+                ap.send_attitude(now, truth.roll_rad + d_roll, truth.pitch_rad + d_pitch, truth.yaw_rad)
             ap.send_highres_imu(now, self._specific_force_body(t_s, truth))
         if full:
             alt_rel = truth.alt_agl_m  # home is on the flat ground
