@@ -219,7 +219,8 @@ def test_weak_evidence_states_a_regional_error_after_the_comparisons() -> None:
     """A fix short of full evidence carries ``regional_sigma_map_px`` map pixels of regional error, to be
     added (:func:`with_regional_error`) after the map fixes are compared: the prior check still judges it
     without that term. A fix with full evidence carries none."""
-    cfg = IntegrityConfig()
+    cfg = IntegrityConfig(regional_sigma_map_px=8.0)
+    assert IntegrityConfig().regional_sigma_map_px == 0.0  # off unless the map is known to wander
     weak = MatchEvidence(inlier_count=180, putative_count=400, spread_share=0.5, mean_confidence=0.48)
     near = _assess(weak, fix=_fix(north_m=3.0, sigma_m=5.0), prior=_prior(sigma_m=5.0), config=cfg)
     assert near.accepted and near.regional_sigma_m == pytest.approx(cfg.regional_sigma_map_px * GSD)

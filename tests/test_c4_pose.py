@@ -156,17 +156,44 @@ def test_pose_yaw_follows_body_heading() -> None:
         assert abs(math.degrees(err)) < 0.5, yaw_deg
 
 
-def test_pose_covariance_consistent_monte_carlo() -> None:
-    """Mean normalised position error squared over 50 trials is near 3 (3 dof): the covariance is honest."""
+@pytest.mark.parametrize("alt_agl_m", [120.0, 1200.0])
+def test_pose_covariance_consistent_monte_carlo(alt_agl_m: float) -> None:
+    """Mean normalised position error squared over 60 trials is near 3 (3 dof): the covariance is honest,
+    with independent pixel noise and an autopilot attitude off by the stated sigma. At 120 m AGL the
+    image pins the tilt; at 1200 m the attitude prior carries much of it."""
     rng = np.random.default_rng(4)
-    solver = _solver(min_sigma_m=1e-4)
+    sigma_att_deg = 0.5
+    solver = _solver(min_sigma_m=1e-4, attitude_sigma_deg=sigma_att_deg, max_independent_matches=10_000)
+    pos = np.array([TRUE_POS_NED_M[0], TRUE_POS_NED_M[1], -(GROUND_ALT_AMSL_M - 500.0) - alt_agl_m])
     nees = []
-    for _ in range(50):
-        cand, tile = _scene(rng, n_pts=60, noise_px=1.0)
-        fix = solver.solve(_frame(), cand, tile, CALIB)
-        err = fix.pos_ned_m - TRUE_POS_NED_M
+    for _ in range(60):
+        cand, tile = _scene(rng, n_pts=60, noise_px=1.0, pos_ned=pos)
+        d_roll, d_pitch = np.radians(rng.normal(0.0, sigma_att_deg, 2))
+        reported = Attitude(TRUE_ATT.roll_rad + d_roll, TRUE_ATT.pitch_rad + d_pitch, TRUE_ATT.yaw_rad)
+        fix = solver.solve(_frame(reported, alt_agl_m), cand, tile, CALIB)
+        err = fix.pos_ned_m - pos
         nees.append(float(err @ np.linalg.solve(fix.cov_ned_m2, err)))
     assert 1.5 < float(np.mean(nees)) < 5.0
+
+
+def test_the_autopilot_tilt_steadies_a_fix_the_image_cannot_pin() -> None:
+    """At 1200 m AGL a degree of tilt is 21 m on the ground, and 2 px of match noise leaves the image's
+    own tilt loose: the attitude prior halves the position error of the image-only pose, the fix's
+    sigma covers what is left, and the prior's part of that sigma is carried as shared error."""
+    rng = np.random.default_rng(7)
+    pos = np.array([TRUE_POS_NED_M[0], TRUE_POS_NED_M[1], -(GROUND_ALT_AMSL_M - 500.0) - 1200.0])
+    image_only = _solver(attitude_sigma_deg=90.0, max_independent_matches=100_000)
+    with_prior = _solver()
+    err_image, err_prior = [], []
+    for _ in range(30):
+        cand, tile = _scene(rng, n_pts=150, noise_px=2.0, pos_ned=pos)
+        a = image_only.solve(_frame(alt_agl_m=1200.0), cand, tile, CALIB)
+        b = with_prior.solve(_frame(alt_agl_m=1200.0), cand, tile, CALIB)
+        err_image.append(float(np.hypot(*(a.pos_ned_m - pos)[:2])))
+        err_prior.append(float(np.hypot(*(b.pos_ned_m - pos)[:2])))
+        assert err_prior[-1] < 3.0 * b.horiz_sigma_m
+        assert PoseConfig().min_sigma_m < b.shared_sigma_m < b.horiz_sigma_m
+    assert np.mean(err_prior) < 0.6 * np.mean(err_image), (np.mean(err_prior), np.mean(err_image))
 
 
 def test_pose_sigma_grows_with_pixel_noise() -> None:

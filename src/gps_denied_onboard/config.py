@@ -288,6 +288,18 @@ class PoseConfig:
     #: Floor on the per-axis position sigma (model error the residuals cannot see), metres; also the
     #: error every fix shares, never averaged away (set it to at least the map's absolute accuracy).
     min_sigma_m: PosFloat = 1.0
+    #: 1-sigma of the autopilot's roll and pitch as the nav camera sees them, degrees: the AHRS's own
+    #: error, the camera mount's boresight calibration and the ATTITUDE-to-exposure timing together. The
+    #: solver weighs the autopilot's tilt against the image's with it (position error from a tilt error
+    #: grows with height: 0.5 deg at 1200 m AGL is 10 m), and states the result in the fix's sigma. Set it
+    #: to what the aircraft's attitude is known to, never below: a smaller value makes fixes overconfident.
+    attitude_sigma_deg: PosFloat = 0.5
+    #: Matches beyond this many are not counted as independent evidence: the image noise the solver
+    #: weighs them with is scaled by sqrt(inliers / this). Match errors against a map are correlated
+    #: (the same changed field, the same resampling), so a few hundred inliers do not pin the camera's
+    #: tilt a few hundred times better than a few: across dates the image-only tilt was measured 1-3 deg
+    #: off with a formal sigma near 0.1 deg.
+    max_independent_matches: Annotated[int, Strict(), Field(ge=6)] = 10
 
 
 @dataclasses.dataclass(frozen=True)
@@ -307,8 +319,11 @@ class IntegrityConfig:
     #: Refuse a fix whose inliers' convex hull covers a smaller share of the nav frame than this.
     min_spread_share: Fraction = 0.05
     #: Refuse a fix whose inliers' mean matcher confidence (LightGlue) is below this; not applied to
-    #: matchers that give no confidence (classical, mutual nearest neighbour).
-    min_mean_confidence: Fraction = 0.3
+    #: matchers that give no confidence (classical, mutual nearest neighbour). Measured with the attitude
+    #: prior: the 20 cross-date fixes with 0.20-0.30 (XFeat, ALIKED; NAIP 2009 map, 2014 frames) were all
+    #: within 2 solver sigmas of the truth, and their sigma is scaled up 3-7x below
+    #: ``full_evidence_confidence``. Below 0.20 nothing was measured.
+    min_mean_confidence: Fraction = 0.2
     #: A candidate with at least this share of the best candidate's inliers is a rival: its pose is
     #: solved, and one farther from the best's than ``ambiguity_sigma`` combined sigmas (the solvers'
     #: sigmas floored at the map pixel, not inflated) refuses the fix.
@@ -332,10 +347,11 @@ class IntegrityConfig:
     full_evidence_confidence: Fraction = 0.6
     #: A fix short of full evidence (sigma scale at least ``weak_evidence_scale``) also states this
     #: regional error, in map pixels, on top of the rest, and carries it as error every nearby fix shares
-    #: (it is left out where map fixes are compared: the prior check, the consistency pairs). Measured:
-    #: cross-date XFeat fixes (NAIP 2009 vs 2014 and 2020, 3.26 m/px) shared offsets of 20-50 m over
-    #: runs of consecutive fixes, which neither comparison can see. 0 = off.
-    regional_sigma_map_px: Annotated[float, Strict(), Field(ge=0)] = 8.0
+    #: (it is left out where map fixes are compared: the prior check, the consistency pairs): for a map
+    #: whose georeference is known to wander by region. 0 = off, the default: the shared offsets of
+    #: 20-50 m measured on cross-date XFeat fixes at 1200 m AGL were the camera's tilt solved from the
+    #: image alone; with the attitude prior (``pose.attitude_sigma_deg``) they are gone (docs/benchmarks.md).
+    regional_sigma_map_px: Annotated[float, Strict(), Field(ge=0)] = 0.0
     #: Cap on the sigma factor.
     max_sigma_scale: Annotated[float, Strict(), Field(ge=1)] = 10.0
     #: Floor on the per-axis sigma in map pixels (a match is never better than the map's pixel).

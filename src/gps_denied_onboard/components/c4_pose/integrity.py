@@ -45,15 +45,14 @@ side of the frame. Weak evidence thus states a larger sigma: the estimator weigh
 judges it with honest numbers. ``PoseFix.shared_sigma_m``, the part of the error every fix against
 the map shares, is floored at the same map pixel and scaled by the same ``k``.
 
-Regional error (``regional_sigma_map_px``): across dates, runs of consecutive fixes shared offsets of
-20-50 m (NAIP 2009 map, 2014 and 2020 frames, 3.26 m/px). They agree with each other and with the prior
-those same fixes built, so neither the prior check nor the fix consistency pairs can see it, and the
-evidence scaling, which measures one fix, cannot either: 3 of 66 accepted XFeat fixes were 3.2-4.0
-sigma off. A fix short of full evidence (``k >= weak_evidence_scale``; the mean confidence counts, below
-``full_evidence_confidence``) therefore states ``regional_sigma_map_px`` map pixels per axis more, as
-error it shares with the fixes around it (:func:`with_regional_error`). It is added after the two
-comparisons between map fixes (the prior check here, the consistency pairs in the pipeline), where a
-shared error cancels. No same-date fix flown had less than full evidence.
+Regional error (``regional_sigma_map_px``, off by default): a fix short of full evidence
+(``k >= weak_evidence_scale``) can state that many map pixels per axis more, as error it shares with the
+fixes around it (:func:`with_regional_error`), for a map whose georeference wanders by region. It is
+added after the two comparisons between map fixes (the prior check here, the consistency pairs in the
+pipeline), where a shared error cancels. It was on (8 px) while cross-date fixes at 1200 m AGL shared
+offsets of 20-50 m over runs of consecutive fixes; those were the camera's tilt solved from the image
+alone, and the solver's attitude prior (``c4_pose/solver.py``) removed them: with it and the term off,
+the cross-date flights accepted no fix beyond 2 sigma (docs/benchmarks.md).
 """
 
 from __future__ import annotations
