@@ -209,7 +209,7 @@ class _PosePerTile:
     def solve(self, frame, candidate, handle, calibration):  # type: ignore[no-untyped-def]
         north = 0.0 if candidate.tile_id == TILE_A else 80.0
         return PoseFix(frame.frame_id, frame.exposure_time_unix_usec, np.array([north, 0.0, -120.0]),
-                       np.eye(3), 47.0, 8.0, 520.0, 0.0, 0.01, 0.0, candidate.inlier_count, 0.8,
+                       np.eye(3), 47.0, 8.0, 520.0, 0.0, 0.01, 0.02, candidate.inlier_count, 0.8,
                        candidate.tile_id, 1.0)
 
 
@@ -233,6 +233,7 @@ def test_pipeline_refuses_an_ambiguous_fix_and_records_the_evidence(
     out = p.localise(frame)
     record = fdr.records[-1][1]
     assert out.fix_accepted is accepted and record["fix_accepted"] is accepted
+    assert record["fix_image_tilt_off_deg"] == pytest.approx(1.146)  # the image-only axis vs the autopilot's
     if accepted:  # a tile with 40 of the best's 200 inliers is no rival: its pose is not even solved
         assert record["integrity"]["rival_inliers"] is None
         assert out.no_fix_reason is None and record["integrity"]["reason"] is None

@@ -24,7 +24,8 @@ class PoseFix:
     #: Heading of the camera solution (body yaw), radians, NED; and its 1-sigma.
     yaw_rad: float
     yaw_sigma_rad: float
-    #: Angle between the solved and the autopilot's camera axes, radians (consistency check).
+    #: Angle between the image-only pose's camera axis (before the attitude prior) and the autopilot's,
+    #: radians (the plausibility gate; recorded as ``fix_image_tilt_off_deg``).
     attitude_disagreement_rad: float
     inlier_count: int
     residual_px: float
