@@ -220,7 +220,8 @@ class _Flight:
         self._attitude_wander_rad = a * self._attitude_wander_rad + math.sqrt(1.0 - a * a) * rng.normal(
             0.0, ATTITUDE_WANDER_RAD, 2
         )
-        err = np.asarray(ATTITUDE_BIAS_RAD) + self._attitude_wander_rad + rng.normal(0.0, ATTITUDE_NOISE_RAD, 2)
+        noise = rng.normal(0.0, ATTITUDE_NOISE_RAD, 2)
+        err = np.asarray(ATTITUDE_BIAS_RAD) + self._attitude_wander_rad + noise
         return float(err[0]), float(err[1])
 
     def _send_telemetry(self, ap: SimAutopilot, now: float, *, full: bool) -> None:

@@ -355,7 +355,9 @@ class NavigationPipeline:
                 "fix_lon_deg": fix.lon_deg if fix else None,
                 "fix_sigma_m": fix.horiz_sigma_m if fix else None,
                 "fix_shared_sigma_m": fix.shared_sigma_m if fix else None,
-                "fix_image_tilt_off_deg": round(math.degrees(fix.attitude_disagreement_rad), 3) if fix else None,
+                "fix_image_tilt_off_deg": (
+                    round(math.degrees(fix.attitude_disagreement_rad), 3) if fix else None
+                ),
                 "integrity": verdict.fdr_fields() if verdict is not None else None,
                 "consistency": consistency.fdr_fields() if consistency is not None else None,
                 "timings_ms": timings,

@@ -327,7 +327,12 @@ class PoseSolver:
 
     @staticmethod
     def _image_sigma_px(
-        obj: np.ndarray, img_px: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, k_mat: np.ndarray, dist: np.ndarray
+        obj: np.ndarray,
+        img_px: np.ndarray,
+        rvec: np.ndarray,
+        tvec: np.ndarray,
+        k_mat: np.ndarray,
+        dist: np.ndarray,
     ) -> float:
         """Per-coordinate reprojection noise of the image-only pose, px (dof-corrected, floored at
         :data:`_MIN_SIGMA_PX` so that exact synthetic matches still give a finite weight)."""
@@ -422,7 +427,8 @@ class PoseSolver:
         floor_var = self._config.min_sigma_m**2
         # Adding a non-negative diagonal keeps the matrix positive semi-definite.
         cov_c = cov_c + np.diag(np.maximum(floor_var - np.diag(cov_c), 0.0))
-        prior_sigma_m = math.sqrt(max(float(np.max(np.linalg.eigvalsh(0.5 * (cov_prior_ne + cov_prior_ne.T)))), 0.0))
+        prior_var = float(np.max(np.linalg.eigvalsh(0.5 * (cov_prior_ne + cov_prior_ne.T))))
+        prior_sigma_m = math.sqrt(max(prior_var, 0.0))
         proj, _ = cv2.projectPoints(obj, rvec, tvec, k_mat, dist)
         residual_med = float(np.median(np.linalg.norm(proj.reshape(-1, 2) - img_px, axis=1)))
         return cov_c, prior_sigma_m, math.sqrt(max(yaw_var, 0.0)), residual_med
