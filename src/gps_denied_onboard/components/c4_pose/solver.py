@@ -40,6 +40,7 @@ Frames: world = local NED (metres); camera = OpenCV; ``R`` from ``solvePnP`` map
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Final
 
 import cv2
@@ -219,11 +220,12 @@ class PoseSolver:
                 PoseRejectReason.ATTITUDE_DISAGREEMENT,
                 frame,
             )
-        sigma_px = self._image_sigma_px(obj, img_px, rvec0, tvec0, k_mat, dist) * math.sqrt(
-            max(1.0, n_pts / cfg.max_independent_matches)
-        )
+        obs = _Observations(obj, img_px, k_mat, dist)
+        # Correlated match errors: no more than max_independent_matches count as independent.
+        dependence = math.sqrt(max(1.0, n_pts / cfg.max_independent_matches))
+        sigma_px = _image_sigma_px(obs, rvec0, tvec0) * dependence
         prior = _TiltPrior(frame.attitude.R_ned_cam()[2, :], math.radians(cfg.attitude_sigma_deg))
-        rvec, tvec = self._with_attitude_prior(obj, img_px, k_mat, dist, rvec0, tvec0, sigma_px, prior, frame)
+        rvec, tvec = self._with_attitude_prior(obs, rvec0, tvec0, sigma_px, prior, frame)
         rot, _ = cv2.Rodrigues(rvec)
         if not np.all((obj @ rot.T + tvec.reshape(1, 3))[:, 2] > 0):
             raise self._reject(
@@ -250,7 +252,7 @@ class PoseSolver:
                 )
 
         cov_ned, prior_sigma_m, yaw_sigma, residual_med_px = self._covariance(
-            obj, img_px, rvec, tvec, k_mat, dist, sigma_px, prior, frame
+            obs, rvec, tvec, sigma_px, prior, frame
         )
         return PoseFix(
             frame_id=frame.frame_id,
@@ -325,28 +327,9 @@ class PoseSolver:
             raise self._reject("refined pose is not finite", PoseRejectReason.SOLVER_FAILED, frame)
         return rvec, tvec
 
-    @staticmethod
-    def _image_sigma_px(
-        obj: np.ndarray,
-        img_px: np.ndarray,
-        rvec: np.ndarray,
-        tvec: np.ndarray,
-        k_mat: np.ndarray,
-        dist: np.ndarray,
-    ) -> float:
-        """Per-coordinate reprojection noise of the image-only pose, px (dof-corrected, floored at
-        :data:`_MIN_SIGMA_PX` so that exact synthetic matches still give a finite weight)."""
-        proj, _ = cv2.projectPoints(obj, rvec, tvec, k_mat, dist)
-        resid = proj.reshape(-1, 2) - img_px
-        dof = 2 * img_px.shape[0] - 6
-        return max(math.sqrt(float(np.sum(resid**2)) / dof), _MIN_SIGMA_PX)
-
     def _with_attitude_prior(
         self,
-        obj: np.ndarray,
-        img_px: np.ndarray,
-        k_mat: np.ndarray,
-        dist: np.ndarray,
+        obs: _Observations,
         rvec0: np.ndarray,
         tvec0: np.ndarray,
         sigma_px: float,
@@ -356,11 +339,11 @@ class PoseSolver:
         """The maximum a posteriori pose (step 3 of the module docstring), from the image-only one."""
 
         def residuals(p: np.ndarray) -> np.ndarray:
-            proj, _ = cv2.projectPoints(obj, p[:3], p[3:], k_mat, dist)
-            return np.concatenate([(proj.reshape(-1) - img_px.reshape(-1)) / sigma_px, prior.residual(p[:3])])
+            image = obs.residuals_px(p[:3], p[3:]).reshape(-1) / sigma_px
+            return np.concatenate([image, prior.residual(p[:3])])
 
         def jacobian(p: np.ndarray) -> np.ndarray:
-            return _whitened_jacobian(obj, p[:3], p[3:], k_mat, dist, sigma_px, prior)
+            return _whitened_jacobian(obs, p[:3], p[3:], sigma_px, prior)
 
         x0 = np.concatenate([np.ravel(rvec0), np.ravel(tvec0)])
         try:
@@ -381,19 +364,16 @@ class PoseSolver:
 
     def _covariance(
         self,
-        obj: np.ndarray,
-        img_px: np.ndarray,
+        obs: _Observations,
         rvec: np.ndarray,
         tvec: np.ndarray,
-        k_mat: np.ndarray,
-        dist: np.ndarray,
         sigma_px: float,
         prior: _TiltPrior,
         frame: NavCameraFrame,
     ) -> tuple[np.ndarray, float, float, float]:
         """(camera-centre covariance NED m^2 (floored), horizontal 1-sigma m of the part of it that comes
         from the attitude prior, yaw sigma rad, median residual px)."""
-        jac_w = _whitened_jacobian(obj, rvec, tvec, k_mat, dist, sigma_px, prior)
+        jac_w = _whitened_jacobian(obs, rvec, tvec, sigma_px, prior)
         try:
             cov_pose = np.linalg.inv(jac_w.T @ jac_w)
         except np.linalg.LinAlgError as exc:
@@ -429,8 +409,7 @@ class PoseSolver:
         cov_c = cov_c + np.diag(np.maximum(floor_var - np.diag(cov_c), 0.0))
         prior_var = float(np.max(np.linalg.eigvalsh(0.5 * (cov_prior_ne + cov_prior_ne.T))))
         prior_sigma_m = math.sqrt(max(prior_var, 0.0))
-        proj, _ = cv2.projectPoints(obj, rvec, tvec, k_mat, dist)
-        residual_med = float(np.median(np.linalg.norm(proj.reshape(-1, 2) - img_px, axis=1)))
+        residual_med = float(np.median(np.linalg.norm(obs.residuals_px(rvec, tvec), axis=1)))
         return cov_c, prior_sigma_m, math.sqrt(max(yaw_var, 0.0)), residual_med
 
 
@@ -466,17 +445,42 @@ class _TiltPrior:
         return out
 
 
+@dataclass(frozen=True)
+class _Observations:
+    """The inliers as PnP sees them: ground points (NED, centred, m), their image px (I, 2), and the
+    camera's intrinsics and distortion."""
+
+    obj: np.ndarray
+    img_px: np.ndarray
+    k_mat: np.ndarray
+    dist: np.ndarray
+
+    def _project(self, rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r = np.asarray(rvec, dtype=np.float64).reshape(3, 1)
+        t = np.asarray(tvec, dtype=np.float64).reshape(3, 1)
+        proj, jac = cv2.projectPoints(self.obj, r, t, self.k_mat, self.dist)
+        return proj.reshape(-1, 2), np.asarray(jac, dtype=np.float64)[:, :6]
+
+    def residuals_px(self, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+        """(I, 2) projected minus observed, px."""
+        return self._project(rvec, tvec)[0] - self.img_px
+
+    def jacobian(self, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+        """(2I, 6) derivative of the projections over (rvec, tvec)."""
+        return self._project(rvec, tvec)[1]
+
+
+def _image_sigma_px(obs: _Observations, rvec: np.ndarray, tvec: np.ndarray) -> float:
+    """Per-coordinate reprojection noise of a pose, px (dof-corrected, floored at :data:`_MIN_SIGMA_PX`
+    so that exact synthetic matches still give a finite weight)."""
+    resid = obs.residuals_px(rvec, tvec)
+    dof = 2 * resid.shape[0] - 6
+    return max(math.sqrt(float(np.sum(resid**2)) / dof), _MIN_SIGMA_PX)
+
+
 def _whitened_jacobian(
-    obj: np.ndarray,
-    rvec: np.ndarray,
-    tvec: np.ndarray,
-    k_mat: np.ndarray,
-    dist: np.ndarray,
-    sigma_px: float,
-    prior: _TiltPrior,
+    obs: _Observations, rvec: np.ndarray, tvec: np.ndarray, sigma_px: float, prior: _TiltPrior
 ) -> np.ndarray:
     """(2I + 2, 6) Jacobian over (rvec, tvec): reprojection rows over ``sigma_px``, then the prior's two."""
-    rv = np.asarray(rvec, dtype=np.float64).reshape(3, 1)
-    _, jac = cv2.projectPoints(obj, rv, np.asarray(tvec, dtype=np.float64).reshape(3, 1), k_mat, dist)
-    rows = np.asarray(jac, dtype=np.float64)[:, :6] / sigma_px
-    return np.vstack([rows, np.hstack([prior.jacobian(rv), np.zeros((2, 3))])])
+    rows = obs.jacobian(rvec, tvec) / sigma_px
+    return np.vstack([rows, np.hstack([prior.jacobian(rvec), np.zeros((2, 3))])])
