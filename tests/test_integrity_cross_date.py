@@ -1,10 +1,15 @@
 """Fix integrity on real imagery: NAIP 2009 map, frames rendered from the 2020 image (and the 2009 one).
 
-ALIKED with mutual-nearest-neighbour matching finds a few dozen self-consistent matches per frame at
-1200 m AGL across eleven years, and the fixes they give are tens of metres wrong with a stated sigma of
-about ten (docs/benchmarks.md). The same flight is flown twice, the rule recorded but off and then on:
-off, the flight must show such fixes (otherwise this test proves nothing); on, none is accepted, the rule
-says why it refused each, and the estimate stays within its stated accuracy.
+ALIKED (T16, 384x512, 1024 keypoints) with LightGlue finds a few dozen self-consistent matches per frame
+at 1200 m AGL across eleven years. Where the camera's tilt is left to the image (the autopilot's attitude
+given a loose sigma, as an integrator who does not know the camera's boresight would), the fixes it gives
+are tens of metres wrong with a stated sigma of about ten (docs/benchmarks.md). The same flight is flown
+twice, the rule recorded but off and then on: off, the flight must carry such a lie to the autopilot
+(otherwise this test proves nothing); on, no fix beyond 3 sigma is accepted, the rule says why it refused
+each, and the estimate stays within its stated accuracy.
+
+With the attitude at its default sigma these fixes are closer (15-25 m, sigma about ten) and too few of
+them beyond 3 sigma to prove anything from one 40 s flight: the rule is tested where it is the only guard.
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ pytestmark = [pytest.mark.sitl, pytest.mark.realdata, pytest.mark.slow]
 NAIP = ("data", "naip_timeseries", "naip")
 #: Long enough for the first wrong fixes to be offered and fused (the first ~15 s of the flight).
 DURATION_S = 40.0
+#: The camera's tilt from the image alone: the autopilot's roll and pitch weighed at 20 deg 1-sigma.
+LOOSE_ATTITUDE = "pose.attitude_sigma_deg=20"
 FRAMES_2020 = "m_4709963_se_14_1_20200831.tif"
 
 
@@ -51,12 +58,16 @@ def test_aliked_cross_date_fixes_beyond_3_sigma_are_refused(
     off = _fly(
         tmp_path_factory.mktemp("integrity_off"),
         FRAMES_2020,
-        *_aliked(aliked_t16_onnx, "integrity.enabled=false"),
+        *_aliked(aliked_t16_onnx, LOOSE_ATTITUDE, "integrity.enabled=false"),
     )
     a_off = off["analysis"]
-    assert a_off["accepted_fixes_beyond_3sigma"] >= 1, (a_off, summary_lines(off))
+    # Measured: 65 fixes accepted, 3 of them beyond 3 sigma, and 350 of 424 GPS_INPUT beyond 3 sigma.
+    assert a_off["accepted_fixes"] >= 10, (a_off, summary_lines(off))
+    assert off["consistency"]["beyond_3sigma"] >= 10, summary_lines(off)
 
-    on = _fly(tmp_path_factory.mktemp("integrity_on"), FRAMES_2020, *_aliked(aliked_t16_onnx))
+    on = _fly(
+        tmp_path_factory.mktemp("integrity_on"), FRAMES_2020, *_aliked(aliked_t16_onnx, LOOSE_ATTITUDE)
+    )
     a_on = on["analysis"]
     assert a_on["accepted_fixes_beyond_3sigma"] == 0, (a_on, summary_lines(on))
     assert a_on["no_fix_reasons"].get("integrity", 0) >= 1, a_on["no_fix_reasons"]
