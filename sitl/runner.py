@@ -233,6 +233,10 @@ class _Flight:
                 ap.send_attitude(now, math.nan, math.nan, math.nan)
             else:
                 d_roll, d_pitch = self._attitude_error_rad()
+                offset = self.scenario.fault_at(FaultKind.ATTITUDE_OFFSET, t_s) if flying else None
+                if offset is not None:
+                    d_roll += math.radians(offset.offset_deg[0])
+                    d_pitch += math.radians(offset.offset_deg[1])
                 ap.send_attitude(now, truth.roll_rad + d_roll, truth.pitch_rad + d_pitch, truth.yaw_rad)
             ap.send_highres_imu(now, self._specific_force_body(t_s, truth))
         if full:

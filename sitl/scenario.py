@@ -88,7 +88,10 @@ number is expected.
     with ``reconnect: true`` the camera connection is dropped at its start and the daemon must reconnect),
     ``attitude_nan`` (ATTITUDE with NaN angles), ``attitude_absent`` (no ATTITUDE, no HIGHRES_IMU),
     ``mavlink_flood`` (random bytes and truncated packets to the daemon's MAVLink port at ``rate_hz``,
-    default 500). Instants ``{at_s}``, sent before the frame exposed at or after ``at_s``:
+    default 500), ``attitude_offset`` ``{from_s, to_s, roll_deg, pitch_deg}`` (the autopilot's ATTITUDE
+    roll and pitch off by that much on top of their usual error, while the camera sees the true attitude:
+    an AHRS gone wrong, or a camera mount knocked out of its calibration). Instants ``{at_s}``, sent
+    before the frame exposed at or after ``at_s``:
     ``corrupt_frame`` (a valid header with a destroyed JPEG), ``bomb_frame`` (a small PNG that claims
     20000x20000), ``wrong_size_frame`` (a 100x100 image).
     Faults of the companion computer the daemon runs on (``sitl.host_faults``): ``clock_jump`` ``{at_s,
@@ -243,6 +246,7 @@ class FaultKind(str, Enum):
     ORT_FAULT = "ort_fault"
     TILE_CORRUPT = "tile_corrupt"
     FDR_FULL = "fdr_full"
+    ATTITUDE_OFFSET = "attitude_offset"
 
     @property
     def instant(self) -> bool:
@@ -271,6 +275,8 @@ class Fault:
     step_s: float = 0.0
     #: ``ort_fault``: ONNX Runtime runs to refuse.
     count: int = 0
+    #: ``attitude_offset``: (roll, pitch) added to the autopilot's ATTITUDE, degrees.
+    offset_deg: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -1026,7 +1032,15 @@ def _read_faults(value: object, source: str | None) -> tuple[Fault, ...]:
             if not isinstance(reconnect, bool):
                 raise b.error("reconnect", f"expected true or false, got {reconnect!r}")
             rate = b.number("rate_hz", 500.0, gt=0.0, le=5000.0) if kind is FaultKind.MAVLINK_FLOOD else 500.0
-            faults.append(Fault(kind, start, end, reconnect, rate))
+            offset = (0.0, 0.0)
+            if kind is FaultKind.ATTITUDE_OFFSET:
+                offset = (
+                    b.number("roll_deg", 0.0, ge=-30.0, le=30.0),
+                    b.number("pitch_deg", 0.0, ge=-30.0, le=30.0),
+                )
+                if offset == (0.0, 0.0):
+                    raise b.error("roll_deg", "expected a non-zero roll_deg or pitch_deg, got both 0")
+            faults.append(Fault(kind, start, end, reconnect, rate, offset_deg=offset))
         b.finish()
     return tuple(faults)
 
