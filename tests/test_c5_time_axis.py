@@ -434,3 +434,58 @@ def test_a_slow_matchers_late_fixes_anchor_the_output_until_the_window_ends() ->
 
     with pytest.raises(ConfigError, match="anchored_window_s"):
         load_config(REPO_ROOT / "config" / "sitl.yaml", ["estimator.anchored_window_s=0"])
+
+
+def test_raised_shared_sigma_widens_the_output_and_survives_a_rewind() -> None:
+    """The attitude check found the fixes already fused leaning on a wrong tilt: the output states the
+    common error they may carry and the position is not moved; only later accepted fixes bring it down;
+    a fix from before the raise that arrives late rewinds the axis and the raise is replayed on top."""
+    inputs = _flight(9, np.array([12.0, 5.0]))
+    clock = _Clock(T0 + 20 * S)
+    t_raise = T0 + 5 * FRAME_US
+    held = inputs[7]  # frame 4's fix
+    in_order, late = _axis(clock), _axis(clock)
+    for axis in (in_order, late):
+        axis.initialise(np.array([0.0, 0.0, -120.0]), 10.0, T0)
+    for item in inputs[:10]:
+        _apply(in_order, item)
+        if item is not held:
+            _apply(late, item)
+    before = in_order.state_at(t_raise)
+    in_order.raise_shared_sigma(8.0, t_raise)
+    after = in_order.state_at(t_raise)
+    np.testing.assert_allclose(after.pos_ned_m, before.pos_ned_m, atol=1e-9)
+    assert after.shared_sigma_m == pytest.approx(8.0)
+    assert after.horiz_sigma_m == pytest.approx(math.hypot(before.horiz_sigma_m, 8.0), rel=0.05)
+    late.raise_shared_sigma(8.0, t_raise)
+    _apply(late, held)
+    np.testing.assert_allclose(late.state_at(t_raise).cov_pos_ned_m2, after.cov_pos_ned_m2, atol=1e-9)
+    for axis in (in_order, late):
+        for item in inputs[10:]:  # frame 6: VO, then its fix (own shared sigma 0)
+            _apply(axis, item)
+        assert axis.state_at().shared_sigma_m < 8.0
+
+
+def test_an_untrusted_imu_is_left_out_of_the_prediction_and_a_rewind_keeps_it_out() -> None:
+    """The autopilot's attitude was found 3 deg off: its IMU, rotated with it, reports 0.5 m/s^2 of
+    gravity as horizontal acceleration. Untrusted, the prediction is the constant-velocity one with its
+    larger noise; a late fix from before the switch rewinds the axis and the switch is replayed."""
+    clock = _Clock(T0 + 20 * S)
+    leaked = _ConstAccel(np.array([0.5, 0.0, 0.0]))
+    with_imu, without = _axis(clock, accel=leaked), _axis(clock, accel=None)
+    for axis in (with_imu, without):
+        axis.initialise(np.array([0.0, 0.0, -120.0]), 3.0, T0)
+    with_imu.set_imu_trusted(False, T0)
+    t = T0 + 5 * S
+    np.testing.assert_allclose(with_imu.state_at(t).pos_ned_m, without.state_at(t).pos_ned_m, atol=1e-9)
+    np.testing.assert_allclose(
+        with_imu.state_at(t).cov_pos_ned_m2, without.state_at(t).cov_pos_ned_m2, atol=1e-9
+    )
+    with_imu.fuse_fix(_fix(np.array([0.0, 0.0, -120.0]), 2.0, T0 + S))
+    without.fuse_fix(_fix(np.array([0.0, 0.0, -120.0]), 2.0, T0 + S))
+    with_imu.fuse_fix(_fix(np.array([0.0, 0.0, -120.0]), 2.0, T0 + S // 2))  # late: rewinds past nothing
+    without.fuse_fix(_fix(np.array([0.0, 0.0, -120.0]), 2.0, T0 + S // 2))
+    np.testing.assert_allclose(with_imu.state_at(t).pos_ned_m, without.state_at(t).pos_ned_m, atol=1e-9)
+    with_imu.set_imu_trusted(True, T0 + 2 * S)
+    gained = with_imu.state_at(t).pos_ned_m[0] - without.state_at(t).pos_ned_m[0]
+    assert gained == pytest.approx(0.5 * 0.5 * 3.0**2, rel=0.05)  # 3 s of 0.5 m/s^2 after the switch

@@ -146,6 +146,7 @@ class EstimatorCheckpoint:
     consecutive_gated: int
     yaw_rad: float | None
     shared_sigma_m: float
+    imu_trusted: bool = True
 
 
 class NavEstimator:
@@ -171,6 +172,9 @@ class NavEstimator:
         self._config = config
         self._ltp = ltp
         self._accel = accel_source
+        #: Off while the autopilot's attitude is found wrong: its IMU's accelerations are rotated into NED
+        #: with that attitude, and 3 deg of tilt leaks 0.5 m/s^2 of gravity into the horizontal.
+        self._imu_trusted = True
         self._fix_recent_s = config.anchored_window_s
         self._vo_recent_s = vo_recent_s
         self._kf = KalmanFilter(dim_x=6, dim_z=3)
@@ -257,6 +261,7 @@ class NavEstimator:
             self._consecutive_gated,
             self._yaw_rad,
             self._shared_sigma_m,
+            self._imu_trusted,
         )
 
     def restore(self, cp: EstimatorCheckpoint) -> None:
@@ -270,13 +275,14 @@ class NavEstimator:
         self._consecutive_gated = cp.consecutive_gated
         self._yaw_rad = cp.yaw_rad
         self._shared_sigma_m = cp.shared_sigma_m
+        self._imu_trusted = cp.imu_trusted
 
     # -- prediction ---------------------------------------------------------------------------------------
 
     def _step(self, x: np.ndarray, p_mat: np.ndarray, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray]:
         """One prediction step ``t0 -> t1`` (t1 > t0) on copies; returns (x, P)."""
         dt = (t1 - t0) / 1e6
-        accel = _valid_accel(self._accel.accel_ned_mean(t0, t1)) if self._accel is not None else None
+        accel = self._imu_accel(t0, t1)
         f_mat = np.eye(6)
         f_mat[0:3, 3:6] = dt * np.eye(3)
         density = self._config.accel_noise_m_s2 if accel is None else self._config.imu_accel_noise_m_s2
@@ -288,6 +294,18 @@ class NavEstimator:
             x_new[0:3] += 0.5 * dt * dt * accel
             x_new[3:6] += dt * accel
         return x_new, f_mat @ p_mat @ f_mat.T + q_mat
+
+    def _imu_accel(self, t0: int, t1: int) -> np.ndarray | None:
+        """The IMU's mean NED acceleration over ``[t0, t1]``, or None (no IMU, no valid sample, or the
+        attitude it is rotated with found wrong)."""
+        if self._accel is None or not self._imu_trusted:
+            return None
+        return _valid_accel(self._accel.accel_ned_mean(t0, t1))
+
+    def set_imu_trusted(self, trusted: bool) -> None:
+        """Use the IMU in the prediction (True) or predict as without one (False: the autopilot's
+        attitude, which rotates its accelerations, was found wrong by ``c4_pose/attitude_check``)."""
+        self._imu_trusted = bool(trusted)
 
     def _propagate(self, x: np.ndarray, p_mat: np.ndarray, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray]:
         step_usec = int(PREDICT_STEP_S * 1e6)
@@ -447,6 +465,15 @@ class NavEstimator:
         self._note_no_fix_at(int(time_unix_usec))
         self._refresh_provenance()
 
+    def raise_shared_sigma(self, sigma_m: float) -> None:
+        """The fixes already fused may share more common error than they said (``c4_pose/attitude_check``:
+        the autopilot's tilt they leaned on was off): the bound ``s`` becomes at least ``sigma_m``. Only
+        new accepted fixes bring it down again; the state itself is not moved."""
+        if self._time_usec is None or not (math.isfinite(sigma_m) and sigma_m >= 0.0):
+            return
+        self._shared_sigma_m = max(self._shared_sigma_m, float(sigma_m))
+        self._refresh_provenance()
+
     def update_vo(self, motion: VoMotion, *, time_unix_usec: int) -> FixDecision:
         """Fuse VO motion over ``[time_unix_usec - dt, time_unix_usec]`` (``time_unix_usec``: the exposure
         of the frame that ends the interval) as the horizontal velocity at that time (see the module
@@ -476,7 +503,7 @@ class NavEstimator:
         vel = delta / dt
         accel = None
         if self._accel is not None:
-            accel = _valid_accel(self._accel.accel_ned_mean(t - round(dt * 1e6), t))
+            accel = self._imu_accel(t - round(dt * 1e6), t)
             if accel is not None:
                 vel = vel + accel[:2] * (dt / 2.0)
         r_mat = self._config.vo_noise_scale * cov / dt**2

@@ -280,6 +280,30 @@ class TimeAxis:
 
         self._fuse("no_fix", t, apply)
 
+    def raise_shared_sigma(self, sigma_m: float, time_unix_usec: int) -> None:
+        """From ``time_unix_usec`` on, the fixes fused may share ``sigma_m`` of common error
+        (:meth:`NavEstimator.raise_shared_sigma`); an input like the others, so a rewind keeps it."""
+        t = int(time_unix_usec)
+
+        def apply(est: NavEstimator) -> FixDecision:
+            est.raise_shared_sigma(sigma_m)
+            return FixDecision(True, math.nan, FixReason.ACCEPTED)
+
+        self._fuse("shared_sigma", t, apply)
+
+    def set_imu_trusted(self, trusted: bool, time_unix_usec: int) -> None:
+        """From ``time_unix_usec`` on, predict with the IMU or without it
+        (:meth:`NavEstimator.set_imu_trusted`); an input like the others, so a rewind keeps it."""
+
+        t = int(time_unix_usec)
+
+        def apply(est: NavEstimator) -> FixDecision:
+            est.predict_to(t)  # the switch happens at t: up to it the prediction is as it was
+            est.set_imu_trusted(trusted)
+            return FixDecision(True, math.nan, FixReason.ACCEPTED)
+
+        self._fuse("imu_trust", t, apply)
+
     def _fuse(self, kind: str, t: int, apply: Callable[[NavEstimator], FixDecision]) -> FixDecision:
         with self._lock:
             head = self._est.time_unix_usec
