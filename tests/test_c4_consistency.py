@@ -58,6 +58,7 @@ class _Flight:
             yaw_rad=0.0,
             yaw_sigma_rad=0.01,
             attitude_disagreement_rad=0.01,
+            image_tilt_off_cam_rad=(0.01, 0.0),
             inlier_count=150,
             residual_px=1.5,
             tile_id=TileId(16, 1, 2),

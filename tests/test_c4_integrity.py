@@ -61,6 +61,7 @@ def _fix(north_m: float = 0.0, east_m: float = 0.0, sigma_m: float = 1.0) -> Pos
         yaw_rad=0.0,
         yaw_sigma_rad=0.01,
         attitude_disagreement_rad=0.01,
+        image_tilt_off_cam_rad=(0.01, 0.0),
         inlier_count=200,
         residual_px=0.8,
         tile_id=TileId(18, 1, 2),

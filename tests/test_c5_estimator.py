@@ -37,6 +37,7 @@ def _fix(
         yaw_rad=yaw_rad,
         yaw_sigma_rad=0.01,
         attitude_disagreement_rad=0.01,
+        image_tilt_off_cam_rad=(0.01, 0.0),
         inlier_count=80,
         residual_px=0.8,
         tile_id=TileId.of(18, float(lat), float(lon)),

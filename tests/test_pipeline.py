@@ -5,6 +5,7 @@ Fakes stand in for C1/C2/C2.5/C3/C4 at their component boundaries; the estimator
 
 from __future__ import annotations
 
+import math
 import uuid
 from dataclasses import dataclass, field
 
@@ -18,12 +19,13 @@ from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
 from gps_denied_onboard.components.c2_vpr.types import VprQuery, VprResult
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
 from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, MatchResult
+from gps_denied_onboard.components.c4_pose.attitude_check import MIN_FIXES, AttitudeCheck
 from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c6_tiles.types import TileId
-from gps_denied_onboard.config import EstimatorConfig, IntegrityConfig, VprConfig
+from gps_denied_onboard.config import EstimatorConfig, IntegrityConfig, PoseConfig, VprConfig
 from gps_denied_onboard.constants import Provenance
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.pipeline import InitialPrior, NavigationPipeline
@@ -104,6 +106,7 @@ def _pipeline(vpr: _Vpr, fdr: _Fdr, vo: object | None = None) -> NavigationPipel
         fdr=fdr,
         integrity=FixIntegrity(IntegrityConfig()),
         consistency=FixConsistency(IntegrityConfig()),
+        attitude_check=AttitudeCheck(PoseConfig()),
     )
 
 
@@ -204,13 +207,17 @@ class _TwoTiles:
 
 
 class _PosePerTile:
-    """C4 double: tile A solves to the prior's position, tile B 80 m north of it (1 m sigma)."""
+    """C4 double: tile A solves to the prior's position, tile B 80 m north of it (1 m sigma); the
+    image-only tilt is ``tilt_off_rad`` (camera x) from the autopilot's."""
+
+    def __init__(self, tilt_off_rad: float = 0.02) -> None:
+        self.tilt_off_rad = tilt_off_rad
 
     def solve(self, frame, candidate, handle, calibration):  # type: ignore[no-untyped-def]
         north = 0.0 if candidate.tile_id == TILE_A else 80.0
         return PoseFix(frame.frame_id, frame.exposure_time_unix_usec, np.array([north, 0.0, -120.0]),
-                       np.eye(3), 47.0, 8.0, 520.0, 0.0, 0.01, 0.02, candidate.inlier_count, 0.8,
-                       candidate.tile_id, 1.0)
+                       np.eye(3), 47.0, 8.0, 520.0, 0.0, 0.01, abs(self.tilt_off_rad),
+                       (self.tilt_off_rad, 0.0), candidate.inlier_count, 0.8, candidate.tile_id, 1.0)
 
 
 TILE_A, TILE_B = TileId(18, 1, 1), TileId(18, 1, 2)
@@ -244,3 +251,29 @@ def test_pipeline_refuses_an_ambiguous_fix_and_records_the_evidence(
         assert out.no_fix_reason == "integrity:ambiguous_candidates"
         assert record["integrity"]["reason"] == "ambiguous_candidates" and out.integrity is not None
         assert p.time_axis.state_at(T0).last_fix_age_s == float("inf")
+
+
+def test_pipeline_refuses_fixes_while_the_autopilot_tilt_is_off_and_widens_what_was_fused() -> None:
+    """Every solved fix's image-only tilt is 3 deg from the autopilot's: the first MIN_FIXES - 1 fixes are
+    fused (the check cannot tell yet), then each is refused as ``attitude_off`` with the check's numbers
+    in the FDR, the estimate states the error what it fused may carry (the fixes and VO both turned the
+    camera's rays with that attitude: 2 x 120 m x tan 3 deg = 12.6 m)."""
+    fdr = _Fdr()
+    fakes = _TwoTiles((200, 40))
+    p = _pipeline(_OneTileVpr(dim=256), fdr, _HoverVo())
+    p._rerank = fakes  # type: ignore[assignment]
+    p._matcher = fakes  # type: ignore[assignment]
+    p._pose = _PosePerTile(tilt_off_rad=math.radians(3.0))
+    outs = []
+    for k in range(6):
+        frame = _frame(k, T0 - (5 - k) * 333_333)  # the test clock stands at T0
+        p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None)
+        outs.append(p.localise(frame))
+    records = [r for kind, r in fdr.records if "attitude_check" in r]
+    assert [o.fix_accepted for o in outs] == [True] * (MIN_FIXES - 1) + [False] * (7 - MIN_FIXES)
+    assert {o.no_fix_reason for o in outs[MIN_FIXES - 1 :]} == {"attitude_off"}
+    check = records[-1]["attitude_check"]
+    assert check["off"] is True and check["bias_lower_deg"] > check["allowed_deg"] == pytest.approx(1.5)
+    assert check["bias_deg"][0] == pytest.approx(3.0, abs=1e-3)
+    state = p.time_axis.state_at(T0)
+    assert state.shared_sigma_m == pytest.approx(2 * 120.0 * math.tan(math.radians(3.0)), rel=0.01)

@@ -300,6 +300,13 @@ class PoseConfig:
     #: tilt a few hundred times better than a few: across dates the image-only tilt was measured 1-3 deg
     #: off with a formal sigma near 0.1 deg.
     max_independent_matches: Annotated[int, Strict(), Field(ge=6)] = 10
+    #: The attitude check (``c4_pose/attitude_check.py``): the image-only tilts of up to this many recent
+    #: solved fixes (windows of 4, 8, ... and all of them) say whether the autopilot's is off by more than
+    #: 3 x ``attitude_sigma_deg``; while it is, every fix is refused. A longer window sees a smaller bias
+    #: when its fixes cover more ground, later.
+    attitude_check_fixes: Annotated[int, Strict(), Field(ge=4)] = 12
+    #: Fixes older than this, s, leave the attitude check's window.
+    attitude_check_max_age_s: PosFloat = 120.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -132,6 +132,7 @@ class LogEvent:
     POSE_REJECTED: Final = "c4.pose.rejected"
     #: The fix-integrity rule refused a solved fix (reason, evidence).
     FIX_INTEGRITY_REFUSED: Final = "c4.integrity.refused"
+    FIX_ATTITUDE_REFUSED: Final = "c4.attitude.refused"
     VPR_READY: Final = "c2.vpr.ready"
     VPR_FAR_TOP1: Final = "c2.vpr.top1_distance_above_threshold"
     VPR_ERROR: Final = "c2.vpr.error"

@@ -8,6 +8,9 @@ Every stage's failure has one meaning for the estimator:
 - no attitude/altitude at exposure → no absolute fix from this frame (never reuse stale data);
 - VPR/rerank/matcher error or too few inliers → no fix; C5 propagates on VO (``visual_propagated``);
 - pose rejected (degenerate, implausible) → no fix;
+- the autopilot's tilt shown off by the image-only tilts of the recent fixes, or this fix's tilt a jump
+  from theirs → no fix (``c4_pose/attitude_check.py``: every fix leans on that tilt); while it has shown
+  a tilt error the estimate states what the fixes and VO fused may carry from it, and the IMU is left out;
 - fix refused by the integrity rule (weak evidence, ambiguous candidates, disagrees with the prior; see
   ``c4_pose/integrity.py``) → no fix; a fix it passes states a covariance that reflects its evidence,
   scaled by how consistent the recent fixes were with each other through VO (``c4_pose/consistency.py``);
@@ -22,7 +25,7 @@ import math
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import structlog
 
@@ -35,6 +38,7 @@ from gps_denied_onboard.components.c2_vpr.types import VprError
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.types import MatchResult
+from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeCheck, AttitudeVerdict
 from gps_denied_onboard.components.c4_pose.consistency import ConsistencyVerdict, FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import (
     CandidateFix,
@@ -93,6 +97,8 @@ class FixOutcome:
     timings_ms: dict[str, float] = field(default_factory=dict)
     #: The integrity rule's verdict on the solved fix (None when no fix was solved).
     integrity: IntegrityVerdict | None = None
+    #: The attitude check after the solved fix (None when no fix was solved).
+    attitude: AttitudeVerdict | None = None
 
 
 @dataclass(frozen=True)
@@ -105,8 +111,10 @@ class FixAttempt:
     #: Why there is no fix (None when there is one).
     no_fix_reason: str | None
     timings_ms: dict[str, float] = field(default_factory=dict)
-    #: The integrity rule's verdict on the solved fix (None when no fix was solved).
+    #: The integrity rule's verdict on the solved fix (None when no fix was solved or it never got there).
     integrity: IntegrityVerdict | None = None
+    #: The attitude check after the solved fix (None when no fix was solved).
+    attitude: AttitudeVerdict | None = None
 
 
 @dataclass(frozen=True)
@@ -159,6 +167,7 @@ class NavigationPipeline:
         fdr: FdrClient,
         integrity: FixIntegrity,
         consistency: FixConsistency,
+        attitude_check: AttitudeCheck,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
     ) -> None:
         self._calib = calibration
@@ -174,6 +183,9 @@ class NavigationPipeline:
         self._fdr = fdr
         self._integrity = integrity
         self._consistency = consistency
+        self._attitude = attitude_check
+        #: What this pipeline last told the time axis about the IMU (``c4_pose/attitude_check.py``).
+        self._imu_trusted = True
         self._clock_ns = clock_ns
         #: F6 re-localisation (corpus-wide VPR) currently active; logged on transitions only.
         self._corpus_wide = False
@@ -300,8 +312,8 @@ class NavigationPipeline:
     def attempt_fix(self, frame: NavCameraFrame) -> FixAttempt:
         """C2 -> C2.5 -> C3 -> C4 on ``frame``, searching around the estimate read when it starts."""
         timings: dict[str, float] = {}
-        fix, inliers, residual, reason, verdict = self._absolute_fix(frame, timings)
-        return FixAttempt(fix, inliers, residual, reason, timings, verdict)
+        attempt = self._absolute_fix(frame, timings)
+        return replace(attempt, timings_ms=timings)
 
     def fuse_attempt(self, frame: NavCameraFrame, attempt: FixAttempt) -> FixOutcome:
         """Fuse ``attempt`` (from :meth:`attempt_fix` on ``frame``) at the frame's exposure time, or note
@@ -319,6 +331,15 @@ class NavigationPipeline:
         accepted = False
         consistency: ConsistencyVerdict | None = None
         with self._axis.unit(UNIT_FIX, t) as unit:
+            attitude = attempt.attitude
+            if attitude is not None and fix is not None:
+                if attitude.suspect_deg is not None:
+                    # The fixes fused before the check saw it, and VO, leaned on the same wrong tilt.
+                    self._axis.raise_shared_sigma(2.0 * self._tilt_error_m(fix, attitude.suspect_deg), t)
+                if (attitude.refused is None) != self._imu_trusted:
+                    # The IMU's accelerations are rotated with the same attitude (gravity leaks in).
+                    self._imu_trusted = attitude.refused is None
+                    self._axis.set_imu_trusted(self._imu_trusted, t)
             head = self._axis.head_unix_usec
             behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
             if fix is not None and reason is None:
@@ -338,7 +359,18 @@ class NavigationPipeline:
             unit["accepted"] = accepted
         timings["estimator_fix"] = (self._clock_ns() - mark) / 1e6
         out = FixOutcome(
-            frame.frame_id, frame.seq, t, fix, accepted, inliers, residual, reason, behind_s, timings, verdict
+            frame.frame_id,
+            frame.seq,
+            t,
+            fix,
+            accepted,
+            inliers,
+            residual,
+            reason,
+            behind_s,
+            timings,
+            verdict,
+            attempt.attitude,
         )
         self._fdr.record(
             FdrKind.FIX,
@@ -358,6 +390,7 @@ class NavigationPipeline:
                 "fix_image_tilt_off_deg": (
                     round(math.degrees(fix.attitude_disagreement_rad), 3) if fix else None
                 ),
+                "attitude_check": attempt.attitude.fdr_fields() if attempt.attitude is not None else None,
                 "integrity": verdict.fdr_fields() if verdict is not None else None,
                 "consistency": consistency.fdr_fields() if consistency is not None else None,
                 "timings_ms": timings,
@@ -365,13 +398,23 @@ class NavigationPipeline:
         )
         return out
 
+    def _footprint_m(self, fix: PoseFix) -> float:
+        """Ground the frame of ``fix`` covers across, m (nadir, flat ground)."""
+        agl_m = max(0.0, fix.alt_amsl_m - self._ground_alt_amsl_m)
+        return 2.0 * agl_m * math.tan(self._calib.hfov_rad / 2.0)
+
+    def _tilt_error_m(self, fix: PoseFix, tilt_deg: float) -> float:
+        """Ground distance a camera tilt of ``tilt_deg`` moves a fix from the fix's height, m."""
+        agl_m = max(0.0, fix.alt_amsl_m - self._ground_alt_amsl_m)
+        return agl_m * math.tan(math.radians(min(tilt_deg, 45.0)))
+
     def _absolute_fix(
         self, frame: NavCameraFrame, timings: dict[str, float]
-    ) -> tuple[PoseFix | None, int, float | None, str | None, IntegrityVerdict | None]:
+    ) -> FixAttempt:
         if self._vpr is None or self._rerank is None or self._matcher is None:
-            return None, 0, None, "no_map", None  # a replay without a map cache: VO only, never a fix
+            return FixAttempt(None, 0, None, "no_map")  # a replay without a map cache: VO only, never a fix
         if frame.attitude is None or frame.alt_agl_m is None:
-            return None, 0, None, "no_attitude_or_altitude", None
+            return FixAttempt(None, 0, None, "no_attitude_or_altitude")
         with self._axis.unit(UNIT_FIX_PRIOR, frame.exposure_time_unix_usec):
             prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
         t0 = self._clock_ns()
@@ -382,11 +425,11 @@ class NavigationPipeline:
             )
         except VprError as exc:
             log.error(LogEvent.VPR_ERROR, frame=frame.seq, error=str(exc))
-            return None, 0, None, "vpr_error", None
+            return FixAttempt(None, 0, None, "vpr_error")
         t1 = self._clock_ns()
         timings["vpr"] = (t1 - t0) / 1e6
         if not vpr_result.candidates:
-            return None, 0, None, "no_tiles_in_region", None
+            return FixAttempt(None, 0, None, "no_tiles_in_region")
         rerank_result = self._rerank.rerank(frame, vpr_result)
         t2 = self._clock_ns()
         timings["rerank"] = (t2 - t1) / 1e6
@@ -394,11 +437,11 @@ class NavigationPipeline:
             match = self._matcher.match(frame, rerank_result, self._calib)
         except InsufficientInliersError as exc:
             timings["match"] = (self._clock_ns() - t2) / 1e6
-            return None, exc.best_inlier_count, None, "insufficient_inliers", None
+            return FixAttempt(None, exc.best_inlier_count, None, "insufficient_inliers")
         except MatcherError as exc:
             timings["match"] = (self._clock_ns() - t2) / 1e6
             log.error(LogEvent.PIPELINE_FRAME_ERROR, frame=frame.seq, stage="match", error=str(exc))
-            return None, 0, None, "matcher_error", None
+            return FixAttempt(None, 0, None, "matcher_error")
         t3 = self._clock_ns()
         timings["match"] = (t3 - t2) / 1e6
         best = match.best
@@ -407,15 +450,17 @@ class NavigationPipeline:
             fix = self._pose.solve(frame, best, handle, self._calib)
         except PoseError as exc:
             timings["pose"] = (self._clock_ns() - t3) / 1e6
-            return (
-                None,
-                best.inlier_count,
-                match.reprojection_residual_px,
-                f"pose_rejected:{exc.reason}",
-                None,
+            return FixAttempt(
+                None, best.inlier_count, match.reprojection_residual_px, f"pose_rejected:{exc.reason}"
             )
         t4 = self._clock_ns()
         timings["pose"] = (t4 - t3) / 1e6
+        attitude = self._attitude.note(fix, self._footprint_m(fix))
+        if attitude.refused is not None:
+            log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, **attitude.fdr_fields())
+            return FixAttempt(
+                fix, best.inlier_count, match.reprojection_residual_px, attitude.refused, attitude=attitude
+            )
         verdict = self._judge(frame, match, rerank_result, fix, prior_state)
         timings["integrity"] = (self._clock_ns() - t4) / 1e6
         if not verdict.accepted:
@@ -425,14 +470,22 @@ class NavigationPipeline:
                 reason=verdict.reason,
                 **{k: v for k, v in verdict.fdr_fields().items() if k not in ("accepted", "reason")},
             )
-            return (
+            return FixAttempt(
                 verdict.fix,
                 best.inlier_count,
                 match.reprojection_residual_px,
-                (f"integrity:{verdict.reason}"),
-                verdict,
+                f"integrity:{verdict.reason}",
+                integrity=verdict,
+                attitude=attitude,
             )
-        return verdict.fix, best.inlier_count, match.reprojection_residual_px, None, verdict
+        return FixAttempt(
+            verdict.fix,
+            best.inlier_count,
+            match.reprojection_residual_px,
+            None,
+            integrity=verdict,
+            attitude=attitude,
+        )
 
     def _judge(
         self,

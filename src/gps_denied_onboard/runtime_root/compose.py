@@ -34,6 +34,7 @@ from gps_denied_onboard.components.c3_matcher.tile_features import (
 )
 from gps_denied_onboard.components.c3_matcher.xfeat import XFEAT_DESCRIPTOR_DIM
 from gps_denied_onboard.components.c4_pose import PoseSolver
+from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeCheck
 from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
@@ -524,6 +525,7 @@ def _pipeline(
         fdr=fdr,
         integrity=FixIntegrity(config.integrity),
         consistency=FixConsistency(config.integrity),
+        attitude_check=AttitudeCheck(config.pose),
     )
 
 

@@ -213,6 +213,8 @@ class PoseSolver:
             )
         # The image's own verdict on the attitude, before the prior pulls the tilt towards it.
         disagreement_rad = float(np.arccos(np.clip(rot0[2, :] @ expected_axis, -1.0, 1.0)))
+        # The same on the camera's own x and y axes (fixed to the airframe: where a mount error is constant).
+        down_off_cam = rot0[:, 2] - frame.attitude.R_ned_cam()[2, :]
         if disagreement_rad > math.radians(cfg.max_attitude_disagreement_deg):
             raise self._reject(
                 f"optical axis {math.degrees(disagreement_rad):.1f} deg from the autopilot's "
@@ -265,6 +267,7 @@ class PoseSolver:
             yaw_rad=_body_yaw_rad(rvec),
             yaw_sigma_rad=yaw_sigma,
             attitude_disagreement_rad=disagreement_rad,
+            image_tilt_off_cam_rad=(float(down_off_cam[0]), float(down_off_cam[1])),
             inlier_count=n_pts,
             residual_px=residual_med_px,
             tile_id=candidate.tile_id,

@@ -27,6 +27,10 @@ class PoseFix:
     #: Angle between the image-only pose's camera axis (before the attitude prior) and the autopilot's,
     #: radians (the plausibility gate; recorded as ``fix_image_tilt_off_deg``).
     attitude_disagreement_rad: float
+    #: The same on the camera's x and y axes: world down seen by the image-only pose minus world down by
+    #: the autopilot's attitude, radians (small angles). The camera is fixed to the airframe, so an AHRS
+    #: or mount error is the same from fix to fix here (``c4_pose/attitude_check.py``).
+    image_tilt_off_cam_rad: tuple[float, float]
     inlier_count: int
     residual_px: float
     tile_id: TileId

@@ -1,0 +1,246 @@
+"""C4 attitude check: is the autopilot's tilt as good as the pose solver is told it is?
+
+The solver leans on the autopilot's roll and pitch, weighed at ``pose.attitude_sigma_deg``, wherever the
+image cannot pin the camera's tilt (``c4_pose/solver.py``). A wrong attitude (an AHRS gone wrong, a camera
+mount knocked out of its calibration) then moves every fix by height x tilt error while each fix states
+it is fine. Measured in SITL with 3 deg added to the autopilot's roll from 20 s on (XFeat, 70 s flights,
+``docs/benchmarks.md``): same-source at 120 m AGL the fixes went 2-4 m off at a stated 1 m, across dates
+at 1200 m AGL 35-72 m off at 10-27 m, and without this check 460 and 372 GPS_INPUT went out beyond
+3 sigma.
+
+The evidence: the image-only pose's world-down direction minus the autopilot's, on the camera's x and y
+axes (the camera is fixed to the airframe, so a mount or AHRS error is constant there), kept for the
+last ``pose.attitude_check_fixes`` solved fixes no older than ``pose.attitude_check_max_age_s``. One
+frame across dates cannot tell (the image's own tilt is 1-3 deg off from frame to frame); a bias is the
+same from frame to frame. Two tests, both on the scatter the fixes themselves show, never on the
+solver's formal covariance (across dates that is several times too small). Consecutive frames see
+mostly the same ground, and across dates the image's tilt error comes from that ground: measured over
+NAIP 2009/2014 at 1200 m AGL, ten fixes in a row (15 s, 600 m) shared a 5 deg tilt error. A window's
+fixes therefore count as ``1 + ground track / footprint`` independent ones (the footprint: the camera's
+horizontal field of view at the fix's height), never more than there are:
+
+- **Off**: over the newest 4, 8, ... fixes and over all that are kept, the mean is the bias; the
+  attitude is off when, in any of them, the bias less its one-sided 99 % Student-t margin is beyond
+  three times ``pose.attitude_sigma_deg`` (the prior claims one sigma; a bias proven beyond three makes
+  its fixes lies). Once off it stays off until no window's mean is beyond the bound. While off every
+  fix is refused (``attitude_off``).
+- **Jump**: where the fixes before pin the tilt better than ``pose.attitude_sigma_deg`` (their 99 %
+  prediction interval is narrower: the image is the better tilt sensor there), a fix whose tilt lies
+  outside that interval and beyond the bound is held back (``attitude_jump``) until the next ones say
+  whether it was one bad fix or a new attitude (4 of them then prove it off). This refuses the fixes
+  between the attitude going wrong and the off test seeing it. Across dates the interval is the
+  scatter of one fix, wider than the sigma, and nothing is held back (measured before this rule: 7 of
+  52 cross-date fixes held back for nothing).
+
+What the estimate already holds leaned on the same attitude: the fixes fused before the check saw it,
+and VO, which turns each frame's rays to the ground with the autopilot's attitude. A tilt error ``b``
+fixed to the airframe puts every ray's ground point ``AGL tan b`` off towards a side that turns with
+the aircraft, so VO's error over any stretch is the change of that offset: at most ``2 AGL tan b``
+however long (measured: a 3 deg roll error through a 90 deg turn at 120 m AGL, 7 m). While the check
+has shown a tilt error (``AttitudeVerdict.suspect_deg``) the pipeline raises the estimator's shared
+error to that bound (``c5_estimator/ekf.py``) and stops the IMU, whose accelerations the same attitude
+rotates (3 deg leaks 0.5 m/s^2 of gravity into the horizontal).
+
+What it can see: where the image is sharp (same-source imagery, a few hundred metres up) the scatter
+is a few hundredths of a degree and 4 fixes prove a bias of a degree or two, the fixes before held back
+as jumps. Across dates from 1200 m AGL a window is one footprint of ground and the scatter a degree or
+two: only a bias far beyond the image's own error there is seen (about 10 deg); a smaller one the image
+cannot tell from its own error, and the autopilot's attitude must be as good as
+``pose.attitude_sigma_deg`` says.
+
+The image-only tilts keep coming while fixes are refused (they do not depend on the prior), so the check
+clears by itself when the attitude comes back.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+from scipy.stats import t as student_t
+
+from gps_denied_onboard.components.c4_pose.types import PoseFix
+from gps_denied_onboard.config import PoseConfig
+
+#: Solved fixes needed before the check can find the attitude off (a scatter from fewer says little).
+MIN_FIXES: Final[int] = 4
+#: One-sided confidence of the lower bound on the bias.
+CONFIDENCE: Final[float] = 0.99
+
+
+@dataclass(frozen=True)
+class AttitudeVerdict:
+    """The check after one fix: the bias (deg, camera x and y) of the window that says most, its lower
+    and upper bounds (deg), the bound the prior allows (deg), how many fixes that window holds, whether
+    the attitude is off, whether this fix's tilt jumped from the ones before it (then it is held
+    back; see the module docstring), and ``suspect_deg``: the tilt error the estimate may carry from
+    the autopilot's attitude, deg, when the check has shown one (off: the bias' upper bound; a jump:
+    the jumped tilt), else None."""
+
+    bias_deg: tuple[float, float]
+    bias_lower_deg: float
+    bias_upper_deg: float
+    allowed_deg: float
+    fixes: int
+    off: bool
+    jump: bool = False
+    suspect_deg: float | None = None
+    #: This fix's own image-only tilt minus the autopilot's, deg, camera x and y.
+    tilt_off_deg: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def refused(self) -> str | None:
+        """The fix's refusal reason, or None: ``attitude_off`` or ``attitude_jump``."""
+        return "attitude_off" if self.off else "attitude_jump" if self.jump else None
+
+    def fdr_fields(self) -> dict[str, object]:
+        return {
+            "bias_deg": [round(self.bias_deg[0], 3), round(self.bias_deg[1], 3)],
+            "bias_lower_deg": round(self.bias_lower_deg, 3),
+            "bias_upper_deg": round(self.bias_upper_deg, 3),
+            "allowed_deg": round(self.allowed_deg, 3),
+            "fixes": self.fixes,
+            "off": self.off,
+            "jump": self.jump,
+            "suspect_deg": round(self.suspect_deg, 3) if self.suspect_deg is not None else None,
+            "tilt_off_deg": [round(self.tilt_off_deg[0], 3), round(self.tilt_off_deg[1], 3)],
+        }
+
+
+class AttitudeCheck:
+    """The running check of the module docstring; one caller at a time (the fix thread)."""
+
+    def __init__(self, config: PoseConfig) -> None:
+        self._sigma_deg = config.attitude_sigma_deg
+        self._allowed_deg = 3.0 * config.attitude_sigma_deg
+        self._max_age_usec = int(config.attitude_check_max_age_s * 1e6)
+        self._recent: deque[_Seen] = deque(maxlen=config.attitude_check_fixes)
+        self._off = False
+        #: Fixes held back as a jump in a row, the newest last.
+        self._held = 0
+
+    def note(self, fix: PoseFix, footprint_m: float) -> AttitudeVerdict:
+        """Add ``fix``'s image-only tilt and say whether the autopilot's attitude is off.
+        ``footprint_m``: the ground the frame covers across, m (its fixes' errors are correlated)."""
+        t = fix.exposure_time_unix_usec
+        dx, dy = fix.image_tilt_off_cam_rad
+        if self._recent and t < self._recent[-1].t_usec:
+            self._recent.clear()  # time went back (a replay, a restart of the axis): begin again
+            self._held = 0
+        self._recent.append(
+            _Seen(
+                t,
+                (math.degrees(dx), math.degrees(dy)),
+                (float(fix.pos_ned_m[0]), float(fix.pos_ned_m[1])),
+                max(float(footprint_m), 1e-3),
+            )
+        )
+        while self._recent and t - self._recent[0].t_usec > self._max_age_usec:
+            self._recent.popleft()
+        seen = list(self._recent)
+        offs = np.array([s.off_deg for s in seen])
+        windows = [_Window.of(seen[-n:]) for n in _window_sizes(len(seen))]
+        if not windows:  # fewer than MIN_FIXES: nothing is proven either way
+            self._off, self._held = False, 0
+            bias = offs.mean(axis=0)
+            norm = float(np.hypot(*bias))
+            return AttitudeVerdict(
+                (float(bias[0]), float(bias[1])),
+                0.0,
+                norm,
+                self._allowed_deg,
+                len(offs),
+                False,
+                tilt_off_deg=seen[-1].off_deg,
+            )
+        if self._off:  # off until no window's bias is beyond the bound, not just unproven
+            self._off = any(w.bias_norm_deg > self._allowed_deg for w in windows)
+        else:
+            self._off = any(w.lower_deg > self._allowed_deg for w in windows)
+        jump = not self._off and self._jumped(offs)
+        self._held = self._held + 1 if jump else 0
+        worst = max(windows, key=lambda w: w.lower_deg)
+        suspect = worst.upper_deg if self._off else float(np.hypot(*offs[-1])) if jump else None
+        return AttitudeVerdict(
+            (float(worst.bias_deg[0]), float(worst.bias_deg[1])),
+            worst.lower_deg,
+            worst.upper_deg,
+            self._allowed_deg,
+            worst.fixes,
+            self._off,
+            jump,
+            suspect,
+            seen[-1].off_deg,
+        )
+
+    def _jumped(self, offs_deg: np.ndarray) -> bool:
+        """The fixes before the ones held back in a row (``_held``) pin the tilt better than the
+        autopilot's own sigma (their 99 % prediction interval is narrower), and the newest tilt is
+        beyond the bound and outside that interval: the image is then the better tilt sensor, and a
+        departure that large is the autopilot's. Across dates the interval is wider than the sigma (the
+        scatter of one fix) and nothing is held back."""
+        newest = offs_deg[-1]
+        before = offs_deg[: offs_deg.shape[0] - 1 - self._held]
+        n = before.shape[0]
+        if n < MIN_FIXES or float(np.hypot(*newest)) <= self._allowed_deg:
+            return False
+        spread = math.sqrt(float(np.sum(before.var(axis=0, ddof=1))) * (1.0 + 1.0 / n))
+        margin = float(student_t.ppf(CONFIDENCE, n - 1)) * spread
+        if margin > self._sigma_deg:
+            return False
+        return float(np.hypot(*(newest - before.mean(axis=0)))) > margin
+
+@dataclass(frozen=True)
+class _Seen:
+    """One solved fix as the check keeps it: exposure (us), image-only tilt minus the autopilot's (deg,
+    camera x and y), ground position (NED north, east, m) and the frame's footprint across (m)."""
+
+    t_usec: int
+    off_deg: tuple[float, float]
+    ne_m: tuple[float, float]
+    footprint_m: float
+
+
+def _independent(seen: list[_Seen]) -> float:
+    """How many independent fixes ``seen`` are worth: 1 + ground track / mean footprint, at most all."""
+    ne = np.array([s.ne_m for s in seen])
+    track_m = float(np.sum(np.hypot(*np.diff(ne, axis=0).T))) if len(seen) > 1 else 0.0
+    footprint_m = float(np.mean([s.footprint_m for s in seen]))
+    return min(float(len(seen)), 1.0 + track_m / footprint_m)
+
+
+@dataclass(frozen=True)
+class _Window:
+    """The bias over some recent fixes: mean (deg, x and y), its norm and the norm's bounds."""
+
+    fixes: int
+    bias_deg: np.ndarray
+    bias_norm_deg: float
+    lower_deg: float
+    upper_deg: float
+
+    @classmethod
+    def of(cls, seen: list[_Seen]) -> _Window:
+        offs_deg = np.array([s.off_deg for s in seen])
+        n = offs_deg.shape[0]
+        bias = offs_deg.mean(axis=0)
+        norm = float(np.hypot(*bias))
+        # The scatter's own uncertainty: n - 1 dof; the mean's: over the independent fixes only.
+        std_err = math.sqrt(float(np.sum(offs_deg.var(axis=0, ddof=1))) / _independent(seen))
+        margin = float(student_t.ppf(CONFIDENCE, n - 1)) * std_err
+        return cls(n, bias, norm, max(0.0, norm - margin), norm + margin)
+
+
+def _window_sizes(available: int) -> list[int]:
+    """The windows of recent fixes tested: MIN_FIXES, twice that, ... and all that are kept."""
+    sizes = []
+    n = MIN_FIXES
+    while n < available:
+        sizes.append(n)
+        n *= 2
+    if available >= MIN_FIXES:
+        sizes.append(available)
+    return sizes

@@ -1,0 +1,165 @@
+"""The attitude check: a bias of the autopilot's tilt, seen through the image-only tilts of recent fixes.
+
+The image-only tilt differences are drawn as the daemon measured them (``docs/benchmarks.md``):
+same-source at 120 m AGL, 0.25 deg (the simulated autopilot's own error) with a few hundredths of
+scatter, one fix per 13 m flown under a 168 m footprint; across dates at 1200 m AGL, about 1.2 deg of
+scatter per axis, one fix per 52 m under a 1680 m footprint. They are drawn independent here; in flight
+across dates they are not (``c4_pose/attitude_check.py``), which is what the footprint term is for.
+"""
+
+from __future__ import annotations
+
+import math
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from gps_denied_onboard.components.c4_pose.attitude_check import MIN_FIXES, AttitudeCheck, AttitudeVerdict
+from gps_denied_onboard.components.c4_pose.types import PoseFix
+from gps_denied_onboard.components.c6_tiles.types import TileId
+from gps_denied_onboard.config import PoseConfig
+
+T0 = 1_700_000_000_000_000
+#: The autopilot's own tilt error in SITL (``sitl/runner.py``), deg, camera x and y.
+AP_ERROR_DEG = (0.2, -0.15)
+
+
+@dataclass(frozen=True)
+class Regime:
+    scatter_deg: float
+    step_m: float
+    footprint_m: float
+
+
+SAME_SOURCE = Regime(0.05, 13.0, 168.0)
+CROSS_DATE = Regime(1.2, 52.0, 1680.0)
+PERIOD_S = 1.3
+
+
+def _fix(t_usec: int, off_deg: tuple[float, float], north_m: float = 0.0) -> PoseFix:
+    return PoseFix(
+        frame_id=uuid.uuid4(),
+        exposure_time_unix_usec=t_usec,
+        pos_ned_m=np.array([north_m, 0.0, -120.0]),
+        cov_ned_m2=np.eye(3),
+        lat_deg=47.0,
+        lon_deg=8.0,
+        alt_amsl_m=1600.0,
+        yaw_rad=0.0,
+        yaw_sigma_rad=0.01,
+        attitude_disagreement_rad=math.radians(math.hypot(*off_deg)),
+        image_tilt_off_cam_rad=(math.radians(off_deg[0]), math.radians(off_deg[1])),
+        inlier_count=100,
+        residual_px=1.0,
+        tile_id=TileId(15, 1, 1),
+        shared_sigma_m=1.0,
+    )
+
+
+def _fly(check: AttitudeCheck, offsets_deg: np.ndarray, regime: Regime) -> list[AttitudeVerdict]:
+    """One fix per ``PERIOD_S`` along a straight line with these image-only tilt offsets."""
+    return [
+        check.note(
+            _fix(T0 + int(i * PERIOD_S * 1e6), (float(x), float(y)), i * regime.step_m), regime.footprint_m
+        )
+        for i, (x, y) in enumerate(offsets_deg)
+    ]
+
+
+def _offsets(rng: np.random.Generator, n: int, regime: Regime, bias_deg=(0.0, 0.0)) -> np.ndarray:
+    return rng.normal(np.add(AP_ERROR_DEG, bias_deg), regime.scatter_deg, size=(n, 2))
+
+
+def _step(seed: int, regime: Regime, bias_deg: tuple[float, float]) -> np.ndarray:
+    """30 fixes with the autopilot's usual error, 30 with ``bias_deg`` more, 30 usual again."""
+    rng = np.random.default_rng(seed)
+    return np.vstack(
+        [_offsets(rng, 30, regime), _offsets(rng, 30, regime, bias_deg), _offsets(rng, 30, regime)]
+    )
+
+
+@pytest.mark.parametrize("regime", [SAME_SOURCE, CROSS_DATE], ids=["same_source", "cross_date"])
+def test_an_attitude_within_its_sigma_is_never_called_off(regime: Regime) -> None:
+    """2000 fixes over 20 seeds: the autopilot's usual error is never called off."""
+    off = 0
+    for seed in range(20):
+        verdicts = _fly(
+            AttitudeCheck(PoseConfig()), _offsets(np.random.default_rng(seed), 100, regime), regime
+        )
+        off += sum(v.off for v in verdicts)
+    assert off == 0
+
+
+def test_where_the_image_is_sharp_a_three_degree_offset_gets_no_fix_through() -> None:
+    """Same-source: 3 deg added to the autopilot's roll. The 3 fixes after the step are held back as
+    jumps, the 4th proves it off, every fix is refused while it lasts, and the check lets go within a
+    window (12 fixes) after it."""
+    for seed in range(10):
+        refused = [
+            v.refused
+            for v in _fly(AttitudeCheck(PoseConfig()), _step(seed, SAME_SOURCE, (-3.0, 0.0)), SAME_SOURCE)
+        ]
+        assert refused[:30] == [None] * 30, seed
+        assert refused[30:34] == ["attitude_jump"] * 3 + ["attitude_off"], seed
+        assert set(refused[34:60]) == {"attitude_off"}, seed
+        assert refused[72:] == [None] * 18, seed
+
+
+def test_across_dates_only_a_tilt_far_beyond_the_images_own_error_is_seen() -> None:
+    """Across dates a window is under one footprint of ground: 3 deg is not called off (the image cannot
+    tell it from its own error there; module docstring), 10 deg is, within a window."""
+    for seed in range(10):
+        three = _fly(AttitudeCheck(PoseConfig()), _step(seed, CROSS_DATE, (-3.0, 0.0)), CROSS_DATE)
+        assert not any(v.off for v in three), seed
+        ten = [
+            v.off
+            for v in _fly(AttitudeCheck(PoseConfig()), _step(seed, CROSS_DATE, (-10.0, 0.0)), CROSS_DATE)
+        ]
+        assert not any(ten[:30]) and 30 < ten.index(True) < 42, (seed, ten.index(True))
+
+
+def test_one_odd_fix_is_held_back_and_the_next_good_one_is_not() -> None:
+    offsets = _offsets(np.random.default_rng(5), 12, SAME_SOURCE)
+    offsets[8] = (4.0, 1.0)  # one bad match set
+    refused = [v.refused for v in _fly(AttitudeCheck(PoseConfig()), offsets, SAME_SOURCE)]
+    assert refused == [None] * 8 + ["attitude_jump"] + [None] * 3
+
+
+def test_across_dates_nothing_is_held_back_as_a_jump() -> None:
+    """The prediction interval is the scatter of one fix there, wider than the autopilot's sigma: the
+    image is not the better tilt sensor, and a fix far from the ones before is not the autopilot's
+    doing (in flight, before this rule, 7 of 52 cross-date fixes were held back for nothing)."""
+    held = 0
+    for seed in range(10):
+        offsets = _offsets(np.random.default_rng(100 + seed), 200, CROSS_DATE)
+        held += sum(v.jump for v in _fly(AttitudeCheck(PoseConfig()), offsets, CROSS_DATE))
+    assert held == 0
+
+
+def test_the_bound_follows_the_configured_attitude_sigma() -> None:
+    """A 2 deg bias is off for a 0.5 deg sigma (1.5 deg allowed) and within a 1 deg one (3 deg)."""
+    offsets = _offsets(np.random.default_rng(1), 20, SAME_SOURCE, bias_deg=(2.0, 0.0))
+    assert _fly(AttitudeCheck(PoseConfig(attitude_sigma_deg=0.5)), offsets, SAME_SOURCE)[-1].off
+    assert not any(
+        v.off for v in _fly(AttitudeCheck(PoseConfig(attitude_sigma_deg=1.0)), offsets, SAME_SOURCE)
+    )
+
+
+def test_few_fixes_say_nothing_and_old_ones_leave_the_window() -> None:
+    check = AttitudeCheck(PoseConfig(attitude_check_max_age_s=10.0))
+    biased = _offsets(np.random.default_rng(2), 12, SAME_SOURCE, bias_deg=(5.0, 0.0))
+    verdicts = _fly(check, biased, SAME_SOURCE)
+    assert [v.off for v in verdicts[: MIN_FIXES - 1]] == [False] * (MIN_FIXES - 1)
+    assert verdicts[MIN_FIXES - 1].off and verdicts[-1].off
+    assert verdicts[-1].bias_deg[0] == pytest.approx(5.2, abs=0.05)
+    # 30 s later the biased fixes are too old: one good fix alone says nothing.
+    late = check.note(_fix(T0 + 45_000_000, AP_ERROR_DEG), SAME_SOURCE.footprint_m)
+    assert late.fixes == 1 and not late.off
+
+
+def test_time_going_back_starts_the_window_again() -> None:
+    check = AttitudeCheck(PoseConfig())
+    _fly(check, np.full((6, 2), 5.0), SAME_SOURCE)
+    assert check.note(_fix(T0 - 1_000_000, AP_ERROR_DEG), SAME_SOURCE.footprint_m).fixes == 1
