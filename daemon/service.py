@@ -88,6 +88,8 @@ class NavDaemon:
         self._last_state: EstimatorState | None = None
         self._last_fix: FixOutcome | None = None
         self._last_fix_reason: str | None = None
+        #: The attitude check's last verdict on the autopilot's tilt (``c4_pose/attitude_check.py``).
+        self._attitude_off = False
         #: F8: when the autopilot was first / last asked for its estimate after a restart (daemon clock, s).
         self._asked_autopilot_first_s: float | None = None
         self._asked_autopilot_last_s: float | None = None
@@ -378,6 +380,9 @@ class NavDaemon:
         elif (outcome.no_fix_reason or "").startswith("consistency:"):
             reason = str(outcome.no_fix_reason).split(":", 1)[1]
             refused[reason] = refused.get(reason, 0) + 1
+        elif outcome.attitude is not None and outcome.attitude.refused is not None:
+            refused[outcome.attitude.refused] = refused.get(outcome.attitude.refused, 0) + 1
+        self._note_attitude(outcome)
         self._last_fix = outcome
         self._last_fix_reason = outcome.no_fix_reason
         log.info(
@@ -390,6 +395,21 @@ class NavDaemon:
             age_ms=round((self._clock.now_unix_usec() - outcome.exposure_time_unix_usec) / 1e3, 1),
             timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()},
         )
+
+    def _note_attitude(self, outcome: FixOutcome) -> None:
+        """Tell the operator when the attitude check finds the autopilot's tilt off, and when it clears:
+        an AHRS or camera-mount fault of the aircraft, not of this daemon."""
+        check = outcome.attitude
+        if check is None or check.off == self._attitude_off:
+            return
+        self._attitude_off = check.off
+        if check.off:
+            text = f"GDN: AP tilt {math.hypot(*check.bias_deg):.1f} deg off camera, no fixes"
+            severity = mavutil.mavlink.MAV_SEVERITY_WARNING
+        else:
+            text = "GDN: AP tilt agrees with camera again"
+            severity = mavutil.mavlink.MAV_SEVERITY_INFO
+        self._root.link.send_statustext(severity, text)
 
     async def _estimate_output(self) -> None:
         """The steady estimate stream: on absolute deadlines (no drift, bounded jitter), the state
@@ -426,7 +446,7 @@ class NavDaemon:
             self._root.fdr.record(
                 FdrKind.PROVENANCE_CHANGED, {"old": old.value, "new": new.value, "reason": reason}
             )
-            self._root.link.notify_provenance(old, new, reason)
+            self._root.link.notify_provenance(old, new, f"GDN: {new.value}: {reason}" if reason else None)
         horiz = state.horiz_sigma_m if math.isfinite(state.lat_deg) else None
         self._root.fdr.record(
             FdrKind.ESTIMATE_SENT,
