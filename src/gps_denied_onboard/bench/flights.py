@@ -59,7 +59,8 @@ class Flight:
 def default_flights(shared: Path) -> list[Flight]:
     """The bundled scenarios over the maps the tests fly them on (``shared``: the ``../shared`` folder).
 
-    The fault scenarios fly over the procedural demo map, the real-imagery ones over GeoVision India,
+    The fault scenarios fly over the procedural demo map, the real-imagery ones (the autopilot's attitude
+    going wrong among them) over GeoVision India,
     and the cross-date one over NAIP 2009 with frames from 2020 and from 2014.
     """
     geovision = shared.joinpath(*_GEOVISION)
@@ -74,6 +75,7 @@ def default_flights(shared: Path) -> list[Flight]:
         Flight("map_gap", "map_gap", geovision),
         Flight("wrong_tile_trap", "wrong_tile_trap", geovision),
         Flight("link_drop", "link_drop", geovision),
+        Flight("attitude_offset", "attitude_offset", geovision),
         Flight(
             "naip_cross_date_2020",
             "naip_cross_date",
