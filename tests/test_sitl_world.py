@@ -130,12 +130,15 @@ def test_scenario_host_faults_parse_and_never_reach_the_camera() -> None:
     assert "faults[0].at_s" in str(err) and "whole number of seconds" in str(err)
     err = _error_for({**BASE, "faults": [{"kind": "ort_fault", "at_s": 1.0, "count": 0}]})
     assert "faults[0].count" in str(err)
+    err = _error_for({**BASE, "faults": [{"kind": "attitude_offset", "from_s": 1.0, "to_s": 2.0}]})
+    assert "faults[0].roll_deg" in str(err) and "non-zero" in str(err)
 
 
 def test_scenario_builtin_files_load() -> None:
-    """The three shipped scenarios load, by path and by bare name, with the documented shape."""
+    """The shipped scenarios load, by path and by bare name, with the documented shape."""
     names = sorted(p.stem for p in BUILTIN_SCENARIOS_DIR.glob("*.yaml"))
     assert names == [
+        "attitude_offset",
         "autopilot_square",
         "clock_faults",
         "demo",
@@ -240,7 +243,7 @@ def test_scenario_map_gaps_parse_and_validate() -> None:
 
 def test_scenario_file_errors_name_the_file(tmp_path: Path) -> None:
     """A missing file lists the built-ins; broken YAML is a ScenarioError naming the file."""
-    listed = r"built-in scenarios: autopilot_square, clock_faults, demo, faults, link_drop, .*, smoke"
+    listed = r"built-in scenarios: attitude_offset, autopilot_square, clock_faults, demo, faults, link_drop, .*, smoke"
     with pytest.raises(ScenarioError, match=listed):
         load_scenario(tmp_path / "nope.yaml")
     bad = tmp_path / "bad.yaml"
