@@ -273,36 +273,32 @@ class TimeAxis:
     def note_no_fix(self, time_unix_usec: int) -> None:
         """The absolute-fix attempt on the frame exposed at ``time_unix_usec`` gave no fix."""
         t = int(time_unix_usec)
-
-        def apply(est: NavEstimator) -> FixDecision:
-            est.note_no_fix(t)
-            return FixDecision(True, math.nan, FixReason.ACCEPTED)
-
-        self._fuse("no_fix", t, apply)
+        self._note("no_fix", t, lambda est: est.note_no_fix(t))
 
     def raise_shared_sigma(self, sigma_m: float, time_unix_usec: int) -> None:
         """From ``time_unix_usec`` on, the fixes fused may share ``sigma_m`` of common error
         (:meth:`NavEstimator.raise_shared_sigma`); an input like the others, so a rewind keeps it."""
-        t = int(time_unix_usec)
-
-        def apply(est: NavEstimator) -> FixDecision:
-            est.raise_shared_sigma(sigma_m)
-            return FixDecision(True, math.nan, FixReason.ACCEPTED)
-
-        self._fuse("shared_sigma", t, apply)
+        self._note("shared_sigma", int(time_unix_usec), lambda est: est.raise_shared_sigma(sigma_m))
 
     def set_imu_trusted(self, trusted: bool, time_unix_usec: int) -> None:
         """From ``time_unix_usec`` on, predict with the IMU or without it
         (:meth:`NavEstimator.set_imu_trusted`); an input like the others, so a rewind keeps it."""
-
         t = int(time_unix_usec)
 
-        def apply(est: NavEstimator) -> FixDecision:
+        def switch(est: NavEstimator) -> None:
             est.predict_to(t)  # the switch happens at t: up to it the prediction is as it was
             est.set_imu_trusted(trusted)
+
+        self._note("imu_trust", t, switch)
+
+    def _note(self, kind: str, t: int, action: Callable[[NavEstimator], None]) -> None:
+        """An input at ``t`` that is not a measurement: always applied, replayed on a rewind."""
+
+        def apply(est: NavEstimator) -> FixDecision:
+            action(est)
             return FixDecision(True, math.nan, FixReason.ACCEPTED)
 
-        self._fuse("imu_trust", t, apply)
+        self._fuse(kind, t, apply)
 
     def _fuse(self, kind: str, t: int, apply: Callable[[NavEstimator], FixDecision]) -> FixDecision:
         with self._lock:
