@@ -5,8 +5,7 @@ image cannot pin the camera's tilt (``c4_pose/solver.py``). A wrong attitude (an
 mount knocked out of its calibration) then moves every fix by height x tilt error while each fix states
 it is fine. Measured in SITL with 3 deg added to the autopilot's roll from 20 s on (XFeat, 70 s flights,
 ``docs/benchmarks.md``): same-source at 120 m AGL the fixes went 2-4 m off at a stated 1 m, across dates
-at 1200 m AGL 35-72 m off at 10-27 m, and without this check 460 and 372 GPS_INPUT went out beyond
-3 sigma.
+at 1200 m AGL 35-72 m off at 10-27 m: 134 and 360 of 724 GPS_INPUT went out beyond 3 sigma.
 
 The evidence: the image-only pose's world-down direction minus the autopilot's, on the camera's x and y
 axes (the camera is fixed to the airframe, so a mount or AHRS error is constant there), kept for the
