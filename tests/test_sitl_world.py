@@ -243,7 +243,10 @@ def test_scenario_map_gaps_parse_and_validate() -> None:
 
 def test_scenario_file_errors_name_the_file(tmp_path: Path) -> None:
     """A missing file lists the built-ins; broken YAML is a ScenarioError naming the file."""
-    listed = r"built-in scenarios: attitude_offset, autopilot_square, clock_faults, demo, faults, link_drop, .*, smoke"
+    listed = (
+        r"built-in scenarios: attitude_offset, autopilot_square, clock_faults, demo, faults, link_drop, "
+        r".*, smoke"
+    )
     with pytest.raises(ScenarioError, match=listed):
         load_scenario(tmp_path / "nope.yaml")
     bad = tmp_path / "bad.yaml"
