@@ -313,3 +313,35 @@ def test_run_inputs_never_raises_on_missing_files(tmp_path: Path) -> None:
     assert out["cache_manifest_sha256"] is None and out["cache_manifest_files"] is None
     assert out["models"] == [{"file": str(tmp_path / "missing.onnx"), "sha256": None, "from": "computed"}]
     assert len(out["input_errors"]) == 2
+
+
+class _Clock:
+    def __init__(self, t: float) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.mark.parametrize("earlier", [1_700_000_000.0, 1_800_000_000.0], ids=["clock-behind", "same-ms"])
+def test_fdr_names_keep_recording_order_when_the_clock_reads_earlier(tmp_path: Path, earlier: float) -> None:
+    """A restart on a clock that reads earlier than the last run (no RTC), or within its millisecond, goes
+    on under the last run's tag, so segments and images still sort oldest first and the image budget
+    deletes the oldest."""
+    later = 1_800_000_000.0
+    opts = {"images_max_bytes": 64 * KIB, "min_free_bytes": 0, "free_check_interval_s": 0.0}
+    with FlightDataRecorder(tmp_path, 1 << 20, 1 << 16, clock=_Clock(later), **opts) as first:
+        first.record_frame_image(1, 1, _jpeg(30 * KIB))
+        first.record(FdrKind.FRAME, {"run": 1})
+    with FlightDataRecorder(tmp_path, 1 << 20, 1 << 16, clock=_Clock(earlier), **opts) as second:
+        second.record_frame_image(2, 2, _jpeg(30 * KIB))
+        second.record_frame_image(3, 3, _jpeg(30 * KIB))
+        second.record(FdrKind.FRAME, {"run": 2})
+    images = [p.name.split("-") for p in list_images(tmp_path)]
+    assert [parts[-1] for parts in images] == ["2.jpg", "3.jpg"]
+    assert [int(parts[2]) for parts in images] == [2, 3]  # numbered after the first run's image
+    assert [r["run"] for r in FdrReader(tmp_path).records(FdrKind.FRAME)] == [1, 2]
+    segs = list_segments(tmp_path)
+    assert len(segs) == 2 and len({s.name.split("-")[1] for s in segs}) == 1
+    opened = [r["t_unix_s"] for r in FdrReader(tmp_path).records(FdrKind.FDR_OPENED)]
+    assert opened == [later, earlier]  # the records keep the clock as read

@@ -2,7 +2,10 @@
 
 Layout: ``<dir>/fdr-<start>-<seq>.jsonl`` where ``<start>`` is the recorder's start time
 (``YYYYMMDDTHHMMSS.mmmZ``, UTC) and ``<seq>`` the segment number (6 digits), so names sort in recording
-order across daemon restarts. One record per line::
+order across daemon restarts. When the clock reads no later than the newest earlier run's tag (a restart
+within the millisecond, or a companion computer with no real-time clock that boots at its last saved
+time), the run goes on under that tag, numbered after its files, so the order still holds; its
+``fdr.opened`` record carries the clock as read. One record per line::
 
     {"t_unix_s": 1717000000.123, "kind": "pipeline.frame", "seq": 42, ...fields}
 
@@ -327,6 +330,17 @@ class FlightDataRecorder:
                 self._images[img] = img.stat().st_size
             except OSError:
                 continue
+        # Names must sort in recording order across runs. A run that starts in the same millisecond as
+        # the last, or on a clock that reads earlier (a companion computer with no real-time clock boots
+        # at its last saved time), goes on under the newest earlier tag, numbered after its files.
+        tags = [k[0] for k in map(_segment_key, self._sizes) if k is not None]
+        tags += [k[0] for k in map(_image_key, self._images) if k is not None]
+        newest = max(tags, default="")
+        if newest >= self._start_tag:
+            self._start_tag = newest
+            self._image_seq = max(
+                (k[1] for k in map(_image_key, self._images) if k is not None and k[0] == newest), default=0
+            )
 
     def _recover_previous(self) -> tuple[Path | None, int, bool | None]:
         """Scan the end of the newest existing segment: (that segment, torn lines in its last
