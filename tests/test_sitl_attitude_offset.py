@@ -62,9 +62,13 @@ def test_what_leaves_the_daemon_stays_within_its_stated_accuracy(flight: dict) -
 
 
 def test_the_fixes_come_back_with_the_attitude(flight: dict) -> None:
-    before = [r for t, r in _fixes(flight) if t < OFFSET_FROM_S]
+    # The attitude the daemon reads for a frame is interpolated between ATTITUDE messages around its
+    # exposure: a frame exposed just before the offset can already carry part of it (and is refused).
+    before = [(t, r) for t, r in _fixes(flight) if t < OFFSET_FROM_S - 0.5]
     after = [r for t, r in _fixes(flight) if t >= OFFSET_TO_S + 10.0]
-    assert before and all(r["fix_accepted"] for r in before[2:]), [r["no_fix_reason"] for r in before]
+    assert len(before) >= 20, len(before)
+    refused = [(round(t, 2), r["no_fix_reason"]) for t, r in before[2:] if not r["fix_accepted"]]
+    assert not refused, refused
     assert len(after) >= 10 and sum(r["fix_accepted"] for r in after) >= 0.8 * len(after), [
         r["no_fix_reason"] for r in after
     ]
