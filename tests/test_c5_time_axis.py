@@ -489,3 +489,16 @@ def test_an_untrusted_imu_is_left_out_of_the_prediction_and_a_rewind_keeps_it_ou
     with_imu.set_imu_trusted(True, T0 + 2 * S)
     gained = with_imu.state_at(t).pos_ned_m[0] - without.state_at(t).pos_ned_m[0]
     assert gained == pytest.approx(0.5 * 0.5 * 3.0**2, rel=0.05)  # 3 s of 0.5 m/s^2 after the switch
+
+
+def test_an_imu_switch_the_axis_cannot_take_says_so() -> None:
+    """Before the axis is initialised (or for a time it no longer holds) the switch is refused and the
+    caller is told, so it says it again instead of believing the IMU is out of the prediction."""
+    clock = _Clock(T0 + 20 * S)
+    axis = _axis(clock, accel=_ConstAccel(np.array([0.5, 0.0, 0.0])))
+    assert axis.set_imu_trusted(False, T0) is False
+    assert axis.raise_shared_sigma(8.0, T0) is False
+    axis.initialise(np.array([0.0, 0.0, -120.0]), 3.0, T0)
+    assert axis.set_imu_trusted(False, T0 + S) is True
+    assert axis.raise_shared_sigma(8.0, T0 + S) is True
+    assert axis.set_imu_trusted(True, T0 - S) is False  # before anything the axis holds: too late

@@ -336,10 +336,11 @@ class NavigationPipeline:
                 if attitude.suspect_deg is not None:
                     # The fixes fused before the check saw it, and VO, leaned on the same wrong tilt.
                     self._axis.raise_shared_sigma(2.0 * self._tilt_error_m(fix, attitude.suspect_deg), t)
-                if (attitude.refused is None) != self._imu_trusted:
-                    # The IMU's accelerations are rotated with the same attitude (gravity leaks in).
-                    self._imu_trusted = attitude.refused is None
-                    self._axis.set_imu_trusted(self._imu_trusted, t)
+                # The IMU's accelerations are rotated with the same attitude (gravity leaks in). Said
+                # again on the next fix if the axis could not take it (not yet initialised).
+                trusted = attitude.refused is None
+                if trusted != self._imu_trusted and self._axis.set_imu_trusted(trusted, t):
+                    self._imu_trusted = trusted
             head = self._axis.head_unix_usec
             behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
             if fix is not None and reason is None:
@@ -398,15 +399,17 @@ class NavigationPipeline:
         )
         return out
 
+    def _agl_m(self, fix: PoseFix) -> float:
+        """Height of ``fix`` above the map's ground, m (flat ground; never below it)."""
+        return max(0.0, fix.alt_amsl_m - self._ground_alt_amsl_m)
+
     def _footprint_m(self, fix: PoseFix) -> float:
         """Ground the frame of ``fix`` covers across, m (nadir, flat ground)."""
-        agl_m = max(0.0, fix.alt_amsl_m - self._ground_alt_amsl_m)
-        return 2.0 * agl_m * math.tan(self._calib.hfov_rad / 2.0)
+        return 2.0 * self._agl_m(fix) * math.tan(self._calib.hfov_rad / 2.0)
 
     def _tilt_error_m(self, fix: PoseFix, tilt_deg: float) -> float:
         """Ground distance a camera tilt of ``tilt_deg`` moves a fix from the fix's height, m."""
-        agl_m = max(0.0, fix.alt_amsl_m - self._ground_alt_amsl_m)
-        return agl_m * math.tan(math.radians(min(tilt_deg, 45.0)))
+        return self._agl_m(fix) * math.tan(math.radians(min(tilt_deg, 45.0)))
 
     def _absolute_fix(
         self, frame: NavCameraFrame, timings: dict[str, float]

@@ -275,30 +275,33 @@ class TimeAxis:
         t = int(time_unix_usec)
         self._note("no_fix", t, lambda est: est.note_no_fix(t))
 
-    def raise_shared_sigma(self, sigma_m: float, time_unix_usec: int) -> None:
+    def raise_shared_sigma(self, sigma_m: float, time_unix_usec: int) -> bool:
         """From ``time_unix_usec`` on, the fixes fused may share ``sigma_m`` of common error
-        (:meth:`NavEstimator.raise_shared_sigma`); an input like the others, so a rewind keeps it."""
-        self._note("shared_sigma", int(time_unix_usec), lambda est: est.raise_shared_sigma(sigma_m))
+        (:meth:`NavEstimator.raise_shared_sigma`); an input like the others, so a rewind keeps it.
+        False when the axis refused it (as :meth:`set_imu_trusted`)."""
+        return self._note("shared_sigma", int(time_unix_usec), lambda est: est.raise_shared_sigma(sigma_m))
 
-    def set_imu_trusted(self, trusted: bool, time_unix_usec: int) -> None:
+    def set_imu_trusted(self, trusted: bool, time_unix_usec: int) -> bool:
         """From ``time_unix_usec`` on, predict with the IMU or without it
-        (:meth:`NavEstimator.set_imu_trusted`); an input like the others, so a rewind keeps it."""
+        (:meth:`NavEstimator.set_imu_trusted`); an input like the others, so a rewind keeps it. False
+        when the axis refused it (not initialised, too late, in the future): the caller says it again."""
         t = int(time_unix_usec)
 
         def switch(est: NavEstimator) -> None:
             est.predict_to(t)  # the switch happens at t: up to it the prediction is as it was
             est.set_imu_trusted(trusted)
 
-        self._note("imu_trust", t, switch)
+        return self._note("imu_trust", t, switch)
 
-    def _note(self, kind: str, t: int, action: Callable[[NavEstimator], None]) -> None:
-        """An input at ``t`` that is not a measurement: always applied, replayed on a rewind."""
+    def _note(self, kind: str, t: int, action: Callable[[NavEstimator], None]) -> bool:
+        """An input at ``t`` that is not a measurement: applied and replayed on a rewind wherever the
+        axis takes inputs at ``t`` (see ``_fuse``); whether it did."""
 
         def apply(est: NavEstimator) -> FixDecision:
             action(est)
             return FixDecision(True, math.nan, FixReason.ACCEPTED)
 
-        self._fuse(kind, t, apply)
+        return self._fuse(kind, t, apply).accepted
 
     def _fuse(self, kind: str, t: int, apply: Callable[[NavEstimator], FixDecision]) -> FixDecision:
         with self._lock:
