@@ -47,6 +47,12 @@ two: only a bias far beyond the image's own error there is seen (about 10 deg); 
 cannot tell from its own error, and the autopilot's attitude must be as good as
 ``pose.attitude_sigma_deg`` says.
 
+What it cannot see in time: its evidence is the fixes, so it is as quick as the matcher. Measured with
+ALIKED and DISK on a 2-core CPU (a fix every 7-12 s, each landing 7-12 s after its exposure; 3 deg of
+roll for 25 s, ``docs/benchmarks.md``): 3-4 fixes fell inside the offset, too few to prove it or to pin
+the image's scatter for a jump, and VO and the IMU carried the estimate 5-8 m off at a stated 2 m
+(about 220 of 790 GPS_INPUT beyond 3 sigma). Classical and XFeat, solving every 0.3 and 1.4 s, sent none.
+
 The image-only tilts keep coming while fixes are refused (they do not depend on the prior), so the check
 clears by itself when the attitude comes back.
 """
