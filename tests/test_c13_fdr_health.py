@@ -332,7 +332,12 @@ def test_fdr_names_keep_recording_order_when_the_clock_reads_earlier(tmp_path: P
     opts = {"images_max_bytes": 64 * KIB, "min_free_bytes": 0, "free_check_interval_s": 0.0}
     with FlightDataRecorder(tmp_path, 1 << 20, 1 << 16, clock=_Clock(later), **opts) as first:
         first.record_frame_image(1, 1, _jpeg(30 * KIB))
-        first.record(FdrKind.FRAME, {"run": 1})
+        for _ in range(2):  # the second cannot fit the 64 KiB segment: a second one opens
+            first.record(FdrKind.FRAME, {"run": 0, "pad": "x" * 40 * KIB})
+        first.record(FdrKind.FRAME, {"run": 1})  # in the run's second segment
+    first_segments = list_segments(tmp_path)
+    assert len(first_segments) == 2
+    first_segments[0].unlink()  # as the size budget deletes the oldest
     with FlightDataRecorder(tmp_path, 1 << 20, 1 << 16, clock=_Clock(earlier), **opts) as second:
         second.record_frame_image(2, 2, _jpeg(30 * KIB))
         second.record_frame_image(3, 3, _jpeg(30 * KIB))
@@ -340,8 +345,8 @@ def test_fdr_names_keep_recording_order_when_the_clock_reads_earlier(tmp_path: P
     images = [p.name.split("-") for p in list_images(tmp_path)]
     assert [parts[-1] for parts in images] == ["2.jpg", "3.jpg"]
     assert [int(parts[2]) for parts in images] == [2, 3]  # numbered after the first run's image
-    assert [r["run"] for r in FdrReader(tmp_path).records(FdrKind.FRAME)] == [1, 2]
+    assert [r["run"] for r in FdrReader(tmp_path).records(FdrKind.FRAME)] == [0, 1, 2]  # 1st pad: deleted
     segs = list_segments(tmp_path)
-    assert len(segs) == 2 and len({s.name.split("-")[1] for s in segs}) == 1
-    opened = [r["t_unix_s"] for r in FdrReader(tmp_path).records(FdrKind.FDR_OPENED)]
-    assert opened == [later, earlier]  # the records keep the clock as read
+    assert segs[0] == first_segments[1] and len({s.name.split("-")[1] for s in segs}) == 1
+    assert [int(s.stem.split("-")[-1]) for s in segs] == [2, 3]  # numbered after, not in the gap
+    assert next(FdrReader(tmp_path).records(FdrKind.FDR_OPENED))["t_unix_s"] == earlier  # the clock as read

@@ -64,7 +64,7 @@ import shutil
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path, PurePath
 from typing import Any, Final
 
@@ -179,6 +179,11 @@ def _sorted_files(directory: Path, key: Callable[[Path], Any]) -> list[Path]:
         return []
     keyed = [(k, p) for p in entries if (k := key(p)) is not None]
     return [p for _, p in sorted(keyed)]
+
+
+def _last_number(keys: Iterable[tuple[str, int] | None], tag: str) -> int:
+    """The highest file number under ``tag`` among ``keys`` (``_segment_key``/``_image_key``), 0 if none."""
+    return max((k[1] for k in keys if k is not None and k[0] == tag), default=0)
 
 
 def list_images(directory: str | Path) -> list[Path]:
@@ -338,9 +343,8 @@ class FlightDataRecorder:
         newest = max(tags, default="")
         if newest >= self._start_tag:
             self._start_tag = newest
-            self._image_seq = max(
-                (k[1] for k in map(_image_key, self._images) if k is not None and k[0] == newest), default=0
-            )
+            self._seg_seq = _last_number(map(_segment_key, self._sizes), newest)
+            self._image_seq = _last_number(map(_image_key, self._images), newest)
 
     def _recover_previous(self) -> tuple[Path | None, int, bool | None]:
         """Scan the end of the newest existing segment: (that segment, torn lines in its last
