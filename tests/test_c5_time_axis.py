@@ -492,8 +492,8 @@ def test_an_untrusted_imu_is_left_out_of_the_prediction_and_a_rewind_keeps_it_ou
 
 
 def test_an_imu_switch_the_axis_cannot_take_says_so() -> None:
-    """Before the axis is initialised (or for a time it no longer holds) the switch is refused and the
-    caller is told, so it says it again instead of believing the IMU is out of the prediction."""
+    """Before the axis is initialised the switch is refused and the caller is told, so it says it
+    again instead of believing the IMU is out of the prediction."""
     clock = _Clock(T0 + 20 * S)
     axis = _axis(clock, accel=_ConstAccel(np.array([0.5, 0.0, 0.0])))
     assert axis.set_imu_trusted(False, T0) is False
@@ -501,4 +501,21 @@ def test_an_imu_switch_the_axis_cannot_take_says_so() -> None:
     axis.initialise(np.array([0.0, 0.0, -120.0]), 3.0, T0)
     assert axis.set_imu_trusted(False, T0 + S) is True
     assert axis.raise_shared_sigma(8.0, T0 + S) is True
-    assert axis.set_imu_trusted(True, T0 - S) is False  # before anything the axis holds: too late
+    assert axis.set_imu_trusted(True, T0 - S) is True  # too late for its time: placed at the head
+
+
+def test_a_shared_sigma_or_imu_switch_too_late_for_its_time_holds_from_the_head() -> None:
+    """A slow matcher's fix shows the attitude off after the axis has moved past its exposure by more than
+    the delay it takes: the error the estimate carries and the IMU switch still reach the output, from
+    the head on, never lost with the late fix."""
+    clock = _Clock(T0 + 60 * S)
+    axis = _axis(clock, accel=_ConstAccel(np.array([0.5, 0.0, 0.0])), max_delay_s=5.0)
+    axis.initialise(np.array([0.0, 0.0, -120.0]), 3.0, T0)
+    assert axis.set_imu_trusted(True, T0 + 20 * S) is True  # moves the head to T0 + 20 s
+    late = T0 + 10 * S  # 10 s behind the head, the axis keeps 5
+    assert axis.raise_shared_sigma(8.0, late) is True
+    assert axis.state_at(T0 + 20 * S).shared_sigma_m == pytest.approx(8.0)
+    before = axis.state_at(T0 + 25 * S).pos_ned_m[0]
+    assert axis.set_imu_trusted(False, late) is True
+    without_imu = axis.state_at(T0 + 25 * S).pos_ned_m[0]
+    assert before - without_imu == pytest.approx(0.5 * 0.5 * 5.0**2, rel=0.05)  # 5 s of leaked gravity gone

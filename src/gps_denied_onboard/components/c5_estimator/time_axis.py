@@ -272,36 +272,51 @@ class TimeAxis:
 
     def note_no_fix(self, time_unix_usec: int) -> None:
         """The absolute-fix attempt on the frame exposed at ``time_unix_usec`` gave no fix."""
-        t = int(time_unix_usec)
-        self._note("no_fix", t, lambda est: est.note_no_fix(t))
+        self._note("no_fix", int(time_unix_usec), lambda est, at: est.note_no_fix(at))
 
     def raise_shared_sigma(self, sigma_m: float, time_unix_usec: int) -> bool:
         """From ``time_unix_usec`` on, the fixes fused may share ``sigma_m`` of common error
-        (:meth:`NavEstimator.raise_shared_sigma`); an input like the others, so a rewind keeps it.
-        False when the axis refused it (as :meth:`set_imu_trusted`)."""
-        return self._note("shared_sigma", int(time_unix_usec), lambda est: est.raise_shared_sigma(sigma_m))
+        (:meth:`NavEstimator.raise_shared_sigma`); an input like the others, so a rewind keeps it. Too
+        late for ``time_unix_usec`` (a slow matcher's fix), it holds from the head on: what the estimate
+        carried then it carries now. False when the axis took it at neither (not initialised)."""
+
+        def raise_it(est: NavEstimator, _at: int) -> None:
+            est.raise_shared_sigma(sigma_m)
+
+        return self._note("shared_sigma", int(time_unix_usec), raise_it, late_at_head=True)
 
     def set_imu_trusted(self, trusted: bool, time_unix_usec: int) -> bool:
-        """From ``time_unix_usec`` on, predict with the IMU or without it
+        """From ``time_unix_usec`` on (from the head on when that is too late, as
+        :meth:`raise_shared_sigma`), predict with the IMU or without it
         (:meth:`NavEstimator.set_imu_trusted`); an input like the others, so a rewind keeps it. False
-        when the axis refused it (not initialised, too late, in the future): the caller says it again."""
-        t = int(time_unix_usec)
+        when the axis took it at neither (not initialised): the caller says it again."""
 
-        def switch(est: NavEstimator) -> None:
-            est.predict_to(t)  # the switch happens at t: up to it the prediction is as it was
+        def switch(est: NavEstimator, at: int) -> None:
+            est.predict_to(at)  # the switch happens at ``at``: up to it the prediction is as it was
             est.set_imu_trusted(trusted)
 
-        return self._note("imu_trust", t, switch)
+        return self._note("imu_trust", int(time_unix_usec), switch, late_at_head=True)
 
-    def _note(self, kind: str, t: int, action: Callable[[NavEstimator], None]) -> bool:
-        """An input at ``t`` that is not a measurement: applied and replayed on a rewind wherever the
-        axis takes inputs at ``t`` (see ``_fuse``); whether it did."""
+    def _note(
+        self, kind: str, t: int, action: Callable[[NavEstimator, int], None], *, late_at_head: bool = False
+    ) -> bool:
+        """An input at ``t`` that is not a measurement: applied (at the time it is placed at) and replayed
+        on a rewind wherever the axis takes inputs at ``t`` (see ``_fuse``); with ``late_at_head``, one
+        too late for ``t`` is placed at the head instead. Whether it was placed."""
 
-        def apply(est: NavEstimator) -> FixDecision:
-            action(est)
-            return FixDecision(True, math.nan, FixReason.ACCEPTED)
+        def at(time_usec: int) -> Callable[[NavEstimator], FixDecision]:
+            def apply(est: NavEstimator) -> FixDecision:
+                action(est, time_usec)
+                return FixDecision(True, math.nan, FixReason.ACCEPTED)
 
-        return self._fuse(kind, t, apply).accepted
+            return apply
+
+        decision = self._fuse(kind, t, at(t))
+        if late_at_head and decision.reason == Refusal.TOO_LATE.value:
+            head = self.head_unix_usec
+            if head is not None:
+                decision = self._fuse(kind, head, at(head))
+        return decision.accepted
 
     def _fuse(self, kind: str, t: int, apply: Callable[[NavEstimator], FixDecision]) -> FixDecision:
         with self._lock:
