@@ -21,6 +21,10 @@ Per frame
    (6 m per frame at 1200 m AGL for a 13 m displacement): the filter could not follow a turn and then
    rejected every correct fix.
 
+5. Ground tilt: the same inliers, with the displacement and the autopilot's relative rotation, say where
+   the ground's normal lies in the previous camera (``c1_vio/ground_tilt.py``): the camera's tilt
+   without the autopilot's, for the attitude check (``VoMotion.ground_tilt_off_cam_rad``).
+
 Only the previous frame's keypoints, descriptors, attitude, altitude and time are kept (never images).
 A frame that cannot serve as a reference (no attitude/altitude, no texture) leaves the previous
 reference in place so the next good frame measures motion over the whole interval (up to
@@ -39,6 +43,7 @@ import cv2
 import numpy as np
 
 from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
+from gps_denied_onboard.components.c1_vio.ground_tilt import ground_tilt_off_cam_rad
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 
 
@@ -191,8 +196,9 @@ class HomographyVo:
             raise VoError(f"{dt_usec / 1e6:.2f} s since the reference frame", reason=VoFailure.GAP_TOO_LONG)
 
         prev_px, cur_px = self._match(previous, current)
-        g_prev = self._ground_points(prev_px, previous)
-        g_cur = self._ground_points(cur_px, current)
+        prev_norm, cur_norm = self._normalised(prev_px), self._normalised(cur_px)
+        g_prev = self._ground_points(prev_norm, previous)
+        g_cur = self._ground_points(cur_norm, current)
         valid = np.isfinite(g_prev[:, 0]) & np.isfinite(g_cur[:, 0])
         offsets = (g_prev - g_cur)[valid]
         n = offsets.shape[0]
@@ -205,6 +211,10 @@ class HomographyVo:
             self._scale_sigma_frac * float(np.hypot(*delta_ne))
         ) ** 2
         cov = cov + np.eye(2) * common_var
+        displacement_ned = np.array([delta_ne[0], delta_ne[1], previous.alt_agl_m - current.alt_agl_m])
+        tilt = ground_tilt_off_cam_rad(
+            prev_norm, cur_norm, previous.r_ned_cam, current.r_ned_cam, displacement_ned, previous.alt_agl_m
+        )
         return VoMotion(
             frame_id=frame.frame_id,
             prev_frame_id=previous.frame_id,
@@ -212,6 +222,7 @@ class HomographyVo:
             delta_ne_m=delta_ne,
             cov_ne_m2=cov,
             inlier_count=n,
+            ground_tilt_off_cam_rad=tilt,
         )
 
     def _match(self, previous: _Reference, current: _Reference) -> tuple[np.ndarray, np.ndarray]:
@@ -234,11 +245,14 @@ class HomographyVo:
             )
         return prev_px[inl], cur_px[inl]
 
-    def _ground_points(self, px: np.ndarray, ref: _Reference) -> np.ndarray:
-        """(M, 2) pixels -> (M, 2) north/east of their ground points relative to the camera, metres;
-        NaN rows for rays that do not reach the ground steeply enough."""
+    def _normalised(self, px: np.ndarray) -> np.ndarray:
+        """(M, 2) pixels -> (M, 2) undistorted normalised image coordinates."""
         cal = self._calibration
-        norm = cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), cal.K, cal.dist).reshape(-1, 2)
+        return cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), cal.K, cal.dist).reshape(-1, 2)
+
+    def _ground_points(self, norm: np.ndarray, ref: _Reference) -> np.ndarray:
+        """(M, 2) normalised image points -> (M, 2) north/east of their ground points relative to the
+        camera, metres; NaN rows for rays that do not reach the ground steeply enough."""
         rays_cam = np.hstack([norm, np.ones((norm.shape[0], 1))])
         rays_ned = rays_cam @ ref.r_ned_cam.T
         down_cos = rays_ned[:, 2] / np.linalg.norm(rays_ned, axis=1)

@@ -20,6 +20,10 @@ class VoMotion:
     #: (2, 2) float64 covariance of ``delta_ne_m``, m^2.
     cov_ne_m2: np.ndarray
     inlier_count: int
+    #: World down as the two frames' ground plane shows it minus world down as the autopilot's attitude
+    #: says, on the previous frame's camera x and y axes, rad (``c1_vio/ground_tilt.py``); None when the
+    #: frames cannot tell (too short a baseline).
+    ground_tilt_off_cam_rad: tuple[float, float] | None = None
 
 
 class VoError(RuntimeError):
