@@ -163,3 +163,43 @@ def test_time_going_back_starts_the_window_again() -> None:
     check = AttitudeCheck(PoseConfig())
     _fly(check, np.full((6, 2), 5.0), SAME_SOURCE)
     assert check.note(_fix(T0 - 1_000_000, AP_ERROR_DEG), SAME_SOURCE.footprint_m).fixes == 1
+
+
+#: VO's ground tilt at 120 m AGL, 12 m/s, 3 Hz, measured on the rendered orthophoto (c1_vio/ground_tilt.py):
+#: 0.5 deg scatter per axis per pair of frames, each pair's error its own.
+VO_SCATTER_DEG = 0.55
+VO_PERIOD_US = 333_333
+
+
+def _vo_check() -> AttitudeCheck:
+    return AttitudeCheck(PoseConfig(), samples=24, max_age_s=10.0, ground_correlated=False)
+
+
+def _vo_tilts(check: AttitudeCheck, offsets_deg: np.ndarray) -> list[AttitudeVerdict]:
+    return [
+        check.note_tilt(T0 + i * VO_PERIOD_US, (math.radians(x), math.radians(y)))
+        for i, (x, y) in enumerate(offsets_deg)
+    ]
+
+
+def test_vo_ground_tilt_sees_a_three_degree_offset_within_seconds() -> None:
+    """The same check on VO's ground tilt, whose errors are each their own (no ground footprint to share):
+    3 deg on the roll for 25 s (75 frames) after 20 s of the autopilot's usual error is proven off within
+    3 s and held to the end; 10 s of usual error after it clears it. 20 seeds; the usual error alone is
+    never called off over 20 x 500 frames (2.8 min each)."""
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        tilts = np.vstack(
+            [
+                rng.normal(AP_ERROR_DEG, VO_SCATTER_DEG, (60, 2)),
+                rng.normal(np.add(AP_ERROR_DEG, (-3.0, 0.0)), VO_SCATTER_DEG, (75, 2)),
+                rng.normal(AP_ERROR_DEG, VO_SCATTER_DEG, (30, 2)),
+            ]
+        )
+        off = [v.off for v in _vo_tilts(_vo_check(), tilts)]
+        assert not any(off[:60]), seed
+        first = off.index(True)
+        assert 60 < first <= 69 and all(off[first:135]), (seed, first)
+        assert not any(off[135 + 30 - 1 :]), seed
+        usual = _vo_tilts(_vo_check(), rng.normal(AP_ERROR_DEG, VO_SCATTER_DEG, (500, 2)))
+        assert not any(v.off or v.jump for v in usual), seed

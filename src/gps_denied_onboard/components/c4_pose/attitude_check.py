@@ -47,11 +47,19 @@ two: only a bias far beyond the image's own error there is seen (about 10 deg); 
 cannot tell from its own error, and the autopilot's attitude must be as good as
 ``pose.attitude_sigma_deg`` says.
 
-What it cannot see in time: its evidence is the fixes, so it is as quick as the matcher. Measured with
-ALIKED and DISK on a 2-core CPU (a fix every 7-12 s, each landing 7-12 s after its exposure; 3 deg of
-roll for 25 s, ``docs/benchmarks.md``): 3-4 fixes fell inside the offset, too few to prove it or to pin
-the image's scatter for a jump, and VO and the IMU carried the estimate 5-8 m off at a stated 2 m
+What it cannot see in time from the fixes alone: their evidence is as quick as the matcher. Measured
+with ALIKED and DISK on a 2-core CPU (a fix every 7-12 s, each landing 7-12 s after its exposure; 3 deg
+of roll for 25 s, ``docs/benchmarks.md``): 3-4 fixes fell inside the offset, too few to prove it or to
+pin the image's scatter for a jump, and VO and the IMU carried the estimate 5-8 m off at a stated 2 m
 (about 220 of 790 GPS_INPUT beyond 3 sigma). Classical and XFeat, solving every 0.3 and 1.4 s, sent none.
+A second instance of this check therefore runs on VO's ground tilt (``c1_vio/ground_tilt.py``: the
+camera's tilt to the ground from each pair of frames, with no map, at the camera rate), built with
+``ground_correlated=False``: a pair's tilt error comes from its own matches' noise (0.5 deg per axis at
+120 m AGL, 12 m/s, 3 Hz), not from the ground it shares with the next pair. Its verdicts are answered
+the same way (the pipeline refuses fixes as ``vo_attitude_off``, raises the shared error, leaves the
+IMU out). What both read as tilt is the tilt to the ground the camera sees: over a hillside steeper than
+the bound they call the attitude off and fixes are refused (the pose is solved against flat ground, so
+those fixes would lean on the slope), VO's within seconds, the fixes' over more ground.
 
 The image-only tilts keep coming while fixes are refused (they do not depend on the prior), so the check
 clears by itself when the attitude comes back.
@@ -118,11 +126,25 @@ class AttitudeVerdict:
 class AttitudeCheck:
     """The running check of the module docstring; one caller at a time (the fix thread)."""
 
-    def __init__(self, config: PoseConfig) -> None:
+    def __init__(
+        self,
+        config: PoseConfig,
+        *,
+        samples: int | None = None,
+        max_age_s: float | None = None,
+        ground_correlated: bool = True,
+    ) -> None:
+        """``samples``, ``max_age_s``: how many tilts are kept and for how long (default: the fixes'
+        ``pose.attitude_check_fixes`` and ``pose.attitude_check_max_age_s``). ``ground_correlated``:
+        the tilts' errors are shared over a footprint of ground (the fixes' image-only tilts, module
+        docstring); False for tilts whose errors are each their own (VO's ground tilt from two frames
+        of the same camera, ``c1_vio/ground_tilt.py``: the matches' noise)."""
         self._sigma_deg = config.attitude_sigma_deg
         self._allowed_deg = 3.0 * config.attitude_sigma_deg
-        self._max_age_usec = int(config.attitude_check_max_age_s * 1e6)
-        self._recent: deque[_Seen] = deque(maxlen=config.attitude_check_fixes)
+        age_s = config.attitude_check_max_age_s if max_age_s is None else max_age_s
+        self._max_age_usec = int(age_s * 1e6)
+        self._recent: deque[_Seen] = deque(maxlen=config.attitude_check_fixes if samples is None else samples)
+        self._ground_correlated = ground_correlated
         self._off = False
         #: Fixes held back as a jump in a row, the newest last.
         self._held = 0
@@ -130,8 +152,25 @@ class AttitudeCheck:
     def note(self, fix: PoseFix, footprint_m: float) -> AttitudeVerdict:
         """Add ``fix``'s image-only tilt and say whether the autopilot's attitude is off.
         ``footprint_m``: the ground the frame covers across, m (its fixes' errors are correlated)."""
-        t = fix.exposure_time_unix_usec
-        dx, dy = fix.image_tilt_off_cam_rad
+        return self.note_tilt(
+            fix.exposure_time_unix_usec,
+            fix.image_tilt_off_cam_rad,
+            (float(fix.pos_ned_m[0]), float(fix.pos_ned_m[1])),
+            footprint_m,
+        )
+
+    def note_tilt(
+        self,
+        time_unix_usec: int,
+        tilt_off_cam_rad: tuple[float, float],
+        ne_m: tuple[float, float] = (0.0, 0.0),
+        footprint_m: float = 1.0,
+    ) -> AttitudeVerdict:
+        """Add one image-only tilt minus the autopilot's (camera x and y, rad) seen at
+        ``time_unix_usec`` and say whether the autopilot's attitude is off. ``ne_m`` (north, east, m)
+        and ``footprint_m`` (m) place it on the ground; they count only when ``ground_correlated``."""
+        t = int(time_unix_usec)
+        dx, dy = tilt_off_cam_rad
         if self._recent and t < self._recent[-1].t_usec:
             self._recent.clear()  # time went back (a replay, a restart of the axis): begin again
             self._held = 0
@@ -139,7 +178,7 @@ class AttitudeCheck:
             _Seen(
                 t,
                 (math.degrees(dx), math.degrees(dy)),
-                (float(fix.pos_ned_m[0]), float(fix.pos_ned_m[1])),
+                (float(ne_m[0]), float(ne_m[1])),
                 max(float(footprint_m), 1e-3),
             )
         )
@@ -147,7 +186,7 @@ class AttitudeCheck:
             self._recent.popleft()
         seen = list(self._recent)
         offs = np.array([s.off_deg for s in seen])
-        windows = [_Window.of(seen[-n:]) for n in _window_sizes(len(seen))]
+        windows = [_Window.of(seen[-n:], self._ground_correlated) for n in _window_sizes(len(seen))]
         if not windows:  # fewer than MIN_FIXES: nothing is proven either way
             self._off, self._held = False, 0
             bias = offs.mean(axis=0)
@@ -228,13 +267,14 @@ class _Window:
     upper_deg: float
 
     @classmethod
-    def of(cls, seen: list[_Seen]) -> _Window:
+    def of(cls, seen: list[_Seen], ground_correlated: bool = True) -> _Window:
         offs_deg = np.array([s.off_deg for s in seen])
         n = offs_deg.shape[0]
         bias = offs_deg.mean(axis=0)
         norm = float(np.hypot(*bias))
         # The scatter's own uncertainty: n - 1 dof; the mean's: over the independent fixes only.
-        std_err = math.sqrt(float(np.sum(offs_deg.var(axis=0, ddof=1))) / _independent(seen))
+        independent = _independent(seen) if ground_correlated else float(n)
+        std_err = math.sqrt(float(np.sum(offs_deg.var(axis=0, ddof=1))) / independent)
         margin = float(student_t.ppf(CONFIDENCE, n - 1)) * std_err
         return cls(n, bias, norm, max(0.0, norm - margin), norm + margin)
 
