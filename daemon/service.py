@@ -32,6 +32,7 @@ from pymavlink import mavutil
 from gps_denied_onboard.camera.sources import CapturedFrame
 from gps_denied_onboard.camera.stream import FrameStreamError
 from gps_denied_onboard.camera.types import NavCameraFrame
+from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeVerdict
 from gps_denied_onboard.components.c5_estimator.prior import InitialPrior, PriorSource, choose_prior
 from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxisStats
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
@@ -88,8 +89,10 @@ class NavDaemon:
         self._last_state: EstimatorState | None = None
         self._last_fix: FixOutcome | None = None
         self._last_fix_reason: str | None = None
-        #: The attitude check's last verdict on the autopilot's tilt (``c4_pose/attitude_check.py``).
-        self._attitude_off = False
+        #: The tilt checks' last verdicts on the autopilot's tilt (``c4_pose/attitude_check.py``): the
+        #: fixes' and VO's ground tilt (``c1_vio/ground_tilt.py``); the operator hears when either finds
+        #: it off and when both agree again.
+        self._attitude_off = {"fixes": False, "vo": False}
         #: F8: when the autopilot was first / last asked for its estimate after a restart (daemon clock, s).
         self._asked_autopilot_first_s: float | None = None
         self._asked_autopilot_last_s: float | None = None
@@ -369,6 +372,8 @@ class NavDaemon:
             latency_ms=round(latency_ms, 1),
             timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()},
         )
+        if outcome.ground_tilt is not None:
+            self._note_attitude("vo", outcome.ground_tilt)
 
     def _note_fix(self, outcome: FixOutcome) -> None:
         self.counters.fix_attempts += 1
@@ -382,7 +387,11 @@ class NavDaemon:
             refused[reason] = refused.get(reason, 0) + 1
         elif outcome.attitude is not None and outcome.attitude.refused is not None:
             refused[outcome.attitude.refused] = refused.get(outcome.attitude.refused, 0) + 1
-        self._note_attitude(outcome)
+        elif (outcome.no_fix_reason or "").startswith("vo_attitude_"):
+            reason = str(outcome.no_fix_reason)
+            refused[reason] = refused.get(reason, 0) + 1
+        if outcome.attitude is not None:
+            self._note_attitude("fixes", outcome.attitude)
         self._last_fix = outcome
         self._last_fix_reason = outcome.no_fix_reason
         log.info(
@@ -396,13 +405,14 @@ class NavDaemon:
             timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()},
         )
 
-    def _note_attitude(self, outcome: FixOutcome) -> None:
-        """Tell the operator when the attitude check finds the autopilot's tilt off, and when it clears:
-        an AHRS or camera-mount fault of the aircraft, not of this daemon."""
-        check = outcome.attitude
-        if check is None or check.off == self._attitude_off:
+    def _note_attitude(self, source: str, check: AttitudeVerdict) -> None:
+        """Tell the operator when a tilt check (``source``: ``fixes`` or ``vo``) finds the autopilot's
+        tilt off, and when both agree again: an AHRS or camera-mount fault of the aircraft, not of
+        this daemon."""
+        was_off = any(self._attitude_off.values())
+        self._attitude_off[source] = check.off
+        if any(self._attitude_off.values()) == was_off:
             return
-        self._attitude_off = check.off
         if check.off:
             text = f"GDN: AP tilt {math.hypot(*check.bias_deg):.1f} deg off camera, no fixes"
             severity = mavutil.mavlink.MAV_SEVERITY_WARNING

@@ -85,6 +85,19 @@ class _HoverVo:
         return VoMotion(frame.frame_id, uuid.uuid4(), 1 / 3, np.zeros(2), np.eye(2) * 0.09, 200)
 
 
+@dataclass
+class _TiltedVo:
+    """VO of a hovering vehicle whose ground tilt (``VoMotion.ground_tilt_off_cam_rad``) is
+    ``tilt_off_rad`` on the camera's x axis from the autopilot's."""
+
+    tilt_off_rad: float
+
+    def process(self, frame: NavCameraFrame) -> VoMotion:
+        return VoMotion(
+            frame.frame_id, uuid.uuid4(), 1 / 3, np.zeros(2), np.eye(2) * 0.09, 200, (self.tilt_off_rad, 0.0)
+        )
+
+
 def _pipeline(vpr: _Vpr, fdr: _Fdr, vo: object | None = None) -> NavigationPipeline:
     calib = CameraCalibration.from_hfov(640, 480, 70.0)
     return NavigationPipeline(
@@ -107,6 +120,7 @@ def _pipeline(vpr: _Vpr, fdr: _Fdr, vo: object | None = None) -> NavigationPipel
         integrity=FixIntegrity(IntegrityConfig()),
         consistency=FixConsistency(IntegrityConfig()),
         attitude_check=AttitudeCheck(PoseConfig()),
+        ground_tilt_check=AttitudeCheck(PoseConfig(), samples=24, max_age_s=10.0, ground_correlated=False),
     )
 
 
@@ -277,3 +291,44 @@ def test_pipeline_refuses_fixes_while_the_autopilot_tilt_is_off_and_widens_what_
     assert check["bias_deg"][0] == pytest.approx(3.0, abs=1e-3)
     state = p.time_axis.state_at(T0)
     assert state.shared_sigma_m == pytest.approx(2 * 120.0 * math.tan(math.radians(3.0)), rel=0.01)
+
+
+def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_off() -> None:
+    """VO's ground tilt is 3 deg from the autopilot's on every frame, the fixes' image-only tilt agrees
+    with it (their check alone would pass them): once VO's check has proven it off (4 tilts with no
+    scatter), every fix is refused as ``vo_attitude_off``, the IMU is left out and the estimate states
+    the error what it fused may carry. When VO's tilt agrees again, its check clears once no window's
+    bias is beyond the bound and the IMU comes back."""
+    fdr = _Fdr()
+    fakes = _TwoTiles((200, 40))
+    vo = _TiltedVo(math.radians(3.0))
+    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
+    p._rerank = fakes  # type: ignore[assignment]
+    p._matcher = fakes  # type: ignore[assignment]
+    p._pose = _PosePerTile(tilt_off_rad=0.0)
+    t0 = T0 - 40 * 333_333
+    tracks, fixes = [], []
+    for k in range(8):
+        frame = _frame(k, t0 + k * 333_333)
+        tracks.append(p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None))
+        fixes.append(p.localise(frame))
+    assert [t.ground_tilt.off for t in tracks if t.ground_tilt] == [False] * (MIN_FIXES - 1) + [True] * 5
+    assert [f.no_fix_reason for f in fixes[MIN_FIXES:]] == ["vo_attitude_off"] * 4
+    assert all(f.attitude is not None and not f.attitude.off for f in fixes)  # the fixes' check passed them
+    frame_records = [r for kind, r in fdr.records if kind == "pipeline.frame"]
+    fix_records = [r for kind, r in fdr.records if kind == "pipeline.fix"]
+    assert frame_records[-1]["ground_tilt_check"]["bias_deg"][0] == pytest.approx(3.0, abs=1e-3)
+    assert fix_records[-1]["ground_tilt_check"]["off"] is True
+    state = p.time_axis.state_at(t0 + 7 * 333_333)
+    assert state.shared_sigma_m >= 2 * 120.0 * math.tan(math.radians(3.0))
+    assert p._imu_trusted is False
+
+    vo.tilt_off_rad = 0.0  # the attitude is right again
+    for k in range(8, 40):
+        frame = _frame(k, t0 + k * 333_333)
+        tracks.append(p.track(frame, None))
+        fixes.append(p.localise(frame))
+    cleared = next(k for k, t in enumerate(tracks) if k >= 8 and t.ground_tilt and not t.ground_tilt.off)
+    assert 8 < cleared < 40 and all(t.ground_tilt and not t.ground_tilt.off for t in tracks[cleared:])
+    assert p._imu_trusted is True
+    assert fixes[-1].no_fix_reason is None and fixes[-1].fix_accepted

@@ -307,6 +307,16 @@ class PoseConfig:
     attitude_check_fixes: Annotated[int, Strict(), Field(ge=4)] = 12
     #: Fixes older than this, s, leave the attitude check's window.
     attitude_check_max_age_s: PosFloat = 120.0
+    #: The same check on VO's ground tilt (``c1_vio/ground_tilt.py``: the camera's tilt to the ground
+    #: from each pair of frames, at the camera rate, with no map): while it finds the autopilot's tilt
+    #: off, fixes are refused (``vo_attitude_off``), the estimate states what it may carry and the IMU
+    #: is left out, as for the fixes' check. It sees a bias within seconds whatever the matcher's speed.
+    #: False: the fixes' check alone.
+    ground_tilt_check: Bool = True
+    #: VO ground tilts kept (windows of 4, 8, ... and all of them); at 3 Hz, 24 is 8 s.
+    ground_tilt_check_samples: Annotated[int, Strict(), Field(ge=4)] = 24
+    #: VO ground tilts older than this, s, leave the window (how soon it clears once the attitude is back).
+    ground_tilt_check_max_age_s: PosFloat = 10.0
 
 
 @dataclasses.dataclass(frozen=True)

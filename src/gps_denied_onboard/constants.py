@@ -133,6 +133,9 @@ class LogEvent:
     #: The fix-integrity rule refused a solved fix (reason, evidence).
     FIX_INTEGRITY_REFUSED: Final = "c4.integrity.refused"
     FIX_ATTITUDE_REFUSED: Final = "c4.attitude.refused"
+    #: The VO ground-tilt check (``c1_vio/ground_tilt.py``) changed its verdict: ``refused`` is
+    #: ``attitude_off`` or ``attitude_jump`` while it shows the autopilot's tilt off, null once it agrees.
+    VO_ATTITUDE: Final = "c4.attitude.vo_verdict"
     VPR_READY: Final = "c2.vpr.ready"
     VPR_FAR_TOP1: Final = "c2.vpr.top1_distance_above_threshold"
     VPR_ERROR: Final = "c2.vpr.error"

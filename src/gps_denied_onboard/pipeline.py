@@ -9,8 +9,10 @@ Every stage's failure has one meaning for the estimator:
 - VPR/rerank/matcher error or too few inliers → no fix; C5 propagates on VO (``visual_propagated``);
 - pose rejected (degenerate, implausible) → no fix;
 - the autopilot's tilt shown off by the image-only tilts of the recent fixes, or this fix's tilt a jump
-  from theirs → no fix (``c4_pose/attitude_check.py``: every fix leans on that tilt); while it has shown
-  a tilt error the estimate states what the fixes and VO fused may carry from it, and the IMU is left out;
+  from theirs → no fix (``c4_pose/attitude_check.py``: every fix leans on that tilt); the same from the
+  ground tilt VO sees between frames (``c1_vio/ground_tilt.py``, at the camera rate) → no fix
+  (``vo_attitude_off``); while either has shown a tilt error the estimate states what the fixes and VO
+  fused may carry from it, and the IMU is left out;
 - fix refused by the integrity rule (weak evidence, ambiguous candidates, disagrees with the prior; see
   ``c4_pose/integrity.py``) → no fix; a fix it passes states a covariance that reflects its evidence,
   scaled by how consistent the recent fixes were with each other through VO (``c4_pose/consistency.py``);
@@ -73,6 +75,8 @@ class TrackOutcome:
     #: Why the VO was not fused (None when it was): C1's reason, or the estimator's/time axis' refusal.
     vo_reason: str | None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    #: The VO ground-tilt check after this frame's tilt (None when the frame gave none).
+    ground_tilt: AttitudeVerdict | None = None
 
     @property
     def provenance(self) -> Provenance:
@@ -99,6 +103,8 @@ class FixOutcome:
     integrity: IntegrityVerdict | None = None
     #: The attitude check after the solved fix (None when no fix was solved).
     attitude: AttitudeVerdict | None = None
+    #: The VO ground-tilt check as the attempt found it (None: off, or no tilt seen yet).
+    ground_tilt: AttitudeVerdict | None = None
 
 
 @dataclass(frozen=True)
@@ -115,6 +121,8 @@ class FixAttempt:
     integrity: IntegrityVerdict | None = None
     #: The attitude check after the solved fix (None when no fix was solved).
     attitude: AttitudeVerdict | None = None
+    #: The VO ground-tilt check as the attempt found it (None: off, or no tilt seen yet).
+    ground_tilt: AttitudeVerdict | None = None
 
 
 @dataclass(frozen=True)
@@ -168,6 +176,7 @@ class NavigationPipeline:
         integrity: FixIntegrity,
         consistency: FixConsistency,
         attitude_check: AttitudeCheck,
+        ground_tilt_check: AttitudeCheck | None = None,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
     ) -> None:
         self._calib = calibration
@@ -184,6 +193,12 @@ class NavigationPipeline:
         self._integrity = integrity
         self._consistency = consistency
         self._attitude = attitude_check
+        self._ground_tilt = ground_tilt_check
+        #: The ground-tilt check's newest verdict (written by the track half, read by the fix half, both
+        #: inside units of the axis: a replay reads the same).
+        self._ground_tilt_verdict: AttitudeVerdict | None = None
+        #: Which tilt checks last refused (``_answer_tilt``): the IMU is trusted while neither does.
+        self._tilt_refused = {"fixes": False, "vo": False}
         #: What this pipeline last told the time axis about the IMU (``c4_pose/attitude_check.py``).
         self._imu_trusted = True
         self._clock_ns = clock_ns
@@ -255,11 +270,25 @@ class NavigationPipeline:
         t1 = self._clock_ns()
         timings["vo"] = (t1 - t0) / 1e6
         state: EstimatorState | None = None
+        ground_tilt: AttitudeVerdict | None = None
         # One unit: no fix from the other thread lands between this frame's VO and its state.
         with self._axis.unit(UNIT_TRACK, t) as unit:
             if not self._axis.is_initialised and prior is not None:
                 self._initialise(prior, frame)
                 unit["initialised"] = True
+            tilt = motion.ground_tilt_off_cam_rad if motion is not None else None
+            if self._ground_tilt is not None and tilt is not None and frame.alt_agl_m is not None:
+                ground_tilt = self._ground_tilt.note_tilt(t, tilt)
+                before = self._ground_tilt_verdict
+                if ground_tilt.refused != (before.refused if before is not None else None):
+                    log.warning(
+                        LogEvent.VO_ATTITUDE,
+                        frame=frame.seq,
+                        refused=ground_tilt.refused,
+                        **ground_tilt.fdr_fields(),
+                    )
+                self._ground_tilt_verdict = ground_tilt
+                self._answer_tilt("vo", ground_tilt, frame.alt_agl_m, t)
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
                 if motion is not None:
@@ -274,7 +303,7 @@ class NavigationPipeline:
                 reason = "no_prior"
         timings["estimator_vo"] = (self._clock_ns() - t1) / 1e6
         vo_ok = motion is not None and reason is None
-        out = TrackOutcome(frame.frame_id, frame.seq, t, state, vo_ok, reason, timings)
+        out = TrackOutcome(frame.frame_id, frame.seq, t, state, vo_ok, reason, timings, ground_tilt)
         self._fdr.record(
             FdrKind.FRAME,
             {
@@ -287,6 +316,7 @@ class NavigationPipeline:
                 "vo_inliers": motion.inlier_count if motion is not None else 0,
                 "vo_delta_ne_m": [float(v) for v in motion.delta_ne_m] if motion is not None else None,
                 "vo_dt_s": float(motion.dt_s) if motion is not None else None,
+                "ground_tilt_check": ground_tilt.fdr_fields() if ground_tilt is not None else None,
                 "lat_deg": state.lat_deg if state else None,
                 "lon_deg": state.lon_deg if state else None,
                 "horiz_sigma_m": state.horiz_sigma_m if state else None,
@@ -331,16 +361,8 @@ class NavigationPipeline:
         accepted = False
         consistency: ConsistencyVerdict | None = None
         with self._axis.unit(UNIT_FIX, t) as unit:
-            attitude = attempt.attitude
-            if attitude is not None and fix is not None:
-                if attitude.suspect_deg is not None:
-                    # The fixes fused before the check saw it, and VO, leaned on the same wrong tilt.
-                    self._axis.raise_shared_sigma(2.0 * self._tilt_error_m(fix, attitude.suspect_deg), t)
-                # The IMU's accelerations are rotated with the same attitude (gravity leaks in). Said
-                # again on the next fix if the axis could not take it (not yet initialised).
-                trusted = attitude.refused is None
-                if trusted != self._imu_trusted and self._axis.set_imu_trusted(trusted, t):
-                    self._imu_trusted = trusted
+            if attempt.attitude is not None and fix is not None:
+                self._answer_tilt("fixes", attempt.attitude, self._agl_m(fix), t)
             head = self._axis.head_unix_usec
             behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
             if fix is not None and reason is None:
@@ -372,6 +394,7 @@ class NavigationPipeline:
             timings,
             verdict,
             attempt.attitude,
+            attempt.ground_tilt,
         )
         self._fdr.record(
             FdrKind.FIX,
@@ -392,6 +415,9 @@ class NavigationPipeline:
                     round(math.degrees(fix.attitude_disagreement_rad), 3) if fix else None
                 ),
                 "attitude_check": attempt.attitude.fdr_fields() if attempt.attitude is not None else None,
+                "ground_tilt_check": (
+                    attempt.ground_tilt.fdr_fields() if attempt.ground_tilt is not None else None
+                ),
                 "integrity": verdict.fdr_fields() if verdict is not None else None,
                 "consistency": consistency.fdr_fields() if consistency is not None else None,
                 "timings_ms": timings,
@@ -407,9 +433,20 @@ class NavigationPipeline:
         """Ground the frame of ``fix`` covers across, m (nadir, flat ground)."""
         return 2.0 * self._agl_m(fix) * math.tan(self._calib.hfov_rad / 2.0)
 
-    def _tilt_error_m(self, fix: PoseFix, tilt_deg: float) -> float:
-        """Ground distance a camera tilt of ``tilt_deg`` moves a fix from the fix's height, m."""
-        return self._agl_m(fix) * math.tan(math.radians(min(tilt_deg, 45.0)))
+    def _answer_tilt(self, source: str, verdict: AttitudeVerdict, agl_m: float, t: int) -> None:
+        """What the estimate does with a tilt check's verdict (``source``: ``fixes`` or ``vo``), inside
+        a unit of the axis at ``t``. While the check has shown a tilt error, the fixes fused before it
+        saw it, and VO, leaned on the same wrong tilt: the shared error is raised to twice the ground
+        distance it makes from ``agl_m`` (m). The IMU's accelerations are rotated with the same
+        attitude (gravity leaks in): it is left out while either check refuses, and said again on the
+        next verdict when the axis could not take it (not yet initialised)."""
+        if verdict.suspect_deg is not None:
+            tilt_m = agl_m * math.tan(math.radians(min(verdict.suspect_deg, 45.0)))
+            self._axis.raise_shared_sigma(2.0 * tilt_m, t)
+        self._tilt_refused[source] = verdict.refused is not None
+        trusted = not any(self._tilt_refused.values())
+        if trusted != self._imu_trusted and self._axis.set_imu_trusted(trusted, t):
+            self._imu_trusted = trusted
 
     def _absolute_fix(
         self, frame: NavCameraFrame, timings: dict[str, float]
@@ -420,6 +457,7 @@ class NavigationPipeline:
             return FixAttempt(None, 0, None, "no_attitude_or_altitude")
         with self._axis.unit(UNIT_FIX_PRIOR, frame.exposure_time_unix_usec):
             prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
+            ground_tilt = self._ground_tilt_verdict
         t0 = self._clock_ns()
         try:
             query = self._vpr.embed_query(frame, self._calib)
@@ -459,10 +497,20 @@ class NavigationPipeline:
         t4 = self._clock_ns()
         timings["pose"] = (t4 - t3) / 1e6
         attitude = self._attitude.note(fix, self._footprint_m(fix))
-        if attitude.refused is not None:
-            log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, **attitude.fdr_fields())
+        refused = attitude.refused
+        if refused is None and ground_tilt is not None and ground_tilt.refused is not None:
+            refused = f"vo_{ground_tilt.refused}"  # VO's ground tilt has shown the attitude off
+        if refused is not None:
+            log.warning(
+                LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, reason=refused, **attitude.fdr_fields()
+            )
             return FixAttempt(
-                fix, best.inlier_count, match.reprojection_residual_px, attitude.refused, attitude=attitude
+                fix,
+                best.inlier_count,
+                match.reprojection_residual_px,
+                refused,
+                attitude=attitude,
+                ground_tilt=ground_tilt,
             )
         verdict = self._judge(frame, match, rerank_result, fix, prior_state)
         timings["integrity"] = (self._clock_ns() - t4) / 1e6
@@ -480,6 +528,7 @@ class NavigationPipeline:
                 f"integrity:{verdict.reason}",
                 integrity=verdict,
                 attitude=attitude,
+                ground_tilt=ground_tilt,
             )
         return FixAttempt(
             verdict.fix,
@@ -488,6 +537,7 @@ class NavigationPipeline:
             None,
             integrity=verdict,
             attitude=attitude,
+            ground_tilt=ground_tilt,
         )
 
     def _judge(

@@ -526,6 +526,16 @@ def _pipeline(
         integrity=FixIntegrity(config.integrity),
         consistency=FixConsistency(config.integrity),
         attitude_check=AttitudeCheck(config.pose),
+        ground_tilt_check=(
+            AttitudeCheck(
+                config.pose,
+                samples=config.pose.ground_tilt_check_samples,
+                max_age_s=config.pose.ground_tilt_check_max_age_s,
+                ground_correlated=False,
+            )
+            if config.pose.ground_tilt_check
+            else None
+        ),
     )
 
 
