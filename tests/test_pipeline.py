@@ -332,3 +332,33 @@ def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_of
     assert 8 < cleared < 40 and all(t.ground_tilt and not t.ground_tilt.off for t in tracks[cleared:])
     assert p._imu_trusted is True
     assert fixes[-1].no_fix_reason is None and fixes[-1].fix_accepted
+
+
+def test_a_slow_fix_exposed_where_vo_later_shows_the_attitude_off_is_refused() -> None:
+    """A slow matcher starts on a frame exposed just after the attitude went wrong, before VO's ground
+    tilt can tell (2 tilts); by the time the fix is fused VO has proven it off: the fix leans on the
+    wrong tilt and is refused as ``vo_attitude_off`` however late it comes. A fix exposed and fused
+    before the attitude went wrong is not touched."""
+    fdr = _Fdr()
+    fakes = _TwoTiles((200, 40))
+    vo = _TiltedVo(0.0)
+    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
+    p._rerank = fakes  # type: ignore[assignment]
+    p._matcher = fakes  # type: ignore[assignment]
+    p._pose = _PosePerTile(tilt_off_rad=0.0)  # the fixes' own check sees nothing wrong
+    t0 = T0 - 20 * 333_333
+    frames = [_frame(k, t0 + k * 333_333) for k in range(12)]
+    for k in range(5):
+        p.track(frames[k], InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None)
+    assert p.localise(frames[4]).fix_accepted
+    vo.tilt_off_rad = math.radians(3.0)  # from frame 5 on
+    p.track(frames[5], None)
+    p.track(frames[6], None)
+    slow = p.attempt_fix(frames[6])  # started before VO can tell
+    assert slow.no_fix_reason is None and slow.fix is not None
+    outcomes = [p.track(frames[k], None) for k in range(7, 12)]
+    assert outcomes[-1].ground_tilt is not None and outcomes[-1].ground_tilt.off
+    late = p.fuse_attempt(frames[6], slow)
+    assert not late.fix_accepted and late.no_fix_reason == "vo_attitude_off"
+    assert late.ground_tilt is not None and late.ground_tilt.off
+    assert [r for kind, r in fdr.records if kind == "pipeline.fix"][-1]["no_fix_reason"] == "vo_attitude_off"

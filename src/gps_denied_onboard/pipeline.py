@@ -10,9 +10,9 @@ Every stage's failure has one meaning for the estimator:
 - pose rejected (degenerate, implausible) → no fix;
 - the autopilot's tilt shown off by the image-only tilts of the recent fixes, or this fix's tilt a jump
   from theirs → no fix (``c4_pose/attitude_check.py``: every fix leans on that tilt); the same from the
-  ground tilt VO sees between frames (``c1_vio/ground_tilt.py``, at the camera rate) → no fix
-  (``vo_attitude_off``); while either has shown a tilt error the estimate states what the fixes and VO
-  fused may carry from it, and the IMU is left out;
+  ground tilt VO sees between frames (``c1_vio/ground_tilt.py``, at the camera rate) → no fix exposed
+  where it has shown it, however late the fix arrives (``vo_attitude_off``); while either has shown a
+  tilt error the estimate states what the fixes and VO fused may carry from it, and the IMU is left out;
 - fix refused by the integrity rule (weak evidence, ambiguous candidates, disagrees with the prior; see
   ``c4_pose/integrity.py``) → no fix; a fix it passes states a covariance that reflects its evidence,
   scaled by how consistent the recent fixes were with each other through VO (``c4_pose/consistency.py``);
@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import time
 import uuid
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -103,7 +104,7 @@ class FixOutcome:
     integrity: IntegrityVerdict | None = None
     #: The attitude check after the solved fix (None when no fix was solved).
     attitude: AttitudeVerdict | None = None
-    #: The VO ground-tilt check as the attempt found it (None: off, or no tilt seen yet).
+    #: The VO ground-tilt check when the fix was fused (None: off, or no tilt seen yet).
     ground_tilt: AttitudeVerdict | None = None
 
 
@@ -121,8 +122,6 @@ class FixAttempt:
     integrity: IntegrityVerdict | None = None
     #: The attitude check after the solved fix (None when no fix was solved).
     attitude: AttitudeVerdict | None = None
-    #: The VO ground-tilt check as the attempt found it (None: off, or no tilt seen yet).
-    ground_tilt: AttitudeVerdict | None = None
 
 
 @dataclass(frozen=True)
@@ -197,6 +196,9 @@ class NavigationPipeline:
         #: The ground-tilt check's newest verdict (written by the track half, read by the fix half, both
         #: inside units of the axis: a replay reads the same).
         self._ground_tilt_verdict: AttitudeVerdict | None = None
+        #: Exposure spans (us, Unix) the ground-tilt check has shown the attitude off over (evidence
+        #: since, newest tilt), merged, newest last: a fix exposed inside one is refused however late.
+        self._vo_off_spans: deque[tuple[int, int]] = deque(maxlen=64)
         #: Which tilt checks last refused (``_answer_tilt``): the IMU is trusted while neither does.
         self._tilt_refused = {"fixes": False, "vo": False}
         #: What this pipeline last told the time axis about the IMU (``c4_pose/attitude_check.py``).
@@ -288,6 +290,8 @@ class NavigationPipeline:
                         **ground_tilt.fdr_fields(),
                     )
                 self._ground_tilt_verdict = ground_tilt
+                if ground_tilt.refused is not None:
+                    self._note_vo_off(ground_tilt.since_unix_usec, t)
                 self._answer_tilt("vo", ground_tilt, frame.alt_agl_m, t)
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
@@ -363,6 +367,12 @@ class NavigationPipeline:
         with self._axis.unit(UNIT_FIX, t) as unit:
             if attempt.attitude is not None and fix is not None:
                 self._answer_tilt("fixes", attempt.attitude, self._agl_m(fix), t)
+            ground_tilt = self._ground_tilt_verdict
+            if fix is not None and reason is None and self._vo_off_at(t):
+                # VO's ground tilt has shown the autopilot's tilt off over this exposure: however late
+                # the fix comes (a slow matcher's was started before the check could tell), it leans on it.
+                reason = "vo_attitude_off"
+                log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, reason=reason)
             head = self._axis.head_unix_usec
             behind_s = max(0.0, ((head if head is not None else t) - t) / 1e6)
             if fix is not None and reason is None:
@@ -394,7 +404,7 @@ class NavigationPipeline:
             timings,
             verdict,
             attempt.attitude,
-            attempt.ground_tilt,
+            ground_tilt,
         )
         self._fdr.record(
             FdrKind.FIX,
@@ -415,9 +425,7 @@ class NavigationPipeline:
                     round(math.degrees(fix.attitude_disagreement_rad), 3) if fix else None
                 ),
                 "attitude_check": attempt.attitude.fdr_fields() if attempt.attitude is not None else None,
-                "ground_tilt_check": (
-                    attempt.ground_tilt.fdr_fields() if attempt.ground_tilt is not None else None
-                ),
+                "ground_tilt_check": ground_tilt.fdr_fields() if ground_tilt is not None else None,
                 "integrity": verdict.fdr_fields() if verdict is not None else None,
                 "consistency": consistency.fdr_fields() if consistency is not None else None,
                 "timings_ms": timings,
@@ -432,6 +440,18 @@ class NavigationPipeline:
     def _footprint_m(self, fix: PoseFix) -> float:
         """Ground the frame of ``fix`` covers across, m (nadir, flat ground)."""
         return 2.0 * self._agl_m(fix) * math.tan(self._calib.hfov_rad / 2.0)
+
+    def _note_vo_off(self, since_usec: int, t: int) -> None:
+        """The ground-tilt check shows the attitude off at ``t`` on evidence since ``since_usec``."""
+        spans = self._vo_off_spans
+        if spans and since_usec <= spans[-1][1]:
+            spans[-1] = (min(spans[-1][0], since_usec), max(spans[-1][1], t))
+        else:
+            spans.append((since_usec, t))
+
+    def _vo_off_at(self, t: int) -> bool:
+        """Whether an exposure at ``t`` lies where the ground-tilt check has shown the attitude off."""
+        return any(lo <= t <= hi for lo, hi in self._vo_off_spans)
 
     def _answer_tilt(self, source: str, verdict: AttitudeVerdict, agl_m: float, t: int) -> None:
         """What the estimate does with a tilt check's verdict (``source``: ``fixes`` or ``vo``), inside
@@ -457,7 +477,6 @@ class NavigationPipeline:
             return FixAttempt(None, 0, None, "no_attitude_or_altitude")
         with self._axis.unit(UNIT_FIX_PRIOR, frame.exposure_time_unix_usec):
             prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
-            ground_tilt = self._ground_tilt_verdict
         t0 = self._clock_ns()
         try:
             query = self._vpr.embed_query(frame, self._calib)
@@ -497,20 +516,10 @@ class NavigationPipeline:
         t4 = self._clock_ns()
         timings["pose"] = (t4 - t3) / 1e6
         attitude = self._attitude.note(fix, self._footprint_m(fix))
-        refused = attitude.refused
-        if refused is None and ground_tilt is not None and ground_tilt.refused is not None:
-            refused = f"vo_{ground_tilt.refused}"  # VO's ground tilt has shown the attitude off
-        if refused is not None:
-            log.warning(
-                LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, reason=refused, **attitude.fdr_fields()
-            )
+        if attitude.refused is not None:
+            log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, **attitude.fdr_fields())
             return FixAttempt(
-                fix,
-                best.inlier_count,
-                match.reprojection_residual_px,
-                refused,
-                attitude=attitude,
-                ground_tilt=ground_tilt,
+                fix, best.inlier_count, match.reprojection_residual_px, attitude.refused, attitude=attitude
             )
         verdict = self._judge(frame, match, rerank_result, fix, prior_state)
         timings["integrity"] = (self._clock_ns() - t4) / 1e6
@@ -528,7 +537,6 @@ class NavigationPipeline:
                 f"integrity:{verdict.reason}",
                 integrity=verdict,
                 attitude=attitude,
-                ground_tilt=ground_tilt,
             )
         return FixAttempt(
             verdict.fix,
@@ -537,7 +545,6 @@ class NavigationPipeline:
             None,
             integrity=verdict,
             attitude=attitude,
-            ground_tilt=ground_tilt,
         )
 
     def _judge(

@@ -103,6 +103,10 @@ class AttitudeVerdict:
     suspect_deg: float | None = None
     #: This fix's own image-only tilt minus the autopilot's, deg, camera x and y.
     tilt_off_deg: tuple[float, float] = (0.0, 0.0)
+    #: The oldest exposure (us, Unix) the verdict's evidence reaches back to: while off, the oldest
+    #: tilt kept (any window may be the one that proved it); else this tilt's own. A fix exposed from
+    #: here on may lean on the tilt error the check has shown.
+    since_unix_usec: int = 0
 
     @property
     def refused(self) -> str | None:
@@ -199,6 +203,7 @@ class AttitudeCheck:
                 len(offs),
                 False,
                 tilt_off_deg=seen[-1].off_deg,
+                since_unix_usec=t,
             )
         if self._off:  # off until no window's bias is beyond the bound, not just unproven
             self._off = any(w.bias_norm_deg > self._allowed_deg for w in windows)
@@ -218,6 +223,7 @@ class AttitudeCheck:
             jump,
             suspect,
             seen[-1].off_deg,
+            seen[0].t_usec if self._off else t,
         )
 
     def _jumped(self, offs_deg: np.ndarray) -> bool:
