@@ -135,20 +135,6 @@ def _read_image(path: Path, scale: float) -> Callable[[], np.ndarray]:
 # -- the daemon's FDR ----------------------------------------------------------------------------------
 
 
-def _split_runs(records: Sequence[dict[str, Any]]) -> list[list[dict[str, Any]]]:
-    """Records per daemon run (the same rule as ``FdrReader.runs``: a run starts at ``fdr.opened`` or
-    where the record sequence restarts)."""
-    runs: list[list[dict[str, Any]]] = []
-    last_seq = 0
-    for rec in records:
-        seq = int(rec.get("seq") or 0)
-        if not runs or rec.get("kind") == FdrKind.FDR_OPENED or 0 < seq <= last_seq:
-            runs.append([])
-        runs[-1].append(rec)
-        last_seq = seq
-    return runs
-
-
 #: FDR kinds a replay reads (``fdr.opened`` marks where a run starts).
 _FDR_KINDS: Final = (
     FdrKind.FDR_OPENED,
@@ -162,12 +148,12 @@ _FDR_KINDS: Final = (
 
 def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
     """One run of the FDR at ``path`` (default: the last run that tracked frames)."""
-    from gps_denied_onboard.components.c13_fdr.reader import FdrReader, FdrReadError
+    from gps_denied_onboard.components.c13_fdr.reader import FdrReader, FdrReadError, split_runs
 
     reader = FdrReader(path)
     try:
         # Only the kinds a replay uses (the estimate stream and status records are most of a recorder).
-        runs = _split_runs(list(reader.records(*_FDR_KINDS)))
+        runs = split_runs(reader.records(*_FDR_KINDS))
     except FdrReadError as exc:
         raise ReplayInputError(str(exc)) from exc
     if not runs:

@@ -18,7 +18,7 @@ import enum
 import math
 import re
 from collections import Counter
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
@@ -130,6 +130,20 @@ class FrameRefusal:
     t_unix_s: float
     frame_seq: int | None
     reason: str
+
+
+def split_runs(records: Iterable[dict[str, Any]]) -> list[list[dict[str, Any]]]:
+    """Records per daemon run (the rule of :meth:`FdrReader.runs`: a run starts at ``fdr.opened`` or
+    where the record sequence restarts)."""
+    runs: list[list[dict[str, Any]]] = []
+    last_seq = 0
+    for rec in records:
+        seq = int(rec.get("seq") or 0)
+        if not runs or rec.get("kind") == FdrKind.FDR_OPENED or 0 < seq <= last_seq:
+            runs.append([])
+        runs[-1].append(rec)
+        last_seq = seq
+    return runs
 
 
 def _float(v: Any) -> float | None:
