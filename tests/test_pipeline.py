@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from gps_denied_onboard.camera.types import Attitude, CameraCalibration, NavCameraFrame
+from gps_denied_onboard.camera.types import Attitude, CameraCalibration, CameraMount, NavCameraFrame
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
@@ -98,7 +98,9 @@ class _TiltedVo:
         )
 
 
-def _pipeline(vpr: _Vpr, fdr: _Fdr, vo: object | None = None) -> NavigationPipeline:
+def _pipeline(
+    vpr: _Vpr, fdr: _Fdr, vo: object | None = None, mount: CameraMount | None = None
+) -> NavigationPipeline:
     calib = CameraCalibration.from_hfov(640, 480, 70.0)
     return NavigationPipeline(
         calibration=calib,
@@ -121,6 +123,7 @@ def _pipeline(vpr: _Vpr, fdr: _Fdr, vo: object | None = None) -> NavigationPipel
         consistency=FixConsistency(IntegrityConfig()),
         attitude_check=AttitudeCheck(PoseConfig()),
         ground_tilt_check=AttitudeCheck(PoseConfig(), samples=24, max_age_s=10.0, ground_correlated=False),
+        mount=mount,
     )
 
 
@@ -362,3 +365,43 @@ def test_a_slow_fix_exposed_where_vo_later_shows_the_attitude_off_is_refused() -
     assert not late.fix_accepted and late.no_fix_reason == "vo_attitude_off"
     assert late.ground_tilt is not None and late.ground_tilt.off
     assert [r for kind, r in fdr.records if kind == "pipeline.fix"][-1]["no_fix_reason"] == "vo_attitude_off"
+
+
+@dataclass
+class _AttitudeSeen:
+    """VO and VPR fakes that keep the attitude of each frame they were given."""
+
+    seen: list[tuple[str, Attitude | None]] = field(default_factory=list)
+
+    def process(self, frame: NavCameraFrame) -> VoMotion:
+        self.seen.append(("vo", frame.attitude))
+        return _HoverVo().process(frame)
+
+
+def test_the_camera_mount_turns_the_attitude_vo_and_the_fix_path_see_not_the_one_recorded() -> None:
+    """``camera.mount_*`` reaches VO and the fix path (every stage after them reads the frame they are
+    given) as the autopilot's attitude turned by the mount; the FDR records the autopilot's, as it came,
+    so a replay applies the recorded mount once."""
+    seen = _AttitudeSeen()
+
+    @dataclass
+    class _SeeingVpr(_Vpr):
+        def embed_query(self, frame, calibration):  # type: ignore[no-untyped-def]
+            seen.seen.append(("fix", frame.attitude))
+            return super().embed_query(frame, calibration)
+
+    autopilot = Attitude(math.radians(2.0), math.radians(-1.0), math.radians(40.0))
+    mount = CameraMount(math.radians(0.5), math.radians(-0.3))
+    fdr = _Fdr()
+    p = _pipeline(_SeeingVpr(dim=256), fdr, vo=seen, mount=mount)
+    frame = NavCameraFrame(uuid.uuid4(), 0, T0, np.zeros((480, 640, 3), np.uint8), autopilot, 120.0, 0)
+    p.process(frame, InitialPrior(47.0, 8.0, 30.0, "test"))
+    assert [who for who, _ in seen.seen] == ["vo", "fix"]
+    expected = mount.camera_attitude(autopilot)
+    assert expected != autopilot
+    assert all(att == expected for _, att in seen.seen)
+    recorded = next(f for k, f in fdr.records if k == "pipeline.frame")
+    assert recorded["attitude_rad"] == pytest.approx(
+        [autopilot.roll_rad, autopilot.pitch_rad, autopilot.yaw_rad]
+    )
+

@@ -1,4 +1,5 @@
-"""``gdnav fdr summary FILE|DIR``: what a flight data recorder says about the daemon's runs.
+"""``gdnav fdr summary FILE|DIR``: what a flight data recorder says about the daemon's runs;
+``gdnav fdr boresight FILE|DIR``: the camera mount its VO ground tilts ask for (``c4_pose/boresight.py``).
 
 Prints the records by kind, the runs (start, end, clean stop or crash) with their frame, fix-attempt and
 estimate rates, the errors (frame errors by stage, refused frames by reason, no-fix reasons) and the
@@ -17,11 +18,19 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Final
 
-from gps_denied_onboard.components.c13_fdr.reader import EstimateRecord, FdrReader, FdrReadError, FixRecord
+import numpy as np
+
+from gps_denied_onboard.components.c13_fdr.reader import (
+    EstimateRecord,
+    FdrReader,
+    FdrReadError,
+    FixRecord,
+    split_runs,
+)
 from gps_denied_onboard.constants import FdrKind, Provenance
 
 # Same values as ``cli``'s (not imported: ``cli`` imports this module).
-EXIT_OK, EXIT_CONFIG = 0, 2
+EXIT_OK, EXIT_CONFIG, EXIT_RESOURCE = 0, 2, 3
 
 #: Per-run rates reported, by name.
 RATE_KINDS: Final[dict[str, str]] = {
@@ -224,8 +233,89 @@ def _cmd_summary(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _tilts(records: list[dict[str, Any]], kind: str, check: str) -> np.ndarray:
+    """The ``tilt_off_deg`` of ``check`` in every ``kind`` record that has one, (N, 2) deg."""
+    rows = [
+        r[check]["tilt_off_deg"]
+        for r in records
+        if r.get("kind") == kind and isinstance(r.get(check), dict) and r[check].get("tilt_off_deg")
+    ]
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
+
+
+def boresight(path: Path, run: int | None, max_half_width_deg: float) -> dict[str, Any]:
+    """``gdnav fdr boresight`` as plain JSON types. Raises ``FdrReadError`` for a recorder that holds
+    no such run or no recorded config."""
+    from gps_denied_onboard.components.c4_pose.boresight import estimate_boresight
+
+    reader = FdrReader(path)
+    runs = split_runs(reader.records(FdrKind.FDR_OPENED, FdrKind.CONFIG, FdrKind.FRAME, FdrKind.FIX))
+    with_frames = [i for i, r in enumerate(runs) if any(x.get("kind") == FdrKind.FRAME for x in r)]
+    if run is None:
+        if not with_frames:
+            raise FdrReadError(f"{path}: no run tracked any frame (no pipeline.frame records)", path=path)
+        run = with_frames[-1]
+    if not 0 <= run < len(runs):
+        raise FdrReadError(f"--run {run}: {path} has runs 0..{len(runs) - 1}", path=path)
+    recs = runs[run]
+    config = next((r.get("config") for r in recs if r.get("kind") == FdrKind.CONFIG), None)
+    if not isinstance(config, dict):
+        raise FdrReadError(f"{path}: run {run} has no daemon.config record (its mount)", path=path)
+    camera = config.get("camera", {})
+    used = (float(camera.get("mount_roll_deg", 0.0)), float(camera.get("mount_pitch_deg", 0.0)))
+    estimate = estimate_boresight(
+        _tilts(recs, FdrKind.FRAME, "ground_tilt_check"),
+        _tilts(recs, FdrKind.FIX, "attitude_check"),
+        used,
+        max_half_width_deg=max_half_width_deg,
+    )
+    return {"path": str(path), "run": run, "runs": len(runs), **estimate.as_dict()}
+
+
+def format_boresight(b: dict[str, Any]) -> str:
+    used = b["mount_used_deg"]
+    lines = [
+        f"boresight from run {b['run']} of {b['runs']} in {b['path']} "
+        f"(flown with camera.mount_roll_deg {used[0]:+.3f}, camera.mount_pitch_deg {used[1]:+.3f})"
+    ]
+    for name, key, note in (
+        ("VO ground tilt", "vo_ground_tilt", ""),
+        ("fixes", "fixes", "  (a check: their errors are shared over the ground they cover)"),
+    ):
+        o = b[key]
+        if o is None:
+            lines.append(f"  {name:<15} none recorded")
+            continue
+        (mx, my), (hx, hy), (sx, sy) = o["mean_deg"], o["half_width_99_deg"], o["scatter_deg"]
+        lines.append(
+            f"  {name:<15} {o['samples']:>5}  tilt left x {mx:+.3f} +/- {hx:.3f}, "
+            f"y {my:+.3f} +/- {hy:.3f} deg "
+            f"(99 %; scatter {sx:.2f}, {sy:.2f}){note}"
+        )
+    if b["mount_deg"] is not None:
+        roll, pitch = b["mount_deg"]
+        verdict = "set" if b["settable"] else f"not settable ({b['why_not']}); would be"
+        lines.append(f"  {verdict}: camera.mount_roll_deg: {roll:.3f}, camera.mount_pitch_deg: {pitch:.3f}")
+    else:
+        lines.append(f"  not settable ({b['why_not']})")
+    return "\n".join(lines)
+
+
+def _cmd_boresight(args: argparse.Namespace) -> int:
+    if not args.max_half_width_deg > 0:
+        print(f"gdnav: --max-half-width-deg must be > 0, got {args.max_half_width_deg}", file=sys.stderr)
+        return EXIT_CONFIG
+    try:
+        result = boresight(args.path, args.run, args.max_half_width_deg)
+    except FdrReadError as exc:
+        print(f"gdnav: {exc}", file=sys.stderr)
+        return EXIT_RESOURCE
+    print(json.dumps(result, indent=2) if args.json else format_boresight(result))
+    return EXIT_OK
+
+
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add ``fdr`` with its ``summary`` subcommand; returns the ``fdr`` parser."""
+    """Add ``fdr`` with its ``summary`` and ``boresight`` subcommands; returns the ``fdr`` parser."""
     fdr = subparsers.add_parser(
         "fdr", help="flight data recorder tools", description="Flight data recorder tools (C13)."
     )
@@ -244,4 +334,22 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     )
     summary.add_argument("--json", action="store_true", help="print the summary as JSON")
     summary.set_defaults(func=_cmd_summary)
+    bore = fdr_sub.add_parser(
+        "boresight",
+        help="the camera mount (camera.mount_roll_deg, _pitch_deg) a flight's VO ground tilts ask for",
+        description="Measure the nav camera's boresight from a recorded flight: the mean of VO's ground "
+        "tilt minus the autopilot's (each pair of frames), with its 99 %% interval, added to the mount "
+        "the run flew with. Calibrate low over flat, textured ground. See c4_pose/boresight.py.",
+    )
+    bore.add_argument("path", type=Path, metavar="FILE|DIR", help="FDR directory or one fdr-*.jsonl segment")
+    bore.add_argument("--run", type=int, default=None, help="run index (default: the last run with frames)")
+    bore.add_argument(
+        "--max-half-width-deg",
+        type=float,
+        default=0.1,
+        metavar="DEG",
+        help="settable only when both axes' 99 %% half-interval is within this (default 0.1)",
+    )
+    bore.add_argument("--json", action="store_true", help="print the result as JSON")
+    bore.set_defaults(func=_cmd_boresight)
     return fdr

@@ -99,6 +99,11 @@ class CameraConfig:
     reconnect_backoff_max_s: PosFloat = 5.0
     #: Frames waiting for the pipeline; when full the oldest is dropped (newest frame wins).
     queue_depth: PosInt = 1
+    #: Boresight: the camera's rotation from the nominal nadir mount about the body's roll (forward)
+    #: and pitch (right) axes, deg, applied to the autopilot's attitude wherever the camera's is used
+    #: (VO, pose, tilt checks; not the IMU). Measure it with `gdnav fdr boresight`.
+    mount_roll_deg: Annotated[float, Strict(), Field(ge=-10, le=10)] = 0.0
+    mount_pitch_deg: Annotated[float, Strict(), Field(ge=-10, le=10)] = 0.0
 
 
 OutputKind = Literal["gps_input", "global_position_sensor", "vision_position_estimate"]

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import structlog
 
-from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
+from gps_denied_onboard.camera.types import CameraCalibration, CameraMount, NavCameraFrame
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
 from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
@@ -176,9 +176,11 @@ class NavigationPipeline:
         consistency: FixConsistency,
         attitude_check: AttitudeCheck,
         ground_tilt_check: AttitudeCheck | None = None,
+        mount: CameraMount | None = None,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
     ) -> None:
         self._calib = calibration
+        self._mount = mount if mount is not None else CameraMount()
         self._ltp = ltp
         self._ground_alt_amsl_m = ground_alt_amsl_m
         self._vo = vo
@@ -265,7 +267,7 @@ class NavigationPipeline:
         motion: VoMotion | None = None
         reason: str | None = None
         try:
-            motion = self._vo.process(frame)
+            motion = self._vo.process(self._on_camera(frame))
         except VoError as exc:
             reason = f"vo:{exc.reason}"
             log.debug("c1.vo.no_motion", frame=frame.seq, reason=exc.reason)
@@ -346,8 +348,15 @@ class NavigationPipeline:
     def attempt_fix(self, frame: NavCameraFrame) -> FixAttempt:
         """C2 -> C2.5 -> C3 -> C4 on ``frame``, searching around the estimate read when it starts."""
         timings: dict[str, float] = {}
-        attempt = self._absolute_fix(frame, timings)
+        attempt = self._absolute_fix(self._on_camera(frame), timings)
         return replace(attempt, timings_ms=timings)
+
+    def _on_camera(self, frame: NavCameraFrame) -> NavCameraFrame:
+        """``frame`` with the camera's attitude (the autopilot's turned by ``camera.mount_*``): what VO,
+        the fix path and both tilt checks use. The FDR keeps the autopilot's, as it came."""
+        if frame.attitude is None or self._mount.is_nadir:
+            return frame
+        return replace(frame, attitude=self._mount.camera_attitude(frame.attitude))
 
     def fuse_attempt(self, frame: NavCameraFrame, attempt: FixAttempt) -> FixOutcome:
         """Fuse ``attempt`` (from :meth:`attempt_fix` on ``frame``) at the frame's exposure time, or note

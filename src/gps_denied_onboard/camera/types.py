@@ -133,6 +133,50 @@ class Attitude:
         """Rotation camera -> NED for the nadir mount, (3, 3) float64."""
         return self.R_ned_body() @ R_BODY_CAM
 
+    @classmethod
+    def from_R_ned_body(cls, r_ned_body: np.ndarray) -> Attitude:
+        """The ZYX roll, pitch and yaw of a body -> NED rotation (the inverse of :meth:`R_ned_body`)."""
+        r = np.asarray(r_ned_body, dtype=np.float64)
+        pitch = -math.asin(max(-1.0, min(1.0, float(r[2, 0]))))
+        roll = math.atan2(float(r[2, 1]), float(r[2, 2]))
+        return cls(roll, pitch, math.atan2(float(r[1, 0]), float(r[0, 0])))
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """The nav camera's boresight: its rotation from the nominal nadir mount (``R_BODY_CAM``), rad, about
+    the body's x (roll, forward) and then y (pitch, right) axes (``camera.mount_roll_deg``,
+    ``camera.mount_pitch_deg``).
+
+    The camera's attitude is then ``R_ned_body @ R_x(roll) @ R_y(pitch) @ R_BODY_CAM``. To first order a
+    mount roll ``r`` and pitch ``p`` move world-down in the camera by ``(+r, +p)`` on its x and y axes:
+    the image-minus-autopilot tilt the tilt checks see (``PoseFix.image_tilt_off_cam_rad``,
+    ``VoMotion.ground_tilt_off_cam_rad``) is what the mount must add (``gdnav fdr boresight``). It holds
+    an AHRS's roll/pitch bias as well as a mount's: from the camera's side the two are the same.
+    """
+
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.roll_rad) and math.isfinite(self.pitch_rad)):
+            raise ValueError(f"mount angles must be finite, got {self.roll_rad!r}, {self.pitch_rad!r}")
+
+    @property
+    def is_nadir(self) -> bool:
+        return self.roll_rad == 0.0 and self.pitch_rad == 0.0
+
+    def camera_attitude(self, autopilot: Attitude) -> Attitude:
+        """The attitude whose nadir camera (``Attitude.R_ned_cam``) is this mount's camera on a body at
+        ``autopilot``."""
+        if self.is_nadir:
+            return autopilot
+        cr, sr = math.cos(self.roll_rad), math.sin(self.roll_rad)
+        cp, sp = math.cos(self.pitch_rad), math.sin(self.pitch_rad)
+        r_x = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+        r_y = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+        return Attitude.from_R_ned_body(autopilot.R_ned_body() @ r_x @ r_y)
+
 
 @dataclass(frozen=True)
 class NavCameraFrame:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,7 +12,7 @@ from typing import Any
 import structlog
 
 from gps_denied_onboard.camera.sources import CameraSourceError, FrameSource, open_frame_source
-from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration
+from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration, CameraMount
 from gps_denied_onboard.clock import DaemonClock
 from gps_denied_onboard.components.c1_vio import HomographyVo
 from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
@@ -535,6 +536,9 @@ def _pipeline(
             )
             if config.pose.ground_tilt_check
             else None
+        ),
+        mount=CameraMount(
+            math.radians(config.camera.mount_roll_deg), math.radians(config.camera.mount_pitch_deg)
         ),
     )
 
