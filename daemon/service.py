@@ -43,7 +43,7 @@ from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.worker import WorkerThread
 from gps_denied_onboard.geo import haversine_m
-from gps_denied_onboard.pipeline import FixOutcome, TrackOutcome
+from gps_denied_onboard.pipeline import FIX_TOO_LATE_REASON, FixOutcome, TrackOutcome
 from gps_denied_onboard.runtime_root import RuntimeRoot
 
 log = structlog.get_logger(__name__)
@@ -72,6 +72,9 @@ class DaemonCounters:
     #: Solved fixes the integrity rule refused, by reason (``IntegrityReason``), and those the consistency
     #: monitor did not fuse (``unverified``).
     fixes_refused_integrity: dict[str, int] = field(default_factory=dict)
+    #: Solved fixes that passed every check but arrived later than the time axis can fuse them
+    #: (``estimator.max_fix_delay_s``): the matcher is too slow for that setting on this computer.
+    fixes_too_late: int = 0
 
 
 class NavDaemon:
@@ -93,6 +96,8 @@ class NavDaemon:
         #: fixes' and VO's ground tilt (``c1_vio/ground_tilt.py``); the operator hears when either finds
         #: it off and when both agree again.
         self._attitude_off = {"fixes": False, "vo": False}
+        #: Inside a run of fixes dropped as too late (``_note_too_late``): the operator has been told.
+        self._fixes_late_run = False
         #: F8: when the autopilot was first / last asked for its estimate after a restart (daemon clock, s).
         self._asked_autopilot_first_s: float | None = None
         self._asked_autopilot_last_s: float | None = None
@@ -392,6 +397,7 @@ class NavDaemon:
             refused[reason] = refused.get(reason, 0) + 1
         if outcome.attitude is not None:
             self._note_attitude("fixes", outcome.attitude)
+        self._note_too_late(outcome)
         self._last_fix = outcome
         self._last_fix_reason = outcome.no_fix_reason
         log.info(
@@ -403,6 +409,35 @@ class NavDaemon:
             fused_behind_s=round(outcome.fused_behind_s, 3),
             age_ms=round((self._clock.now_unix_usec() - outcome.exposure_time_unix_usec) / 1e3, 1),
             timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()},
+        )
+
+    def _note_too_late(self, outcome: FixOutcome) -> None:
+        """Tell the operator, at the first of a run of them, that right fixes are dropped because they
+        arrive later than the time axis can fuse them: a matcher slower than ``estimator.max_fix_delay_s``
+        on this computer (DISK + LightGlue on a CPU takes 7-17 s) would otherwise fly VO-only with no
+        word why. The run ends at the next fix fused."""
+        if outcome.fix_accepted:
+            self._fixes_late_run = False
+            return
+        if outcome.no_fix_reason != FIX_TOO_LATE_REASON:
+            return
+        self.counters.fixes_too_late += 1
+        if self._fixes_late_run:
+            return
+        self._fixes_late_run = True
+        limit_s = self._cfg.estimator.max_fix_delay_s
+        log.warning(
+            LogEvent.FIXES_TOO_LATE,
+            seq=outcome.seq,
+            behind_s=round(outcome.fused_behind_s, 2),
+            max_fix_delay_s=limit_s,
+            fixes_too_late=self.counters.fixes_too_late,
+            hint="the matcher is slower than estimator.max_fix_delay_s allows: raise it, or use a faster "
+            "matcher or computer",
+        )
+        self._root.link.send_statustext(
+            mavutil.mavlink.MAV_SEVERITY_WARNING,
+            f"GDN: fix {outcome.fused_behind_s:.1f} s late > {limit_s:g} s, dropped",
         )
 
     def _note_attitude(self, source: str, check: AttitudeVerdict) -> None:

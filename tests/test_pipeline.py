@@ -405,3 +405,59 @@ def test_the_camera_mount_turns_the_attitude_vo_and_the_fix_path_see_not_the_one
         [autopilot.roll_rad, autopilot.pitch_rad, autopilot.yaw_rad]
     )
 
+
+class _Link:
+    """The MAVLink link at its boundary: keeps the STATUSTEXTs the daemon sends."""
+
+    def __init__(self) -> None:
+        self.texts: list[str] = []
+
+    def send_statustext(self, severity: int, text: str) -> None:
+        self.texts.append(text)
+
+
+def test_fixes_later_than_the_axis_can_fuse_are_dropped_and_the_operator_is_told() -> None:
+    """A matcher slower than ``estimator.max_fix_delay_s`` (5 s here): its right fix is dropped by the
+    time axis (``gated:too_late``), counted, and the ground station hears it once per run of such fixes,
+    with how late it was; a fix fused in time ends the run."""
+    import asyncio
+    from types import SimpleNamespace
+
+    from gps_denied_onboard.clock import DaemonClock
+    from gps_denied_onboard.config import load_config
+    from gps_denied_onboard.daemon.service import NavDaemon
+    from gps_denied_onboard.pipeline import FIX_TOO_LATE_REASON
+
+    fakes = _TwoTiles((200, 40))
+    p = _pipeline(_OneTileVpr(dim=256), _Fdr(), _HoverVo())
+    p._rerank = fakes  # type: ignore[assignment]
+    p._matcher = fakes  # type: ignore[assignment]
+    p._pose = _PosePerTile(tilt_off_rad=0.0)
+    t0 = T0 - 30 * 333_333
+    frames = [_frame(k, t0 + k * 333_333) for k in range(30)]
+    p.track(frames[0], InitialPrior(47.0, 8.0, 30.0, "test"))
+    slow = [p.attempt_fix(frames[k]) for k in (0, 1)]
+    for k in range(1, 25):  # 8 s of frames tracked while the matcher works
+        p.track(frames[k], None)
+    late = [p.fuse_attempt(frames[k], a) for k, a in zip((0, 1), slow, strict=True)]
+    assert [o.no_fix_reason for o in late] == [FIX_TOO_LATE_REASON] * 2
+    assert all(o.fused_behind_s > 5.0 for o in late)
+    in_time = p.localise(frames[24])
+    assert in_time.fix_accepted
+
+    link = _Link()
+    config = load_config(None, ["estimator.max_fix_delay_s=5.0"])
+    root = SimpleNamespace(config=config, time_axis=p.time_axis, clock=DaemonClock(), link=link)
+    daemon = NavDaemon(root)  # type: ignore[arg-type]
+    try:
+        for outcome in (*late, in_time, late[0]):
+            daemon._note_fix(outcome)
+    finally:
+
+        async def stop_workers() -> None:
+            await asyncio.gather(daemon._track_thread.stop(1.0), daemon._fix_thread.stop(1.0))
+
+        asyncio.run(stop_workers())
+    assert daemon.counters.fixes_too_late == 3
+    assert link.texts == [f"GDN: fix {late[0].fused_behind_s:.1f} s late > 5 s, dropped"] * 2
+    assert all(len(t) <= 50 for t in link.texts)  # STATUSTEXT's text field

@@ -127,6 +127,9 @@ class LogEvent:
     TIME_AXIS_REWOUND: Final = "c5.time_axis.rewound"
     #: The host's wall clock stepped against the daemon's (monotonic) clock; the daemon does not follow it.
     CLOCK_STEP: Final = "daemon.clock_step"
+    #: Solved fixes arrive later than the time axis can still fuse them (``estimator.max_fix_delay_s``):
+    #: logged (and sent as a STATUSTEXT) at the first of a run of them, with how late it was.
+    FIXES_TOO_LATE: Final = "daemon.fixes_too_late"
     #: A map tile's pixels no longer match the digest taken when the cache was verified: never used.
     CACHE_TILE_CORRUPT: Final = "c6.cache.tile_corrupt"
     POSE_REJECTED: Final = "c4.pose.rejected"

@@ -29,6 +29,7 @@ import uuid
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Final
 
 import structlog
 
@@ -53,7 +54,7 @@ from gps_denied_onboard.components.c4_pose.integrity import (
 from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
 from gps_denied_onboard.components.c5_estimator.journal import UNIT_FIX, UNIT_FIX_PRIOR, UNIT_TRACK
 from gps_denied_onboard.components.c5_estimator.prior import InitialPrior
-from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxis
+from gps_denied_onboard.components.c5_estimator.time_axis import Refusal, TimeAxis
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import VprConfig
@@ -61,6 +62,10 @@ from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
 from gps_denied_onboard.geo import LocalTangentPlane
 
 log = structlog.get_logger(__name__)
+
+#: ``FixOutcome.no_fix_reason`` of a fix that passed every check but came later than the time axis can
+#: still fuse it (``estimator.max_fix_delay_s``).
+FIX_TOO_LATE_REASON: Final = f"gated:{Refusal.TOO_LATE.value}"
 
 
 @dataclass(frozen=True)
