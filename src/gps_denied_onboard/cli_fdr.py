@@ -278,20 +278,21 @@ def format_boresight(b: dict[str, Any]) -> str:
         f"boresight from run {b['run']} of {b['runs']} in {b['path']} "
         f"(flown with camera.mount_roll_deg {used[0]:+.3f}, camera.mount_pitch_deg {used[1]:+.3f})"
     ]
-    for name, key, note in (
-        ("VO ground tilt", "vo_ground_tilt", ""),
-        ("fixes", "fixes", "  (a check: their errors are shared over the ground they cover)"),
-    ):
+    for name, key in (("VO ground tilt", "vo_ground_tilt"), ("fixes", "fixes")):
         o = b[key]
         if o is None:
             lines.append(f"  {name:<15} none recorded")
             continue
-        (mx, my), (hx, hy), (sx, sy) = o["mean_deg"], o["half_width_99_deg"], o["scatter_deg"]
-        lines.append(
-            f"  {name:<15} {o['samples']:>5}  tilt left x {mx:+.3f} +/- {hx:.3f}, "
-            f"y {my:+.3f} +/- {hy:.3f} deg "
-            f"(99 %; scatter {sx:.2f}, {sy:.2f}){note}"
-        )
+        (mx, my), (sx, sy) = o["mean_deg"], o["scatter_deg"]
+        if "half_width_99_deg" in o:
+            hx, hy = o["half_width_99_deg"]
+            left = (
+                f"x {mx:+.3f} +/- {hx:.3f}, y {my:+.3f} +/- {hy:.3f} deg (99 %; scatter {sx:.2f}, {sy:.2f})"
+            )
+        else:
+            shared = "a check: their errors are shared, so no interval"
+            left = f"x {mx:+.3f}, y {my:+.3f} deg (scatter {sx:.2f}, {sy:.2f}; {shared})"
+        lines.append(f"  {name:<15} {o['samples']:>5}  tilt left {left}")
     if b["mount_deg"] is not None:
         roll, pitch = b["mount_deg"]
         verdict = "set" if b["settable"] else f"not settable ({b['why_not']}); would be"
