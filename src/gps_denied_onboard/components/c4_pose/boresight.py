@@ -26,8 +26,9 @@ of them says more than VO, but how much more depends on that wander, which nothi
 
 A mount is settable when at least ``MIN_SAMPLES`` tilts pin both axes to ``max_half_width_deg`` (99 %).
 That takes a calibration flight low over textured flat ground: at 120 m AGL and 0.6-0.7 deg per pair,
-about 330 pairs (2 minutes at 3 Hz) for 0.1 deg (the 80 s SITL flight `nominal_real` gives 0.11-0.12). Over a hillside the ground's slope reads as tilt: calibrate over
-flat ground. A yaw offset of the mount is not measured here (the fixes solve the heading from the map).
+about 330 pairs (2 minutes at 3 Hz) for 0.1 deg (the 80 s SITL flight ``nominal_real`` gives
+0.11-0.12). Over a hillside the ground's slope reads as tilt: calibrate over flat ground. A yaw offset
+of the mount is not measured here (the fixes solve the heading from the map).
 """
 
 from __future__ import annotations
