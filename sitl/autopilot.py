@@ -9,6 +9,11 @@ when this process got round to reading it: a real autopilot has a processor of i
 shares two cores with the daemon and the frame renderer. Read times made the stream look stalled when the
 harness was (measured: a 765 ms gap in what it read while the daemon's own record of its sends had none
 over 118 ms). Where the kernel gives no stamp, the read time is used.
+
+CPython 3.11's ``socket`` module does not export ``SO_TIMESTAMPNS``. On Linux x86-64 and arm64 its value is
+35 (``asm-generic/socket.h``, ``SO_TIMESTAMPNS_OLD``, which is what ``SO_TIMESTAMPNS`` means where ``time_t``
+is 64-bit), and the control message carries a ``struct timespec``: two 64-bit integers. Without the
+constant every stamp silently fell back to the read time; ``test_sitl_autopilot`` checks that it does not.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import math
 import os
 import socket
 import struct
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -27,6 +33,9 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
 from gps_denied_onboard.constants import MAV_COMPONENT_ID
+
+#: ``SO_TIMESTAMPNS`` (and ``SCM_TIMESTAMPNS``): the socket module's where it has one, else Linux's value.
+SO_TIMESTAMPNS: int | None = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform == "linux" else None)
 
 
 def send_home_position(
@@ -72,9 +81,9 @@ class SimAutopilot:
             f"udpout:127.0.0.1:{self.daemon_port}", source_system=self.system_id, source_component=1
         )
         self.mav = self._conn.mav
-        self._kernel_stamps = hasattr(socket, "SO_TIMESTAMPNS")
-        if self._kernel_stamps:
-            self._conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_TIMESTAMPNS, 1)
+        self.kernel_stamps = SO_TIMESTAMPNS is not None
+        if SO_TIMESTAMPNS is not None:
+            self._conn.port.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
 
     def _datagrams(self) -> Iterator[tuple[float, bytes]]:
         """Every datagram waiting on the socket, with the time it arrived (non-blocking)."""
@@ -88,7 +97,7 @@ class SimAutopilot:
                 raise
             stamp = time.time()
             for level, kind, payload in ancillary:
-                if self._kernel_stamps and level == socket.SOL_SOCKET and kind == socket.SO_TIMESTAMPNS:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
                     sec, nsec = struct.unpack("qq", payload[:16])
                     stamp = sec + nsec * 1e-9
             yield stamp, data

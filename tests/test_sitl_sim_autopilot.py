@@ -1,0 +1,44 @@
+"""The simulated autopilot's receive times: the kernel's arrival stamp, not the time the harness read.
+
+Real UDP on loopback: a MAVLink message is sent to the SimAutopilot's socket, the test waits, then polls.
+"""
+
+from __future__ import annotations
+
+import socket
+import sys
+import time
+
+import pytest
+from pymavlink import mavutil
+
+from gps_denied_onboard.constants import MAV_COMPONENT_ID
+from gps_denied_onboard.sitl.autopilot import SimAutopilot
+
+READ_DELAY_S = 0.5
+
+
+def _daemon_side() -> tuple[socket.socket, int]:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    return sock, sock.getsockname()[1]
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="kernel receive stamps are read the Linux way")
+def test_receive_time_is_the_arrival_not_the_read() -> None:
+    daemon, port = _daemon_side()
+    ap = SimAutopilot(daemon_port=port)
+    try:
+        assert ap.kernel_stamps
+        ap.send_heartbeat()  # the autopilot speaks first, so the daemon side learns its address
+        _data, ap_addr = daemon.recvfrom(4096)
+        mav = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=MAV_COMPONENT_ID)
+        sent_s = time.time()
+        daemon.sendto(mav.heartbeat_encode(18, 8, 0, 0, 4).pack(mav), ap_addr)
+        time.sleep(READ_DELAY_S)  # the harness is late to read, as on two shared cores
+        assert ap.poll() == 1
+        got = ap.of_type("HEARTBEAT")[0].recv_time_unix_s
+        assert abs(got - sent_s) < 0.1, (got - sent_s, "the stamp is the read time, not the arrival")
+    finally:
+        ap.close()
+        daemon.close()
