@@ -739,17 +739,6 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
 
     stream, cons = report["stream"], report["consistency"]
     iv = stream.get("interval_ms") or {}
-    analysis = report.get("analysis") or {}
-    offset = analysis.get("accepted_fix_offset_m")
-    fixes = (
-        f"fixes         {analysis.get('accepted_fixes')} accepted, "
-        f"{analysis.get('accepted_fixes_beyond_3sigma')} beyond 3 sigma; shared offset "
-        + (
-            "n/a"
-            if offset is None
-            else f"{offset['length']:.2f} m (north {offset['north']:+.2f}, east {offset['east']:+.2f})"
-        )
-    )
     return [
         f"scenario      {report['scenario']}  (map {Path(report['map']).name}, matcher {report['matcher']})",
         f"frames        {report['frames']} sent, {report['frames_answered']} answered with GPS_INPUT",
@@ -762,7 +751,6 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
         f"GPS_INPUT     {report['gps_input_received']} msgs, interval mean {f(iv.get('mean_ms'), 'ms')} "
         f"p99 {f(iv.get('p99_ms'), 'ms')} max {f(iv.get('max_ms'), 'ms')}; ArduPilot health tripped: "
         f"{stream['health']['tripped']}, failsafe: {stream.get('ekf_failsafe_land_s')}",
-        fixes,
         f"provenance    {report['provenance_counts']}",
         f"daemon exit   code {report['daemon_exit_code']} after SIGTERM in {f(report['daemon_stop_s'], 's')}",
     ]

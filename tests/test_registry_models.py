@@ -38,7 +38,7 @@ from gps_denied_onboard.models import package_weights as pw
 from gps_denied_onboard.models.learned_export import FAMILIES, family_models, family_spec
 from gps_denied_onboard.models.registry import PACKAGE_WEIGHTS
 from gps_denied_onboard.models.verification import VERIFICATION_NAME
-from gps_denied_onboard.runtime_root.compose import resolve_matcher
+from gps_denied_onboard.runtime_root.compose import _resolve_matcher
 from registry_models_fixture import EXPORT_SECONDS, registry_models  # noqa: F401 - session fixture
 
 NAIP_SUBDIR = ("data", "naip_timeseries", "naip")
@@ -207,14 +207,14 @@ def test_auto_picks_verified_disk_lightglue_and_refuses_unverified(
 ) -> None:
     """auto takes disk_lightglue (with its LightGlue) from a verified export; without the verification
     record it falls back to classical and says to run gdnav models verify."""
-    resolved = resolve_matcher(_auto_config(disk_verified)).matcher
+    resolved = _resolve_matcher(_auto_config(disk_verified)).matcher
     assert resolved.strategy == "disk_lightglue"
     assert Path(str(resolved.disk_weights_path)).name == family_spec("disk").extractor_file
     assert Path(str(resolved.lightglue_weights_path)).name == "disk_lightglue.onnx"
     copy = tmp_path / "unverified"
     shutil.copytree(disk_verified, copy)
     (copy / VERIFICATION_NAME).unlink()
-    assert resolve_matcher(_auto_config(copy)).matcher.strategy == "classical"
+    assert _resolve_matcher(_auto_config(copy)).matcher.strategy == "classical"
 
 
 # -------------------------------------------------------------------------------- real cross-date match
@@ -314,7 +314,7 @@ def test_airborne_profile_runs_disk_lightglue_from_an_exported_dir(disk_verified
     from gps_denied_onboard.runtime_root.compose import create_matcher
 
     config = load_config(REPO_ROOT / "config" / "airborne.yaml", [f"matcher.model_dir={disk_verified}"])
-    resolved = resolve_matcher(config)
+    resolved = _resolve_matcher(config)
     assert resolved.matcher.strategy == "disk_lightglue"
     matcher = create_matcher(resolved, {}, None)  # type: ignore[arg-type]
     assert isinstance(matcher, DiskLightGlueMatcher)
