@@ -13,7 +13,8 @@ over 118 ms). Where the kernel gives no stamp, the read time is used.
 CPython 3.11's ``socket`` module does not export ``SO_TIMESTAMPNS``. On Linux x86-64 and arm64 its value is
 35 (``asm-generic/socket.h``, ``SO_TIMESTAMPNS_OLD``, which is what ``SO_TIMESTAMPNS`` means where ``time_t``
 is 64-bit), and the control message carries a ``struct timespec``: two 64-bit integers. Without the
-constant every stamp silently fell back to the read time; ``test_sitl_autopilot`` checks that it does not.
+constant every stamp silently fell back to the read time; ``tests/test_sitl_sim_autopilot.py`` checks
+that it does not.
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ READ_DELAY_S = 0.5
 def _daemon_side() -> tuple[socket.socket, int]:
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
+    sock.settimeout(5.0)  # a lost datagram fails the test instead of hanging it
     return sock, sock.getsockname()[1]
 
 
