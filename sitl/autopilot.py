@@ -14,7 +14,8 @@ CPython 3.11's ``socket`` module does not export ``SO_TIMESTAMPNS``. On Linux x8
 35 (``asm-generic/socket.h``, ``SO_TIMESTAMPNS_OLD``, which is what ``SO_TIMESTAMPNS`` means where ``time_t``
 is 64-bit), and the control message carries a ``struct timespec``: two 64-bit integers. Without the
 constant every stamp silently fell back to the read time; ``tests/test_sitl_sim_autopilot.py`` checks
-that it does not.
+that it does not. Linux turns stamping on a moment after the first socket asks for it (deferred work), so
+the first datagrams of a flight may still carry their read time.
 """
 
 from __future__ import annotations
