@@ -127,6 +127,20 @@ def test_one_odd_fix_is_held_back_and_the_next_good_one_is_not() -> None:
     assert refused == [None] * 8 + ["attitude_jump"] + [None] * 3
 
 
+def test_a_frame_exposed_across_the_step_does_not_open_the_way_for_the_next() -> None:
+    """Same-source, 3 deg added to the roll, and the first frame after the step got part of it (its
+    attitude interpolated across the step; in CI 1.24 of 3.2 deg). That fix is under the bound and goes
+    through, but it must not widen the interval the next fixes are judged by: the three after it are held
+    back as jumps and the 4th proves the attitude off."""
+    for seed in range(10):
+        offsets = _step(seed, SAME_SOURCE, (-3.0, 0.0))
+        offsets[30] = (AP_ERROR_DEG[0] - 1.2, AP_ERROR_DEG[1])
+        refused = [v.refused for v in _fly(AttitudeCheck(PoseConfig()), offsets, SAME_SOURCE)]
+        assert refused[:31] == [None] * 31, seed
+        assert refused[31:35] == ["attitude_jump"] * 3 + ["attitude_off"], (seed, refused[31:35])
+        assert set(refused[35:60]) == {"attitude_off"}, seed
+
+
 def test_across_dates_nothing_is_held_back_as_a_jump() -> None:
     """The prediction interval is the scatter of one fix there, wider than the autopilot's sigma: the
     image is not the better tilt sensor, and a fix far from the ones before is not the autopilot's
