@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from gps_denied_onboard.constants import FdrKind
-from gps_denied_onboard.geo import haversine_m
+from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
 from gps_denied_onboard.sitl.ardupilot_rules import evaluate_gps_stream, gps_input_accepted
 from gps_denied_onboard.sitl.autopilot import ReceivedMessage
 
@@ -78,9 +78,7 @@ def score(
         int(r["time_unix_usec"]): str(r.get("provenance"))
         for r in _of_kind(fdr_records, FdrKind.ESTIMATE_SENT)
     }
-    tracked_at = {
-        int(r["frame_seq"]): float(r["t_unix_s"]) for r in _of_kind(fdr_records, FdrKind.FRAME)
-    }
+    tracked_at = {int(r["frame_seq"]): float(r["t_unix_s"]) for r in _of_kind(fdr_records, FdrKind.FRAME)}
 
     def err_m(m: ReceivedMessage) -> float:
         lat_t, lon_t = truth_at_unix(int(m.fields["time_usec"]) / 1e6)
@@ -271,6 +269,9 @@ def analyse(
       the frame whose fix failed was tracked before its fix finished);
     - ``frames_refused``: frames the time axis refused, by reason (future, stale, out of order);
     - ``integrity_refused``: solved fixes the fix-integrity rule refused, by reason;
+    - ``accepted_fix_offset_m``: the accepted fixes' mean error, fix minus truth, north and east (m), with
+      its length: what they share (a map's georeference against the frames', a camera tilt), which
+      averaging more fixes does not remove; None without accepted fixes;
     - ``vio_segments``: each VIO-only stretch with the distance flown, the error growth and the drift as
       a percentage of that distance, and how many fixes it took afterwards to get back under the
       nominal p95 error (measured on the anchored frames before the first stretch that follows one).
@@ -279,11 +280,23 @@ def analyse(
     fixes = sorted(_of_kind(fdr_records, FdrKind.FIX), key=lambda r: r["frame_seq"])
     rows = {r["seq"]: r for r in report["per_frame"]}
     fix_errors_sigma = []
+    fix_offsets_ne_m = []
     for r in fixes:
         if r.get("fix_accepted") and r.get("fix_lat_deg") is not None and r.get("fix_sigma_m"):
             lat_t, lon_t = truth_at_unix(r["exposure_time_unix_usec"] / 1e6)
             err = float(haversine_m(lat_t, lon_t, r["fix_lat_deg"], r["fix_lon_deg"]))
             fix_errors_sigma.append(err / float(r["fix_sigma_m"]))
+            fix_offsets_ne_m.append(
+                LocalTangentPlane(lat_t, lon_t).to_ned(r["fix_lat_deg"], r["fix_lon_deg"], 0.0)
+            )
+    offset = None
+    if fix_offsets_ne_m:
+        north_m, east_m = (float(v) for v in np.mean(fix_offsets_ne_m, axis=0)[:2])
+        offset = {
+            "north": round(north_m, 2),
+            "east": round(east_m, 2),
+            "length": round(math.hypot(north_m, east_m), 2),
+        }
     reasons = Counter(str(r.get("no_fix_reason")).split(":")[0] for r in fixes if not r.get("fix_accepted"))
     integrity = Counter(
         str(r.get("no_fix_reason")).split(":", 1)[1]
@@ -364,6 +377,7 @@ def analyse(
         "accepted_fixes": len(fix_errors_sigma),
         "accepted_fixes_beyond_3sigma": sum(e > 3.0 for e in fix_errors_sigma),
         "max_accepted_fix_error_sigma": max(fix_errors_sigma) if fix_errors_sigma else None,
+        "accepted_fix_offset_m": offset,
         "no_fix_reasons": dict(sorted(reasons.items())),
         "integrity_refused": dict(sorted(integrity.items())),
         "transitions": transitions,

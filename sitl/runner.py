@@ -525,10 +525,10 @@ def _build_tile_features(daemon_cfg: Config, cache_dir: Path, *, progress: bool)
     with the matcher the daemon will build."""
     from gps_denied_onboard.components.c3_matcher.base import NULL_FDR, LearnedPairMatcher
     from gps_denied_onboard.components.c10_cache_build.tile_features import build_tile_features
-    from gps_denied_onboard.runtime_root.compose import StartupError, _resolve_matcher, create_matcher
+    from gps_denied_onboard.runtime_root.compose import StartupError, create_matcher, resolve_matcher
 
     try:
-        config = _resolve_matcher(daemon_cfg)
+        config = resolve_matcher(daemon_cfg)
         matcher = create_matcher(config, {}, NULL_FDR)
     except StartupError as exc:
         raise SitlError(f"matcher.tile_features require: {exc}") from exc
@@ -739,6 +739,17 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
 
     stream, cons = report["stream"], report["consistency"]
     iv = stream.get("interval_ms") or {}
+    analysis = report.get("analysis") or {}
+    offset = analysis.get("accepted_fix_offset_m")
+    fixes = (
+        f"fixes         {analysis.get('accepted_fixes')} accepted, "
+        f"{analysis.get('accepted_fixes_beyond_3sigma')} beyond 3 sigma; shared offset "
+        + (
+            "n/a"
+            if offset is None
+            else f"{offset['length']:.2f} m (north {offset['north']:+.2f}, east {offset['east']:+.2f})"
+        )
+    )
     return [
         f"scenario      {report['scenario']}  (map {Path(report['map']).name}, matcher {report['matcher']})",
         f"frames        {report['frames']} sent, {report['frames_answered']} answered with GPS_INPUT",
@@ -751,6 +762,7 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
         f"GPS_INPUT     {report['gps_input_received']} msgs, interval mean {f(iv.get('mean_ms'), 'ms')} "
         f"p99 {f(iv.get('p99_ms'), 'ms')} max {f(iv.get('max_ms'), 'ms')}; ArduPilot health tripped: "
         f"{stream['health']['tripped']}, failsafe: {stream.get('ekf_failsafe_land_s')}",
+        fixes,
         f"provenance    {report['provenance_counts']}",
         f"daemon exit   code {report['daemon_exit_code']} after SIGTERM in {f(report['daemon_stop_s'], 's')}",
     ]

@@ -369,3 +369,25 @@ def test_sitl_analysis_counts_integrity_refusals_by_reason() -> None:
     a = analyse({"per_frame": []}, records, lambda t: (0.0, 0.0))
     assert a["integrity_refused"] == {"ambiguous_candidates": 1, "low_inlier_ratio": 2}
     assert a["no_fix_reasons"] == {"gated": 1, "integrity": 3}
+
+
+def test_sitl_analysis_reports_the_accepted_fixes_shared_offset() -> None:
+    """Fixes 3 m east and 1 +/- 2 m north of the truth: the mean offset is (north 1, east 3), fix minus
+    truth; refused fixes do not count."""
+    from gps_denied_onboard.constants import FdrKind
+    from gps_denied_onboard.geo import LocalTangentPlane
+    from gps_denied_onboard.sitl.report import analyse
+
+    def truth(t_s: float) -> tuple[float, float]:
+        return 47.0 + 1e-4 * t_s, 8.0 + 2e-4 * t_s
+
+    def fix(seq: int, north_m: float, east_m: float, accepted: bool = True) -> dict:
+        lat, lon, _ = LocalTangentPlane(*truth(float(seq))).to_geodetic(np.array([north_m, east_m, 0.0]))
+        return {"kind": FdrKind.FIX, "frame_seq": seq, "exposure_time_unix_usec": seq * 10**6,
+                "fix_accepted": accepted, "no_fix_reason": None if accepted else "gated:gated",
+                "fix_lat_deg": float(lat), "fix_lon_deg": float(lon), "fix_sigma_m": 5.0}
+
+    records = [fix(1, 3.0, 3.0), fix(2, -1.0, 3.0), fix(3, 40.0, -40.0, accepted=False)]
+    offset = analyse({"per_frame": []}, records, truth)["accepted_fix_offset_m"]
+    assert offset == pytest.approx({"north": 1.0, "east": 3.0, "length": 10**0.5}, abs=0.01)
+    assert analyse({"per_frame": []}, records[2:], truth)["accepted_fix_offset_m"] is None

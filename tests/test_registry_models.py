@@ -38,7 +38,7 @@ from gps_denied_onboard.models import package_weights as pw
 from gps_denied_onboard.models.learned_export import FAMILIES, family_models, family_spec
 from gps_denied_onboard.models.registry import PACKAGE_WEIGHTS
 from gps_denied_onboard.models.verification import VERIFICATION_NAME
-from gps_denied_onboard.runtime_root.compose import _resolve_matcher
+from gps_denied_onboard.runtime_root.compose import resolve_matcher
 from registry_models_fixture import EXPORT_SECONDS, registry_models  # noqa: F401 - session fixture
 
 NAIP_SUBDIR = ("data", "naip_timeseries", "naip")
@@ -207,14 +207,14 @@ def test_auto_picks_verified_disk_lightglue_and_refuses_unverified(
 ) -> None:
     """auto takes disk_lightglue (with its LightGlue) from a verified export; without the verification
     record it falls back to classical and says to run gdnav models verify."""
-    resolved = _resolve_matcher(_auto_config(disk_verified)).matcher
+    resolved = resolve_matcher(_auto_config(disk_verified)).matcher
     assert resolved.strategy == "disk_lightglue"
     assert Path(str(resolved.disk_weights_path)).name == family_spec("disk").extractor_file
     assert Path(str(resolved.lightglue_weights_path)).name == "disk_lightglue.onnx"
     copy = tmp_path / "unverified"
     shutil.copytree(disk_verified, copy)
     (copy / VERIFICATION_NAME).unlink()
-    assert _resolve_matcher(_auto_config(copy)).matcher.strategy == "classical"
+    assert resolve_matcher(_auto_config(copy)).matcher.strategy == "classical"
 
 
 # -------------------------------------------------------------------------------- real cross-date match
@@ -308,13 +308,45 @@ def test_cli_models_verify_prints_figures_and_passes(disk_verified: Path) -> Non
 
 @pytest.mark.slow
 @pytest.mark.timeout(EXPORT_TIMEOUT_S)
+@pytest.mark.realdata
+def test_cli_match_takes_disk_and_its_lightglue_from_an_export_dir(
+    disk_verified: Path, tmp_path: Path
+) -> None:
+    """``gdnav match --strategy disk_lightglue --model-dir EXPORT`` builds the matcher the daemon builds
+    from a registry export (DISK extractor, DISK's LightGlue) and recovers a known shift between two crops
+    of a real NAIP image. Before, the CLI took the last manifest entry named 'aliked*' as its extractor."""
+    image = _naip_bgr(2009)
+    dx_px, dy_px = 37, -21
+    a = image[150:470, 250:570]
+    b = image[150 - dy_px : 470 - dy_px, 250 - dx_px : 570 - dx_px]
+    cv2.imwrite(str(tmp_path / "a.png"), a)
+    cv2.imwrite(str(tmp_path / "b.png"), b)
+    done = subprocess.run(
+        [
+            sys.executable, "-m", "gps_denied_onboard.cli", "match", str(tmp_path / "a.png"),
+            str(tmp_path / "b.png"), "--strategy", "disk_lightglue", "--model-dir", str(disk_verified),
+            "--json",
+        ],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    print(f"gdnav match disk_lightglue: {result['inliers']} inliers")
+    assert result["strategy"] == "disk_lightglue" and result["inliers"] >= 100
+    # A feature at A px (x, y) is at B px (x + dx, y + dy).
+    moved = cv2.perspectiveTransform(np.array([[[160.0, 160.0]]]), np.array(result["homography"]))
+    assert np.allclose(moved.reshape(2), [160.0 + dx_px, 160.0 + dy_px], atol=1.0)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(EXPORT_TIMEOUT_S)
 def test_airborne_profile_runs_disk_lightglue_from_an_exported_dir(disk_verified: Path) -> None:
     """config/airborne.yaml as shipped (only its model directory pointed at an export) builds the real
     DISK + LightGlue strategy with its LightGlue model."""
     from gps_denied_onboard.runtime_root.compose import create_matcher
 
     config = load_config(REPO_ROOT / "config" / "airborne.yaml", [f"matcher.model_dir={disk_verified}"])
-    resolved = _resolve_matcher(config)
+    resolved = resolve_matcher(config)
     assert resolved.matcher.strategy == "disk_lightglue"
     matcher = create_matcher(resolved, {}, None)  # type: ignore[arg-type]
     assert isinstance(matcher, DiskLightGlueMatcher)

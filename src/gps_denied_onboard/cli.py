@@ -180,7 +180,7 @@ def _cmd_cache_features(args: argparse.Namespace) -> int:
     from gps_denied_onboard.components.c3_matcher.base import NULL_FDR, LearnedPairMatcher
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
     from gps_denied_onboard.components.c10_cache_build.tile_features import build_tile_features
-    from gps_denied_onboard.runtime_root.compose import _resolve_matcher, create_matcher
+    from gps_denied_onboard.runtime_root.compose import create_matcher, resolve_matcher
 
     config = load_config(args.config, args.set or ())
     configure_logging("info", json=False)
@@ -188,7 +188,7 @@ def _cmd_cache_features(args: argparse.Namespace) -> int:
         config = dataclasses.replace(
             config, matcher=dataclasses.replace(config.matcher, strategy=args.strategy)
         )
-    config = _resolve_matcher(config)
+    config = resolve_matcher(config)
     cache_dir = Path(args.cache if args.cache is not None else config.cache.dir)
     # The matcher is built exactly as the daemon builds it (same model, same settings), so the features
     # are those its candidate loop would extract.

@@ -25,13 +25,14 @@ import numpy as np
 
 from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
 from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
+from gps_denied_onboard.components.c3_matcher.base import NULL_FDR
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
 from gps_denied_onboard.components.c6_tiles.types import TileId
 
 EXIT_OK: Final[int] = 0
 EXIT_NO_MATCH: Final[int] = 1
 EXIT_BAD_INPUT: Final[int] = 2
-STRATEGIES: Final[tuple[str, ...]] = ("classical", "aliked_lightglue")
+STRATEGIES: Final[tuple[str, ...]] = ("classical", "disk_lightglue", "aliked_lightglue", "xfeat")
 #: Horizontal field of view given to IMAGE_A's calibration; unused without attitude (no rectification).
 _NOMINAL_HFOV_DEG: Final[float] = 70.0
 
@@ -119,20 +120,6 @@ def read_image(path: Path) -> np.ndarray:
     return image
 
 
-def aliked_model_path(model_dir: Path) -> Path:
-    """The ALIKED ONNX file of a verified model directory (``gdnav models export`` output)."""
-    from gps_denied_onboard.models import ModelDirError, verify_model_dir
-
-    try:
-        entries = verify_model_dir(model_dir)
-    except ModelDirError as exc:
-        raise MatchCliError(str(exc)) from exc
-    found = [e for e in entries if e.source.name.startswith("aliked")]
-    if not found:
-        raise MatchCliError(f"{model_dir}: the manifest lists no ALIKED model (run 'gdnav models export')")
-    return model_dir / found[-1].file
-
-
 class _StageTimer:
     """Accumulates wall time per stage name, ms."""
 
@@ -159,40 +146,25 @@ class _TimedRansac:
 
 
 def build_matcher(strategy: str, model_dir: Path | None, min_inliers: int, timer: _StageTimer) -> Any:
-    """The strategy as the composition root builds it (registry + shared helpers), with timed stages."""
-    from gps_denied_onboard.components.c3_matcher import registry
-    from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
-    from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
-    from gps_denied_onboard.config import MatcherConfig
+    """The strategy exactly as the daemon builds it: ``matcher.model_dir`` resolved by the composition
+    root (the family's extractor and its LightGlue from a verified ``gdnav models export`` directory),
+    then the C3 registry, with timed stages."""
+    from gps_denied_onboard.config import ConfigError, config_from_mapping
     from gps_denied_onboard.helpers.ransac_filter import RansacFilter
+    from gps_denied_onboard.runtime_root.compose import StartupError, create_matcher, resolve_matcher
 
-    overrides: dict[str, Any] = {"strategy": strategy, "min_inliers_threshold": min_inliers}
-    deps: dict[str, Any] = {}
-    if strategy == "aliked_lightglue":
-        from gps_denied_onboard.components.c3_matcher.aliked_lightglue import ALIKED_MNN_MIN_SIMILARITY
-        from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
-        from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
-
-        if model_dir is None:
-            raise MatchCliError("--strategy aliked_lightglue needs --model-dir (see 'gdnav models export')")
-        overrides["aliked_weights_path"] = str(aliked_model_path(model_dir))
-        runtime = OnnxInferenceRuntime(intra_op_threads=2, providers=["CPUExecutionProvider"])
-        deps["inference_runtime"] = runtime
-        deps["lightglue_runtime"] = LightGlueRuntime(
-            runtime, None, mnn_min_similarity=ALIKED_MNN_MIN_SIMILARITY
-        )
-    config = MatcherConfig(**overrides)
-    ransac = RansacFilter(confidence=config.ransac_confidence, max_iters=config.ransac_max_iters)
+    if strategy != "classical" and model_dir is None:
+        raise MatchCliError(f"--strategy {strategy} needs --model-dir (see 'gdnav models export')")
+    matcher_cfg: dict[str, Any] = {"strategy": strategy, "min_inliers_threshold": min_inliers}
+    if model_dir is not None:
+        matcher_cfg["model_dir"] = str(model_dir)
     try:
-        matcher = registry.create_matcher(
-            strategy,
-            config=config,
-            ransac_filter=_TimedRansac(ransac, timer),
-            fdr_client=None,
-            health_window=RollingHealthWindow(config.min_inliers_threshold),
-            **deps,
+        config = resolve_matcher(config_from_mapping({"matcher": matcher_cfg}, source="gdnav match"))
+        ransac = RansacFilter(
+            confidence=config.matcher.ransac_confidence, max_iters=config.matcher.ransac_max_iters
         )
-    except EngineLoadError as exc:
+        matcher = create_matcher(config, {"c282_ransac_filter": _TimedRansac(ransac, timer)}, NULL_FDR)
+    except (ConfigError, StartupError) as exc:
         raise MatchCliError(str(exc)) from exc
     for hook, stage in (
         ("extract_query", "extract_a"),

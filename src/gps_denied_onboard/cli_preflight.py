@@ -170,11 +170,11 @@ def _check_models(config: Config, opened: dict[str, Any]) -> str:
     # strategy, which creates its ONNX Runtime sessions.
     from gps_denied_onboard.runtime_root.compose import (
         WEIGHTS_FREE_MATCHERS,
-        _resolve_matcher,
         create_matcher,
+        resolve_matcher,
     )
 
-    resolved = _resolve_matcher(config)
+    resolved = resolve_matcher(config)
     opened["matcher_config"] = resolved  # the model directory is hashed once, for tile_features too
     strategy = resolved.matcher.strategy
     if strategy in WEIGHTS_FREE_MATCHERS:

@@ -279,7 +279,7 @@ def _family_paths(
     return None
 
 
-def _resolve_matcher(config: Config) -> Config:
+def resolve_matcher(config: Config) -> Config:
     """Apply ``matcher.model_dir`` and ``matcher.strategy: auto`` (see MatcherConfig).
 
     The model directory is verified (manifest hashes) at start-up, and only where it is used: by
@@ -436,7 +436,7 @@ def create_matcher(
     fdr: FdrClient,
     tile_features: PrecomputedTileFeatures | None = None,
 ) -> CrossDomainMatcher:
-    """The C3 strategy of an already resolved ``config`` (``_resolve_matcher``), with its ONNX Runtime
+    """The C3 strategy of an already resolved ``config`` (``resolve_matcher``), with its ONNX Runtime
     sessions for a learned strategy and ``tile_features`` (``open_tile_features``). Raises
     ``StartupError`` for an unknown strategy or a model that does not load."""
     ransac = pre.get("c282_ransac_filter") or RansacFilter(
@@ -552,7 +552,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     """
     pre = dict(pre_constructed or {})
     clock: DaemonClock = pre.get("clock") or DaemonClock()
-    config = _resolve_matcher(config)
+    config = resolve_matcher(config)
     calibration = _calibration(config)
     _check_signing_key(config)
     tiles = open_tile_store(config)
@@ -635,7 +635,7 @@ def compose_replay(
     brings its own). ``ltp_origin_lat_lon``: the NED origin without a map (the map's centre otherwise).
     ``vo_max_gap_s``: C1's longest measured interval (default: the daemon's).
     """
-    config = _resolve_matcher(config)
+    config = resolve_matcher(config)
     calib = calibration if calibration is not None else _calibration(config)
     tiles: TileStore | None = None
     vpr: VprStrategy | None = None
