@@ -1,26 +1,45 @@
 """How far apart two orthophotos of the same ground put the same features: the map pair's own error.
 
     .venv/bin/python tools/map_pair_offset.py MAP.tif OTHER.tif [OTHER.tif ...]
+    .venv/bin/python tools/map_pair_offset.py --strategy xfeat --model-dir models MAP.tif OTHER.tif
 
-Each OTHER is resampled onto MAP's grid; both are turned into gradient magnitude (field boundaries,
-roads and shores survive years of crop and water changes better than colour does), and square blocks of
-MAP are found in OTHER by normalised cross-correlation within +/- SEARCH_PX, to a sub-pixel peak. Blocks
-whose peak is weak or not unique are dropped. Prints, per OTHER, the median east/north shift in metres
-of OTHER's features against MAP's and its spread. A fix against MAP from frames that look like OTHER
+Each OTHER is resampled onto MAP's grid. Two ways to measure, which need not agree (they did not on the
+NAIP pair 2009/2014, ``docs/benchmarks.md``):
+
+- blocks (default): both images are turned into gradient magnitude (field boundaries, roads and shores
+  survive years of crop and water changes better than colour does), and square blocks of MAP are found
+  in OTHER by normalised cross-correlation within +/- SEARCH_PX, to a sub-pixel peak. Blocks whose peak
+  is weak or not unique are dropped.
+- ``--strategy S --model-dir D``: the daemon's C3 strategy S (built as ``gdnav match`` builds it)
+  matches WINDOW_PX windows of OTHER to the same windows of MAP; each window's homography moves the
+  window's centre by the shift. Windows with fewer than MIN_WINDOW_INLIERS inliers are dropped; with
+  ``--per-window`` each window's centre (MAP px) and shift are printed.
+
+Prints, per OTHER, the median east/north shift in metres of OTHER's features against MAP's and its
+spread. A fix against MAP from frames that look like OTHER
 cannot be better than this shift (``docs/benchmarks.md``, "Camera boresight"). A one-off measurement
 tool: the daemon does not use it.
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
+import uuid
+from pathlib import Path
 
 import cv2
 import numpy as np
 import rasterio
 from rasterio.warp import Resampling, reproject
 
+from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
+from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
+
 BLOCK_PX = 96
+WINDOW_PX = 256
+WINDOW_STEP_PX = 55
+MIN_WINDOW_INLIERS = 25
 SEARCH_PX = 8
 MIN_PEAK = 0.5
 #: A second peak this close to the first makes the block ambiguous.
@@ -73,20 +92,92 @@ def block_shifts_m(map_path: str, other_path: str) -> np.ndarray:
     return np.array(rows).reshape(-1, 2)
 
 
+def _bgr_on(grid: rasterio.DatasetReader, path: str) -> np.ndarray:
+    with rasterio.open(path) as src:  # rasterio: libtiff would read NAIP's band 4 (NIR) as alpha
+        bands = np.zeros((3, grid.height, grid.width), np.float32)
+        for b in range(3):
+            reproject(
+                src.read(b + 1).astype(np.float32),
+                bands[b],
+                src_transform=src.transform,
+                src_crs=src.crs,
+                dst_transform=grid.transform,
+                dst_crs=grid.crs,
+                resampling=Resampling.bilinear,
+            )
+    return np.ascontiguousarray(np.clip(bands[::-1], 0, 255).astype(np.uint8).transpose(1, 2, 0))
+
+
+def window_shifts_m(
+    map_path: str, other_path: str, strategy: str, model_dir: str | None, per_window: bool
+) -> np.ndarray:
+    """(N, 2) east, north shifts (m) of ``other``'s features against ``map``'s, one row per window,
+    measured by the C3 strategy ``strategy``."""
+    from gps_denied_onboard.cli_match import ImageChip, _StageTimer, build_matcher
+    from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
+
+    with rasterio.open(map_path) as grid:
+        a, b = _bgr_on(grid, map_path), _bgr_on(grid, other_path)
+        gsd_x, gsd_y = abs(grid.transform.a), abs(grid.transform.e)
+    matcher = build_matcher(
+        strategy, Path(model_dir) if model_dir else None, MIN_WINDOW_INLIERS, _StageTimer()
+    )
+    calib = CameraCalibration.from_hfov(WINDOW_PX, WINDOW_PX, 70.0)  # unused: no attitude, no rectification
+    rows = []
+    s = WINDOW_PX
+    for y in range(20, a.shape[0] - s - 20, WINDOW_STEP_PX):
+        for x in range(20, a.shape[1] - s - 20, WINDOW_STEP_PX):
+            # Each window is its own chip, keyed by its origin: the matcher caches tile features by id.
+            chip = ImageChip(np.ascontiguousarray(a[y : y + s, x : x + s]), gsd_x, (x, y))
+            frame = NavCameraFrame(
+                uuid.uuid4(), len(rows), 0, np.ascontiguousarray(b[y : y + s, x : x + s]), None, None, 0
+            )
+            rerank = RerankResult(frame.frame_id, [RerankCandidate(chip.tile_id, chip, -1, 0.0)], 0)
+            try:
+                best = matcher.match(frame, rerank, calib).best
+            except InsufficientInliersError:
+                continue
+            corr = np.asarray(best.inlier_correspondences, dtype=np.float64)
+            hom, _ = cv2.findHomography(corr[:, :2], corr[:, 2:4], 0)
+            if hom is None:
+                continue
+            centre = np.array([[[s / 2.0, s / 2.0]]])
+            moved = cv2.perspectiveTransform(centre, hom).reshape(2)
+            # OTHER px minus MAP px of the same feature; rows grow southwards.
+            east_m, north_m = (s / 2.0 - moved[0]) * gsd_x, -(s / 2.0 - moved[1]) * gsd_y
+            rows.append((east_m, north_m))
+            if per_window:
+                print(
+                    f"  window centre col {x + s // 2} row {y + s // 2}: east {east_m:+.1f} m, "
+                    f"north {north_m:+.1f} m, {best.inlier_count} inliers"
+                )
+    return np.array(rows).reshape(-1, 2)
+
+
 def main(argv: list[str]) -> int:
-    if len(argv) < 2:
-        print(__doc__, file=sys.stderr)
-        return 2
-    map_path = argv[0]
-    for other in argv[1:]:
-        d = block_shifts_m(map_path, other)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    parser.add_argument("map")
+    parser.add_argument("others", nargs="+")
+    parser.add_argument("--strategy", help="measure with this C3 strategy instead of gradient blocks")
+    parser.add_argument("--model-dir", help="gdnav models export output, for a learned strategy")
+    parser.add_argument("--per-window", action="store_true", help="print each window's shift")
+    args = parser.parse_args(argv)
+    from gps_denied_onboard.logging_setup import configure_logging
+
+    configure_logging("warning", json=False)
+    for other in args.others:
+        if args.strategy:
+            d = window_shifts_m(args.map, other, args.strategy, args.model_dir, args.per_window)
+            unit = "windows"
+        else:
+            d, unit = block_shifts_m(args.map, other), "blocks"
         if not len(d):
-            print(f"{other}: no block matched")
+            print(f"{other}: no {unit[:-1]} matched")
             continue
         e, n = np.median(d, axis=0)
         iqr = np.subtract(*np.percentile(d, [75, 25], axis=0))
         print(
-            f"{other}: {len(d)} blocks; median shift east {e:+.2f} m, north {n:+.2f} m "
+            f"{other}: {len(d)} {unit}; median shift east {e:+.2f} m, north {n:+.2f} m "
             f"(|.| {np.hypot(e, n):.2f} m); interquartile range east {iqr[0]:.2f} m, north {iqr[1]:.2f} m"
         )
     return 0
