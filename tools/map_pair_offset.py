@@ -46,7 +46,9 @@ MIN_PEAK = 0.5
 UNIQUE_RATIO = 0.9
 
 
-def _gradient_on(grid: rasterio.DatasetReader, path: str) -> np.ndarray:
+def _rgb_on(grid: rasterio.DatasetReader, path: str) -> np.ndarray:
+    """(3, H, W) float32 R, G, B of ``path`` resampled onto ``grid`` (rasterio: libtiff would read NAIP's
+    band 4, NIR, as alpha)."""
     with rasterio.open(path) as src:
         bands = np.zeros((3, grid.height, grid.width), np.float32)
         for b in range(3):
@@ -59,7 +61,11 @@ def _gradient_on(grid: rasterio.DatasetReader, path: str) -> np.ndarray:
                 dst_crs=grid.crs,
                 resampling=Resampling.bilinear,
             )
-    grey = cv2.GaussianBlur(bands.mean(axis=0), (0, 0), 1.0)
+    return bands
+
+
+def _gradient_on(grid: rasterio.DatasetReader, path: str) -> np.ndarray:
+    grey = cv2.GaussianBlur(_rgb_on(grid, path).mean(axis=0), (0, 0), 1.0)
     return np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
 
 
@@ -93,18 +99,7 @@ def block_shifts_m(map_path: str, other_path: str) -> np.ndarray:
 
 
 def _bgr_on(grid: rasterio.DatasetReader, path: str) -> np.ndarray:
-    with rasterio.open(path) as src:  # rasterio: libtiff would read NAIP's band 4 (NIR) as alpha
-        bands = np.zeros((3, grid.height, grid.width), np.float32)
-        for b in range(3):
-            reproject(
-                src.read(b + 1).astype(np.float32),
-                bands[b],
-                src_transform=src.transform,
-                src_crs=src.crs,
-                dst_transform=grid.transform,
-                dst_crs=grid.crs,
-                resampling=Resampling.bilinear,
-            )
+    bands = _rgb_on(grid, path)
     return np.ascontiguousarray(np.clip(bands[::-1], 0, 255).astype(np.uint8).transpose(1, 2, 0))
 
 
