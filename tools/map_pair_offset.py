@@ -10,31 +10,27 @@ NAIP pair 2009/2014, ``docs/benchmarks.md``):
   survive years of crop and water changes better than colour does), and square blocks of MAP are found
   in OTHER by normalised cross-correlation within +/- SEARCH_PX, to a sub-pixel peak. Blocks whose peak
   is weak or not unique are dropped.
-- ``--strategy S --model-dir D``: the daemon's C3 strategy S (built as ``gdnav match`` builds it)
-  matches WINDOW_PX windows of OTHER to the same windows of MAP; each window's homography moves the
+- ``--strategy S --model-dir D``: the daemon's C3 strategy S matches WINDOW_PX windows of OTHER to the
+  same windows of MAP, as ``gdnav match`` does (``cli_match.match_pair``); each window's homography moves the
   window's centre by the shift. Windows with fewer than MIN_WINDOW_INLIERS inliers are dropped; with
   ``--per-window`` each window's centre (MAP px) and shift are printed.
 
 Prints, per OTHER, the median east/north shift in metres of OTHER's features against MAP's and its
-spread. A fix against MAP from frames that look like OTHER
-cannot be better than this shift (``docs/benchmarks.md``, "Camera boresight"). A one-off measurement
-tool: the daemon does not use it.
+spread. The local shift is error a fix against MAP from frames that look like OTHER can carry; on the
+NAIP pair it explained part of the fixes' scatter, not their shared offset (``docs/benchmarks.md``,
+"Camera boresight"). A one-off measurement tool: the daemon does not use it.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-import uuid
 from pathlib import Path
 
 import cv2
 import numpy as np
 import rasterio
 from rasterio.warp import Resampling, reproject
-
-from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
-from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
 
 BLOCK_PX = 96
 WINDOW_PX = 256
@@ -108,43 +104,31 @@ def window_shifts_m(
 ) -> np.ndarray:
     """(N, 2) east, north shifts (m) of ``other``'s features against ``map``'s, one row per window,
     measured by the C3 strategy ``strategy``."""
-    from gps_denied_onboard.cli_match import ImageChip, _StageTimer, build_matcher
-    from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
+    from gps_denied_onboard.cli_match import _StageTimer, build_matcher, match_pair
 
     with rasterio.open(map_path) as grid:
         a, b = _bgr_on(grid, map_path), _bgr_on(grid, other_path)
         gsd_x, gsd_y = abs(grid.transform.a), abs(grid.transform.e)
-    matcher = build_matcher(
-        strategy, Path(model_dir) if model_dir else None, MIN_WINDOW_INLIERS, _StageTimer()
-    )
-    calib = CameraCalibration.from_hfov(WINDOW_PX, WINDOW_PX, 70.0)  # unused: no attitude, no rectification
+    timer = _StageTimer()
+    matcher = build_matcher(strategy, Path(model_dir) if model_dir else None, MIN_WINDOW_INLIERS, timer)
     rows = []
     s = WINDOW_PX
+    centre = np.array([[[s / 2.0, s / 2.0]]])
     for y in range(20, a.shape[0] - s - 20, WINDOW_STEP_PX):
         for x in range(20, a.shape[1] - s - 20, WINDOW_STEP_PX):
-            # Each window is its own chip, keyed by its origin: the matcher caches tile features by id.
-            chip = ImageChip(np.ascontiguousarray(a[y : y + s, x : x + s]), gsd_x, (x, y))
-            frame = NavCameraFrame(
-                uuid.uuid4(), len(rows), 0, np.ascontiguousarray(b[y : y + s, x : x + s]), None, None, 0
-            )
-            rerank = RerankResult(frame.frame_id, [RerankCandidate(chip.tile_id, chip, -1, 0.0)], 0)
-            try:
-                best = matcher.match(frame, rerank, calib).best
-            except InsufficientInliersError:
+            window_other = np.ascontiguousarray(b[y : y + s, x : x + s])
+            window_map = np.ascontiguousarray(a[y : y + s, x : x + s])
+            found = match_pair(matcher, window_other, window_map, 1, timer, origin_px=(x, y))
+            if found.homography is None:
                 continue
-            corr = np.asarray(best.inlier_correspondences, dtype=np.float64)
-            hom, _ = cv2.findHomography(corr[:, :2], corr[:, 2:4], 0)
-            if hom is None:
-                continue
-            centre = np.array([[[s / 2.0, s / 2.0]]])
-            moved = cv2.perspectiveTransform(centre, hom).reshape(2)
+            moved = cv2.perspectiveTransform(centre, found.homography).reshape(2)
             # OTHER px minus MAP px of the same feature; rows grow southwards.
             east_m, north_m = (s / 2.0 - moved[0]) * gsd_x, -(s / 2.0 - moved[1]) * gsd_y
             rows.append((east_m, north_m))
             if per_window:
                 print(
                     f"  window centre col {x + s // 2} row {y + s // 2}: east {east_m:+.1f} m, "
-                    f"north {north_m:+.1f} m, {best.inlier_count} inliers"
+                    f"north {north_m:+.1f} m, {found.inliers} inliers"
                 )
     return np.array(rows).reshape(-1, 2)
 

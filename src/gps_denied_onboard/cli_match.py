@@ -189,12 +189,19 @@ def rotate_keep_all(image: np.ndarray, angle_deg: float) -> tuple[np.ndarray, np
 
 
 def match_pair(
-    matcher: Any, image_a: np.ndarray, image_b: np.ndarray, rotations: int, timer: _StageTimer
+    matcher: Any,
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    rotations: int,
+    timer: _StageTimer,
+    origin_px: tuple[float, float] = (0.0, 0.0),
 ) -> PairMatch:
-    """Match A (tried at ``rotations`` evenly spaced angles) to B; the best by inlier count wins."""
+    """Match A (tried at ``rotations`` evenly spaced angles) to B; the best by inlier count wins.
+    ``origin_px``: where B was cut from a larger image (see ``ImageChip``): one matcher given several
+    chips must be told they differ, since it caches a chip's features by its id."""
     from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 
-    chip = ImageChip(image_b)
+    chip = ImageChip(image_b, origin_px=origin_px)
     best: tuple[int, float, np.ndarray, float] | None = None
     t_total = time.perf_counter()
     for k in range(rotations):
