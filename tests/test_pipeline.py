@@ -420,6 +420,22 @@ class _Link:
         self.texts.append(text)
 
 
+def _slow_matcher_pipeline(
+    n_frames: int, *, max_delay_s: float
+) -> tuple[NavigationPipeline, list[NavCameraFrame]]:
+    """A hovering pipeline whose fix path finds the true tile, and ``n_frames`` frames at 3 Hz ending at
+    T0, the first already tracked: a test then holds a fix back while it tracks the others."""
+    fakes = _TwoTiles((200, 40))
+    p = _pipeline(_OneTileVpr(dim=256), _Fdr(), _HoverVo(), max_delay_s=max_delay_s)
+    p._rerank = fakes  # type: ignore[assignment]
+    p._matcher = fakes  # type: ignore[assignment]
+    p._pose = _PosePerTile(tilt_off_rad=0.0)
+    t0 = T0 - n_frames * 333_333
+    frames = [_frame(k, t0 + k * 333_333) for k in range(n_frames)]
+    p.track(frames[0], InitialPrior(47.0, 8.0, 30.0, "test"))
+    return p, frames
+
+
 def test_a_fix_as_late_as_disk_on_a_cpu_is_fused_at_its_exposure_with_the_default_delay() -> None:
     """DISK + LightGlue on a 2-core CPU answers 7-17 s after the exposure (docs/benchmarks.md). With the
     default ``estimator.max_fix_delay_s`` such a fix is fused at its own frame's time, behind the frames
@@ -427,14 +443,7 @@ def test_a_fix_as_late_as_disk_on_a_cpu_is_fused_at_its_exposure_with_the_defaul
     from gps_denied_onboard.config import load_config
 
     default_delay_s = load_config(None, []).estimator.max_fix_delay_s
-    fakes = _TwoTiles((200, 40))
-    p = _pipeline(_OneTileVpr(dim=256), _Fdr(), _HoverVo(), max_delay_s=default_delay_s)
-    p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
-    p._pose = _PosePerTile(tilt_off_rad=0.0)
-    t0 = T0 - 60 * 333_333
-    frames = [_frame(k, t0 + k * 333_333) for k in range(60)]
-    p.track(frames[0], InitialPrior(47.0, 8.0, 30.0, "test"))
+    p, frames = _slow_matcher_pipeline(60, max_delay_s=default_delay_s)
     slow = p.attempt_fix(frames[0])
     for k in range(1, 52):  # 17 s of frames tracked while the matcher works
         p.track(frames[k], None)
@@ -456,14 +465,7 @@ def test_fixes_later_than_the_axis_can_fuse_are_dropped_and_the_operator_is_told
     from gps_denied_onboard.daemon.service import NavDaemon
     from gps_denied_onboard.pipeline import FIX_TOO_LATE_REASON
 
-    fakes = _TwoTiles((200, 40))
-    p = _pipeline(_OneTileVpr(dim=256), _Fdr(), _HoverVo())
-    p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
-    p._pose = _PosePerTile(tilt_off_rad=0.0)
-    t0 = T0 - 30 * 333_333
-    frames = [_frame(k, t0 + k * 333_333) for k in range(30)]
-    p.track(frames[0], InitialPrior(47.0, 8.0, 30.0, "test"))
+    p, frames = _slow_matcher_pipeline(30, max_delay_s=5.0)
     slow = [p.attempt_fix(frames[k]) for k in (0, 1)]
     for k in range(1, 25):  # 8 s of frames tracked while the matcher works
         p.track(frames[k], None)

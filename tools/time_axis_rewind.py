@@ -6,8 +6,7 @@ The real ``NavEstimator`` and ``TimeAxis`` (``components/c5_estimator``) are fed
 them per frame (VO, the autopilot's height, a no-fix note) for 70 s of a straight flight at 20 m/s,
 then one absolute fix exposed DELAY seconds before the newest input, for each DELAY. The fix is fused
 at its own time and everything after it again (``TimeAxis._fuse``): that is work done under the axis'
-lock, which the 10 Hz output waits for. Also printed: the cost of one ordinary (in-order) input and the
-entries the axis holds, which grow with ``estimator.max_fix_delay_s``.
+lock, which the 10 Hz output waits for.
 
 The acceleration source is a constant here (the daemon's reads the autopilot's IMU buffer, a mean over
 a few samples per call); the figures are the estimator's and the axis' own work. A one-off measurement
@@ -98,15 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     configure_logging("error", json=False)
 
-    axis, head = _flown_axis(args.frame_hz)
-    # The axis' own store (private): what this tool measures.
-    per_s = len(axis._entries) / 60.0
-    print(f"{args.frame_hz:g} Hz frames, 3 inputs each: {per_s:.1f} entries held per s of max_fix_delay_s")
-    in_order = [
-        _timed(lambda a=a, h=h: a.fuse_altitude(AGL_M, 600.0, 1.0, h + 10_000))
-        for a, h in (_flown_axis(args.frame_hz) for _ in range(5))
-    ]
-    print(f"one in-order input (60 s held): {statistics.median(in_order):.3f} ms p50")
+    print(f"{args.frame_hz:g} Hz frames")
     print(f"{'fix late by (s)':>16} {'inputs fused again':>19} {'rewind ms p50':>14} {'max':>8}")
     for delay_s in DELAYS_S:
         costs = []
@@ -114,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         for _ in range(args.repeats):
             axis, head = _flown_axis(args.frame_hz)
             t_fix = head - round(delay_s * 1e6)
-            replayed = sum(1 for e in axis._entries if e.time_usec > t_fix)
+            replayed = sum(1 for e in axis._entries if e.time_usec > t_fix)  # the axis' own store
             costs.append(_timed(lambda a=axis, tf=t_fix: a.fuse_fix(_fix(tf))))
             assert axis.stats().rewinds == 1, "the late fix was not fused at its own time"
         print(f"{delay_s:>16g} {replayed:>19d} {statistics.median(costs):>14.2f} {max(costs):>8.2f}")

@@ -418,9 +418,9 @@ class EstimatorConfig:
     #: Time axis: how far behind the newest input a late one (a slow absolute fix) may still be fused
     #: at its own exposure time; older ones are refused as too late, s. It must cover the fix path's
     #: latency on this computer, or every fix is dropped: DISK + LightGlue on a 2-core CPU answers 7-17 s
-    #: after the exposure (5 s dropped them all). A fix fused late is as right as one on time; the cost
-    #: is the rewind, 0.2-0.3 ms per input fused again (9 inputs a second at 3 Hz), under the lock the
-    #: 10 Hz output waits for (docs/benchmarks.md, "Late fixes").
+    #: after the exposure (with 5 s, a DISK flight fused none of them). A fix fused late is as right as
+    #: one on time; the cost is the rewind, 0.2-0.3 ms per input fused again (9 inputs a second at 3 Hz),
+    #: under the lock the 10 Hz output waits for (docs/benchmarks.md, "Late fixes").
     max_fix_delay_s: Annotated[float, Strict(), Field(gt=0, le=60)] = 20.0
     #: Provenance: an accepted fix keeps the output ``satellite_anchored`` until its exposure is this
     #: old, while no later fix attempt has failed (a failed one ends it at once), s. It must cover the
