@@ -255,6 +255,18 @@ def _run_segments(seqs: Sequence[int], labels: Sequence[str], label: str) -> lis
     return runs
 
 
+def refused_fixes_line(analysis: Mapping[str, Any]) -> str | None:
+    """``analysis["refused_fix_errors"]`` in one line for the summaries, or None when no solved fix was
+    refused."""
+    refused = analysis.get("refused_fix_errors") or {}
+    if not refused:
+        return None
+    return "solved and refused, vs truth: " + "; ".join(
+        f"{reason} {r['n']} ({r['beyond_3sigma']} beyond 3 sigma, p50 {r['p50_error_m']} m)"
+        for reason, r in refused.items()
+    )
+
+
 def analyse(
     report: dict[str, Any],
     fdr_records: Sequence[dict[str, Any]],
@@ -272,6 +284,11 @@ def analyse(
     - ``accepted_fix_offset_m``: the accepted fixes' mean error, fix minus truth, north and east (m), with
       its length: what they share (a map's georeference against the frames', a camera tilt), which
       averaging more fixes does not remove; None without accepted fixes;
+    - ``refused_fix_errors``: the fixes that were solved and then refused (integrity, consistency, the
+      estimator's gate), by reason, scored the same way: how many were beyond 3 of their sigmas, and so
+      whether a refusal threw away a right fix or kept out a wrong one;
+    - ``fix_attempts``: every attempt in frame order: accepted or the reason not, its inlier count, and for
+      a solved fix its error (m), stated sigma (m) and error in sigmas;
     - ``vio_segments``: each VIO-only stretch with the distance flown, the error growth and the drift as
       a percentage of that distance, and how many fixes it took afterwards to get back under the
       nominal p95 error (measured on the anchored frames before the first stretch that follows one).
@@ -281,14 +298,30 @@ def analyse(
     rows = {r["seq"]: r for r in report["per_frame"]}
     fix_errors_sigma = []
     fix_offsets_ne_m = []
+    attempts = []
+    refused_errors: dict[str, list[tuple[float, float]]] = {}
     for r in fixes:
-        if r.get("fix_accepted") and r.get("fix_lat_deg") is not None and r.get("fix_sigma_m"):
-            lat_t, lon_t = truth_at_unix(r["exposure_time_unix_usec"] / 1e6)
-            err = float(haversine_m(lat_t, lon_t, r["fix_lat_deg"], r["fix_lon_deg"]))
-            fix_errors_sigma.append(err / float(r["fix_sigma_m"]))
+        row: dict[str, Any] = {
+            "seq": r["frame_seq"],
+            "accepted": bool(r.get("fix_accepted")),
+            "reason": r.get("no_fix_reason"),
+            "inliers": r.get("inliers"),
+        }
+        attempts.append(row)
+        if r.get("fix_lat_deg") is None or not r.get("fix_sigma_m"):
+            continue  # no pose was solved: nothing to score
+        lat_t, lon_t = truth_at_unix(r["exposure_time_unix_usec"] / 1e6)
+        err = float(haversine_m(lat_t, lon_t, r["fix_lat_deg"], r["fix_lon_deg"]))
+        sigma = float(r["fix_sigma_m"])
+        row.update(error_m=round(err, 2), sigma_m=round(sigma, 2), error_sigma=round(err / sigma, 3))
+        if row["accepted"]:
+            fix_errors_sigma.append(err / sigma)
             fix_offsets_ne_m.append(
                 LocalTangentPlane(lat_t, lon_t).to_ned(r["fix_lat_deg"], r["fix_lon_deg"], 0.0)
             )
+        else:
+            reason = str(r.get("no_fix_reason"))
+            refused_errors.setdefault(reason, []).append((err, err / sigma))
     offset = None
     if fix_offsets_ne_m:
         north_m, east_m = (float(v) for v in np.mean(fix_offsets_ne_m, axis=0)[:2])
@@ -378,6 +411,16 @@ def analyse(
         "accepted_fixes_beyond_3sigma": sum(e > 3.0 for e in fix_errors_sigma),
         "max_accepted_fix_error_sigma": max(fix_errors_sigma) if fix_errors_sigma else None,
         "accepted_fix_offset_m": offset,
+        "refused_fix_errors": {
+            reason: {
+                "n": len(errs),
+                "beyond_3sigma": sum(e_sigma > 3.0 for _, e_sigma in errs),
+                "max_error_sigma": round(max(e_sigma for _, e_sigma in errs), 3),
+                "p50_error_m": round(float(np.median([e for e, _ in errs])), 2),
+            }
+            for reason, errs in sorted(refused_errors.items())
+        },
+        "fix_attempts": attempts,
         "no_fix_reasons": dict(sorted(reasons.items())),
         "integrity_refused": dict(sorted(integrity.items())),
         "transitions": transitions,

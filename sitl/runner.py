@@ -45,7 +45,7 @@ from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.host_faults import HostFaultError, HostFaults
 from gps_denied_onboard.sitl.photometric import PhotometricModel, degrade_for_gap
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
-from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, score
+from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, refused_fixes_line, score
 from gps_denied_onboard.sitl.scenario import (
     Fault,
     FaultKind,
@@ -763,6 +763,7 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
         f"p99 {f(iv.get('p99_ms'), 'ms')} max {f(iv.get('max_ms'), 'ms')}; ArduPilot health tripped: "
         f"{stream['health']['tripped']}, failsafe: {stream.get('ekf_failsafe_land_s')}",
         fixes,
+        *([f"              {refused}"] if (refused := refused_fixes_line(analysis)) else []),
         f"provenance    {report['provenance_counts']}",
         f"daemon exit   code {report['daemon_exit_code']} after SIGTERM in {f(report['daemon_stop_s'], 's')}",
     ]

@@ -391,3 +391,38 @@ def test_sitl_analysis_reports_the_accepted_fixes_shared_offset() -> None:
     offset = analyse({"per_frame": []}, records, truth)["accepted_fix_offset_m"]
     assert offset == pytest.approx({"north": 1.0, "east": 3.0, "length": 10**0.5}, abs=0.01)
     assert analyse({"per_frame": []}, records[2:], truth)["accepted_fix_offset_m"] is None
+
+
+def test_sitl_analysis_scores_refused_fixes_against_the_truth() -> None:
+    """A refusal is scored like an acceptance: a fix refused 40 m off with sigma 5 was wrong (8 sigma), one
+    refused 4 m off was right; an attempt with no solved pose is listed without an error."""
+    from gps_denied_onboard.constants import FdrKind
+    from gps_denied_onboard.geo import LocalTangentPlane
+    from gps_denied_onboard.sitl.report import analyse
+
+    def truth(t_s: float) -> tuple[float, float]:
+        return 47.0, 8.0 + 1e-4 * t_s
+
+    def fix(seq: int, north_m: float | None, reason: str | None, inliers: int) -> dict:
+        rec = {"kind": FdrKind.FIX, "frame_seq": seq, "exposure_time_unix_usec": seq * 10**6,
+               "fix_accepted": reason is None, "no_fix_reason": reason, "inliers": inliers}
+        if north_m is not None:
+            lat, lon, _ = LocalTangentPlane(*truth(float(seq))).to_geodetic(np.array([north_m, 0.0, 0.0]))
+            rec.update(fix_lat_deg=float(lat), fix_lon_deg=float(lon), fix_sigma_m=5.0)
+        return rec
+
+    records = [fix(1, 2.0, None, 80), fix(2, 40.0, "integrity:low_inlier_ratio", 22),
+               fix(3, 4.0, "integrity:low_inlier_ratio", 21), fix(4, None, "insufficient_inliers", 9)]
+    a = analyse({"per_frame": []}, records, truth)
+    refused = a["refused_fix_errors"]["integrity:low_inlier_ratio"]
+    assert list(a["refused_fix_errors"]) == ["integrity:low_inlier_ratio"]
+    assert (refused["n"], refused["beyond_3sigma"]) == (2, 1)
+    assert refused["max_error_sigma"] == pytest.approx(8.0, abs=0.01)
+    assert refused["p50_error_m"] == pytest.approx(22.0, abs=0.01)
+    rows = a["fix_attempts"]
+    assert [(r["seq"], r["accepted"], r["inliers"]) for r in rows] == [(1, True, 80), (2, False, 22),
+                                                                      (3, False, 21), (4, False, 9)]
+    assert rows[0]["error_m"] == pytest.approx(2.0, abs=0.01)
+    assert rows[0]["error_sigma"] == pytest.approx(0.4, abs=0.01)
+    assert rows[3]["reason"] == "insufficient_inliers" and "error_m" not in rows[3]
+    assert a["accepted_fixes"] == 1 and a["accepted_fixes_beyond_3sigma"] == 0

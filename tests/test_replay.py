@@ -104,6 +104,12 @@ def test_replay_sitl_fdr_reproduces_every_frame_exactly(
     m = report["metrics"]
     assert m["availability"] >= 0.9 and m["consistency"]["beyond_3sigma"] == 0, m
     assert m["analysis"]["accepted_fixes_beyond_3sigma"] == 0
+    # Every attempt is listed, and every accepted one is scored within its own 3 sigma.
+    attempts = m["analysis"]["fix_attempts"]
+    assert len(attempts) == m["analysis"]["fdr_fix_attempts"] == report["fix"]["attempts"]
+    accepted = [a for a in attempts if a["accepted"]]
+    assert len(accepted) == report["fix"]["accepted"] >= 1
+    assert all(a["error_sigma"] <= 3.0 and a["inliers"] >= 1 for a in accepted), accepted
     assert "reproduction:" in out and "vs truth:" in out
 
 

@@ -497,6 +497,11 @@ def summary_lines(report: Mapping[str, Any]) -> list[str]:
             f"{fmt(h['p95'])} m (fix_type 3, n={h['n']}), beyond 3 sigma {c['beyond_3sigma']}, "
             f"accepted fixes beyond 3 sigma {m['analysis']['accepted_fixes_beyond_3sigma']}"
         )
+        from gps_denied_onboard.sitl.report import refused_fixes_line
+
+        refused = refused_fixes_line(m["analysis"])
+        if refused is not None:
+            lines.append(refused)
         lines.append(
             f"error at every frame (any fix type): p50 {fmt(m['error_any_fix_type_m']['p50'])} m, "
             f"max {fmt(m['error_any_fix_type_m']['max'])} m"
