@@ -25,13 +25,15 @@ import dataclasses
 import math
 import os
 import platform
+import sys
 import time
 import uuid
 from collections import Counter
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, TypeVar
 
 import numpy as np
+from tqdm import tqdm
 
 from gps_denied_onboard.camera.types import NavCameraFrame
 from gps_denied_onboard.components.c5_estimator.journal import (
@@ -47,6 +49,8 @@ from gps_denied_onboard.constants import FdrKind, Provenance
 from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.pipeline import FixAttempt
 from gps_denied_onboard.replay.inputs import ReplayFrame, ReplayInput
+
+_T = TypeVar("_T")
 
 
 class ListRecorder:
@@ -93,6 +97,12 @@ def _same(a: Any, b: Any) -> bool:
 
 #: Per-frame fields an exact replay must reproduce bit for bit.
 COMPARED_FIELDS = ("provenance", "lat_deg", "lon_deg", "horiz_sigma_m", "vo_ok", "vo_reason")
+
+
+def _progress(items: Sequence[_T], unit: str) -> Iterable[_T]:
+    """``items`` with a progress bar on stderr when it is a terminal (a learned matcher on a CPU replays a
+    frame in seconds); nothing is printed otherwise, so logs and captured output stay clean."""
+    return tqdm(items, desc="replay", unit=unit, disable=None, file=sys.stderr, leave=False)
 
 
 def run_replay(
@@ -162,7 +172,7 @@ def run_replay(
         loaded: dict[int, NavCameraFrame] = {}
         pending: dict[int, FixAttempt] = {}
         try:
-            for i, unit in enumerate(inp.journal):
+            for i, unit in enumerate(_progress(inp.journal, "unit")):
                 kind, t = str(unit.get("unit")), int(unit["time_unix_usec"])
                 if t not in loaded:
                     f = by_time.get(t)
@@ -195,7 +205,7 @@ def run_replay(
         except ReplayDivergence as exc:
             divergence = str(exc)
     else:
-        for f in inp.frames:
+        for f in _progress(inp.frames, "frame"):
             clock.now_usec = f.exposure_time_unix_usec
             admission = axis.admit_frame(f.exposure_time_unix_usec)
             if not admission.admitted:
