@@ -284,9 +284,10 @@ def analyse(
     - ``accepted_fix_offset_m``: the accepted fixes' mean error, fix minus truth, north and east (m), with
       its length: what they share (a map's georeference against the frames', a camera tilt), which
       averaging more fixes does not remove; None without accepted fixes;
-    - ``refused_fix_errors``: the fixes that were solved and then refused (integrity, consistency, the
-      estimator's gate), by reason, scored the same way: how many were beyond 3 of their sigmas, and so
-      whether a refusal threw away a right fix or kept out a wrong one;
+    - ``refused_fix_errors``: the fixes that were solved and then refused (attitude check, integrity,
+      consistency, the estimator's gate), by reason, scored the same way against the sigma they would
+      have carried: how many were beyond 3 of them, and so whether a refusal threw away a right fix or
+      kept out a wrong one;
     - ``fix_attempts``: every attempt in frame order: accepted or the reason not, its inlier count, and for
       a solved fix its error (m), stated sigma (m) and error in sigmas;
     - ``vio_segments``: each VIO-only stretch with the distance flown, the error growth and the drift as
