@@ -13,8 +13,8 @@ For every model file of ``gdnav models export`` in ``--model-dir``:
 Each is run once per provider to warm up (CUDA: three times, for its kernel selection), then
 ``--repeats`` times; the best wall time of ``session.run`` is printed, outputs copied to the host
 included, as the daemon sees it. A provider ONNX Runtime does not offer here, or that refuses the
-model, is printed as such, never replaced by another: the ``providers`` line says which one ran. The
-last column is each provider's time over the first's, measured in the same run.
+model, is printed as such in its cell, never replaced by another. The last columns are each provider's
+time over the first's, measured in the same run.
 
 Only ``onnxruntime``, ``numpy`` and OpenCV are imported, so the script runs on a machine that has
 ``onnxruntime-gpu`` and not the project's environment. A one-off measurement tool for
@@ -115,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     manifest = json.loads((args.model_dir / "manifest.json").read_text())
     files = sorted(m["file"] for m in manifest["models"])
 
-    rows: list[tuple[str, str, dict[str, float | str]]] = []
+    # (model, input) -> provider -> best ms, or why that provider did not run it.
+    cells_of: dict[tuple[str, str], dict[str, float | str]] = {}
     for name in files:
         matcher = name.endswith("glue.onnx")
         cases = [f"{n} kpts" for n in counts] if matcher else ["image"]
@@ -123,18 +124,16 @@ def main(argv: list[str] | None = None) -> int:
             session = _session(args.model_dir / name, provider, args.threads)
             warmup = 1 if provider == "CPUExecutionProvider" else 3
             for case in cases:
+                cell = cells_of.setdefault((name, case), {})
                 if isinstance(session, str):
-                    rows.append((name, case, {provider: session}))
+                    cell[provider] = session
                     continue
                 if matcher:
                     feeds = _keypoint_feeds(session, int(case.split()[0]))
                 else:
                     feeds = _image_feed(session, image)
-                rows.append((name, case, {provider: _best_ms(session, feeds, warmup, args.repeats)}))
+                cell[provider] = _best_ms(session, feeds, warmup, args.repeats)
 
-    merged: dict[tuple[str, str], dict[str, float | str]] = {}
-    for name, case, cell in rows:
-        merged.setdefault((name, case), {}).update(cell)
     print(f"onnxruntime {ort.__version__}; available: {ort.get_available_providers()}")
     print(f"ms, best of {args.repeats}; image {args.image.name}; CPU threads {args.threads}")
     short = {p: p.removesuffix("ExecutionProvider") for p in providers}
@@ -142,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     header += [f"{short[p]} / {short[providers[0]]}" for p in providers[1:]]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
-    for (name, case), cells in merged.items():
+    for (name, case), cells in cells_of.items():
         out = [name, case]
         for p in providers:
             value = cells.get(p, "—")
