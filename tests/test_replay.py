@@ -179,6 +179,41 @@ def test_replay_sitl_fdr_with_missing_images_says_how_far_it_is_exact(
 
 
 @pytest.mark.sitl
+def test_replay_whose_first_frames_lost_their_images_starts_from_the_runs_estimate_there(
+    sitl_flight: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The images budget deleted the first half of the run's images: the replay starts at the first frame
+    with one, from the run's own estimate there (not the start prior, given where the vehicle no longer
+    is), and everything it sends with fix_type 3 stays within its stated accuracy against the truth."""
+    from gps_denied_onboard.components.c13_fdr.recorder import list_images
+
+    copy = sitl_flight / "fdr_no_first_half"
+    shutil.copytree(sitl_flight / "work" / "fdr", copy, dirs_exist_ok=True)
+    images = list_images(copy)
+    for image in images[: len(images) // 2]:
+        image.unlink()
+    out = sitl_flight / "no_first_half.json"
+    code, _, err = _replay(
+        ["--fdr", str(copy), "--truth", str(sitl_flight / "out" / "report.json"), "--report", str(out)],
+        capsys,
+    )
+    assert code == 0, err
+    report = json.loads(out.read_text())
+    first = report["per_frame"][0]
+    recorded = next(
+        r for r in _records(copy) if r.get("kind") == "pipeline.frame" and r["frame_seq"] == first["seq"]
+    )
+    assert report["prior"]["source"] == "fdr_estimate"
+    assert (report["prior"]["lat_deg"], report["prior"]["sigma_m"]) == (
+        recorded["lat_deg"],
+        recorded["horiz_sigma_m"],
+    )
+    assert any(f"starts at frame {first['seq']}" in n for n in report["notes"]), report["notes"]
+    m = report["metrics"]
+    assert m["consistency"]["beyond_3sigma"] == 0 and m["availability"] >= 0.9, m["consistency"]
+
+
+@pytest.mark.sitl
 def test_replay_sitl_fdr_refuses_a_missing_cache_and_a_bad_override(
     sitl_flight: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -231,6 +231,29 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
             str(prior_rec.get("source", "fdr")),
             str(prior_rec.get("why", "")),
         )
+    t_first = frames[0].exposure_time_unix_usec
+    first = next(r for r in frames_rec if int(r["exposure_time_unix_usec"]) == t_first)
+    if first is not frames_rec[0]:
+        # The run's prior was given at its first frame; by the first frame with an image the vehicle has
+        # moved on (measured: 490 m after 63 frames, the replay then held a 30 m sigma 490 m off and
+        # refused every right fix against it). Start from what the run itself estimated there instead.
+        if first.get("lat_deg") is None or first.get("horiz_sigma_m") is None:
+            raise ReplayInputError(
+                f"{path}: run {run}'s first {frames_rec.index(first)} tracked frames have no image and the "
+                f"run had no estimate at the first that has one (frame {first['frame_seq']}): there is no "
+                "start prior to replay from"
+            )
+        prior = InitialPrior(
+            float(first["lat_deg"]),
+            float(first["lon_deg"]),
+            float(first["horiz_sigma_m"]),
+            "fdr_estimate",
+            f"the run's estimate at frame {first['frame_seq']}, the first with an image",
+        )
+        notes.append(
+            f"the replay starts at frame {first['frame_seq']} from the run's estimate there "
+            f"(sigma {float(first['horiz_sigma_m']):.1f} m), not from the run's start prior"
+        )
     return ReplayInput(
         source=f"fdr:{path}#run{run}",
         frames=frames,
