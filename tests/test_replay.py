@@ -82,6 +82,7 @@ def test_replay_sitl_fdr_reproduces_every_frame_exactly(
     units = [r for r in recs if r["kind"] == "estimator.input"]
     assert any(u["accel"] for u in units), "the recording must exercise the IMU-driven prediction"
     report_path = sitl_flight / "replay.json"
+    records_path = sitl_flight / "replay_records.jsonl"
     code, out, err = _replay(
         [
             "--fdr",
@@ -90,10 +91,19 @@ def test_replay_sitl_fdr_reproduces_every_frame_exactly(
             str(sitl_flight / "out" / "report.json"),
             "--report",
             str(report_path),
+            "--records",
+            str(records_path),
         ],
         capsys,
     )
     assert code == 0, err
+    # The replay's own records (--records): its fix attempts are the flight's, verdict for verdict.
+    replayed = [json.loads(line) for line in records_path.read_text().splitlines()]
+    flown = {r["exposure_time_unix_usec"]: r for r in recs if r["kind"] == "pipeline.fix"}
+    again = {r["exposure_time_unix_usec"]: r for r in replayed if r["kind"] == "pipeline.fix"}
+    assert again.keys() == flown.keys() and flown
+    verdict = ("fix_accepted", "no_fix_reason")
+    assert all([again[t][k] for k in verdict] == [r[k] for k in verdict] for t, r in flown.items())
     report = json.loads(report_path.read_text())
     rep = report["reproduction"]
     assert report["mode"] == "exact" and report["divergence"] is None, report

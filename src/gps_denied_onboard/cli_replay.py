@@ -195,7 +195,12 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         _err(str(exc))
         return EXIT_CONFIG
     report = run_replay(
-        inp, config, with_map=with_map, vo_max_gap_s=args.vo_max_gap_s, force_sequential=args.sequential
+        inp,
+        config,
+        with_map=with_map,
+        vo_max_gap_s=args.vo_max_gap_s,
+        force_sequential=args.sequential,
+        records_out=args.records,
     )
     args.report.parent.mkdir(parents=True, exist_ok=True)
     args.report.write_text(json.dumps(report, indent=2, allow_nan=True))
@@ -257,4 +262,12 @@ def register(sub: Any) -> None:
         help="pipeline logs on stderr (default: none; the report holds the outcome)",
     )
     p.add_argument("--report", type=Path, default=Path("out/replay/report.json"), help="report JSON path")
+    p.add_argument(
+        "--records",
+        type=Path,
+        default=None,
+        metavar="OUT.jsonl",
+        help="also write the replay's own FDR records (one JSON object a line, as a flight's FDR segment; "
+        "`gdnav fdr` tools read it)",
+    )
     p.set_defaults(func=_cmd_replay)

@@ -22,6 +22,7 @@ for each frame stands for the GPS_INPUT the autopilot would have received when t
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import platform
@@ -30,6 +31,7 @@ import time
 import uuid
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -112,8 +114,11 @@ def run_replay(
     with_map: bool,
     vo_max_gap_s: float | None = None,
     force_sequential: bool = False,
+    records_out: Path | None = None,
 ) -> dict[str, Any]:
     """Replay ``inp`` through the pipeline built from ``config``; returns the report (plain JSON types).
+    ``records_out``: also write the replay's own FDR records there, one JSON object a line as in a
+    flight's FDR segment, so that the ``gdnav fdr`` tools read a replay as they read a flight.
     Raises ``StartupError`` (cache, model, calibration refused) from the composition root."""
     from gps_denied_onboard.runtime_root.compose import compose_replay
 
@@ -219,6 +224,11 @@ def run_replay(
             if axis.is_initialised:
                 pipeline.localise(frame)
 
+    if records_out is not None:
+        records_out.parent.mkdir(parents=True, exist_ok=True)
+        with records_out.open("w", encoding="utf-8") as out:
+            for record in fdr.records:
+                out.write(json.dumps(record, allow_nan=True) + "\n")
     report = _report(inp, root.config, fdr, with_map=with_map, exact=exact, calib=calib)
     report.update(
         {
@@ -246,7 +256,6 @@ def _cache_matches_recording(inp: ReplayInput, config: Config) -> str | None:
     if inp.recorded_cache_manifest_sha256 is None:
         return None
     import hashlib
-    from pathlib import Path
 
     from gps_denied_onboard.components.c10_cache_build.manifest import MANIFEST_NAME
 
