@@ -107,17 +107,53 @@ def test_where_the_image_is_sharp_a_three_degree_offset_gets_no_fix_through() ->
         assert refused[72:] == [None] * 18, seed
 
 
-def test_across_dates_only_a_tilt_far_beyond_the_images_own_error_is_seen() -> None:
-    """Across dates a window is under one footprint of ground: 3 deg is not called off (the image cannot
-    tell it from its own error there; module docstring), 10 deg is, within a window."""
+def test_across_dates_the_fixes_prove_a_tilt_only_over_footprints_of_ground() -> None:
+    """Across dates the image's tilt error is shared over a footprint of ground, so a window must span
+    more than one before it proves anything (module docstring): 3 deg held for 90 fixes (4.7 km) is never
+    called off; 10 deg is not while its fixes cover under a footprint (32 fixes here), and is before the
+    90 are flown."""
     for seed in range(10):
-        three = _fly(AttitudeCheck(PoseConfig()), _step(seed, CROSS_DATE, (-3.0, 0.0)), CROSS_DATE)
-        assert not any(v.off for v in three), seed
-        ten = [
-            v.off
-            for v in _fly(AttitudeCheck(PoseConfig()), _step(seed, CROSS_DATE, (-10.0, 0.0)), CROSS_DATE)
+        rng = np.random.default_rng(seed)
+        usual = _offsets(rng, 30, CROSS_DATE)
+        three = np.vstack([usual, _offsets(rng, 90, CROSS_DATE, (-3.0, 0.0))])
+        assert not any(v.off for v in _fly(AttitudeCheck(PoseConfig()), three, CROSS_DATE)), seed
+        ten = np.vstack([usual, _offsets(rng, 90, CROSS_DATE, (-10.0, 0.0))])
+        off = [v.off for v in _fly(AttitudeCheck(PoseConfig()), ten, CROSS_DATE)]
+        first = off.index(True) if True in off else None
+        assert first is not None and 30 + 32 < first < 120, (seed, first)
+
+
+def _ground_tilt_error(rng: np.random.Generator, n: int, scatter_deg: float, corr_fixes: float) -> np.ndarray:
+    """A tilt error that the ground shares between consecutive fixes: an AR(1) run along the track with
+    ``scatter_deg`` per axis and a correlation length of ``corr_fixes`` fixes."""
+    rho = math.exp(-1.0 / corr_fixes)
+    g = np.empty((n, 2))
+    g[0] = rng.normal(0.0, scatter_deg, 2)
+    for i in range(1, n):
+        g[i] = rho * g[i - 1] + math.sqrt(1.0 - rho * rho) * rng.normal(0.0, scatter_deg, 2)
+    return g
+
+
+@pytest.mark.parametrize("sigma_deg", [0.15, 0.5])
+def test_across_dates_at_the_camera_rate_the_grounds_own_tilt_is_not_called_off(sigma_deg: float) -> None:
+    """The fix path on every frame (a GPU; ``docs/benchmarks.md``, 2026-11-26): across dates at 1200 m AGL
+    the image-only tilts stray 1-4 deg together for tens of frames and scatter a few tenths of a degree
+    among them (measured over NAIP 2009/2014: 2.3 deg per axis over a flight, 0.3-3 deg within 8 frames).
+    A window of a few seconds then shows a tight mean well beyond the bound, and before this rule the
+    check proved the autopilot's attitude off on it, refused every fix and left the autopilot without a
+    position (three of five H100 flights). Drawn that way, 120 s at 3 Hz, 12 m/s, 20 seeds: never off."""
+    footprint_m, step_m, period_us = 1680.0, 4.0, 333_333
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        offs = (
+            np.array(AP_ERROR_DEG) + _ground_tilt_error(rng, 360, 2.3, 40.0) + rng.normal(0.0, 0.25, (360, 2))
+        )
+        check = AttitudeCheck(PoseConfig(attitude_sigma_deg=sigma_deg))
+        off = [
+            check.note(_fix(T0 + i * period_us, (float(x), float(y)), i * step_m), footprint_m).off
+            for i, (x, y) in enumerate(offs)
         ]
-        assert not any(ten[:30]) and 30 < ten.index(True) < 42, (seed, ten.index(True))
+        assert not any(off), (seed, off.index(True))
 
 
 def test_one_odd_fix_is_held_back_and_the_next_good_one_is_not() -> None:

@@ -310,9 +310,11 @@ class PoseConfig:
     max_independent_matches: Annotated[int, Strict(), Field(ge=6)] = 10
     #: The attitude check (``c4_pose/attitude_check.py``): the image-only tilts of up to this many recent
     #: solved fixes (windows of 4, 8, ... and all of them) say whether the autopilot's is off by more than
-    #: 3 x ``attitude_sigma_deg``; while it is, every fix is refused. A longer window sees a smaller bias
-    #: when its fixes cover more ground, later.
-    attitude_check_fixes: Annotated[int, Strict(), Field(ge=4)] = 12
+    #: 3 x ``attitude_sigma_deg``; while it is, every fix is refused. Unless its fixes pin the tilt better
+    #: than that sigma, a window proves nothing over less ground than two footprints (the image's tilt
+    #: error across dates is shared over one). 400 holds ``attitude_check_max_age_s`` at a camera rate of
+    #: 3 Hz, the fix path on every frame (a GPU).
+    attitude_check_fixes: Annotated[int, Strict(), Field(ge=4)] = 400
     #: Fixes older than this, s, leave the attitude check's window.
     attitude_check_max_age_s: PosFloat = 120.0
     #: The same check on VO's ground tilt (``c1_vio/ground_tilt.py``: the camera's tilt to the ground

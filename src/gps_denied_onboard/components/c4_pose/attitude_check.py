@@ -16,17 +16,30 @@ solver's formal covariance (across dates that is several times too small). Conse
 mostly the same ground, and across dates the image's tilt error comes from that ground: measured over
 NAIP 2009/2014 at 1200 m AGL, ten fixes in a row (15 s, 600 m) shared a 5 deg tilt error. A window's
 fixes therefore count as ``1 + ground track / footprint`` independent ones (the footprint: the camera's
-horizontal field of view at the fix's height), never more than there are:
+horizontal field of view at the fix's height), never more than there are. Unless its fixes pin the
+tilt better than ``pose.attitude_sigma_deg`` (the image is then the better tilt sensor, as same-source
+imagery is, a few hundredths of a degree from frame to frame; the jump test's criterion below), a
+window needs two of them (``MIN_INDEPENDENT``), and its margin their degrees of freedom, before it can
+prove anything. Within less ground the fixes' scatter is the image's noise over one stretch of it,
+which says nothing of how far their mean strays: with the fix path on
+every frame (an H100, ``docs/benchmarks.md``, 2026-11-26) the image-only tilts across dates at 1200 m
+AGL strayed 1-4 deg together for tens of frames while scattering a few tenths among them, and windows
+of a few seconds "proved" the attitude off in three of five flights, refused every fix and left the
+autopilot without a position for 11 and 18 s, and in one for the rest of the flight.
 
 - **Off**: over the newest 4, 8, ... fixes and over all that are kept, the mean is the bias; the
-  attitude is off when, in any of them, the bias less its one-sided 99 % Student-t margin is beyond
-  three times ``pose.attitude_sigma_deg`` (the prior claims one sigma; a bias proven beyond three makes
-  its fixes lies). Once off it stays off until no window's mean is beyond the bound. While off every
-  fix is refused (``attitude_off``).
+  attitude is off when, in any of them, the bias less its one-sided 99 % Student-t margin (on the
+  independent fixes, with one fewer degrees of freedom) is beyond three times
+  ``pose.attitude_sigma_deg`` (the prior claims one sigma; a bias proven beyond three makes its fixes
+  lies). Once off it stays off until the newest evidence no longer shows a bias beyond the bound: the
+  newest window that spans enough ground, and the run of departed fixes below (a window of older fixes
+  would hold it long after the attitude is back). While off every fix is refused (``attitude_off``).
 - **Jump**: where the fixes before pin the tilt better than ``pose.attitude_sigma_deg`` (their 99 %
   prediction interval is narrower: the image is the better tilt sensor there), a fix whose tilt lies
   outside that interval and beyond the bound is held back (``attitude_jump``) until the next ones say
-  whether it was one bad fix or a new attitude (4 of them then prove it off). This refuses the fixes
+  whether it was one bad fix or a new attitude: the fixes that left the interval in a row are windows
+  of their own (4, 8, ... of them; each against the same ground as the fixes before, so their scatter is
+  their own) and 4 of them prove it off, and keep it off while they stay out. This refuses the fixes
   between the attitude going wrong and the off test seeing it. A fix outside the interval but under
   the bound (a frame exposed across the step, with part of it) goes through, and is kept out of the
   interval the next fixes are judged by, as the held ones are. Across dates the interval is the
@@ -44,10 +57,9 @@ rotates (3 deg leaks 0.5 m/s^2 of gravity into the horizontal).
 
 What it can see: where the image is sharp (same-source imagery, a few hundred metres up) the scatter
 is a few hundredths of a degree and 4 fixes prove a bias of a degree or two, the fixes before held back
-as jumps. Across dates from 1200 m AGL a window is one footprint of ground and the scatter a degree or
-two: only a bias far beyond the image's own error there is seen (about 10 deg); a smaller one the image
-cannot tell from its own error, and the autopilot's attitude must be as good as
-``pose.attitude_sigma_deg`` says.
+as jumps. Across dates from 1200 m AGL a footprint is 1.7 km, more ground than the 120 s window covers
+at 12 m/s: there the fixes prove no bias at all (the unit tests find 10 deg once it spans more), the
+image cannot tell the autopilot's error from its own, and VO's ground tilt (below) is what can.
 
 What it cannot see in time from the fixes alone: their evidence is as quick as the matcher. Measured
 with ALIKED and DISK on a 2-core CPU (a fix every 7-12 s, each landing 7-12 s after its exposure; 3 deg
@@ -69,8 +81,10 @@ clears by itself when the attitude comes back.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
@@ -84,6 +98,10 @@ from gps_denied_onboard.config import PoseConfig
 MIN_FIXES: Final[int] = 4
 #: One-sided confidence of the lower bound on the bias.
 CONFIDENCE: Final[float] = 0.99
+#: Independent fixes a window of ground-correlated tilts needs before it can prove anything: with fewer,
+#: the scatter of its fixes is the image's noise over one stretch of ground, not how far its mean can
+#: stray (module docstring).
+MIN_INDEPENDENT: Final[float] = 2.0
 
 
 @dataclass(frozen=True)
@@ -193,30 +211,48 @@ class AttitudeCheck:
             self._recent.popleft()
         seen = list(self._recent)
         offs = np.array([s.off_deg for s in seen])
-        windows = [_Window.of(seen[-n:], self._ground_correlated) for n in _window_sizes(len(seen))]
-        if not windows:  # fewer than MIN_FIXES: nothing is proven either way
-            self._off, self._held = False, 0
+        independent = _independent(seen) if self._ground_correlated else None
+        windows = [
+            w
+            for n in _window_sizes(len(seen))
+            if (w := _Window.of(offs[-n:], self._sigma_deg, None if independent is None else independent(n)))
+            is not None
+        ]
+        # The fixes that left the interval the ones before them pin, in a row: a step of the autopilot's
+        # tilt where the image is the sharper sensor, their own evidence (each against the same ground).
+        departed = self._departs(offs)
+        self._held = self._held + 1 if departed else 0
+        run = [
+            w
+            for n in _window_sizes(self._held)
+            if (w := _Window.of(offs[-n:], self._sigma_deg, None)) is not None
+        ]
+        proofs = windows + run
+        if self._off:
+            # Off until the newest evidence no longer shows the bias beyond the bound, not just unproven:
+            # every window where tilts are each their own; else the newest that spans a footprint of
+            # ground, and the run (a window of old fixes would hold it long after the attitude is back).
+            holding = (windows if not self._ground_correlated else windows[:1]) + run
+            self._off = any(w.bias_norm_deg > self._allowed_deg for w in holding)
+        else:
+            self._off = any(w.lower_deg > self._allowed_deg for w in proofs)
+        jump = departed and not self._off and float(np.hypot(*offs[-1])) > self._allowed_deg
+        suspect = float(np.hypot(*offs[-1])) if jump else None
+        if not proofs:  # too few fixes, or too little ground: nothing is proven either way
             bias = offs.mean(axis=0)
-            norm = float(np.hypot(*bias))
             return AttitudeVerdict(
                 (float(bias[0]), float(bias[1])),
                 0.0,
-                norm,
+                float(np.hypot(*bias)),
                 self._allowed_deg,
                 len(offs),
-                False,
-                tilt_off_deg=seen[-1].off_deg,
-                since_unix_usec=t,
+                self._off,
+                jump,
+                suspect,
+                seen[-1].off_deg,
+                t,
             )
-        if self._off:  # off until no window's bias is beyond the bound, not just unproven
-            self._off = any(w.bias_norm_deg > self._allowed_deg for w in windows)
-        else:
-            self._off = any(w.lower_deg > self._allowed_deg for w in windows)
-        departed = not self._off and self._departs(offs)
-        jump = departed and float(np.hypot(*offs[-1])) > self._allowed_deg
-        self._held = self._held + 1 if departed else 0
-        worst = max(windows, key=lambda w: w.lower_deg)
-        suspect = worst.upper_deg if self._off else float(np.hypot(*offs[-1])) if jump else None
+        worst = max(proofs, key=lambda w: w.lower_deg)
         return AttitudeVerdict(
             (float(worst.bias_deg[0]), float(worst.bias_deg[1])),
             worst.lower_deg,
@@ -225,7 +261,7 @@ class AttitudeCheck:
             worst.fixes,
             self._off,
             jump,
-            suspect,
+            worst.upper_deg if self._off else suspect,
             seen[-1].off_deg,
             seen[0].t_usec if self._off else t,
         )
@@ -244,8 +280,7 @@ class AttitudeCheck:
         n = before.shape[0]
         if n < MIN_FIXES:
             return False
-        spread = math.sqrt(float(np.sum(before.var(axis=0, ddof=1))) * (1.0 + 1.0 / n))
-        margin = float(student_t.ppf(CONFIDENCE, n - 1)) * spread
+        margin = _prediction_margin_deg(before)
         if margin > self._sigma_deg:
             return False
         return float(np.hypot(*(newest - before.mean(axis=0)))) > margin
@@ -262,12 +297,19 @@ class _Seen:
     footprint_m: float
 
 
-def _independent(seen: list[_Seen]) -> float:
-    """How many independent fixes ``seen`` are worth: 1 + ground track / mean footprint, at most all."""
+def _independent(seen: list[_Seen]) -> Callable[[int], float]:
+    """How many independent fixes the newest ``n`` of ``seen`` are worth: 1 + their ground track / their
+    mean footprint, at most ``n``."""
     ne = np.array([s.ne_m for s in seen])
-    track_m = float(np.sum(np.hypot(*np.diff(ne, axis=0).T))) if len(seen) > 1 else 0.0
-    footprint_m = float(np.mean([s.footprint_m for s in seen]))
-    return min(float(len(seen)), 1.0 + track_m / footprint_m)
+    track_m = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ne, axis=0).T))])
+    footprint_m = np.concatenate([[0.0], np.cumsum([s.footprint_m for s in seen])])
+
+    def of_newest(n: int) -> float:
+        track = float(track_m[-1] - track_m[-n])
+        footprint = float(footprint_m[-1] - footprint_m[-n - 1]) / n
+        return min(float(n), 1.0 + track / footprint)
+
+    return of_newest
 
 
 @dataclass(frozen=True)
@@ -281,16 +323,45 @@ class _Window:
     upper_deg: float
 
     @classmethod
-    def of(cls, seen: list[_Seen], ground_correlated: bool = True) -> _Window:
-        offs_deg = np.array([s.off_deg for s in seen])
+    def of(cls, offs_deg: np.ndarray, sigma_deg: float, independent: float | None) -> _Window | None:
+        """The bias over ``offs_deg`` (deg, camera x and y). ``independent``: how many independent fixes
+        ground-correlated tilts are worth (None: each is its own); None where they pin the tilt no better
+        than ``sigma_deg`` (deg) and are worth fewer than ``MIN_INDEPENDENT`` (module docstring)."""
         n = offs_deg.shape[0]
         bias = offs_deg.mean(axis=0)
         norm = float(np.hypot(*bias))
-        # The scatter's own uncertainty: n - 1 dof; the mean's: over the independent fixes only.
-        independent = _independent(seen) if ground_correlated else float(n)
+        # The mean's error over the independent fixes only.
+        ground_correlated = independent is not None
+        independent = float(n) if independent is None else independent
+        dof = n - 1.0
+        if ground_correlated and _prediction_margin_deg(offs_deg) > sigma_deg:
+            # The image is not the better tilt sensor here: its error is the ground's, shared over a
+            # footprint, and only the independent stretches of ground say how far the mean strays.
+            if independent < MIN_INDEPENDENT:
+                return None
+            dof = independent - 1.0
         std_err = math.sqrt(float(np.sum(offs_deg.var(axis=0, ddof=1))) / independent)
-        margin = float(student_t.ppf(CONFIDENCE, n - 1)) * std_err
+        margin = _t_quantile(dof) * std_err
         return cls(n, bias, norm, max(0.0, norm - margin), norm + margin)
+
+
+def _prediction_margin_deg(offs_deg: np.ndarray) -> float:
+    """Half the one-sided ``CONFIDENCE`` prediction interval of one more tilt after ``offs_deg`` (deg,
+    two axes together): how well these tilts pin the next."""
+    n = offs_deg.shape[0]
+    spread = math.sqrt(float(np.sum(offs_deg.var(axis=0, ddof=1))) * (1.0 + 1.0 / n))
+    return _t_quantile(n - 1.0) * spread
+
+
+@functools.lru_cache(maxsize=4096)
+def _student_t(dof_hundredths: int) -> float:
+    return float(student_t.ppf(CONFIDENCE, dof_hundredths / 100.0))
+
+
+def _t_quantile(dof: float) -> float:
+    """Student's t at ``CONFIDENCE`` for ``dof`` degrees of freedom, taken down to a hundredth (fewer
+    degrees of freedom, a wider margin) so that the few values a flight needs are computed once."""
+    return _student_t(math.floor(dof * 100.0 + 1e-9))
 
 
 def _window_sizes(available: int) -> list[int]:
