@@ -99,6 +99,8 @@ def test_replay_sitl_fdr_reproduces_every_frame_exactly(
     assert code == 0, err
     # The replay's own records (--records): its fix attempts are the flight's, verdict for verdict.
     replayed = [json.loads(line) for line in records_path.read_text().splitlines()]
+    recorded_config = next(r for r in recs if r["kind"] == "daemon.config")["config"]
+    assert replayed[0]["kind"] == "daemon.config" and replayed[0]["config"] == recorded_config
     flown = {r["exposure_time_unix_usec"]: r for r in recs if r["kind"] == "pipeline.fix"}
     again = {r["exposure_time_unix_usec"]: r for r in replayed if r["kind"] == "pipeline.fix"}
     assert again.keys() == flown.keys() and flown

@@ -37,6 +37,7 @@ from typing import Any, TypeVar
 import numpy as np
 from tqdm import tqdm
 
+from gps_denied_onboard import __version__
 from gps_denied_onboard.camera.types import NavCameraFrame
 from gps_denied_onboard.components.c5_estimator.journal import (
     UNIT_FIX,
@@ -46,7 +47,7 @@ from gps_denied_onboard.components.c5_estimator.journal import (
     ReplayJournal,
 )
 from gps_denied_onboard.components.c8_mavlink.messages import fix_type_for
-from gps_denied_onboard.config import Config
+from gps_denied_onboard.config import Config, config_to_dict
 from gps_denied_onboard.constants import FdrKind, Provenance
 from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.pipeline import FixAttempt
@@ -225,9 +226,18 @@ def run_replay(
                 pipeline.localise(frame)
 
     if records_out is not None:
+        # Led by the config the replay ran with, as a daemon's run is: the FDR tools read it from there.
+        head = {
+            "t_unix_s": fdr.records[0]["t_unix_s"] if fdr.records else 0.0,
+            "kind": FdrKind.CONFIG,
+            "seq": 0,
+            "version": __version__,
+            "config": config_to_dict(root.config),
+            "source": "gdnav replay",
+        }
         records_out.parent.mkdir(parents=True, exist_ok=True)
         with records_out.open("w", encoding="utf-8") as out:
-            for record in fdr.records:
+            for record in [head, *fdr.records]:
                 out.write(json.dumps(record, allow_nan=True) + "\n")
     report = _report(inp, root.config, fdr, with_map=with_map, exact=exact, calib=calib)
     report.update(
