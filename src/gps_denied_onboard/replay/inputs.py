@@ -233,15 +233,17 @@ def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
         )
     t_first = frames[0].exposure_time_unix_usec
     first = next(r for r in frames_rec if int(r["exposure_time_unix_usec"]) == t_first)
-    if first is not frames_rec[0]:
-        # The run's prior was given at its first frame; by the first frame with an image the vehicle has
-        # moved on (measured: 490 m after 63 frames, the replay then held a 30 m sigma 490 m off and
-        # refused every right fix against it). Start from what the run itself estimated there instead.
+    skipped = frames_rec[: frames_rec.index(first)]
+    if any(r.get("lat_deg") is not None for r in skipped):
+        # The run was estimating before its first frame with an image, and the vehicle has moved on from
+        # where the start prior put it (measured: 490 m after 63 frames; the replay then held a 30 m sigma
+        # 490 m off and refused every right fix against it). Start from what the run estimated there.
+        # (A run that had no estimate yet started from the start prior at or after this frame.)
         if first.get("lat_deg") is None or first.get("horiz_sigma_m") is None:
             raise ReplayInputError(
-                f"{path}: run {run}'s first {frames_rec.index(first)} tracked frames have no image and the "
-                f"run had no estimate at the first that has one (frame {first['frame_seq']}): there is no "
-                "start prior to replay from"
+                f"{path}: run {run}'s first {len(skipped)} tracked frames have no image and the run had "
+                f"no estimate at the first that has one (frame {first['frame_seq']}): there is no start "
+                "prior to replay from"
             )
         prior = InitialPrior(
             float(first["lat_deg"]),
