@@ -59,7 +59,8 @@ What it can see: where the image is sharp (same-source imagery, a few hundred me
 is a few hundredths of a degree and 4 fixes prove a bias of a degree or two, the fixes before held back
 as jumps. Across dates from 1200 m AGL a footprint is 1.7 km, more ground than the 120 s window covers
 at 12 m/s: there the fixes prove no bias at all (the unit tests find 10 deg once it spans more), the
-image cannot tell the autopilot's error from its own, and VO's ground tilt (below) is what can.
+image cannot tell the autopilot's error from its own, and VO's ground tilt (below) is the only check
+left there (its reach at that height is not measured: its tests fly at 120 m).
 
 What it cannot see in time from the fixes alone: their evidence is as quick as the matcher. Measured
 with ALIKED and DISK on a 2-core CPU (a fix every 7-12 s, each landing 7-12 s after its exposure; 3 deg
