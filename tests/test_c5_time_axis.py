@@ -436,10 +436,11 @@ def test_a_slow_matchers_late_fixes_anchor_the_output_until_the_window_ends() ->
         load_config(REPO_ROOT / "config" / "sitl.yaml", ["estimator.anchored_window_s=0"])
 
 
-def test_raised_shared_sigma_widens_the_output_and_survives_a_rewind() -> None:
-    """The attitude check found the fixes already fused leaning on a wrong tilt: the output states the
-    common error they may carry and the position is not moved; only later accepted fixes bring it down;
-    a fix from before the raise that arrives late rewinds the axis and the raise is replayed on top."""
+def test_a_raised_position_sigma_widens_the_state_and_survives_a_rewind() -> None:
+    """The attitude check found the state leaning on a wrong tilt: its position sigma relative to the map
+    (what the gates compare a fix with, not only what the output states) is at least the raised one and
+    the position is not moved; only later accepted fixes bring it down; a fix from before the raise that
+    arrives late rewinds the axis and the raise is replayed on top."""
     inputs = _flight(9, np.array([12.0, 5.0]))
     clock = _Clock(T0 + 20 * S)
     t_raise = T0 + 5 * FRAME_US
@@ -452,18 +453,21 @@ def test_raised_shared_sigma_widens_the_output_and_survives_a_rewind() -> None:
         if item is not held:
             _apply(late, item)
     before = in_order.state_at(t_raise)
-    in_order.raise_shared_sigma(8.0, t_raise)
+    assert before.horiz_sigma_m < 8.0
+    in_order.raise_position_sigma(8.0, t_raise)
     after = in_order.state_at(t_raise)
     np.testing.assert_allclose(after.pos_ned_m, before.pos_ned_m, atol=1e-9)
-    assert after.shared_sigma_m == pytest.approx(8.0)
-    assert after.horiz_sigma_m == pytest.approx(math.hypot(before.horiz_sigma_m, 8.0), rel=0.05)
-    late.raise_shared_sigma(8.0, t_raise)
+    assert after.shared_sigma_m == pytest.approx(before.shared_sigma_m)
+    assert np.sqrt(np.linalg.eigvalsh(after.map_frame_cov_ne_m2)) == pytest.approx([8.0, 8.0], rel=1e-6)
+    late.raise_position_sigma(8.0, t_raise)
     _apply(late, held)
     np.testing.assert_allclose(late.state_at(t_raise).cov_pos_ned_m2, after.cov_pos_ned_m2, atol=1e-9)
+    in_order.raise_position_sigma(2.0, t_raise)  # a smaller raise never narrows it
+    np.testing.assert_allclose(in_order.state_at(t_raise).cov_pos_ned_m2, after.cov_pos_ned_m2, atol=1e-9)
     for axis in (in_order, late):
-        for item in inputs[10:]:  # frame 6: VO, then its fix (own shared sigma 0)
+        for item in inputs[10:]:  # frames 6-9: VO, then the frame's fix
             _apply(axis, item)
-        assert axis.state_at().shared_sigma_m < 8.0
+        assert axis.state_at(inputs[-1][1]).horiz_sigma_m < 3.0
 
 
 def test_an_untrusted_imu_is_left_out_of_the_prediction_and_a_rewind_keeps_it_out() -> None:
@@ -497,14 +501,14 @@ def test_an_imu_switch_the_axis_cannot_take_says_so() -> None:
     clock = _Clock(T0 + 20 * S)
     axis = _axis(clock, accel=_ConstAccel(np.array([0.5, 0.0, 0.0])))
     assert axis.set_imu_trusted(False, T0) is False
-    assert axis.raise_shared_sigma(8.0, T0) is False
+    assert axis.raise_position_sigma(8.0, T0) is False
     axis.initialise(np.array([0.0, 0.0, -120.0]), 3.0, T0)
     assert axis.set_imu_trusted(False, T0 + S) is True
-    assert axis.raise_shared_sigma(8.0, T0 + S) is True
+    assert axis.raise_position_sigma(8.0, T0 + S) is True
     assert axis.set_imu_trusted(True, T0 - S) is True  # too late for its time: placed at the head
 
 
-def test_a_shared_sigma_or_imu_switch_too_late_for_its_time_holds_from_the_head() -> None:
+def test_a_position_sigma_or_imu_switch_too_late_for_its_time_holds_from_the_head() -> None:
     """A slow matcher's fix shows the attitude off after the axis has moved past its exposure by more than
     the delay it takes: the error the estimate carries and the IMU switch still reach the output, from
     the head on, never lost with the late fix."""
@@ -513,8 +517,8 @@ def test_a_shared_sigma_or_imu_switch_too_late_for_its_time_holds_from_the_head(
     axis.initialise(np.array([0.0, 0.0, -120.0]), 3.0, T0)
     assert axis.set_imu_trusted(True, T0 + 20 * S) is True  # moves the head to T0 + 20 s
     late = T0 + 10 * S  # 10 s behind the head, the axis keeps 5
-    assert axis.raise_shared_sigma(8.0, late) is True
-    assert axis.state_at(T0 + 20 * S).shared_sigma_m == pytest.approx(8.0)
+    assert axis.raise_position_sigma(8.0, late) is True
+    assert np.sqrt(np.linalg.eigvalsh(axis.state_at(T0 + 20 * S).map_frame_cov_ne_m2)).min() >= 8.0
     before = axis.state_at(T0 + 25 * S).pos_ned_m[0]
     assert axis.set_imu_trusted(False, late) is True
     without_imu = axis.state_at(T0 + 25 * S).pos_ned_m[0]

@@ -91,10 +91,13 @@ class _TiltedVo:
     ``tilt_off_rad`` on the camera's x axis from the autopilot's."""
 
     tilt_off_rad: float
+    #: What the wrong tilt makes VO measure: metres north a frame while the vehicle hovers.
+    north_m_per_frame: float = 0.0
 
     def process(self, frame: NavCameraFrame) -> VoMotion:
+        delta = np.array([self.north_m_per_frame, 0.0])
         return VoMotion(
-            frame.frame_id, uuid.uuid4(), 1 / 3, np.zeros(2), np.eye(2) * 0.09, 200, (self.tilt_off_rad, 0.0)
+            frame.frame_id, uuid.uuid4(), 1 / 3, delta, np.eye(2) * 0.09, 200, (self.tilt_off_rad, 0.0)
         )
 
 
@@ -297,7 +300,8 @@ def test_pipeline_refuses_fixes_while_the_autopilot_tilt_is_off_and_widens_what_
     assert check["off"] is True and check["bias_lower_deg"] > check["allowed_deg"] == pytest.approx(1.5)
     assert check["bias_deg"][0] == pytest.approx(3.0, abs=1e-3)
     state = p.time_axis.state_at(T0)
-    assert state.shared_sigma_m == pytest.approx(2 * 120.0 * math.tan(math.radians(3.0)), rel=0.01)
+    widened = 2 * 120.0 * math.tan(math.radians(3.0))
+    assert np.sqrt(np.linalg.eigvalsh(state.map_frame_cov_ne_m2)).min() >= widened * 0.99
 
 
 def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_off() -> None:
@@ -327,7 +331,7 @@ def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_of
     assert frame_records[-1]["ground_tilt_check"]["bias_deg"][0] == pytest.approx(3.0, abs=1e-3)
     assert fix_records[-1]["ground_tilt_check"]["off"] is True
     state = p.time_axis.state_at(t0 + 7 * 333_333)
-    assert state.shared_sigma_m >= 2 * 120.0 * math.tan(math.radians(3.0))
+    assert np.sqrt(np.linalg.eigvalsh(state.map_frame_cov_ne_m2)).min() >= 2 * 120.0 * math.tan(math.radians(3.0))
     assert p._imu_trusted is False
 
     vo.tilt_off_rad = 0.0  # the attitude is right again
@@ -339,6 +343,39 @@ def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_of
     assert 8 < cleared < 40 and all(t.ground_tilt and not t.ground_tilt.off for t in tracks[cleared:])
     assert p._imu_trusted is True
     assert fixes[-1].no_fix_reason is None and fixes[-1].fix_accepted
+
+
+def test_fixes_pull_back_the_state_vo_carried_off_while_the_autopilot_tilt_was_wrong() -> None:
+    """The vehicle hovers over tile A. For 40 frames the autopilot's roll is 3 deg off: VO's ground tilt
+    shows it, and the same wrong tilt makes VO measure 0.5 m of northward motion a frame, 20 m in all.
+    What leaves stays within its stated sigma, and once the attitude is right the first fixes (at the
+    true position, 20 m from the state) are fused and pull the state back. Measured before: the error was
+    raised as the map's shared error, which the gates leave out, so every right fix after the offset was
+    refused as too far from the state (a cross-date GPU flight at 1200 m AGL, to its end)."""
+    fdr = _Fdr()
+    fakes = _TwoTiles((200, 40))
+    vo = _TiltedVo(0.0)
+    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
+    p._rerank = fakes  # type: ignore[assignment]
+    p._matcher = fakes  # type: ignore[assignment]
+    p._pose = _PosePerTile(tilt_off_rad=0.0)  # tile A: the true position, whatever the autopilot says
+    t0 = T0 - 80 * 333_333
+    outs: list[tuple[int, object, object]] = []
+    for k in range(80):
+        vo.tilt_off_rad, vo.north_m_per_frame = (math.radians(3.0), 0.5) if 5 <= k < 45 else (0.0, 0.0)
+        frame = _frame(k, t0 + k * 333_333)
+        track = p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None)
+        outs.append((k, track, p.localise(frame)))
+    for k, track, fix in outs:
+        north_m = float(track.state.pos_ned_m[0])  # the truth is 0 m north
+        assert abs(north_m) <= 3.0 * np.sqrt(track.state.cov_pos_ned_m2[0, 0]), (k, north_m)
+    carried = max(abs(float(track.state.pos_ned_m[0])) for k, track, _ in outs if k < 45)
+    assert carried > 10.0  # VO did carry the state off while its tilt was wrong
+    back = [k for k, _, fix in outs if k >= 45 and fix.fix_accepted]
+    assert back and back[0] < 70, [(k, fix.no_fix_reason) for k, _, fix in outs[45:]]
+    assert all(fix.fix_accepted for k, _, fix in outs if k > back[0])
+    final = p.time_axis.state_at(t0 + 79 * 333_333)
+    assert abs(float(final.pos_ned_m[0])) < 1.0 and final.horiz_sigma_m < 5.0
 
 
 def test_a_slow_fix_exposed_where_vo_later_shows_the_attitude_off_is_refused() -> None:

@@ -470,13 +470,14 @@ class NavigationPipeline:
     def _answer_tilt(self, source: str, verdict: AttitudeVerdict, agl_m: float, t: int) -> None:
         """What the estimate does with a tilt check's verdict (``source``: ``fixes`` or ``vo``), inside
         a unit of the axis at ``t``. While the check has shown a tilt error, the fixes fused before it
-        saw it, and VO, leaned on the same wrong tilt: the shared error is raised to twice the ground
-        distance it makes from ``agl_m`` (m). The IMU's accelerations are rotated with the same
-        attitude (gravity leaks in): it is left out while either check refuses, and said again on the
-        next verdict when the axis could not take it (not yet initialised)."""
+        saw it, and VO, leaned on the same wrong tilt: the position's sigma is raised to twice the
+        ground distance it makes from ``agl_m`` (m), in the filter's covariance, so a fix solved once
+        the attitude is right may pull the state back by that much. The IMU's accelerations are
+        rotated with the same attitude (gravity leaks in): it is left out while either check refuses,
+        and said again on the next verdict when the axis could not take it (not yet initialised)."""
         if verdict.suspect_deg is not None:
             tilt_m = agl_m * math.tan(math.radians(min(verdict.suspect_deg, 45.0)))
-            self._axis.raise_shared_sigma(2.0 * tilt_m, t)
+            self._axis.raise_position_sigma(2.0 * tilt_m, t)
         self._tilt_refused[source] = verdict.refused is not None
         trusted = not any(self._tilt_refused.values())
         if trusted != self._imu_trusted and self._axis.set_imu_trusted(trusted, t):

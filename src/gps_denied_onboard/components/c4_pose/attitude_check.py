@@ -51,9 +51,10 @@ and VO, which turns each frame's rays to the ground with the autopilot's attitud
 fixed to the airframe puts every ray's ground point ``AGL tan b`` off towards a side that turns with
 the aircraft, so VO's error over any stretch is the change of that offset: at most ``2 AGL tan b``
 however long (measured: a 3 deg roll error through a 90 deg turn at 120 m AGL, 7 m). While the check
-has shown a tilt error (``AttitudeVerdict.suspect_deg``) the pipeline raises the estimator's shared
-error to that bound (``c5_estimator/ekf.py``) and stops the IMU, whose accelerations the same attitude
-rotates (3 deg leaks 0.5 m/s^2 of gravity into the horizontal).
+has shown a tilt error (``AttitudeVerdict.suspect_deg``) the pipeline raises the sigma of the
+estimator's position to that bound (``c5_estimator/ekf.py``, ``raise_position_sigma``) and stops the
+IMU, whose accelerations the same attitude rotates (3 deg leaks 0.5 m/s^2 of gravity into the
+horizontal).
 
 What it can see: where the image is sharp (same-source imagery, a few hundred metres up) the scatter
 is a few hundredths of a degree and 4 fixes prove a bias of a degree or two, the fixes before held back
@@ -71,7 +72,7 @@ A second instance of this check therefore runs on VO's ground tilt (``c1_vio/gro
 camera's tilt to the ground from each pair of frames, with no map, at the camera rate), built with
 ``ground_correlated=False``: a pair's tilt error comes from its own matches' noise (0.5 deg per axis at
 120 m AGL, 12 m/s, 3 Hz), not from the ground it shares with the next pair. Its verdicts are answered
-the same way (the pipeline refuses fixes as ``vo_attitude_off``, raises the shared error, leaves the
+the same way (the pipeline refuses fixes as ``vo_attitude_off``, raises the position's sigma, leaves the
 IMU out). What both read as tilt is the tilt to the ground the camera sees: over a hillside steeper than
 the bound they call the attitude off and fixes are refused (the pose is solved against flat ground, so
 those fixes would lean on the slope), VO's within seconds, the fixes' over more ground.

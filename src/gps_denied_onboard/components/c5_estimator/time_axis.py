@@ -274,20 +274,20 @@ class TimeAxis:
         """The absolute-fix attempt on the frame exposed at ``time_unix_usec`` gave no fix."""
         self._note("no_fix", int(time_unix_usec), lambda est, at: est.note_no_fix(at))
 
-    def raise_shared_sigma(self, sigma_m: float, time_unix_usec: int) -> bool:
-        """From ``time_unix_usec`` on, the fixes fused may share ``sigma_m`` of common error
-        (:meth:`NavEstimator.raise_shared_sigma`); an input like the others, so a rewind keeps it. Too
+    def raise_position_sigma(self, sigma_m: float, time_unix_usec: int) -> bool:
+        """At ``time_unix_usec`` the position may be off by ``sigma_m`` more than the state says
+        (:meth:`NavEstimator.raise_position_sigma`); an input like the others, so a rewind keeps it. Too
         late for ``time_unix_usec`` (a slow matcher's fix), it holds from the head on: what the estimate
         carried then it carries now. False when the axis took it at neither (not initialised)."""
 
         def raise_it(est: NavEstimator, _at: int) -> None:
-            est.raise_shared_sigma(sigma_m)
+            est.raise_position_sigma(sigma_m)
 
-        return self._note("shared_sigma", int(time_unix_usec), raise_it, late_at_head=True)
+        return self._note("position_sigma", int(time_unix_usec), raise_it, late_at_head=True)
 
     def set_imu_trusted(self, trusted: bool, time_unix_usec: int) -> bool:
         """From ``time_unix_usec`` on (from the head on when that is too late, as
-        :meth:`raise_shared_sigma`), predict with the IMU or without it
+        :meth:`raise_position_sigma`), predict with the IMU or without it
         (:meth:`NavEstimator.set_imu_trusted`); an input like the others, so a rewind keeps it. False
         when the axis took it at neither (not initialised): the caller says it again."""
 
