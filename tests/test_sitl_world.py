@@ -146,6 +146,7 @@ def test_scenario_builtin_files_load() -> None:
         "link_drop",
         "map_gap",
         "naip_cross_date",
+        "naip_cross_date_attitude",
         "nominal_real",
         "restart",
         "smoke",

@@ -61,7 +61,8 @@ def default_flights(shared: Path) -> list[Flight]:
 
     The fault scenarios fly over the procedural demo map, the real-imagery ones (the autopilot's attitude
     going wrong among them) over GeoVision India,
-    and the cross-date one over NAIP 2009 with frames from 2020 and from 2014.
+    and the cross-date ones over NAIP 2009 with frames from 2020 and from 2014 (the attitude going wrong
+    at 1200 m AGL with frames from 2020).
     """
     geovision = shared.joinpath(*_GEOVISION)
     naip = shared.joinpath(*_NAIP)
@@ -87,6 +88,12 @@ def default_flights(shared: Path) -> list[Flight]:
             "naip_cross_date",
             naip / _NAIP_2009,
             naip / "m_4709963_se_14_1_20140720.tif",
+        ),
+        Flight(
+            "naip_cross_date_attitude",
+            "naip_cross_date_attitude",
+            naip / _NAIP_2009,
+            naip / "m_4709963_se_14_1_20200831.tif",
         ),
     ]
 
