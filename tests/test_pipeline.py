@@ -90,15 +90,14 @@ class _TiltedVo:
     """VO of a hovering vehicle whose ground tilt (``VoMotion.ground_tilt_off_cam_rad``) is
     ``tilt_off_rad`` on the camera's x axis from the autopilot's."""
 
-    tilt_off_rad: float
+    tilt_off_rad: float | None  # None: the pair gives no ground tilt (too short a baseline)
     #: What the wrong tilt makes VO measure: metres north a frame while the vehicle hovers.
     north_m_per_frame: float = 0.0
 
     def process(self, frame: NavCameraFrame) -> VoMotion:
         delta = np.array([self.north_m_per_frame, 0.0])
-        return VoMotion(
-            frame.frame_id, uuid.uuid4(), 1 / 3, delta, np.eye(2) * 0.09, 200, (self.tilt_off_rad, 0.0)
-        )
+        tilt = None if self.tilt_off_rad is None else (self.tilt_off_rad, 0.0)
+        return VoMotion(frame.frame_id, uuid.uuid4(), 1 / 3, delta, np.eye(2) * 0.09, 200, tilt)
 
 
 def _pipeline(
@@ -236,9 +235,10 @@ class _PosePerTile:
 
     def __init__(self, tilt_off_rad: float = 0.02) -> None:
         self.tilt_off_rad = tilt_off_rad
+        self.north_m = 0.0  # where tile A solves to (a fix leaning on a wrong tilt is off by it)
 
     def solve(self, frame, candidate, handle, calibration):  # type: ignore[no-untyped-def]
-        north = 0.0 if candidate.tile_id == TILE_A else 80.0
+        north = self.north_m if candidate.tile_id == TILE_A else 80.0
         return PoseFix(frame.frame_id, frame.exposure_time_unix_usec, np.array([north, 0.0, -120.0]),
                        np.eye(3), 47.0, 8.0, 520.0, 0.0, 0.01, abs(self.tilt_off_rad),
                        (self.tilt_off_rad, 0.0), candidate.inlier_count, 0.8, candidate.tile_id, 1.0)
@@ -331,7 +331,8 @@ def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_of
     assert frame_records[-1]["ground_tilt_check"]["bias_deg"][0] == pytest.approx(3.0, abs=1e-3)
     assert fix_records[-1]["ground_tilt_check"]["off"] is True
     state = p.time_axis.state_at(t0 + 7 * 333_333)
-    assert np.sqrt(np.linalg.eigvalsh(state.map_frame_cov_ne_m2)).min() >= 2 * 120.0 * math.tan(math.radians(3.0))
+    widened = 2 * 120.0 * math.tan(math.radians(3.0))
+    assert np.sqrt(np.linalg.eigvalsh(state.map_frame_cov_ne_m2)).min() >= widened
     assert p._imu_trusted is False
 
     vo.tilt_off_rad = 0.0  # the attitude is right again
@@ -366,7 +367,7 @@ def test_fixes_pull_back_the_state_vo_carried_off_while_the_autopilot_tilt_was_w
         frame = _frame(k, t0 + k * 333_333)
         track = p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None)
         outs.append((k, track, p.localise(frame)))
-    for k, track, fix in outs:
+    for k, track, _ in outs:
         north_m = float(track.state.pos_ned_m[0])  # the truth is 0 m north
         assert abs(north_m) <= 3.0 * np.sqrt(track.state.cov_pos_ned_m2[0, 0]), (k, north_m)
     carried = max(abs(float(track.state.pos_ned_m[0])) for k, track, _ in outs if k < 45)
@@ -376,6 +377,37 @@ def test_fixes_pull_back_the_state_vo_carried_off_while_the_autopilot_tilt_was_w
     assert all(fix.fix_accepted for k, _, fix in outs if k > back[0])
     final = p.time_axis.state_at(t0 + 79 * 333_333)
     assert abs(float(final.pos_ned_m[0])) < 1.0 and final.horiz_sigma_m < 5.0
+
+
+def test_while_vo_shows_the_attitude_off_a_frame_without_a_tilt_of_its_own_gives_no_fix() -> None:
+    """The autopilot's roll is 3 deg off from frame 5 to 30 and the fixes lean on it (6.3 m off at
+    120 m AGL); every third frame's pair gives no ground tilt, so it has no verdict of its own. Once VO's
+    check has shown the attitude off, no fix is fused until its tilt agrees again, those frames'
+    included: the estimate's raised sigma would let such a fix through every gate (measured on a GPU
+    across dates at 1200 m AGL: one in about 15, 64 m off at a stated 4 m)."""
+    fdr = _Fdr()
+    fakes = _TwoTiles((200, 40))
+    vo = _TiltedVo(0.0)
+    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
+    p._rerank = fakes  # type: ignore[assignment]
+    p._matcher = fakes  # type: ignore[assignment]
+    pose = _PosePerTile(tilt_off_rad=0.0)
+    p._pose = pose
+    t0 = T0 - 60 * 333_333
+    tracks, fixes = [], []
+    for k in range(60):
+        wrong = 5 <= k < 30
+        vo.tilt_off_rad = None if k % 3 == 0 else (math.radians(3.0) if wrong else 0.0)
+        pose.north_m = 120.0 * math.tan(math.radians(3.0)) if wrong else 0.0
+        frame = _frame(k, t0 + k * 333_333)
+        tracks.append(p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None))
+        fixes.append(p.localise(frame))
+    shown = next(k for k, t in enumerate(tracks) if t.ground_tilt and t.ground_tilt.off)
+    cleared = next(k for k, t in enumerate(tracks) if k > shown and t.ground_tilt and not t.ground_tilt.off)
+    assert 5 < shown < 12 and 30 < cleared < 60, (shown, cleared)
+    assert [k for k in range(shown, cleared) if fixes[k].fix_accepted] == []
+    assert {fixes[k].no_fix_reason for k in range(shown, cleared) if k % 3 == 0} == {"vo_attitude_off"}
+    assert all(f.fix_accepted for f in fixes[cleared + 1 :]), [f.no_fix_reason for f in fixes[cleared:]]
 
 
 def test_a_slow_fix_exposed_where_vo_later_shows_the_attitude_off_is_refused() -> None:
