@@ -417,6 +417,9 @@ class EstimatorConfig:
     reacquire_sigma_m: PosFloat = 150.0
     #: Above this horizontal sigma the output is labelled no_estimate (fix_type 0).
     max_output_sigma_m: PosFloat = 500.0
+    #: A start prior no fix has confirmed yet, contradicted by consecutive gated fixes that agree with
+    #: each other over at least this much ground, is given up for them (``c5_estimator/ekf.py``), m.
+    prior_conflict_span_m: PosFloat = 200.0
     #: Multiplies the visual-odometry covariance (tune for a real camera; 1 = as measured).
     vo_noise_scale: PosFloat = 1.0
     #: Time axis: an input stamped more than this ahead of the daemon's clock is refused, s.

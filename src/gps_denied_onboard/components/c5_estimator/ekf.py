@@ -95,6 +95,10 @@ VO_GAP_S: Final[float] = 0.5
 
 #: Consecutive gated fixes after which their disagreement is added to the position covariance.
 CONSECUTIVE_GATED_INFLATE: Final[int] = 3
+#: Gated fixes, consecutive and agreeing with each other, that put an unconfirmed start prior in doubt
+#: (the output then states their disagreement), and that may contradict it (over enough ground).
+PRIOR_DOUBT_FIXES: Final[int] = 2
+PRIOR_CONTRADICTED_FIXES: Final[int] = 5
 _H_POS = np.hstack([np.eye(3), np.zeros((3, 3))])
 _H_VEL_NE = np.hstack([np.zeros((2, 3)), np.eye(3)[:2]])
 _H_D = np.array([[0.0, 0.0, 1.0, 0.0, 0.0, 0.0]])
@@ -134,6 +138,19 @@ def _valid_accel(a: np.ndarray | None) -> np.ndarray | None:
 
 
 @dataclass(frozen=True)
+class _PriorConflict:
+    """A run of consecutive gated fixes that agree with each other while the start prior is unconfirmed:
+    where the state was at the first (NE, m), the newest's innovation (m) and covariance, the state's
+    horizontal covariance then (m^2), and how many."""
+
+    first_pos_ne: np.ndarray
+    innov_ne: np.ndarray
+    fix_cov_ne: np.ndarray
+    p_ne: np.ndarray
+    count: int
+
+
+@dataclass(frozen=True)
 class EstimatorCheckpoint:
     """Everything :meth:`NavEstimator.restore` needs to put the filter back exactly (copies)."""
 
@@ -147,6 +164,7 @@ class EstimatorCheckpoint:
     yaw_rad: float | None
     shared_sigma_m: float
     imu_trusted: bool = True
+    prior_conflict: _PriorConflict | None = None
 
 
 class NavEstimator:
@@ -182,6 +200,8 @@ class NavEstimator:
         self._last_fix_usec: int | None = None
         self._last_no_fix_usec: int | None = None
         self._consecutive_gated = 0
+        #: Gated fixes contradicting a start prior no fix has confirmed (see ``update_fix``).
+        self._prior_conflict: _PriorConflict | None = None
         self._last_vo_usec: int | None = None
         self._yaw_rad: float | None = None
         #: Bound on the fixes' common (map) error the position carries, metres per axis (see above).
@@ -236,6 +256,7 @@ class NavEstimator:
         self._last_fix_usec = None
         self._last_no_fix_usec = None
         self._consecutive_gated = 0
+        self._prior_conflict = None
         self._last_vo_usec = None
         self._yaw_rad = None
         self._shared_sigma_m = 0.0
@@ -262,6 +283,7 @@ class NavEstimator:
             self._yaw_rad,
             self._shared_sigma_m,
             self._imu_trusted,
+            self._prior_conflict,
         )
 
     def restore(self, cp: EstimatorCheckpoint) -> None:
@@ -276,6 +298,7 @@ class NavEstimator:
         self._yaw_rad = cp.yaw_rad
         self._shared_sigma_m = cp.shared_sigma_m
         self._imu_trusted = cp.imu_trusted
+        self._prior_conflict = cp.prior_conflict
 
     # -- prediction ---------------------------------------------------------------------------------------
 
@@ -420,6 +443,8 @@ class NavEstimator:
                 self._last_vo_usec is not None
                 and (self._time_usec - self._last_vo_usec) / 1e6 <= self._vo_recent_s
             )
+            if vo_corroborates and self._last_fix_usec is None:
+                self._note_prior_conflict(x[:2], p_mat[:2, :2], innov, cov[:2, :2])
             if self._consecutive_gated >= CONSECUTIVE_GATED_INFLATE and not vo_corroborates:
                 # Several fixes in a row disagree with a state that nothing corroborates (no recent VO):
                 # an unmodelled manoeuvre is as likely as a wrong match, so the stated accuracy is no
@@ -439,6 +464,7 @@ class NavEstimator:
         else:
             reason = FixReason.ACCEPTED
 
+        self._prior_conflict = None
         self._kf.update(pos.reshape(3, 1), R=cov, H=_H_POS)
         gain_ne = self._kf.K[:2, :2]
         self._shared_sigma_m = (
@@ -451,6 +477,62 @@ class NavEstimator:
             self._yaw_rad = float(fix.yaw_rad)
         self._refresh_provenance()
         return FixDecision(True, nis, reason)
+
+    def _note_prior_conflict(
+        self, pos_ne: np.ndarray, p_ne: np.ndarray, innov: np.ndarray, fix_cov_ne: np.ndarray
+    ) -> None:
+        """A fix was gated while VO runs and no fix has confirmed the start prior yet.
+
+        The wrong-tile-trap rule keeps such fixes out: VO measures the state's motion, so fixes that
+        disagree with it are most likely a look-alike. That holds once fixes have anchored the state. A
+        start prior (a configured position, HOME_POSITION, a resumed estimate) has nothing behind it but
+        its stated sigma: measured before this rule (nominal_real, the configured start 150 m off at a
+        stated 30 m), the daemon sent 792 of 807 GPS_INPUT beyond 3 sigma, fix_type 3 at 30 m for the
+        whole flight, and gated 162 right fixes. Consecutive gated fixes that agree with each other
+        (their innovations within the gate of each other, the VO drift between them included) form a
+        run. From the second, the prior is in doubt: the output's shared error is raised to cover the
+        disagreement (the gates leave it out, so nothing is fused on it). When the run has
+        ``PRIOR_CONTRADICTED_FIXES`` fixes over ``prior_conflict_span_m`` of ground, more than a
+        look-alike patch, the prior is contradicted: the disagreement is added to the position
+        covariance, and the next agreeing fix re-anchors the state. A fix that is accepted ends the
+        run (the prior is confirmed, and the rule no longer applies)."""
+        run = self._prior_conflict
+        agrees = False
+        if run is not None:
+            drift = p_ne - run.p_ne
+            vals, vecs = np.linalg.eigh((drift + drift.T) / 2.0)
+            s_mat = fix_cov_ne + run.fix_cov_ne + (vecs * np.clip(vals, 0.0, None)) @ vecs.T
+            d = innov - run.innov_ne
+            agrees = float(d @ np.linalg.solve(s_mat, d)) <= self._config.fix_gate_chi2
+        first = run.first_pos_ne if run is not None and agrees else pos_ne.copy()
+        count = run.count + 1 if run is not None and agrees else 1
+        self._prior_conflict = _PriorConflict(first, innov.copy(), fix_cov_ne.copy(), p_ne.copy(), count)
+        if count < PRIOR_DOUBT_FIXES:
+            return
+        disagreement_m = float(np.hypot(*innov))
+        if disagreement_m > self._shared_sigma_m:
+            self._shared_sigma_m = disagreement_m
+            self._emit(
+                "warning",
+                LogEvent.ESTIMATOR_COVARIANCE_INFLATED,
+                reason="prior_in_doubt",
+                innovation_m=disagreement_m,
+                fixes=count,
+            )
+        span_m = float(np.hypot(*(pos_ne - first)))
+        if count >= PRIOR_CONTRADICTED_FIXES and span_m >= self._config.prior_conflict_span_m:
+            self._kf.P[:2, :2] += np.outer(innov, innov)
+            self._prior_conflict = None
+            self._emit(
+                "warning",
+                LogEvent.ESTIMATOR_COVARIANCE_INFLATED,
+                reason="prior_contradicted",
+                innovation_m=disagreement_m,
+                fixes=count,
+                span_m=span_m,
+                horiz_sigma_m=_horiz_sigma_m(self._kf.P),
+            )
+        self._refresh_provenance()
 
     def _note_no_fix_at(self, t_usec: int) -> None:
         if self._last_no_fix_usec is None or t_usec > self._last_no_fix_usec:
