@@ -28,7 +28,10 @@ Measurements
 - Absolute fix (C4 ``PoseFix``): 3-D position with the fix's own covariance, gated by the Mahalanobis
   distance of its horizontal part (chi-square, 2 dof, ``fix_gate_chi2``) so one wrong tile match
   cannot teleport the estimate. Re-acquisition: once the horizontal sigma exceeds
-  ``reacquire_sigma_m`` the gate is bypassed (see :meth:`NavEstimator.update_fix`).
+  ``reacquire_sigma_m`` the gate is bypassed (see :meth:`NavEstimator.update_fix`). A start prior that
+  no fix has confirmed yet is not trusted like an anchored state: gated fixes that agree with each other
+  put it in doubt and, over ``prior_conflict_span_m`` of ground, contradict it
+  (:meth:`NavEstimator._note_prior_conflict`).
 - Visual odometry (C1 ``VoMotion``): the horizontal displacement over ``dt`` is the interval's *mean*
   velocity ``delta / dt``. It is turned into the velocity at the end of the interval with the IMU's
   mean acceleration over the interval (``v_end = delta / dt + a dt / 2``; exact for constant
