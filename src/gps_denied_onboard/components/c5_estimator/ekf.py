@@ -203,7 +203,7 @@ class NavEstimator:
         self._last_fix_usec: int | None = None
         self._last_no_fix_usec: int | None = None
         self._consecutive_gated = 0
-        #: Gated fixes contradicting a start prior no fix has confirmed (see ``update_fix``).
+        #: Gated fixes contradicting a start prior no fix has confirmed (``_note_prior_conflict``).
         self._prior_conflict: _PriorConflict | None = None
         self._last_vo_usec: int | None = None
         self._yaw_rad: float | None = None
