@@ -247,6 +247,19 @@ class _PosePerTile:
 TILE_A, TILE_B = TileId(18, 1, 1), TileId(18, 1, 2)
 
 
+def _two_tile_pipeline(
+    fdr: _Fdr, vo: object, pose: _PosePerTile, inliers: tuple[int, int] = (200, 40)
+) -> NavigationPipeline:
+    """A pipeline whose fix path always solves: one VPR candidate, tiles A and B matched with
+    ``inliers`` (``_TwoTiles``), posed by ``pose``."""
+    fakes = _TwoTiles(inliers)
+    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
+    p._rerank = fakes  # type: ignore[assignment]
+    p._matcher = fakes  # type: ignore[assignment]
+    p._pose = pose  # type: ignore[assignment]
+    return p
+
+
 @pytest.mark.parametrize(("inliers", "accepted"), [((200, 180), False), ((200, 40), True)])
 def test_pipeline_refuses_an_ambiguous_fix_and_records_the_evidence(
     inliers: tuple[int, int], accepted: bool
@@ -254,11 +267,7 @@ def test_pipeline_refuses_an_ambiguous_fix_and_records_the_evidence(
     """Two well-supported tiles 80 m apart: the integrity rule refuses the fix, C5 never sees it, the FDR
     says why with the evidence. With a weak second tile the same fix is fused."""
     fdr = _Fdr()
-    fakes = _TwoTiles(inliers)
-    p = _pipeline(_OneTileVpr(dim=256), fdr, _HoverVo())
-    p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
-    p._pose = _PosePerTile()
+    p = _two_tile_pipeline(fdr, _HoverVo(), _PosePerTile(), inliers=inliers)
     frame = _frame(0, T0)
     p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test"))
     out = p.localise(frame)
@@ -283,11 +292,7 @@ def test_pipeline_refuses_fixes_while_the_autopilot_tilt_is_off_and_widens_what_
     in the FDR, the estimate states the error what it fused may carry (the fixes and VO both turned the
     camera's rays with that attitude: 2 x 120 m x tan 3 deg = 12.6 m)."""
     fdr = _Fdr()
-    fakes = _TwoTiles((200, 40))
-    p = _pipeline(_OneTileVpr(dim=256), fdr, _HoverVo())
-    p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
-    p._pose = _PosePerTile(tilt_off_rad=math.radians(3.0))
+    p = _two_tile_pipeline(fdr, _HoverVo(), _PosePerTile(tilt_off_rad=math.radians(3.0)))
     outs = []
     for k in range(6):
         frame = _frame(k, T0 - (5 - k) * 333_333)  # the test clock stands at T0
@@ -311,12 +316,8 @@ def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_of
     the error what it fused may carry. When VO's tilt agrees again, its check clears once no window's
     bias is beyond the bound and the IMU comes back."""
     fdr = _Fdr()
-    fakes = _TwoTiles((200, 40))
     vo = _TiltedVo(math.radians(3.0))
-    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
-    p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
-    p._pose = _PosePerTile(tilt_off_rad=0.0)
+    p = _two_tile_pipeline(fdr, vo, _PosePerTile(tilt_off_rad=0.0))
     t0 = T0 - 40 * 333_333
     tracks, fixes = [], []
     for k in range(8):
@@ -354,12 +355,9 @@ def test_fixes_pull_back_the_state_vo_carried_off_while_the_autopilot_tilt_was_w
     raised as the map's shared error, which the gates leave out, so every right fix after the offset was
     refused as too far from the state (a cross-date GPU flight at 1200 m AGL, to its end)."""
     fdr = _Fdr()
-    fakes = _TwoTiles((200, 40))
     vo = _TiltedVo(0.0)
-    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
-    p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
-    p._pose = _PosePerTile(tilt_off_rad=0.0)  # tile A: the true position, whatever the autopilot says
+    # Tile A solves to the true position, whatever the autopilot says.
+    p = _two_tile_pipeline(fdr, vo, _PosePerTile(tilt_off_rad=0.0))
     t0 = T0 - 80 * 333_333
     outs: list[tuple[int, object, object]] = []
     for k in range(80):
@@ -386,13 +384,9 @@ def test_while_vo_shows_the_attitude_off_a_frame_without_a_tilt_of_its_own_gives
     included: the estimate's raised sigma would let such a fix through every gate (measured on a GPU
     across dates at 1200 m AGL: one in about 15, 64 m off at a stated 4 m)."""
     fdr = _Fdr()
-    fakes = _TwoTiles((200, 40))
     vo = _TiltedVo(0.0)
-    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
-    p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
     pose = _PosePerTile(tilt_off_rad=0.0)
-    p._pose = pose
+    p = _two_tile_pipeline(fdr, vo, pose)
     t0 = T0 - 60 * 333_333
     tracks, fixes = [], []
     for k in range(60):
@@ -416,12 +410,8 @@ def test_a_slow_fix_exposed_where_vo_later_shows_the_attitude_off_is_refused() -
     wrong tilt and is refused as ``vo_attitude_off`` however late it comes. A fix exposed and fused
     before the attitude went wrong is not touched."""
     fdr = _Fdr()
-    fakes = _TwoTiles((200, 40))
     vo = _TiltedVo(0.0)
-    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
-    p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
-    p._pose = _PosePerTile(tilt_off_rad=0.0)  # the fixes' own check sees nothing wrong
+    p = _two_tile_pipeline(fdr, vo, _PosePerTile(tilt_off_rad=0.0))  # the fixes' own check: nothing wrong
     t0 = T0 - 20 * 333_333
     frames = [_frame(k, t0 + k * 333_333) for k in range(12)]
     for k in range(5):
