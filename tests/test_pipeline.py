@@ -248,12 +248,12 @@ TILE_A, TILE_B = TileId(18, 1, 1), TileId(18, 1, 2)
 
 
 def _two_tile_pipeline(
-    fdr: _Fdr, vo: object, pose: _PosePerTile, inliers: tuple[int, int] = (200, 40)
+    fdr: _Fdr, vo: object, pose: _PosePerTile, inliers: tuple[int, int] = (200, 40), max_delay_s: float = 5.0
 ) -> NavigationPipeline:
     """A pipeline whose fix path always solves: one VPR candidate, tiles A and B matched with
     ``inliers`` (``_TwoTiles``), posed by ``pose``."""
     fakes = _TwoTiles(inliers)
-    p = _pipeline(_OneTileVpr(dim=256), fdr, vo)
+    p = _pipeline(_OneTileVpr(dim=256), fdr, vo, max_delay_s=max_delay_s)
     p._rerank = fakes  # type: ignore[assignment]
     p._matcher = fakes  # type: ignore[assignment]
     p._pose = pose  # type: ignore[assignment]
@@ -402,6 +402,35 @@ def test_while_vo_shows_the_attitude_off_a_frame_without_a_tilt_of_its_own_gives
     assert [k for k in range(shown, cleared) if fixes[k].fix_accepted] == []
     assert {fixes[k].no_fix_reason for k in range(shown, cleared) if k % 3 == 0} == {"vo_attitude_off"}
     assert all(f.fix_accepted for f in fixes[cleared + 1 :]), [f.no_fix_reason for f in fixes[cleared:]]
+
+
+def test_a_slow_fix_exposed_before_vo_lets_go_of_a_wrong_attitude_is_refused() -> None:
+    """VO's check shows the roll off (frames 5-29), then its pairs give no tilt for 12 s (frames 30-65)
+    while the attitude comes right at frame 33; tilts come back right and the check lets go. A slow
+    matcher's fix of frame 31, still leaning on the wrong roll, arrives after that: its exposure lies
+    between the last verdict that refused and the first that did not, where the attitude was never
+    shown right, so it is refused however late (the estimate's raised sigma would let it through)."""
+    fdr = _Fdr()
+    vo = _TiltedVo(0.0)
+    pose = _PosePerTile(tilt_off_rad=0.0)
+    p = _two_tile_pipeline(fdr, vo, pose, max_delay_s=20.0)
+    t0 = T0 - 90 * 333_333
+    frames = [_frame(k, t0 + k * 333_333) for k in range(90)]
+    tracks = []
+    for k in range(90):
+        wrong = 5 <= k < 33
+        vo.tilt_off_rad = None if 30 <= k < 66 else (math.radians(3.0) if wrong else 0.0)
+        tracks.append(p.track(frames[k], InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None))
+        if k == 31:
+            pose.north_m = 120.0 * math.tan(math.radians(3.0))
+            slow = p.attempt_fix(frames[31])  # solved now, fused once VO has let go
+            pose.north_m = 0.0
+        elif k < 30 or k >= 66:
+            p.localise(frames[k])
+    assert tracks[29].ground_tilt is not None and tracks[29].ground_tilt.off
+    cleared = next(k for k in range(66, 90) if tracks[k].ground_tilt and not tracks[k].ground_tilt.off)
+    late = p.fuse_attempt(frames[31], slow)
+    assert not late.fix_accepted and late.no_fix_reason == "vo_attitude_off", (cleared, late.no_fix_reason)
 
 
 def test_a_slow_fix_exposed_where_vo_later_shows_the_attitude_off_is_refused() -> None:

@@ -299,6 +299,8 @@ class NavigationPipeline:
                 self._ground_tilt_verdict = ground_tilt
                 if ground_tilt.refused is not None:
                     self._note_vo_off(ground_tilt.since_unix_usec, t)
+                elif before is not None and before.refused is not None and self._vo_off_spans:
+                    self._note_vo_off(self._vo_off_spans[-1][1], t - 1)  # never shown right before t
                 self._answer_tilt("vo", ground_tilt, frame.alt_agl_m, t)
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
@@ -466,9 +468,11 @@ class NavigationPipeline:
     def _vo_off_at(self, t: int) -> bool:
         """Whether an exposure at ``t`` lies where the ground-tilt check has shown the attitude off, or
         after its newest verdict while that verdict is off: until a tilt says otherwise the attitude is
-        still off. A frame whose pair gave no tilt, or a fix fused before its own frame's VO, has no
-        verdict of its own; measured without this rule on a GPU (3 deg of roll at 1200 m AGL across
-        dates), one such fix in about 15 slipped through, 64 m off at a stated 4 m."""
+        still off. A span runs on to just before the first verdict that lets go, so a slow fix exposed
+        between the last verdict that refused and that one is refused however late. A frame whose pair
+        gave no tilt, or a fix fused before its own frame's VO, has no verdict of its own; measured
+        without this rule on a GPU (3 deg of roll at 1200 m AGL across dates), one such fix in about 15
+        slipped through, 64 m off at a stated 4 m."""
         spans = self._vo_off_spans
         if any(lo <= t <= hi for lo, hi in spans):
             return True
