@@ -67,6 +67,9 @@ def test_bench_matcher_classical_finds_the_true_chip(classical_report: dict) -> 
     assert inl["true_chip"]["p50"] > 4 * max(inl["wrong_chip_max"]["p50"], 1)
     assert inl["true_chip_ranked_first"] >= 2 / 3
     assert inl["best"]["p50"] >= 80  # C3-IT-01 floor
+    sol = classical_report["strategies"]["classical"]["solutions"]
+    assert sol["frames"] == 3 and sol["solved"] == 3 and sol["wrong"] == 0
+    assert sol["centre_error_m"]["p95"] < sol["wrong_beyond_m"] == pytest.approx(2.85, abs=0.2)
 
 
 def test_bench_matcher_table_lists_strategy_and_target(classical_report: dict) -> None:
@@ -74,6 +77,38 @@ def test_bench_matcher_table_lists_strategy_and_target(classical_report: dict) -
     text = format_report(classical_report)
     assert "classical" in text and classical_report["machine"]["cpu_model"] in text
     assert "target classical frame p95 <= 250 ms" in text
+
+
+def test_bench_matcher_cross_date_pairs_render_the_frames_from_the_other_date() -> None:
+    """--frames-from: the frames come from another date of the same ground and the chips from the map, so
+    the same poses find fewer inliers across five years than on the map's own date."""
+    naip = shared_path("data", "naip_timeseries", "naip")
+    map_2009 = naip / "m_4709963_se_14_1_20090818.tif"
+    kwargs = dict(strategies=["classical"], map_path=map_2009, n_frames=4, chip_size_px=320, alt_agl_m=1200.0)
+    same = run_matcher_benchmark(**kwargs, echo=None)  # type: ignore[arg-type]
+    across = run_matcher_benchmark(
+        **kwargs,  # type: ignore[arg-type]
+        frames_path=naip / "m_4709963_se_14_1_20200831.tif",
+        echo=None,
+    )
+    assert across["setup"]["frames_from"].endswith("20200831.tif")
+    assert same["setup"]["frames_from"] == same["setup"]["map"]
+    inl_same = same["strategies"]["classical"]["inliers"]["true_chip"]["p50"]
+    inl_across = across["strategies"]["classical"]["inliers"]["true_chip"]["p50"]
+    assert inl_same >= 25 and inl_across < inl_same / 2
+    sol = same["strategies"]["classical"]["solutions"]
+    assert sol["solved"] >= 3 and sol["wrong"] == 0 and sol["centre_error_m"]["p95"] < 5.0
+    text = format_report(across)
+    assert "from m_4709963_se_14_1_20200831.tif" in text and "from m_4709963_se_14_1_20090818.tif" in text
+    assert "classical: solved" in text
+
+
+def test_bench_matcher_frames_from_other_ground_raises(geovision: Path) -> None:
+    """Frames from an image of other ground: refused, naming both files, before anything runs."""
+    naip_2020 = shared_path("data", "naip_timeseries", "naip", "m_4709963_se_14_1_20200831.tif")
+    with pytest.raises(BenchmarkError, match="too little common ground") as info:
+        run_matcher_benchmark(strategies=["classical"], map_path=geovision, frames_path=naip_2020, echo=None)
+    assert "geovision_india_z18.tif" in str(info.value) and "20200831.tif" in str(info.value)
 
 
 def test_bench_matcher_learned_strategy_with_self_built_models(geovision: Path, tmp_path: Path) -> None:

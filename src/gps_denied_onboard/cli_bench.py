@@ -46,6 +46,12 @@ def write_json(path: Path, figures: dict[str, Any]) -> None:
 
 
 # --- bench matcher ---------------------------------------------------------------------------------------
+#: ``--frames-from`` of ``bench matcher`` and ``bench vpr``: the cross-date pairs.
+_FRAMES_FROM_HELP: Final[str] = (
+    "render the query frames from this image of the same area (e.g. another date); the map stays --map"
+)
+
+
 def _add_matcher_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--strategies",
@@ -87,6 +93,7 @@ def _add_matcher_arguments(p: argparse.ArgumentParser) -> None:
         help="map cache of the same map (gdnav cache build): candidates are its chips, and strategies "
         "with precomputed tile features in it (gdnav cache features) are also timed with them",
     )
+    p.add_argument("--frames-from", type=Path, default=None, help=_FRAMES_FROM_HELP)
     p.add_argument("--chip-size", type=int, default=512, help="chip side, px (default 512)")
     p.add_argument("--alt", type=float, default=120.0, help="frames' height above ground, m (default 120)")
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every figure to OUT")
@@ -117,6 +124,7 @@ def _run_matcher(args: argparse.Namespace) -> int:
             intra_op_threads=args.threads,
             seed=args.seed,
             cache_dir=args.cache,
+            frames_path=args.frames_from,
             chip_size_px=args.chip_size,
             alt_agl_m=args.alt,
         )
@@ -147,12 +155,7 @@ MATCHER_COMMAND: Final[BenchCommand] = BenchCommand(
 # --- bench vpr -------------------------------------------------------------------------------------------
 def _add_vpr_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", type=Path, required=True, help="GeoTIFF the cache and index are built from")
-    p.add_argument(
-        "--frames-from",
-        type=Path,
-        default=None,
-        help="render the query frames from this image of the same area (e.g. another date)",
-    )
+    p.add_argument("--frames-from", type=Path, default=None, help=_FRAMES_FROM_HELP)
     p.add_argument("--queries", type=int, default=60, help="rendered query frames (default 60)")
     p.add_argument("--zoom", type=int, default=None, help="cache zoom (default: matched to the map)")
     p.add_argument("--tile-size", type=int, default=256, help="cache tile size, px (default 256)")

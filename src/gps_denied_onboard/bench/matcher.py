@@ -5,7 +5,8 @@
 1. renders ``n_frames`` nav frames from a real orthophoto with the SITL renderer
    (``sitl.render.MapRenderer``): camera ``frame_size`` px, ``hfov_deg`` HFOV, ``alt_agl_m`` above
    ground, heading uniform in [0, 360), roll/pitch uniform in +-3 deg, position uniform over the map
-   shrunk so that the frame and its chip stay on it;
+   shrunk so that the frame and its chip stay on it; with ``frames_path`` the frames are rendered from
+   that image of the same area instead (another date: the cross-date pairs), the chips stay the map's;
 2. cuts ``n_candidates`` square chips of ``chip_size_px`` from the same raster per frame - the true
    chip (around the ground point under the principal point, offset by up to 15 % of the chip like a
    prior with tens of metres of error) first, then chips that see none of the frame's footprint - each
@@ -26,6 +27,8 @@
    - **query**: the query extraction alone;
    - inliers: RANSAC inliers of the true chip and the best wrong chip, and whether ``match()`` ranked
      the true chip first (so a broken matcher cannot hide behind a good latency);
+   - solutions: where the best candidate's inliers put the ground under the principal point, against
+     the truth (a wrong solution cannot hide behind a high inlier count either);
 
 5. memory: the process's current RSS (``/proc/self/statm``) before and after each strategy is built
    (model sessions), its peak RSS (``getrusage`` ``ru_maxrss``, the whole process's high-water mark,
@@ -63,6 +66,7 @@ from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.registry import available_strategies, create_matcher
 from gps_denied_onboard.components.c6_tiles.types import TileId, TilePixelsHandle
 from gps_denied_onboard.config import MatcherConfig
+from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.helpers.frame_rectifier import (
     RectificationError,
     frame_to_ground_homography,
@@ -99,6 +103,8 @@ CPU_CLASSICAL_FRAME_P95_MS: Final[float] = 250.0
 _EARTH_M_PER_DEG_LAT: Final[float] = 111_320.0
 _MAX_TILT_DEG: Final[float] = 3.0
 _TRUE_CHIP_JITTER: Final[float] = 0.15
+#: A solved frame whose centre lands more than this many map pixels from the truth counts as wrong.
+WRONG_SOLUTION_MAP_PX: Final[float] = 10.0
 
 
 class BenchmarkError(RuntimeError):
@@ -220,20 +226,29 @@ def render_bench_frames(
     chip_size_px: int,
     alt_agl_m: float,
     seed: int,
+    frames_path: Path | None = None,
 ) -> list[BenchFrame]:
-    """Frames and chips as described in the module docstring (deterministic for a seed)."""
+    """Frames and chips as described in the module docstring (deterministic for a seed). The chips are
+    cut from ``map_path``; the frames are rendered from ``frames_path`` when given (another image of the
+    same area, e.g. another date: the cross-date pairs), else from the map itself, over the part of the
+    ground both cover."""
     from gps_denied_onboard.sitl.render import MapRenderer, RenderError  # SITL-only dependency
 
     try:
         renderer = MapRenderer(map_path)
     except RenderError as exc:
         raise BenchmarkError(f"cannot use the benchmark map: {exc}") from exc
+    try:
+        frames_renderer = renderer if frames_path is None else MapRenderer(frames_path)
+    except RenderError as exc:
+        raise BenchmarkError(f"cannot render the benchmark frames: {exc}") from exc
     georef = _Georef(map_path)
     raster = renderer.pixels_bgr
     h_px, w_px = raster.shape[:2]
     gsd = float(renderer.ground_gsd_m)
     rng = np.random.default_rng(seed)
-    west, south, east, north = renderer.bbox_lonlat
+    (w0, s0, e0, n0), (w1, s1, e1, n1) = renderer.bbox_lonlat, frames_renderer.bbox_lonlat
+    west, south, east, north = max(w0, w1), max(s0, s1), min(e0, e1), min(n0, n1)
     lat_mid = (south + north) / 2.0
     m_per_deg_lon = _EARTH_M_PER_DEG_LAT * math.cos(math.radians(lat_mid))
     half_fp_m = alt_agl_m * math.tan(calib.hfov_rad / 2.0) * 1.3
@@ -242,7 +257,8 @@ def render_bench_frames(
     lat_lo, lat_hi = south + margin_m / _EARTH_M_PER_DEG_LAT, north - margin_m / _EARTH_M_PER_DEG_LAT
     if lon_lo >= lon_hi or lat_lo >= lat_hi or min(h_px, w_px) < chip_size_px:
         raise BenchmarkError(
-            f"{map_path}: map too small for {alt_agl_m} m AGL frames and {chip_size_px} px chips"
+            f"{map_path}{'' if frames_path is None else f' with frames from {frames_path}'}: "
+            f"too little common ground for {alt_agl_m} m AGL frames and {chip_size_px} px chips"
         )
     w, h = calib.width_px, calib.height_px
     corners = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [w - 1.0, h - 1.0, 1.0], [0.0, h - 1.0, 1.0]])
@@ -256,7 +272,7 @@ def render_bench_frames(
             math.radians(rng.uniform(-_MAX_TILT_DEG, _MAX_TILT_DEG)),
             math.radians(rng.uniform(0.0, 360.0)),
         )
-        image = renderer.render(calib, lat, lon, alt_agl_m, att)
+        image = frames_renderer.render(calib, lat, lon, alt_agl_m, att)
         to_ground = frame_to_ground_homography(calib, att, alt_agl_m)
         ground = np.vstack([corners, centre]) @ to_ground.T
         d_north, d_east = ground[:, 0] / ground[:, 2], ground[:, 1] / ground[:, 2]
@@ -502,8 +518,9 @@ def _timed_match(
     bf: BenchFrame,
     calib: CameraCalibration,
     matcher: CandidateLoopMatcher | None = None,
-) -> tuple[float, float, int, bool]:
-    """(wall ms, process CPU ms, best inliers or 0, best == true chip) of one ``match()`` call.
+) -> tuple[float, float, int, bool, float]:
+    """(wall ms, process CPU ms, best inliers or 0, best == true chip, centre error m or nan) of one
+    ``match()`` call; the error is ``_centre_error_m`` of the best candidate.
 
     CPU time counts every thread of the process (ORT and OpenCV workers): well below wall time means
     the call waited for a core, i.e. the machine was busy with other work.
@@ -513,9 +530,33 @@ def _timed_match(
     try:
         result = (matcher or strategy.matcher).match(bf.frame, rerank, calib)
     except InsufficientInliersError:
-        return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3, 0, False
+        return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3, 0, False, math.nan
     ms, cpu_ms = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
-    return ms, cpu_ms, result.best.inlier_count, result.best.tile_id == bf.candidates[0].tile_id
+    best = result.best
+    chip = next(c for c in bf.candidates if c.tile_id == best.tile_id)
+    error_m = _centre_error_m(best.inlier_correspondences, chip, bf, calib)
+    return ms, cpu_ms, best.inlier_count, best.tile_id == bf.candidates[0].tile_id, error_m
+
+
+def _centre_error_m(
+    inliers: np.ndarray, chip: TilePixelsHandle, bf: BenchFrame, calib: CameraCalibration
+) -> float:
+    """Metres between the true ground point under the principal point and where the inliers put it:
+    the principal point through the least-squares homography of the inliers (nav-frame px -> chip px),
+    then the chip's georeference. A C3-level check of the solution (C4's pose is not run here); nan
+    when the inliers give no homography."""
+    import cv2  # the benchmark's only direct OpenCV call
+
+    corr = np.asarray(inliers, dtype=np.float64)
+    if len(corr) < 4 or not all(math.isfinite(v) for v in bf.centre_lonlat):
+        return math.nan
+    h_mat, _ = cv2.findHomography(corr[:, :2], corr[:, 2:4], 0)
+    if h_mat is None:
+        return math.nan
+    p = np.array([calib.cx_px, calib.cy_px, 1.0]) @ h_mat.T
+    lon, lat = chip.chip_px_to_lonlat(np.array([[p[0] / p[2], p[1] / p[2]]]))
+    true_lon, true_lat = bf.centre_lonlat
+    return float(haversine_m(true_lat, true_lon, float(lat[0]), float(lon[0])))
 
 
 def _query_image(strategy: _Strategy, bf: BenchFrame, calib: CameraCalibration) -> np.ndarray:
@@ -640,6 +681,7 @@ def run_matcher_benchmark(
     config_overrides: Mapping[str, Any] | None = None,
     echo: Callable[[str], None] | None = print,
     cache_dir: Path | str | None = None,
+    frames_path: Path | str | None = None,
 ) -> dict[str, Any]:
     """Run the benchmark described in the module docstring; returns the figures (JSON-serialisable).
 
@@ -653,6 +695,10 @@ def run_matcher_benchmark(
     (``gdnav cache features``) is also timed with them (``frame_precomputed_ms``: query extraction + N x
     (read the tile's features + match + RANSAC), with an empty in-memory cache), side by side with the cold
     frame (N live tile extractions).
+    ``frames_path``: render the frames from this image of the same area (another date: cross-date pairs)
+    instead of the map; the chips stay the map's. Every strategy's solutions are scored against the
+    truth (``solutions``: solved frames, the error of the ground point under the principal point, and how
+    many land more than ``WRONG_SOLUTION_MAP_PX`` map pixels off).
     Raises ``BenchmarkError`` for an unusable map or bad arguments.
     """
     if n_frames < 1 or n_candidates < 1:
@@ -675,6 +721,7 @@ def run_matcher_benchmark(
         chip_size_px=chip_size_px,
         alt_agl_m=alt_agl_m,
         seed=seed,
+        frames_path=None if frames_path is None else Path(frames_path),
     )
     render_s = time.perf_counter() - t_render
     store = None
@@ -722,23 +769,26 @@ def run_matcher_benchmark(
         for s in built:
             s.matcher.tile_cache.clear()
             gc.collect()
-            cold_ms, cold_cpu_ms, best_inliers, best_is_true = _timed_match(s, bf, calib)
-            warm_ms, _, _, _ = _timed_match(s, bf, calib)
+            cold_ms, cold_cpu_ms, best_inliers, best_is_true, error_m = _timed_match(s, bf, calib)
+            warm_ms, *_ = _timed_match(s, bf, calib)
             s.add("frame_cold_ms", cold_ms)
             s.add("frame_cold_cpu_ms", cold_cpu_ms)
             s.add("frame_warm_ms", warm_ms)
             if s.precomputed is not None:
                 s.precomputed.tile_cache.clear()
                 gc.collect()
-                pre_ms, _, pre_inliers, _ = _timed_match(s, bf, calib, s.precomputed)
+                pre_ms, _, pre_inliers, *_ = _timed_match(s, bf, calib, s.precomputed)
                 s.add("frame_precomputed_ms", pre_ms)
                 s.add("precomputed_same_best_inliers", float(pre_inliers == best_inliers))
             s.add("best_inliers", best_inliers)
             s.add("best_is_true_chip", float(best_is_true))
+            if best_inliers > 0:
+                s.add("centre_error_m", error_m)
             _measure_candidates(s, bf, calib)
     heap = {s.name: round(_python_heap_peak_mb(s, frames[0], calib), 2) for s in built}
 
     base = built[0]
+    wrong_m = WRONG_SOLUTION_MAP_PX * float(frames[0].candidates[0].gsd_m_px)
     results: dict[str, Any] = {}
     for s in built:
         entry: dict[str, Any] = {k: _pct(s.samples.get(k, [])) for k in _LATENCY_KEYS}
@@ -749,6 +799,15 @@ def run_matcher_benchmark(
             "wrong_chip_max": _pct(s.samples["wrong_chip_max_inliers"]),
             "true_chip_ranked_first": round(float(np.mean(s.samples["best_is_true_chip"])), 3),
             "frames_failed": int(sum(1 for v in s.samples["best_inliers"] if v == 0)),
+        }
+        errors = [e for e in s.samples.get("centre_error_m", []) if math.isfinite(e)]
+        entry["solutions"] = {
+            "frames": len(frames),
+            "solved": len(s.samples.get("centre_error_m", [])),
+            "wrong": sum(1 for e in errors if e > wrong_m),
+            "wrong_beyond_m": round(wrong_m, 2),
+            "centre_error_m": _pct(errors),
+            "centre_error_max_m": round(max(errors), 2) if errors else None,
         }
         entry["ratio_to_classical"] = {
             k: _ratio(entry[k], _pct(base.samples.get(k, []))) for k in _LATENCY_KEYS
@@ -794,6 +853,7 @@ def run_matcher_benchmark(
         },
         "setup": {
             "map": str(map_path),
+            "frames_from": str(frames_path or map_path),
             "n_frames": n_frames,
             "n_candidates": n_candidates,
             "chip_size_px": chip_size_px,
@@ -832,8 +892,8 @@ def format_report(report: Mapping[str, Any]) -> str:
         f"(load avg {machine['load_avg_1_5_15']} at start), onnxruntime {machine['onnxruntime']}, "
         f"OpenCV {machine['opencv']}",
         f"{setup['n_frames']} frames {w}x{h} rendered at {setup['alt_agl_m']:g} m AGL (random heading) from "
-        f"{Path(setup['map']).name}; N={setup['n_candidates']} chips of {setup['chip_size_px']} px (true + "
-        f"{setup['n_candidates'] - 1} wrong)",
+        f"{Path(setup['frames_from']).name}; N={setup['n_candidates']} chips of {setup['chip_size_px']} px "
+        f"(true + {setup['n_candidates'] - 1} wrong) from {Path(setup['map']).name}",
         "",
     ]
     header = (
@@ -857,6 +917,14 @@ def format_report(report: Mapping[str, Any]) -> str:
             f"{r['inliers']['true_chip']['p50']:>10.0f}{r['inliers']['wrong_chip_max']['p50']:>10.0f}"
             f"{r['inliers']['true_chip_ranked_first']:>9.2f}{r['memory']['python_heap_peak_cold_frame_mb']:>9.1f}"
             f"{'-' if rss is None else f'{rss:.1f}':>9}"
+        )
+    for name, r in report["strategies"].items():
+        sol = r["solutions"]
+        err = sol["centre_error_m"]
+        lines.append(
+            f"{name}: solved {sol['solved']} of {sol['frames']} frames, "
+            f"{sol['wrong']} more than {sol['wrong_beyond_m']:g} m off; centre error p50/p95/max "
+            + (f"{err['p50']:.1f}/{err['p95']:.1f}/{sol['centre_error_max_m']:.1f} m" if err else "-")
         )
     mem = report["memory"]
     lines += [
