@@ -326,3 +326,34 @@ def test_chip_unknown_tile_raises(store: TileStore) -> None:
     """Asking for a tile that is not in the cache is a TileStoreError naming it."""
     with pytest.raises(TileStoreError, match="not a valid tile"):
         store.chip(TileId.of(ZOOM, 0.0, 0.0), 256)
+
+
+def test_chip_around_is_centred_on_the_ground_point(store: TileStore) -> None:
+    """A chip around a ground point has that point at its centre pixel, the mosaic's pixels, and the id
+    of the tile whose centre is nearest; a tile's own centre gives the tile's chip."""
+    height, width = store.mosaic.shape[:2]
+    lon_a, lat_a = store.mosaic_px_to_lonlat(np.array([width * 0.6 + 0.3, height * 0.5 - 0.2]))
+    lat, lon = float(lat_a), float(lon_a)
+    chip = store.chip_around(lat, lon, 300)
+    assert chip is not None
+    centre = chip.lonlat_to_chip_px(np.array([lon]), np.array([lat]))[0]
+    assert np.abs(centre - 149.5).max() <= 1.0  # the window starts on a whole pixel
+    assert chip.tile_id == store.tiles_near(lat, lon, 1000.0, k=1)[0][0]
+    lon_px, lat_px = chip.chip_px_to_lonlat(np.array([[10.0, 250.0]]))
+    mosaic_px = store.lonlat_to_mosaic_px(lon_px, lat_px)[0].round().astype(int)
+    assert np.array_equal(chip.pixels()[250, 10], store.mosaic[mosaic_px[1], mosaic_px[0]])
+    tile_id = store.tile_ids[len(store) // 2]
+    own = store.chip_around(tile_id.lat_deg, tile_id.lon_deg, 512)
+    assert own is not None and own.origin_px == store.chip(tile_id, 512).origin_px
+
+
+def test_chip_around_off_the_mosaic_is_none_and_near_its_edge_stays_inside(store: TileStore) -> None:
+    """A point off the map gives no chip; one near its edge gives a chip shifted inside, like ``chip``."""
+    west, south, east, north = store.bbox_lonlat
+    assert store.chip_around(north + 0.05, east + 0.05, 256) is None
+    width = store.mosaic.shape[1]
+    chip = store.chip_around((south + north) / 2.0, east - 1e-5, 256)
+    assert chip is not None and chip.pixels().shape == (256, 256, 3)
+    assert chip.origin_px[0] - store.manifest.tile_range.x0 * 256 == width - 256
+    with pytest.raises(ValueError, match="size_px"):
+        store.chip_around(south, west, 0)

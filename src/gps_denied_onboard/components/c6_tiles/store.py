@@ -314,6 +314,33 @@ class TileStore:
         origin = (self._mosaic_origin_px[0] + col0, self._mosaic_origin_px[1] + row0)
         return TileChip(tile_id, self._grid, pixels, origin)
 
+    def chip_around(self, lat_deg: float, lon_deg: float, size_px: int) -> TileChip | None:
+        """A ``size_px`` square chip centred on the ground point (``lat_deg``, ``lon_deg``), shifted to stay
+        inside the mosaic like ``chip``; its ``tile_id`` is the valid tile whose centre is nearest the
+        point. None when the point is off the mosaic (or the cache has no tile).
+
+        The chip a tile gives is centred on the tile, up to half a tile from where the camera looks; cut
+        around the ground under the camera it holds more of the frame's footprint (measured across dates
+        in ``docs/benchmarks.md``, "Chips around the footprint")."""
+        if size_px < 1:
+            raise ValueError(f"size_px must be >= 1, got {size_px}")
+        x, y = (float(v) for v in self.lonlat_to_mosaic_px(np.array(lon_deg), np.array(lat_deg)))
+        height, width = self._mosaic.shape[:2]
+        if not (0.0 <= x < width and 0.0 <= y < height):
+            return None
+        # The point is on the mosaic, so every tile centre is within its diagonal (twice: Mercator scale).
+        nearest = self.tiles_near(lat_deg, lon_deg, 2.0 * math.hypot(width, height) * self.gsd_m_px, k=1)
+        if not nearest:
+            return None
+        # The pixel whose top-left corner is nearest the point is the chip's centre, as ``chip`` takes a
+        # tile's; 0.01 px of slack, so that a tile's centre read back from its id (lat/lon to 1e-7 deg, a
+        # few thousandths of a pixel) gives the tile's own chip.
+        col0, chip_w = _clamp_span(math.floor(x + 0.51) - size_px // 2, size_px, width)
+        row0, chip_h = _clamp_span(math.floor(y + 0.51) - size_px // 2, size_px, height)
+        pixels = self._verified(row0, col0, chip_h, chip_w)
+        origin = (self._mosaic_origin_px[0] + col0, self._mosaic_origin_px[1] + row0)
+        return TileChip(nearest[0][0], self._grid, pixels, origin)
+
     def _verified(self, row0: int, col0: int, h: int, w: int) -> np.ndarray:
         """A read-only copy of mosaic[row0:row0+h, col0:col0+w], every cell it touches checked against its
         digest in the copy itself (corrupt cells zeroed)."""
