@@ -8,12 +8,16 @@ import time
 import uuid
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from gps_denied_onboard.bench.vpr import render_queries, true_tiles
 from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
+from gps_denied_onboard.components.c2_5_rerank.footprint import FOOTPRINT_CHIP_MAX_OFFSET_FRAC, FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
+from gps_denied_onboard.components.c2_5_rerank.passthrough import PassthroughRerank
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
+from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.types import VprCandidate, VprResult
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
@@ -145,3 +149,53 @@ def test_rerank_rejects_bad_configuration(store: TileStore) -> None:
         InlierRerank(store, calibration=CALIB, ransac_filter=RansacFilter(), top_n=0)
     with pytest.raises(ValueError, match="detector"):
         InlierRerank(store, calibration=CALIB, ransac_filter=RansacFilter(), detector="surf")  # type: ignore[arg-type]
+
+
+def _passthrough(store: TileStore, frame: NavCameraFrame, tiles: list) -> RerankResult:  # type: ignore[type-arg]
+    return PassthroughRerank(store, top_n=3, chip_size_px=CHIP).rerank(frame, _vpr_result(frame, tiles))
+
+
+def test_footprint_chip_applies_only_while_the_prior_is_tight(store: TileStore) -> None:
+    """The chip is cut around the footprint only while 3 sigma of the prior is within 1/8 of its side."""
+    chips = FootprintChips(store, chip_size_px=CHIP)
+    bound_m = FOOTPRINT_CHIP_MAX_OFFSET_FRAC * CHIP * store.gsd_m_px / 3.0
+    assert chips.max_sigma_m == pytest.approx(bound_m)
+    assert chips.applies(bound_m) and chips.applies(0.3)
+    assert not chips.applies(bound_m * 1.01) and not chips.applies(math.nan)
+    with pytest.raises(ValueError, match="chip_size_px"):
+        FootprintChips(store, chip_size_px=0)
+
+
+def test_footprint_chip_goes_first_in_place_of_its_tile(store: TileStore, queries: list) -> None:
+    """The footprint's chip, centred on it, heads the candidates and takes the place of the same tile's
+    chip; the other candidates keep their order and C3 still gets N chips."""
+    q = queries[0]
+    lat, lon = q.centre_lat_deg, q.centre_lon_deg
+    own = store.tiles_near(lat, lon, 1000.0, k=1)[0][0]
+    others = [t for t in store.tile_ids if t != own][:2]
+    before = _passthrough(store, q.frame, [others[0], own, others[1]])
+    after = FootprintChips(store, chip_size_px=CHIP).first(before, lat, lon)
+    assert [c.tile_id for c in after.candidates] == [own, others[0], others[1]]
+    head = after.candidates[0]
+    assert head.vpr_distance == pytest.approx(0.51) and head.rerank_inliers == -1
+    centre = head.tile_pixels_handle.lonlat_to_chip_px(np.array([lon]), np.array([lat]))[0]
+    assert np.abs(centre - (CHIP / 2 - 0.5)).max() <= 1.0
+    assert after.candidates[1].tile_pixels_handle is before.candidates[0].tile_pixels_handle
+    assert after.frame_id == before.frame_id
+
+
+def test_footprint_chip_displaces_the_last_candidate_or_nothing_off_the_map(
+    store: TileStore, queries: list
+) -> None:
+    """When VPR did not return the footprint's tile the last candidate gives way; a footprint off the
+    map leaves the candidates as they were."""
+    q = queries[1]
+    own = store.tiles_near(q.centre_lat_deg, q.centre_lon_deg, 1000.0, k=1)[0][0]
+    others = [t for t in store.tile_ids if t != own][:3]
+    before = _passthrough(store, q.frame, others)
+    chips = FootprintChips(store, chip_size_px=CHIP)
+    after = chips.first(before, q.centre_lat_deg, q.centre_lon_deg)
+    assert [c.tile_id for c in after.candidates] == [own, others[0], others[1]]
+    assert math.isnan(after.candidates[0].vpr_distance)
+    _, _, east, north = store.bbox_lonlat
+    assert chips.first(before, north + 0.1, east + 0.1) is before
