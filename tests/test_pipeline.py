@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pytest
@@ -27,7 +27,7 @@ from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.config import EstimatorConfig, IntegrityConfig, PoseConfig, VprConfig
 from gps_denied_onboard.constants import Provenance
-from gps_denied_onboard.geo import LocalTangentPlane
+from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
 from gps_denied_onboard.pipeline import InitialPrior, NavigationPipeline
 
 LTP = LocalTangentPlane(47.0, 8.0, 400.0)
@@ -579,3 +579,41 @@ def test_fixes_later_than_the_axis_can_fuse_are_dropped_and_the_operator_is_told
     assert daemon.counters.fixes_too_late == 3
     assert link.texts == [f"GDN: fix {late[0].fused_behind_s:.1f} s late > 5 s, dropped"] * 2
     assert all(len(t) <= 50 for t in link.texts)  # STATUSTEXT's text field
+
+
+class _FootprintSpy:
+    """C2.5 footprint-chip double: says whether a sigma is tight (``max_sigma_m``), records where it was
+    asked to cut, and leaves the candidates as they are."""
+
+    def __init__(self, max_sigma_m: float) -> None:
+        self.max_sigma_m = max_sigma_m
+        self.asked: list[tuple[float, float]] = []
+
+    def applies(self, horiz_sigma_m: float) -> bool:
+        return horiz_sigma_m <= self.max_sigma_m
+
+    def first(self, result: RerankResult, lat_deg: float, lon_deg: float) -> RerankResult:
+        self.asked.append((lat_deg, lon_deg))
+        return result
+
+
+@pytest.mark.parametrize(("max_sigma_m", "cut"), [(50.0, True), (10.0, False)])
+def test_pipeline_cuts_the_first_chip_around_the_ground_under_the_camera(
+    max_sigma_m: float, cut: bool
+) -> None:
+    """With a prior tight enough the chip is asked for around the ground the principal ray meets: the
+    prior's position moved by the attitude's lean (5 deg of roll at 120 m AGL: 10.5 m across the
+    heading, here east or west); with a looser prior it is not asked for at all."""
+    fdr = _Fdr()
+    p = _two_tile_pipeline(fdr, _HoverVo(), _PosePerTile())
+    spy = _FootprintSpy(max_sigma_m)
+    p._footprint_chips = spy  # type: ignore[assignment]
+    frame = replace(_frame(0, T0), attitude=Attitude(math.radians(5.0), 0.0, 0.0))
+    p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test"))
+    p.localise(frame)
+    if not cut:
+        assert spy.asked == []
+        return
+    (lat, lon), = spy.asked
+    assert haversine_m(47.0, 8.0, lat, lon) == pytest.approx(120.0 * math.tan(math.radians(5.0)), abs=0.05)
+    assert abs(lat - 47.0) * 111_320.0 < 0.05  # no north component: the lean is across a north heading

@@ -234,6 +234,9 @@ class RerankConfig:
     strategy: Str = "passthrough"
     #: Candidates handed to the matcher (N).
     top_n: Annotated[int, Strict(), Field(ge=1, le=10)] = 3
+    #: While the prior places the camera's footprint within 1/8 of a chip at 3 sigma, the first chip is cut
+    #: around the footprint instead of around a tile (c2_5_rerank/footprint.py): more of the frame on it.
+    footprint_chip: Bool = True
 
 
 @dataclasses.dataclass(frozen=True)

@@ -31,10 +31,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Final
 
+import numpy as np
 import structlog
 
 from gps_denied_onboard.camera.types import CameraCalibration, CameraMount, NavCameraFrame
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
+from gps_denied_onboard.components.c2_5_rerank.footprint import FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
 from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion, VprStrategy
@@ -60,6 +62,7 @@ from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import VprConfig
 from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
 from gps_denied_onboard.geo import LocalTangentPlane
+from gps_denied_onboard.helpers.frame_rectifier import frame_to_ground_homography
 
 log = structlog.get_logger(__name__)
 
@@ -182,9 +185,11 @@ class NavigationPipeline:
         attitude_check: AttitudeCheck,
         ground_tilt_check: AttitudeCheck | None = None,
         mount: CameraMount | None = None,
+        footprint_chips: FootprintChips | None = None,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
     ) -> None:
         self._calib = calibration
+        self._footprint_chips = footprint_chips
         self._mount = mount if mount is not None else CameraMount()
         self._ltp = ltp
         self._ground_alt_amsl_m = ground_alt_amsl_m
@@ -517,7 +522,7 @@ class NavigationPipeline:
         timings["vpr"] = (t1 - t0) / 1e6
         if not vpr_result.candidates:
             return FixAttempt(None, 0, None, "no_tiles_in_region")
-        rerank_result = self._rerank.rerank(frame, vpr_result)
+        rerank_result = self._footprint_first(frame, prior_state, self._rerank.rerank(frame, vpr_result))
         t2 = self._clock_ns()
         timings["rerank"] = (t2 - t1) / 1e6
         try:
@@ -573,6 +578,27 @@ class NavigationPipeline:
             integrity=verdict,
             attitude=attitude,
         )
+
+    def _footprint_first(
+        self, frame: NavCameraFrame, prior_state: EstimatorState, result: RerankResult
+    ) -> RerankResult:
+        """``result`` with the chip around the ground under the principal point first (``FootprintChips``)
+        while the prior is tight: where the prior puts the camera, plus the ground offset of the
+        principal ray from the camera's attitude and height (``frame`` carries the camera's attitude)."""
+        chips = self._footprint_chips
+        if chips is None or not chips.applies(prior_state.horiz_sigma_m):
+            return result
+        if frame.attitude is None or frame.alt_agl_m is None:
+            return result
+        ray = frame_to_ground_homography(self._calib, frame.attitude, frame.alt_agl_m) @ np.array(
+            [self._calib.cx_px, self._calib.cy_px, 1.0]
+        )
+        if ray[2] <= 0.0:
+            return result  # the principal ray does not meet the ground
+        centre_ned_m = np.array(prior_state.pos_ned_m, dtype=np.float64)
+        centre_ned_m[:2] += ray[:2] / ray[2]
+        lat, lon, _ = self._ltp.to_geodetic(centre_ned_m)
+        return chips.first(result, float(lat), float(lon))
 
     def _judge(
         self,

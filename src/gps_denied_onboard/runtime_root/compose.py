@@ -15,6 +15,7 @@ from gps_denied_onboard.camera.sources import CameraSourceError, FrameSource, op
 from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration, CameraMount
 from gps_denied_onboard.clock import DaemonClock
 from gps_denied_onboard.components.c1_vio import HomographyVo
+from gps_denied_onboard.components.c2_5_rerank.footprint import FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
 from gps_denied_onboard.components.c2_5_rerank.passthrough import PassthroughRerank
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
@@ -510,8 +511,14 @@ def _pipeline(
     matcher: CrossDomainMatcher | None,
     time_axis: TimeAxis,
     fdr: FdrClient,
+    tiles: TileStore | None,
 ) -> NavigationPipeline:
     """The F3 pipeline, wired the same way for the daemon and for ``gdnav replay``."""
+    footprint_chips = (
+        FootprintChips(tiles, chip_size_px=config.matcher.chip_size_px)
+        if tiles is not None and config.rerank.footprint_chip
+        else None
+    )
     return NavigationPipeline(
         calibration=calibration,
         ltp=ltp,
@@ -540,6 +547,7 @@ def _pipeline(
         mount=CameraMount(
             math.radians(config.camera.mount_roll_deg), math.radians(config.camera.mount_pitch_deg)
         ),
+        footprint_chips=footprint_chips,
     )
 
 
@@ -580,7 +588,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     journal = RecordingJournal(tracker, lambda fields: fdr.record(FdrKind.ESTIMATOR_INPUT, fields))
     time_axis = _time_axis(config, ltp, journal, clock=clock)
     vo = HomographyVo(calibration)
-    pipeline = _pipeline(config, calibration, ltp, vo, vpr, rerank, matcher, time_axis, fdr)
+    pipeline = _pipeline(config, calibration, ltp, vo, vpr, rerank, matcher, time_axis, fdr, tiles)
     link = MavlinkLink(config.mavlink, tracker, fdr, clock.now_unix_s, ltp=ltp)
     camera = open_camera_source(config)
     return RuntimeRoot(
@@ -654,5 +662,5 @@ def compose_replay(
         ltp = LocalTangentPlane(*ltp_origin_lat_lon, config.terrain.ground_alt_amsl_m)
     time_axis = _time_axis(config, ltp, journal, clock_unix_usec=clock_unix_usec)
     vo = HomographyVo(calib) if vo_max_gap_s is None else HomographyVo(calib, max_gap_s=vo_max_gap_s)
-    pipeline = _pipeline(config, calib, ltp, vo, vpr, rerank, matcher, time_axis, fdr)
+    pipeline = _pipeline(config, calib, ltp, vo, vpr, rerank, matcher, time_axis, fdr, tiles)
     return ReplayRoot(config, calib, ltp, pipeline, time_axis, tiles)
