@@ -305,3 +305,40 @@ def test_bench_resolve_model_paths_pairs_each_extractor_with_its_lightglue(tmp_p
     assert got["disk_lightglue"] == tmp_path / "disk_lightglue.onnx"
     assert got["xfeat_lightglue"] == tmp_path / "xfeat_lighterglue.onnx"
     assert "aliked" not in got and "aliked_lightglue" not in got
+
+
+def test_bench_matcher_footprint_first_chip_is_cut_around_the_frame(geovision: Path, tmp_path: Path) -> None:
+    """--first-chip footprint: the true chip is centred within the prior error the daemon allows of the
+    frame's centre (the nearest tile's is not, in general), and the wrong chips are the same as with the
+    nearest tile's, so the two runs differ only in the true chip."""
+    from gps_denied_onboard.bench.matcher import render_bench_frames, with_cache_candidates
+    from gps_denied_onboard.camera.types import CameraCalibration
+    from gps_denied_onboard.components.c2_5_rerank.footprint import FOOTPRINT_CHIP_MAX_OFFSET_FRAC
+    from gps_denied_onboard.components.c6_tiles.store import TileStore
+    from gps_denied_onboard.components.c10_cache_build import build_cache
+    from gps_denied_onboard.geo import haversine_m
+
+    cache = tmp_path / "cache"
+    build_cache(geovision, cache, progress=False)
+    store = TileStore.open(cache)
+    calib = CameraCalibration.from_hfov(640, 480, 70.0)
+    frames = render_bench_frames(
+        geovision, calib, n_frames=6, n_candidates=1, chip_size_px=256, alt_agl_m=120.0, seed=3
+    )
+    kwargs = dict(n_candidates=3, chip_size_px=256, seed=3)
+    nearest = with_cache_candidates(frames, store, **kwargs)  # type: ignore[arg-type]
+    around = with_cache_candidates(frames, store, **kwargs, first_chip="footprint")  # type: ignore[arg-type]
+    allowed_m = FOOTPRINT_CHIP_MAX_OFFSET_FRAC * 256 * store.gsd_m_px * np.sqrt(2.0) + 2 * store.gsd_m_px
+    offsets_m = {"nearest": [], "footprint": []}
+    for bf, n, a in zip(frames, nearest, around, strict=True):
+        lon, lat = bf.centre_lonlat
+        assert [c.origin_px for c in n.candidates[1:]] == [c.origin_px for c in a.candidates[1:]]  # type: ignore[attr-defined]
+        for name, chip in (("nearest", n.candidates[0]), ("footprint", a.candidates[0])):
+            c_lon, c_lat = chip.chip_px_to_lonlat(np.array([127.5, 127.5]))
+            offsets_m[name].append(haversine_m(lat, lon, float(c_lat), float(c_lon)))
+    assert max(offsets_m["footprint"]) <= allowed_m
+    assert max(offsets_m["nearest"]) > allowed_m
+    with pytest.raises(BenchmarkError, match="first_chip must be one of nearest_tile, footprint"):
+        with_cache_candidates(frames, store, **kwargs, first_chip="centre")  # type: ignore[arg-type]
+    with pytest.raises(BenchmarkError, match="needs a map cache"):
+        run_matcher_benchmark(map_path=geovision, n_frames=1, first_chip="footprint", echo=None)

@@ -94,6 +94,13 @@ def _add_matcher_arguments(p: argparse.ArgumentParser) -> None:
         "with precomputed tile features in it (gdnav cache features) are also timed with them",
     )
     p.add_argument("--frames-from", type=Path, default=None, help=_FRAMES_FROM_HELP)
+    p.add_argument(
+        "--first-chip",
+        default="nearest_tile",
+        metavar="{nearest_tile,footprint}",
+        help="with --cache: the true chip is the nearest tile's (default) or the one the daemon cuts "
+        "around the footprint while its prior is tight (rerank.footprint_chip); checked by the benchmark",
+    )
     p.add_argument("--chip-size", type=int, default=512, help="chip side, px (default 512)")
     p.add_argument("--alt", type=float, default=120.0, help="frames' height above ground, m (default 120)")
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every figure to OUT")
@@ -125,6 +132,7 @@ def _run_matcher(args: argparse.Namespace) -> int:
             seed=args.seed,
             cache_dir=args.cache,
             frames_path=args.frames_from,
+            first_chip=args.first_chip,
             chip_size_px=args.chip_size,
             alt_agl_m=args.alt,
         )

@@ -59,6 +59,7 @@ from typing import Any, Final
 import numpy as np
 
 from gps_denied_onboard.camera.types import Attitude, CameraCalibration, NavCameraFrame
+from gps_denied_onboard.components.c2_5_rerank.footprint import FOOTPRINT_CHIP_MAX_OFFSET_FRAC
 from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
 from gps_denied_onboard.components.c3_matcher.base import CandidateLoopMatcher
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
@@ -103,6 +104,8 @@ CPU_CLASSICAL_FRAME_P95_MS: Final[float] = 250.0
 _EARTH_M_PER_DEG_LAT: Final[float] = 111_320.0
 _MAX_TILT_DEG: Final[float] = 3.0
 _TRUE_CHIP_JITTER: Final[float] = 0.15
+#: Where the true chip comes from with a cache (``with_cache_candidates``).
+FIRST_CHIPS: Final[tuple[str, ...]] = ("nearest_tile", "footprint")
 #: A solved frame whose centre lands more than this many map pixels from the truth counts as wrong.
 WRONG_SOLUTION_MAP_PX: Final[float] = 10.0
 
@@ -306,14 +309,32 @@ def render_bench_frames(
 
 
 def with_cache_candidates(
-    frames: Sequence[BenchFrame], store: Any, *, n_candidates: int, chip_size_px: int, seed: int
+    frames: Sequence[BenchFrame],
+    store: Any,
+    *,
+    n_candidates: int,
+    chip_size_px: int,
+    seed: int,
+    first_chip: str = "nearest_tile",
 ) -> list[BenchFrame]:
     """The same frames with their candidates taken from a map cache (``TileStore``) instead of the
-    GeoTIFF: the chip of the tile nearest to the frame's centre first (the tile a good prior gives), then
-    chips of random tiles more than a chip diagonal away (on a map too small for that, the farthest
-    tiles). These are the chips the daemon matches, so precomputed tile features apply to them."""
+    GeoTIFF: the true chip first, then chips of random tiles more than a chip diagonal away (on a map too
+    small for that, the farthest tiles). These are the chips the daemon matches, so precomputed tile
+    features apply to them.
+
+    ``first_chip``: ``nearest_tile`` = the chip of the tile nearest to the frame's centre (the tile a good
+    prior gives); ``footprint`` = the chip the daemon cuts around the footprint while its prior is tight
+    (``TileStore.chip_around``, ``rerank.footprint_chip``), around the frame's centre moved by up to
+    ``FOOTPRINT_CHIP_MAX_OFFSET_FRAC`` of the chip in north and east (uniform; the prior error the daemon
+    allows at 3 sigma). The wrong chips are the same for both, so the two can be compared frame by frame.
+    """
+    if first_chip not in FIRST_CHIPS:
+        raise BenchmarkError(f"first_chip must be one of {', '.join(FIRST_CHIPS)}, got {first_chip!r}")
     rng = np.random.default_rng(seed + 1)
-    out = []
+    offsets_m = np.random.default_rng(seed + 2).uniform(-1.0, 1.0, (len(frames), 2)) * (
+        FOOTPRINT_CHIP_MAX_OFFSET_FRAC * chip_size_px * float(store.gsd_m_px)
+    )
+    out: list[BenchFrame] = []
     diag_m = chip_size_px * float(store.gsd_m_px) * math.sqrt(2.0)
     everything = 1e8
     for bf in frames:
@@ -325,8 +346,17 @@ def with_cache_candidates(
         if len(far) < n_candidates - 1:
             far = [t for t, _ in by_distance[-(n_candidates - 1) :]] if n_candidates > 1 else []
         picks = [far[i] for i in rng.choice(len(far), size=n_candidates - 1, replace=False)]
-        chips = tuple(store.chip(t, chip_size_px) for t in [by_distance[0][0], *picks])
-        out.append(BenchFrame(bf.frame, chips, bf.footprint_px, bf.centre_lonlat))
+        wrong = [store.chip(t, chip_size_px) for t in picks]
+        true = store.chip(by_distance[0][0], chip_size_px)
+        if first_chip == "footprint":
+            d_north_m, d_east_m = offsets_m[len(out)]
+            around = store.chip_around(
+                lat + d_north_m / _EARTH_M_PER_DEG_LAT,
+                lon + d_east_m / (_EARTH_M_PER_DEG_LAT * math.cos(math.radians(lat))),
+                chip_size_px,
+            )
+            true = true if around is None else around
+        out.append(BenchFrame(bf.frame, (true, *wrong), bf.footprint_px, bf.centre_lonlat))
     return out
 
 
@@ -682,6 +712,7 @@ def run_matcher_benchmark(
     echo: Callable[[str], None] | None = print,
     cache_dir: Path | str | None = None,
     frames_path: Path | str | None = None,
+    first_chip: str = "nearest_tile",
 ) -> dict[str, Any]:
     """Run the benchmark described in the module docstring; returns the figures (JSON-serialisable).
 
@@ -694,7 +725,8 @@ def run_matcher_benchmark(
     (``with_cache_candidates``) and each learned strategy whose precomputed tile features it holds
     (``gdnav cache features``) is also timed with them (``frame_precomputed_ms``: query extraction + N x
     (read the tile's features + match + RANSAC), with an empty in-memory cache), side by side with the cold
-    frame (N live tile extractions).
+    frame (N live tile extractions). ``first_chip`` (with a cache): the true chip is the nearest tile's or
+    the one cut around the footprint (``with_cache_candidates``).
     ``frames_path``: render the frames from this image of the same area (another date: cross-date pairs)
     instead of the map; the chips stay the map's. Every strategy's solutions are scored against the
     truth (``solutions``: solved frames, the error of the ground point under the principal point, and how
@@ -703,6 +735,8 @@ def run_matcher_benchmark(
     """
     if n_frames < 1 or n_candidates < 1:
         raise BenchmarkError(f"n_frames and n_candidates must be >= 1, got {n_frames}, {n_candidates}")
+    if first_chip != "nearest_tile" and cache_dir is None:
+        raise BenchmarkError(f"first_chip {first_chip!r} needs a map cache (the chips are the cache's)")
     models = resolve_model_paths(model_paths, None if model_dir is None else Path(model_dir))
     if strategies is None:
         wanted = [BASELINE] + [s for s, (key, _, _) in LEARNED.items() if key in models]
@@ -736,7 +770,12 @@ def run_matcher_benchmark(
         except TileStoreError as exc:
             raise BenchmarkError(f"cannot use the benchmark cache: {exc}") from exc
         frames = with_cache_candidates(
-            frames, store, n_candidates=n_candidates, chip_size_px=chip_size_px, seed=seed
+            frames,
+            store,
+            n_candidates=n_candidates,
+            chip_size_px=chip_size_px,
+            seed=seed,
+            first_chip=first_chip,
         )
         for label, info in store.manifest.tile_features.items():
             tile_features[label] = {
@@ -866,6 +905,7 @@ def run_matcher_benchmark(
             "models": {k: str(v) for k, v in models.items()},
             "render_s": round(render_s, 2),
             "cache": None if cache_dir is None else str(cache_dir),
+            "first_chip": None if cache_dir is None else first_chip,
         },
         "tile_features": tile_features,
         "notes": notes,
@@ -953,8 +993,9 @@ def format_report(report: Mapping[str, Any]) -> str:
         )
     if setup.get("cache"):
         lines.append(
-            f"candidates: chips of the cache {setup['cache']}; frame pre = the frame with the cache's "
-            "precomputed tile features (empty in-memory cache)"
+            f"candidates: chips of the cache {setup['cache']}, the true one "
+            f"{'cut around the footprint' if setup.get('first_chip') == 'footprint' else 'the nearest tile'}"
+            "'s; frame pre = the frame with the cache's precomputed tile features (empty in-memory cache)"
         )
     for name, r in report["strategies"].items():
         if "precomputed_same_best_inliers" in r:
