@@ -70,6 +70,10 @@ def test_bench_matcher_classical_finds_the_true_chip(classical_report: dict) -> 
     sol = classical_report["strategies"]["classical"]["solutions"]
     assert sol["frames"] == 3 and sol["solved"] == 3 and sol["wrong"] == 0
     assert sol["centre_error_m"]["p95"] < sol["wrong_beyond_m"] == pytest.approx(2.85, abs=0.2)
+    per_frame = classical_report["strategies"]["classical"]["per_frame"]
+    assert len(per_frame["true_chip_inliers"]) == len(per_frame["best_is_true_chip"]) == 3
+    assert max(e for e in per_frame["centre_error_m"] if e is not None) <= sol["centre_error_max_m"]
+    assert sum(e is not None for e in per_frame["centre_error_m"]) == sol["solved"]
 
 
 def test_bench_matcher_table_lists_strategy_and_target(classical_report: dict) -> None:

@@ -823,6 +823,7 @@ def run_matcher_benchmark(
             s.add("best_is_true_chip", float(best_is_true))
             if best_inliers > 0:
                 s.add("centre_error_m", error_m)
+            s.add("frame_centre_error_m", error_m if best_inliers > 0 else math.nan)
             _measure_candidates(s, bf, calib)
     heap = {s.name: round(_python_heap_peak_mb(s, frames[0], calib), 2) for s in built}
 
@@ -847,6 +848,16 @@ def run_matcher_benchmark(
             "wrong_beyond_m": round(wrong_m, 2),
             "centre_error_m": _pct(errors),
             "centre_error_max_m": round(max(errors), 2) if errors else None,
+        }
+        # Frame by frame, in render order (None = not solved), so that two runs over the same frames
+        # (the same seed) can be compared pair by pair, e.g. --first-chip nearest_tile against footprint.
+        entry["per_frame"] = {
+            "true_chip_inliers": [int(v) for v in s.samples["true_chip_inliers"]],
+            "best_inliers": [int(v) for v in s.samples["best_inliers"]],
+            "best_is_true_chip": [bool(v) for v in s.samples["best_is_true_chip"]],
+            "centre_error_m": [
+                round(e, 2) if math.isfinite(e) else None for e in s.samples["frame_centre_error_m"]
+            ],
         }
         entry["ratio_to_classical"] = {
             k: _ratio(entry[k], _pct(base.samples.get(k, []))) for k in _LATENCY_KEYS
