@@ -7,7 +7,8 @@ map at 3.3 m/px, 2014 frames at 1200 m AGL, one flight replayed through the fix 
 ``docs/benchmarks.md``, "Chips around the footprint"): with XFeat + LighterGlue 160 of 161 fixes were
 accepted with it against 152 without (best candidate's median inliers 124 against 97); with ALIKED +
 LightGlue half as many frames had too few inliers (9 against 18), but more were then refused for low
-match confidence, and 108 were accepted against 109. Nothing was accepted beyond 3 sigma either way.
+match confidence, and 108 were accepted against 109; with DISK + LightGlue 114 against 109 (median
+inliers 65 against 46). Nothing was accepted beyond 3 sigma either way.
 
 ``FootprintChips.first`` puts such a chip at the head of the candidates, in place of the candidate of the
 same tile or else of the last one, so C3 still matches ``top_n`` chips. It applies only while the prior
