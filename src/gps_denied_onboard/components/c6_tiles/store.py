@@ -305,14 +305,9 @@ class TileStore:
             raise ValueError(f"size_px must be >= 1, got {size_px}")
         x, y = self._tile_xy[self._index(tile_id)]
         ts = self.tile_size_px
-        height, width = self._mosaic.shape[:2]
         centre_col = (int(x) - self._manifest.tile_range.x0) * ts + ts // 2
         centre_row = (int(y) - self._manifest.tile_range.y0) * ts + ts // 2
-        col0, chip_w = _clamp_span(centre_col - size_px // 2, size_px, width)
-        row0, chip_h = _clamp_span(centre_row - size_px // 2, size_px, height)
-        pixels = self._verified(row0, col0, chip_h, chip_w)
-        origin = (self._mosaic_origin_px[0] + col0, self._mosaic_origin_px[1] + row0)
-        return TileChip(tile_id, self._grid, pixels, origin)
+        return self._chip_centred_on(tile_id, centre_col, centre_row, size_px)
 
     def chip_around(self, lat_deg: float, lon_deg: float, size_px: int) -> TileChip | None:
         """A ``size_px`` square chip centred on the ground point (``lat_deg``, ``lon_deg``), shifted to stay
@@ -335,11 +330,17 @@ class TileStore:
         # The pixel whose top-left corner is nearest the point is the chip's centre, as ``chip`` takes a
         # tile's; 0.01 px of slack, so that a tile's centre read back from its id (lat/lon to 1e-7 deg, a
         # few thousandths of a pixel) gives the tile's own chip.
-        col0, chip_w = _clamp_span(math.floor(x + 0.51) - size_px // 2, size_px, width)
-        row0, chip_h = _clamp_span(math.floor(y + 0.51) - size_px // 2, size_px, height)
+        return self._chip_centred_on(nearest[0][0], math.floor(x + 0.51), math.floor(y + 0.51), size_px)
+
+    def _chip_centred_on(self, tile_id: TileId, centre_col: int, centre_row: int, size_px: int) -> TileChip:
+        """The ``size_px`` chip centred on mosaic pixel (``centre_col``, ``centre_row``), shifted to stay
+        inside the mosaic (spanning it where it is smaller), labelled ``tile_id``."""
+        height, width = self._mosaic.shape[:2]
+        col0, chip_w = _clamp_span(centre_col - size_px // 2, size_px, width)
+        row0, chip_h = _clamp_span(centre_row - size_px // 2, size_px, height)
         pixels = self._verified(row0, col0, chip_h, chip_w)
         origin = (self._mosaic_origin_px[0] + col0, self._mosaic_origin_px[1] + row0)
-        return TileChip(nearest[0][0], self._grid, pixels, origin)
+        return TileChip(tile_id, self._grid, pixels, origin)
 
     def _verified(self, row0: int, col0: int, h: int, w: int) -> np.ndarray:
         """A read-only copy of mosaic[row0:row0+h, col0:col0+w], every cell it touches checked against its
