@@ -62,7 +62,7 @@ from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import VprConfig
 from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
 from gps_denied_onboard.geo import LocalTangentPlane
-from gps_denied_onboard.helpers.frame_rectifier import frame_to_ground_homography
+from gps_denied_onboard.helpers.frame_rectifier import principal_ground_offset_m
 
 log = structlog.get_logger(__name__)
 
@@ -590,13 +590,11 @@ class NavigationPipeline:
             return result
         if frame.attitude is None or frame.alt_agl_m is None:
             return result
-        ray = frame_to_ground_homography(self._calib, frame.attitude, frame.alt_agl_m) @ np.array(
-            [self._calib.cx_px, self._calib.cy_px, 1.0]
-        )
-        if ray[2] <= 0.0:
-            return result  # the principal ray does not meet the ground
+        offset_m = principal_ground_offset_m(self._calib, frame.attitude, frame.alt_agl_m)
+        if offset_m is None:
+            return result
         centre_ned_m = np.array(prior_state.pos_ned_m, dtype=np.float64)
-        centre_ned_m[:2] += ray[:2] / ray[2]
+        centre_ned_m[:2] += offset_m
         lat, lon, _ = self._ltp.to_geodetic(centre_ned_m)
         return chips.first(result, float(lat), float(lon))
 

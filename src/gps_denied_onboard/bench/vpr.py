@@ -52,7 +52,7 @@ from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion, VprStrat
 from gps_denied_onboard.components.c2_vpr.vlad import LocalDescriber, VladParams, VladVpr
 from gps_denied_onboard.components.c6_tiles.descriptor_index import DescriptorIndex, l2_normalise
 from gps_denied_onboard.components.c6_tiles.store import TileStore
-from gps_denied_onboard.helpers.frame_rectifier import frame_to_ground_homography
+from gps_denied_onboard.helpers.frame_rectifier import principal_ground_offset_m
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 
 _EARTH_M_PER_DEG_LAT = 111_320.0
@@ -106,8 +106,10 @@ def render_queries(
             math.radians(rng.uniform(0.0, 360.0)),
         )
         image = renderer.render(calib, lat, lon, alt, att)
-        g = frame_to_ground_homography(calib, att, alt) @ np.array([calib.cx_px, calib.cy_px, 1.0])
-        d_north, d_east = g[0] / g[2], g[1] / g[2]
+        offset_m = principal_ground_offset_m(calib, att, alt)
+        if offset_m is None:
+            raise ValueError(f"frame {i}: the principal ray misses the ground (max_tilt_deg {max_tilt_deg})")
+        d_north, d_east = offset_m
         c_lat = lat + d_north / _EARTH_M_PER_DEG_LAT
         c_lon = lon + d_east / (_EARTH_M_PER_DEG_LAT * math.cos(math.radians(lat)))
         frame = NavCameraFrame(uuid.uuid4(), i, 0, image, att, alt, time.monotonic_ns())

@@ -91,6 +91,21 @@ def frame_to_ground_homography(
     return np.diag([alt_agl_m, alt_agl_m, 1.0]) @ r_ned_cam @ np.linalg.inv(calibration.K)
 
 
+def principal_ground_offset_m(
+    calibration: CameraCalibration, attitude: Attitude, alt_agl_m: float
+) -> tuple[float, float] | None:
+    """(north_m, east_m) of the ground under the principal point from the nadir point; None when the
+    height is not a finite positive number or the principal ray does not meet the ground."""
+    if not (math.isfinite(alt_agl_m) and alt_agl_m > 0.0):
+        return None
+    ray = frame_to_ground_homography(calibration, attitude, alt_agl_m) @ np.array(
+        [calibration.cx_px, calibration.cy_px, 1.0]
+    )
+    if ray[2] <= 0.0:
+        return None
+    return float(ray[0] / ray[2]), float(ray[1] / ray[2])
+
+
 def rectify_to_map_frame(
     frame_image: np.ndarray,
     calibration: CameraCalibration,
