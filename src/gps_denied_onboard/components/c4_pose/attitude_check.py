@@ -27,24 +27,35 @@ AGL strayed 1-4 deg together for tens of frames while scattering a few tenths am
 of a few seconds "proved" the attitude off in three of five flights, refused every fix and left the
 autopilot without a position for 11 and 18 s, and in one for the rest of the flight.
 
-- **Off**: over the newest 4, 8, ... fixes and over all that are kept, the mean is the bias; the
-  attitude is off when, in any of them, the bias less its one-sided 99 % Student-t margin (on the
-  independent fixes, with one fewer degrees of freedom) is beyond three times
+- **Off**: over the newest 4, 8, ... fixes of the current state and over all of them, the mean is the
+  bias; the attitude is off when, in any of them, the bias less its one-sided 99 % Student-t margin (on
+  the independent fixes, with one fewer degrees of freedom) is beyond three times
   ``pose.attitude_sigma_deg`` (the prior claims one sigma; a bias proven beyond three makes its fixes
   lies). Once off it stays off until the newest evidence no longer shows a bias beyond the bound: the
-  newest window that spans enough ground, and the run of departed fixes below (a window of older fixes
-  would hold it long after the attitude is back). While off every fix is refused (``attitude_off``).
-- **Jump**: where the fixes before pin the tilt better than ``pose.attitude_sigma_deg`` (their 99 %
-  prediction interval is narrower: the image is the better tilt sensor there), a fix whose tilt lies
-  outside that interval and beyond the bound is held back (``attitude_jump``) until the next ones say
-  whether it was one bad fix or a new attitude: the fixes that left the interval in a row are windows
-  of their own (4, 8, ... of them; each against the same ground as the fixes before, so their scatter is
-  their own) and 4 of them prove it off, and keep it off while they stay out. This refuses the fixes
-  between the attitude going wrong and the off test seeing it. A fix outside the interval but under
-  the bound (a frame exposed across the step, with part of it) goes through, and is kept out of the
-  interval the next fixes are judged by, as the held ones are. Across dates the interval is the
-  scatter of one fix, wider than the sigma, and nothing is held back (measured before this rule: 7 of
-  52 cross-date fixes held back for nothing).
+  run of fixes that departed from the off state's own interval (below), else the newest window that
+  spans enough ground; while no window of the off state says anything, it stays off. While off every
+  fix is refused (``attitude_off``).
+- **Jump**: where the state's fixes before pin the tilt better than ``pose.attitude_sigma_deg`` (their
+  99 % prediction interval is narrower: the image is the better tilt sensor there), a fix whose tilt
+  lies outside that interval and beyond the bound is held back (``attitude_jump``) until the next ones
+  say whether it was one bad fix or a new attitude: the fixes that left the interval in a row are
+  windows of their own (4, 8, ... of them; each against the same ground as the fixes before, so their
+  scatter is their own) and 4 of them prove it off. This refuses the fixes between the attitude going
+  wrong and the off test seeing it. A fix outside the interval but under the bound (a frame exposed
+  across the step, with part of it) goes through, and is kept out of the interval the next fixes are
+  judged by, as the held ones are. While off, the same run shows the attitude back: 4 fixes that left
+  the off state's interval in a row, their bias within the bound, let go. Across dates the interval is
+  the scatter of one fix, wider than the sigma, and nothing is held back (measured before this rule: 7
+  of 52 cross-date fixes held back for nothing).
+- **Each state's evidence is its own**: the windows, the runs and the interval are over the fixes since
+  the check last changed its mind (the smallest window that proved the attitude off, or the run that
+  showed it back, or else the fix it changed on). A window reaching into the state before mixes two
+  tilts. Measured in CI (2026-11-27, 3 deg of roll for 25 s, same-source): judged against the fixes
+  before the offset, whose autopilot error had wandered 0.5 deg since, the fixes after it kept
+  "departing", the offset's fixes stayed part of the run, and the run held the check off 15 s after the
+  attitude was back (44 of 69 fixes refused). And after a release, a second step was judged against an
+  interval holding both tilts, too wide to see it: in the unit tests' draws its first three fixes went
+  through 2.5 deg off.
 
 What the estimate already holds leaned on the same attitude: the fixes fused before the check saw it,
 and VO, which turns each frame's rays to the ground with the autopilot's attitude. A tilt error ``b``
@@ -175,6 +186,11 @@ class AttitudeCheck:
         #: Fixes in a row, the newest last, whose tilt left the interval the fixes before them pin
         #: (``_departs``): held back as jumps where beyond the bound, and kept out of the baseline either way.
         self._held = 0
+        #: Exposure (us) of the first fix of the current state (on or off): the baseline the departures
+        #: are judged against holds only this state's fixes (module docstring, "Each state's baseline").
+        self._state_since_usec = 0
+        #: While off, the upper bound on the bias from the newest verdict that had a window (deg).
+        self._off_upper_deg = 0.0
 
     def note(self, fix: PoseFix, footprint_m: float) -> AttitudeVerdict:
         """Add ``fix``'s image-only tilt and say whether the autopilot's attitude is off.
@@ -201,6 +217,7 @@ class AttitudeCheck:
         if self._recent and t < self._recent[-1].t_usec:
             self._recent.clear()  # time went back (a replay, a restart of the axis): begin again
             self._held = 0
+            self._state_since_usec = t
         self._recent.append(
             _Seen(
                 t,
@@ -213,16 +230,19 @@ class AttitudeCheck:
             self._recent.popleft()
         seen = list(self._recent)
         offs = np.array([s.off_deg for s in seen])
+        # Every window, run and baseline is over the current state's own fixes (module docstring, "Each
+        # state's evidence is its own"): a window reaching into the state before mixes two tilts.
+        in_state = sum(1 for s in seen if s.t_usec >= self._state_since_usec)
         independent = _independent(seen) if self._ground_correlated else None
         windows = [
             w
-            for n in _window_sizes(len(seen))
+            for n in _window_sizes(in_state)
             if (w := _Window.of(offs[-n:], self._sigma_deg, None if independent is None else independent(n)))
             is not None
         ]
         # The fixes that left the interval the ones before them pin, in a row: a step of the autopilot's
         # tilt where the image is the sharper sensor, their own evidence (each against the same ground).
-        departed = self._departs(offs)
+        departed = self._departs(offs[-in_state:])
         self._held = self._held + 1 if departed else 0
         run = [
             w
@@ -230,31 +250,54 @@ class AttitudeCheck:
             if (w := _Window.of(offs[-n:], self._sigma_deg, None)) is not None
         ]
         proofs = windows + run
-        if self._off:
+        was_off = self._off
+        if self._off and run:
+            # Fixes that left the off state's own interval in a row: the tilt has moved, and they alone
+            # say where to.
+            self._off = any(w.bias_norm_deg > self._allowed_deg for w in run)
+            new_state_fixes = self._held
+        elif self._off:
             # Off until the newest evidence no longer shows the bias beyond the bound, not just unproven:
             # every window where tilts are each their own; else the newest that spans a footprint of
-            # ground, and the run (a window of old fixes would hold it long after the attitude is back).
-            holding = (windows if not self._ground_correlated else windows[:1]) + run
-            self._off = any(w.bias_norm_deg > self._allowed_deg for w in holding)
+            # ground. While no window of the state's fixes says anything yet it stays off, unless the
+            # fixes that proved it have left the window (older than the window's age: nothing is known).
+            holding = windows if not self._ground_correlated else windows[:1]
+            if holding:
+                self._off = any(w.bias_norm_deg > self._allowed_deg for w in holding)
+            else:
+                self._off = seen[0].t_usec <= self._state_since_usec
+            new_state_fixes = 1
         else:
-            self._off = any(w.lower_deg > self._allowed_deg for w in proofs)
+            proving = [w.fixes for w in proofs if w.lower_deg > self._allowed_deg]
+            self._off = bool(proving)
+            new_state_fixes = min(proving, default=1)
+        if self._off != was_off:
+            # A new state begins with the fixes that showed it: the smallest window that proved the
+            # attitude off, the run that showed it back, or else this fix alone.
+            self._state_since_usec = seen[-new_state_fixes].t_usec
+            self._held = 0
+            if self._off:
+                self._off_upper_deg = max(w.upper_deg for w in proofs)
         jump = departed and not self._off and float(np.hypot(*offs[-1])) > self._allowed_deg
         suspect = float(np.hypot(*offs[-1])) if jump else None
         if not proofs:  # too few fixes, or too little ground: nothing is proven either way
-            bias = offs.mean(axis=0)
+            bias = offs[-in_state:].mean(axis=0)
             return AttitudeVerdict(
                 (float(bias[0]), float(bias[1])),
                 0.0,
                 float(np.hypot(*bias)),
                 self._allowed_deg,
-                len(offs),
+                in_state,
                 self._off,
                 jump,
-                suspect,
+                # Off on the evidence before: the error it showed is still what the estimate may carry.
+                self._off_upper_deg if self._off else suspect,
                 seen[-1].off_deg,
-                t,
+                seen[0].t_usec if self._off else t,
             )
         worst = max(proofs, key=lambda w: w.lower_deg)
+        if self._off:
+            self._off_upper_deg = worst.upper_deg
         return AttitudeVerdict(
             (float(worst.bias_deg[0]), float(worst.bias_deg[1])),
             worst.lower_deg,
@@ -269,14 +312,15 @@ class AttitudeCheck:
         )
 
     def _departs(self, offs_deg: np.ndarray) -> bool:
-        """The fixes before the ones that departed in a row (``_held``) pin the tilt better than the
-        autopilot's own sigma (their 99 % prediction interval is narrower), and the newest tilt lies
-        outside that interval: the image is then the better tilt sensor, and the autopilot's tilt has
-        moved (a jump where it is beyond the bound). A departure under the bound is let through but kept
-        out of the baseline: a frame exposed across an attitude step gets part of it (measured in CI:
-        1.24 of 3.2 deg), and in the baseline that one fix widened the interval past the sigma, so the
-        next three at 3.2 deg were not held back. Across dates the interval is wider than the sigma (the
-        scatter of one fix) and nothing departs."""
+        """The current state's fixes (``offs_deg``, the newest last) before the ones that departed in a
+        row (``_held``) pin the tilt better than the autopilot's own sigma (their 99 % prediction
+        interval is narrower), and the newest tilt lies outside that interval: the image is then the
+        better tilt sensor, and the autopilot's tilt has moved (while on, a jump where it is beyond the
+        bound; while off, back or further). A departure under the bound is let through but kept out of
+        the baseline: a frame exposed across an attitude step gets part of it (measured in CI: 1.24 of
+        3.2 deg), and in the baseline that one fix widened the interval past the sigma, so the next three
+        at 3.2 deg were not held back. Across dates the interval is wider than the sigma (the scatter of
+        one fix) and nothing departs."""
         newest = offs_deg[-1]
         before = offs_deg[: offs_deg.shape[0] - 1 - self._held]
         n = before.shape[0]
