@@ -821,9 +821,7 @@ def run_matcher_benchmark(
                 s.add("precomputed_same_best_inliers", float(pre_inliers == best_inliers))
             s.add("best_inliers", best_inliers)
             s.add("best_is_true_chip", float(best_is_true))
-            if best_inliers > 0:
-                s.add("centre_error_m", error_m)
-            s.add("frame_centre_error_m", error_m if best_inliers > 0 else math.nan)
+            s.add("centre_error_m", error_m if best_inliers > 0 else math.nan)  # nan: not solved
             _measure_candidates(s, bf, calib)
     heap = {s.name: round(_python_heap_peak_mb(s, frames[0], calib), 2) for s in built}
 
@@ -843,7 +841,7 @@ def run_matcher_benchmark(
         errors = [e for e in s.samples.get("centre_error_m", []) if math.isfinite(e)]
         entry["solutions"] = {
             "frames": len(frames),
-            "solved": len(s.samples.get("centre_error_m", [])),
+            "solved": int(sum(1 for v in s.samples["best_inliers"] if v > 0)),
             "wrong": sum(1 for e in errors if e > wrong_m),
             "wrong_beyond_m": round(wrong_m, 2),
             "centre_error_m": _pct(errors),
@@ -856,7 +854,7 @@ def run_matcher_benchmark(
             "best_inliers": [int(v) for v in s.samples["best_inliers"]],
             "best_is_true_chip": [bool(v) for v in s.samples["best_is_true_chip"]],
             "centre_error_m": [
-                round(e, 2) if math.isfinite(e) else None for e in s.samples["frame_centre_error_m"]
+                round(e, 2) if math.isfinite(e) else None for e in s.samples["centre_error_m"]
             ],
         }
         entry["ratio_to_classical"] = {

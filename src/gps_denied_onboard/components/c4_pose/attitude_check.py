@@ -186,8 +186,8 @@ class AttitudeCheck:
         #: Fixes in a row, the newest last, whose tilt left the interval the fixes before them pin
         #: (``_departs``): held back as jumps where beyond the bound, and kept out of the baseline either way.
         self._held = 0
-        #: Exposure (us) of the first fix of the current state (on or off): the baseline the departures
-        #: are judged against holds only this state's fixes (module docstring, "Each state's baseline").
+        #: Exposure (us) of the first fix of the current state (on or off): its windows, runs and interval
+        #: are over this state's fixes only (module docstring, "Each state's evidence is its own").
         self._state_since_usec = 0
         #: While off, the upper bound on the bias from the newest verdict that had a window (deg).
         self._off_upper_deg = 0.0
@@ -276,8 +276,6 @@ class AttitudeCheck:
             # attitude off, the run that showed it back, or else this fix alone.
             self._state_since_usec = seen[-new_state_fixes].t_usec
             self._held = 0
-            if self._off:
-                self._off_upper_deg = max(w.upper_deg for w in proofs)
         jump = departed and not self._off and float(np.hypot(*offs[-1])) > self._allowed_deg
         suspect = float(np.hypot(*offs[-1])) if jump else None
         if not proofs:  # too few fixes, or too little ground: nothing is proven either way
