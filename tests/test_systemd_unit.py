@@ -1,5 +1,5 @@
 """The systemd unit: hardened, restarted only when a restart can help, and consistent with the airborne
-profile and with the README's install steps (one binary, one profile, the cache read-only, the FDR
+profile and with the install steps in docs/companion.md (one binary, one profile, the cache read-only, the FDR
 writable)."""
 
 from __future__ import annotations
@@ -100,10 +100,9 @@ def _under(path: str | None, roots: list[PurePosixPath]) -> bool:
 
 
 def _install_section() -> str:
-    readme = (ROOT / "README.md").read_text()
-    aircraft = readme.split("\n## Running on an aircraft\n", 1)[1].split("\n## ", 1)[0]
-    assert "\n### Install on a companion computer\n" in aircraft
-    return aircraft.split("\n### Install on a companion computer\n", 1)[1].split("\n### ", 1)[0]
+    page = (ROOT / "docs" / "companion.md").read_text()
+    assert "\n## Install on a companion computer\n" in page
+    return page.split("\n## Install on a companion computer\n", 1)[1].split("\n## ", 1)[0]
 
 
 def test_unit_every_directive_has_a_comment() -> None:
@@ -193,7 +192,7 @@ def test_unit_sandbox_fits_the_airborne_profile() -> None:
 
 
 def test_readme_install_steps_match_the_unit() -> None:
-    """The README's install commands create what the unit runs and reads, and name its settings."""
+    """docs/companion.md's install commands create what the unit runs and reads, and name its settings."""
     text = _install_section()
     run = _exec("ExecStart")
     binary, config = run[0], _option(run, "--config")
@@ -219,8 +218,8 @@ def test_readme_install_steps_match_the_unit() -> None:
         f"RestartSec={_one('Service', 'RestartSec')}",
     ]
     missing = [e for e in expected if e not in text]
-    assert not missing, f"README install section lacks: {missing}"
-    assert user == group, "the README creates the user with --user-group"
+    assert not missing, f"docs/companion.md install section lacks: {missing}"
+    assert user == group, "docs/companion.md creates the user with --user-group"
 
 
 def test_unit_passes_systemd_analyze_verify(tmp_path: Path) -> None:

@@ -1,8 +1,9 @@
-"""Regenerate the README's configuration reference from config.py (run after changing a setting).
+"""Regenerate the configuration reference (docs/configuration.md) from config.py (run after changing a
+setting).
 
-    .venv/bin/python tools/gen_config_reference.py   # rewrites the block between the README markers
+    .venv/bin/python tools/gen_config_reference.py   # rewrites the block between the markers
 
-tests/test_readme.py fails when the README and config.py disagree.
+tests/test_readme.py fails when docs/configuration.md and config.py disagree.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 from gps_denied_onboard import config as cfg
 
 ROOT = Path(__file__).resolve().parents[1]
+REFERENCE = ROOT / "docs" / "configuration.md"
 BEGIN, END = "<!-- config-reference:begin -->", "<!-- config-reference:end -->"
 _SYM = {"gt": ">", "ge": ">=", "lt": "<", "le": "<="}
 
@@ -78,10 +80,9 @@ def reference_block() -> str:
 
 
 def main() -> int:
-    readme = ROOT / "README.md"
-    text = readme.read_text()
+    text = REFERENCE.read_text()
     start, end = text.index(BEGIN), text.index(END) + len(END)
-    readme.write_text(text[:start] + reference_block() + text[end:])
+    REFERENCE.write_text(text[:start] + reference_block() + text[end:])
     return 0
 
 
