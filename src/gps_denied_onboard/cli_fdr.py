@@ -240,7 +240,19 @@ def _tilts(records: list[dict[str, Any]], kind: str, check: str) -> np.ndarray:
         for r in records
         if r.get("kind") == kind and isinstance(r.get(check), dict) and r[check].get("tilt_off_deg")
     ]
-    return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
+    # A pair of finite numbers is what the daemon writes; anything else is skipped.
+    pairs = [pair for row in rows if (pair := _finite_pair(row)) is not None]
+    return np.asarray(pairs, dtype=np.float64).reshape(-1, 2)
+
+
+def _finite_pair(row: Any) -> tuple[float, float] | None:
+    if not isinstance(row, list) or len(row) != 2:
+        return None
+    try:
+        a, b = (float(v) for v in row if not isinstance(v, (bool, str)))
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return (a, b) if math.isfinite(a) and math.isfinite(b) else None
 
 
 def boresight(path: Path, run: int | None, max_half_width_deg: float) -> dict[str, Any]:
@@ -262,7 +274,12 @@ def boresight(path: Path, run: int | None, max_half_width_deg: float) -> dict[st
     if not isinstance(config, dict):
         raise FdrReadError(f"{path}: run {run} has no daemon.config record (its mount)", path=path)
     camera = config.get("camera", {})
-    used = (float(camera.get("mount_roll_deg", 0.0)), float(camera.get("mount_pitch_deg", 0.0)))
+    try:
+        used = (float(camera.get("mount_roll_deg", 0.0)), float(camera.get("mount_pitch_deg", 0.0)))
+    except (AttributeError, TypeError, ValueError, OverflowError) as exc:
+        raise FdrReadError(
+            f"{path}: run {run}: the recorded camera mount is not two numbers", path=path
+        ) from exc
     estimate = estimate_boresight(
         _tilts(recs, FdrKind.FRAME, "ground_tilt_check"),
         _tilts(recs, FdrKind.FIX, "attitude_check"),

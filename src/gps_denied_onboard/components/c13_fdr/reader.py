@@ -23,8 +23,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
-from gps_denied_onboard.components.c13_fdr.recorder import list_segments, parse_line
+from gps_denied_onboard.components.c13_fdr.recorder import (
+    MAX_RECORD_BYTES,
+    bounded_lines,
+    list_segments,
+    parse_line,
+)
 from gps_denied_onboard.constants import FdrKind
+from gps_denied_onboard.helpers import bounded_json
 
 #: The head the recorder writes on every line (t_unix_s, then kind): lets ``records`` skip other kinds
 #: without parsing them.
@@ -132,13 +138,70 @@ class FrameRefusal:
     reason: str
 
 
+@dataclass(frozen=True)
+class FdrScan:
+    """What a full read of an FDR found (``scan``): what the daemon's start-up read would skip."""
+
+    segments: int
+    records: int
+    #: Lines that are not JSON: a write torn by a crash or a full disk (the recorder expects these).
+    torn_lines: int
+    #: Lines the recorder never writes: over ``MAX_RECORD_BYTES``, nested past the parser, or JSON that
+    #: is not a record. Damage or tampering.
+    corrupt_lines: int
+    #: The first corrupt line as ``segment:line: reason``, or None.
+    first_corrupt: str | None
+    #: Segments that cannot be opened or read, with the reason.
+    unreadable_segments: tuple[str, ...]
+
+
+def scan(path: str | Path) -> FdrScan:
+    """Read every line of the FDR at ``path`` (a directory; none yet is an empty scan) and classify it.
+    Raises ``FdrReadError`` when ``path`` exists and is not a directory."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise FdrReadError(f"{p}: not a directory", path=p)
+    segs = list_segments(p) if p.is_dir() else []
+    records = torn = corrupt = 0
+    first: str | None = None
+    unreadable: list[str] = []
+    for seg in segs:
+        try:
+            with seg.open("rb") as fh:
+                for n, raw in enumerate(bounded_lines(fh), start=1):
+                    if not raw.strip():
+                        continue
+                    why = _line_fault(raw)
+                    if why is None:
+                        records += 1
+                    elif why == "torn":
+                        torn += 1
+                    else:
+                        corrupt += 1
+                        first = first or f"{seg.name}:{n}: {why}"
+        except OSError as exc:
+            unreadable.append(f"{seg.name}: {exc.strerror or exc}")
+    return FdrScan(len(segs), records, torn, corrupt, first, tuple(unreadable))
+
+
+def _line_fault(raw: bytes) -> str | None:
+    """None for a record, ``torn`` for a line that is not JSON, else why the line is corrupt."""
+    try:
+        rec = bounded_json.loads(raw, max_bytes=MAX_RECORD_BYTES, what="line")
+    except bounded_json.BoundedJsonError as exc:
+        return "torn" if exc.reason in ("syntax", "utf8") else str(exc)
+    if not isinstance(rec, dict) or "kind" not in rec:
+        return "JSON but not a record (no object with a kind)"
+    return None
+
+
 def split_runs(records: Iterable[dict[str, Any]]) -> list[list[dict[str, Any]]]:
     """Records per daemon run (the rule of :meth:`FdrReader.runs`: a run starts at ``fdr.opened`` or
     where the record sequence restarts)."""
     runs: list[list[dict[str, Any]]] = []
     last_seq = 0
     for rec in records:
-        seq = int(rec.get("seq") or 0)
+        seq = _int(rec.get("seq")) or 0
         if not runs or rec.get("kind") == FdrKind.FDR_OPENED or 0 < seq <= last_seq:
             runs.append([])
         runs[-1].append(rec)
@@ -149,11 +212,17 @@ def split_runs(records: Iterable[dict[str, Any]]) -> list[list[dict[str, Any]]]:
 def _float(v: Any) -> float | None:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         return None
-    return float(v) if math.isfinite(v) else None
+    try:
+        f = float(v)  # an integer too large for a float raises OverflowError
+    except OverflowError:
+        return None
+    return f if math.isfinite(f) else None
 
 
 def _int(v: Any) -> int | None:
-    return int(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) else None
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    return v if isinstance(v, int) else (int(v) if math.isfinite(v) else None)
 
 
 def _str(v: Any) -> str | None:
@@ -209,7 +278,7 @@ class FdrReader:
             except OSError:
                 continue
             with fh:
-                yield from fh
+                yield from bounded_lines(fh)
 
     def records(self, *kinds: str) -> Iterator[dict[str, Any]]:
         """Every record (of ``kinds`` when given) in recording order; torn lines skipped."""
@@ -272,11 +341,19 @@ class FdrReader:
         return [b.build(torn_at_start[i + 1] if i + 1 < len(builders) else 0) for i, b in enumerate(builders)]
 
     # --- typed accessors ------------------------------------------------------------------------------
+    def _timed(self, kind: str) -> Iterator[tuple[float, dict[str, Any]]]:
+        """Records of ``kind`` with their time; one without a finite ``t_unix_s`` is not a record the
+        recorder writes and is skipped."""
+        for r in self.records(kind):
+            t = _float(r.get("t_unix_s"))
+            if t is not None:
+                yield t, r
+
     def estimates(self) -> Iterator[EstimateRecord]:
         """``mavlink.estimate`` records (lat/lon/sigma None when the estimate had no position)."""
-        for r in self.records(FdrKind.ESTIMATE_SENT):
+        for t, r in self._timed(FdrKind.ESTIMATE_SENT):
             yield EstimateRecord(
-                float(r["t_unix_s"]),
+                t,
                 _int(r.get("time_unix_usec")),
                 str(r.get("provenance")),
                 _int(r.get("fix_type")),
@@ -287,9 +364,9 @@ class FdrReader:
 
     def fixes(self) -> Iterator[FixRecord]:
         """``pipeline.fix`` records."""
-        for r in self.records(FdrKind.FIX):
+        for t, r in self._timed(FdrKind.FIX):
             yield FixRecord(
-                float(r["t_unix_s"]),
+                t,
                 _int(r.get("frame_seq")),
                 bool(r.get("fix_accepted")),
                 _int(r.get("inliers")) or 0,
@@ -299,19 +376,19 @@ class FdrReader:
 
     def provenance_changes(self) -> Iterator[ProvenanceChange]:
         """``estimator.provenance_changed`` records."""
-        for r in self.records(FdrKind.PROVENANCE_CHANGED):
+        for t, r in self._timed(FdrKind.PROVENANCE_CHANGED):
             yield ProvenanceChange(
-                float(r["t_unix_s"]), str(r.get("old")), str(r.get("new")), _str(r.get("reason"))
+                t, str(r.get("old")), str(r.get("new")), _str(r.get("reason"))
             )
 
     def frame_errors(self) -> Iterator[FrameError]:
         """``pipeline.frame_error`` records."""
-        for r in self.records(FdrKind.FRAME_ERROR):
+        for t, r in self._timed(FdrKind.FRAME_ERROR):
             yield FrameError(
-                float(r["t_unix_s"]), _int(r.get("frame_seq")), str(r.get("stage")), str(r.get("error"))
+                t, _int(r.get("frame_seq")), str(r.get("stage")), str(r.get("error"))
             )
 
     def frame_refusals(self) -> Iterator[FrameRefusal]:
         """``pipeline.frame_refused`` records."""
-        for r in self.records(FdrKind.FRAME_REFUSED):
-            yield FrameRefusal(float(r["t_unix_s"]), _int(r.get("frame_seq")), str(r.get("reason")))
+        for t, r in self._timed(FdrKind.FRAME_REFUSED):
+            yield FrameRefusal(t, _int(r.get("frame_seq")), str(r.get("reason")))

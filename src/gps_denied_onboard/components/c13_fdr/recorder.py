@@ -66,12 +66,13 @@ import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path, PurePath
-from typing import Any, Final
+from typing import Any, BinaryIO, Final
 
 import numpy as np
 import structlog
 
 from gps_denied_onboard.constants import FdrHealthState, FdrKind, LogEvent
+from gps_denied_onboard.helpers import bounded_json
 
 _log = structlog.get_logger(__name__)
 
@@ -81,6 +82,9 @@ SEGMENT_RE: Final = re.compile(r"^fdr-(\d{8}T\d{6}\.\d{3}Z)-(\d{6})\.jsonl$")
 ERROR_LOG_INTERVAL_S: Final[float] = 5.0
 _RESERVED: Final[frozenset[str]] = frozenset({"t_unix_s", "kind", "seq"})
 _MAX_DEPTH: Final[int] = 32
+#: The longest record line written or read, bytes (the largest, the config record, is a few kB): a longer
+#: one is dropped and counted by the recorder, and skipped as unreadable by the readers.
+MAX_RECORD_BYTES: Final[int] = 4 << 20
 #: How much of the newest existing segment's end is scanned for torn lines when a recorder opens.
 RECOVERY_TAIL_BYTES: Final[int] = 1 << 16
 #: Frame image files in ``<dir>/images``: img-<start>-<n>-<frame seq>.jpg.
@@ -201,12 +205,26 @@ def list_segments(directory: str | Path) -> list[Path]:
 
 
 def parse_line(raw: bytes) -> dict[str, Any] | None:
-    """One segment line as a record, or None for a torn, blank or unreadable line."""
+    """One segment line as a record, or None for a torn, blank or unreadable line, and for one the
+    recorder never writes: longer than ``MAX_RECORD_BYTES`` or nested past what the parser follows."""
     try:
-        rec = json.loads(raw)
-    except (ValueError, UnicodeDecodeError):
+        rec = bounded_json.loads(raw, max_bytes=MAX_RECORD_BYTES, what="FDR line")
+    except ValueError:
         return None
     return rec if isinstance(rec, dict) and "kind" in rec else None
+
+
+def bounded_lines(fh: BinaryIO) -> Iterator[bytes]:
+    """The lines of ``fh``, each held in memory up to ``MAX_RECORD_BYTES`` + 1 bytes: a longer line is
+    yielded as that prefix (which ``parse_line`` refuses) and the rest of it is skipped."""
+    while True:
+        raw = fh.readline(MAX_RECORD_BYTES + 1)
+        if not raw:
+            return
+        if len(raw) > MAX_RECORD_BYTES and not raw.endswith(b"\n"):
+            while (rest := fh.readline(1 << 20)) and not rest.endswith(b"\n"):
+                pass
+        yield raw
 
 
 def read_records(directory: str | Path) -> Iterator[dict[str, Any]]:
@@ -217,7 +235,7 @@ def read_records(directory: str | Path) -> Iterator[dict[str, Any]]:
         except OSError:
             continue
         with fh:
-            for raw in fh:
+            for raw in bounded_lines(fh):
                 rec = parse_line(raw)
                 if rec is not None:
                     yield rec
@@ -515,6 +533,10 @@ class FlightDataRecorder:
             line = (json.dumps(rec, separators=(",", ":"), allow_nan=True) + "\n").encode("utf-8")
         except (TypeError, ValueError, RecursionError) as exc:
             self._error("encode", exc)
+            self._drop_record()
+            return
+        if len(line) > MAX_RECORD_BYTES:  # the readers would skip it as unreadable
+            self._error("encode", ValueError(f"{kind} record of {len(line)} bytes > {MAX_RECORD_BYTES}"))
             self._drop_record()
             return
         self._write(line)

@@ -98,7 +98,7 @@ def read_previous_run(records_newest_first: Iterable[Mapping[str, Any]]) -> Prev
             state = ResumeState(
                 float(r["lat_deg"]), float(r["lon_deg"]), float(r["horiz_sigma_m"]), int(r["time_unix_usec"])
             )
-        except (KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError, OverflowError):  # int(inf): OverflowError
             continue
         if all(math.isfinite(v) for v in (state.lat_deg, state.lon_deg, state.horiz_sigma_m)):
             return PreviousRun(state, last_record)
