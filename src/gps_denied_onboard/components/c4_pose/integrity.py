@@ -1,58 +1,27 @@
 """Fix integrity: an absolute fix leaves C4 only when the evidence behind it supports it.
 
-A real autopilot follows GPS_INPUT completely, so a confident wrong fix moves the aircraft. RANSAC and
-PnP can be fooled in ways their own residuals cannot see: across dates a learned matcher finds a few
-dozen self-consistent matches on the wrong alignment (field edges, roads), the homography explains them
-to a pixel, and the solver's covariance (residuals over Jacobian) states metres where the truth is tens
-of metres away. This module is the one place that judges a solved fix on the evidence the pipeline has,
-and either refuses it with a reason or passes it with a covariance that reflects that evidence.
+Across dates RANSAC and PnP can explain a few dozen self-consistent matches on the wrong alignment to a
+pixel, and the solver's covariance then states metres where the truth is tens of metres away. This
+module is the one place that judges a solved fix on the evidence the pipeline has.
 
-The evidence (:class:`MatchEvidence`, per matched candidate):
+Input: a solved fix and its :class:`MatchEvidence` per matched candidate (``inlier_count``,
+``inlier_ratio``, ``spread_share`` of the frame, ``mean_confidence`` when the matcher gives one: never
+invented), the other candidates' poses and the VO-propagated prior. Output: an :class:`IntegrityVerdict`
+that refuses the fix with a reason, or passes it with a covariance that reflects the evidence.
 
-- ``inlier_count`` and ``inlier_ratio`` (RANSAC inliers over putative matches): a true alignment is
-  supported by a large share of the matches; a coincidental one by a small share of many;
-- ``spread_share``: the area of the convex hull of the inliers in the nav frame over the frame's area.
-  Inliers bunched in one corner or along one road constrain the pose weakly in some direction;
-- ``mean_confidence``: the matcher's own per-match confidence (LightGlue's match scores) averaged over
-  the inliers, when the matcher gives one. Classical and mutual-nearest-neighbour matching give none:
-  the rule then does not invent one, it skips that test and says so (``None`` in the FDR).
+The rule (:meth:`FixIntegrity.assess`; the first failing test refuses; thresholds in ``integrity.*``):
+1. ``too_few_inliers``, ``low_inlier_ratio``, ``narrow_spread``, ``low_match_confidence``;
+2. ``ambiguous_candidates``: another candidate with at least ``ambiguity_inlier_share`` of the best's
+   inliers gives a pose more than ``ambiguity_sigma`` combined (solver) sigmas away;
+3. ``prior_disagreement``: a fix whose sigma the evidence scales by ``weak_evidence_scale`` or more must
+   agree with an informative prior (NIS within ``prior_gate_chi2``); stronger fixes are C5's gate's.
+A fix that passes has its covariance floored at ``min_sigma_map_px`` map pixels and scaled by ``k**2``
+(``k`` grows as the inlier ratio and count fall below ``full_evidence_*``, capped at
+``max_sigma_scale``); ``PoseFix.shared_sigma_m`` is floored and scaled alike. ``regional_sigma_map_px``
+(off by default) adds shared regional error to fixes short of full evidence (:func:`with_regional_error`).
 
-The rule (:meth:`FixIntegrity.assess`), in order; the first failing test refuses the fix:
-
-1. ``too_few_inliers``, ``low_inlier_ratio``, ``narrow_spread``, ``low_match_confidence``: thresholds
-   on the best candidate's evidence (``integrity.*``).
-2. ``ambiguous_candidates``: another candidate tile, matched with at least
-   ``ambiguity_inlier_share`` of the best's inliers, gives a pose farther from the best's than
-   ``ambiguity_sigma`` combined sigmas. Two well-supported answers that disagree mean at least one is
-   wrong, and nothing here says which. The sigmas are the solvers' (floored at the map pixel), not the
-   evidence-inflated ones: two right matches of overlapping tiles agree to their measurement precision,
-   and inflating the tolerance would make the test weakest exactly where the evidence is.
-3. ``prior_disagreement``: a fix with weak evidence (its sigma is inflated, below, by at least
-   ``weak_evidence_scale``) must agree with the VO-propagated prior: its Mahalanobis distance (NIS,
-   horizontal, 2 dof) from the prior must be within ``prior_gate_chi2``. Only while the prior is
-   informative (sigma <= ``prior_max_sigma_m``). A stronger fix is left to C5's own gate, which keeps
-   its recovery from a wrong prior (a run of gated fixes with no VO inflates the prior).
-
-Covariance (for a fix that passes): the solver's covariance is first floored at
-``min_sigma_map_px`` map pixels (a match is never better than the map's own pixel), then scaled by
-``k**2``, with ``k`` the product of two factors, each 1 at full evidence and growing as it weakens
-(``full_evidence_ratio``: the inlier ratio, linearly; ``full_evidence_inliers``: the inlier count, by the
-square root), capped at ``max_sigma_scale``. They stand for what the solver's covariance cannot see, the
-risk that the alignment itself is wrong: the number of inliers and their spread over the image are
-already in it (residuals over the Jacobian), so the spread only has its threshold; inflating for it
-again slowed the recovery after a featureless stretch, whose first fixes are right but bunched on one
-side of the frame. Weak evidence thus states a larger sigma: the estimator weighs it less, and its gate
-judges it with honest numbers. ``PoseFix.shared_sigma_m``, the part of the error every fix against
-the map shares, is floored at the same map pixel and scaled by the same ``k``.
-
-Regional error (``regional_sigma_map_px``, off by default): a fix short of full evidence
-(``k >= weak_evidence_scale``) can state that many map pixels per axis more, as error it shares with the
-fixes around it (:func:`with_regional_error`), for a map whose georeference wanders by region. It is
-added after the two comparisons between map fixes (the prior check here, the consistency pairs in the
-pipeline), where a shared error cancels. It was on (8 px) while cross-date fixes at 1200 m AGL shared
-offsets of 20-50 m over runs of consecutive fixes; those were the camera's tilt solved from the image
-alone, and the solver's attitude prior (``c4_pose/solver.py``) removed them: with it and the term off,
-the cross-date flights accepted no fix beyond 2 sigma (docs/benchmarks.md).
+Why each test exists: docs/design.md, "Fix integrity"; measured: docs/benchmarks.md, "How the integrity
+thresholds were chosen".
 """
 
 from __future__ import annotations
