@@ -1,69 +1,28 @@
 """C5 navigation estimator: a Kalman filter (filterpy) over absolute fixes, VO, altitude and the IMU.
 
-This is the filter *math* at one instant. When each input is fused, and whether its timestamp is
-admitted at all, is decided by :mod:`~gps_denied_onboard.components.c5_estimator.time_axis`, which
-owns one of these and is the only thing that calls its update methods in a running daemon.
+The filter math at one instant. When each input is fused, and whether its time is admitted at all, is
+decided by :mod:`~gps_denied_onboard.components.c5_estimator.time_axis`, the only caller of the update
+methods in a running daemon.
 
-State and units
----------------
-``x = [n, e, d, vn, ve, vd]`` in the flight's local NED frame: metres and metres per second. Time is
-Unix microseconds (the time each input describes: a frame's exposure time, never its arrival time).
+State: ``x = [n, e, d, vn, ve, vd]`` in the flight's local NED frame (m, m/s); time is Unix microseconds
+of what each input describes (a frame's exposure, never its arrival).
+Prediction: steps of at most ``PREDICT_STEP_S``, driven by the IMU's NED acceleration when the
+:class:`~gps_denied_onboard.components.c5_estimator.protocol.AccelerationSource` has one (noise
+``imu_accel_noise_m_s2``), else constant velocity (noise ``accel_noise_m_s2``).
+Measurements: a C4 ``PoseFix`` (3-D, its own covariance, gated at ``fix_gate_chi2`` on the horizontal
+NIS; the gate is bypassed above ``reacquire_sigma_m``; a start prior no fix has confirmed is doubted
+by gated fixes that agree over ``prior_conflict_span_m``); a C1 ``VoMotion`` (the interval's mean
+velocity, moved to its end with the IMU when known, covariance ``vo_noise_scale * cov / dt^2``); the
+altitude (AGL plus the flat ground, on ``d``).
+Shared error: ``shared_sigma_m`` bounds the part of the map fixes' error they all share
+(``s <- ||I - K|| s + ||K|| s_fix`` per accepted fix) and is added to every output, so fusing more fixes
+never averages it away; the gates leave it out.
+Output: :class:`EstimatorState` at any time, with its provenance (:meth:`NavEstimator.provenance_at`):
+``satellite_anchored`` (newest fix attempt accepted, exposed within ``anchored_window_s``),
+``visual_propagated`` (VO within ``vo_recent_s``), ``dead_reckoning``, or ``no_estimate`` (not
+initialised, or sigma above ``max_output_sigma_m``).
 
-Prediction
-----------
-Piecewise over steps of at most ``PREDICT_STEP_S``. For each step the optional
-:class:`~gps_denied_onboard.components.c5_estimator.protocol.AccelerationSource` (the autopilot's IMU
-rotated by its attitude) is asked for the mean NED acceleration ``a``:
-
-- known: ``p += v dt + a dt^2 / 2``, ``v += a dt``, with white-noise acceleration of spectral density
-  ``imu_accel_noise_m_s2**2`` (what the IMU leaves unexplained: bias, attitude error, vibration);
-- unknown: constant velocity with the larger ``accel_noise_m_s2**2`` (the manoeuvre is not measured).
-
-Per axis over ``dt`` the discrete process noise is ``q * [[dt^3/3, dt^2/2], [dt^2/2, dt]]``
-(filterpy's ``Q_continuous_white_noise``). The model is linear, so the "EKF" is a plain Kalman filter;
-geodetic output goes through the tangent plane.
-
-Measurements
-------------
-- Absolute fix (C4 ``PoseFix``): 3-D position with the fix's own covariance, gated by the Mahalanobis
-  distance of its horizontal part (chi-square, 2 dof, ``fix_gate_chi2``) so one wrong tile match
-  cannot teleport the estimate. Re-acquisition: once the horizontal sigma exceeds
-  ``reacquire_sigma_m`` the gate is bypassed (see :meth:`NavEstimator.update_fix`). A start prior that
-  no fix has confirmed yet is not trusted like an anchored state: gated fixes that agree with each other
-  put it in doubt and, over ``prior_conflict_span_m`` of ground, contradict it
-  (:meth:`NavEstimator._note_prior_conflict`).
-- Visual odometry (C1 ``VoMotion``): the horizontal displacement over ``dt`` is the interval's *mean*
-  velocity ``delta / dt``. It is turned into the velocity at the end of the interval with the IMU's
-  mean acceleration over the interval (``v_end = delta / dt + a dt / 2``; exact for constant
-  acceleration) when known, and used as is otherwise (the usual approximation for a vehicle that does
-  not change speed much within one frame interval), with covariance ``vo_noise_scale * cov / dt^2``.
-- Altitude: the autopilot's AGL plus the flat-ground height, as a scalar update on ``d``.
-
-Error shared by every fix (``PoseFix.shared_sigma_m``)
------------------------------------------------------
-Part of a fix's error is the same for every fix against the map: the map's georeference, terrain that
-is not flat, matches that are consistently biased. The Kalman update treats fixes as independent, so
-three fixes a second took the stated sigma from the fixes' 1.04 m (the ``pose.min_sigma_m`` floor) to
-0.34 m; in the emulator's square flight the errors at a corner then reached 0.9 m, and one CI run sent
-a GPS_INPUT beyond 3 sigma. The filter therefore keeps
-``shared_sigma_m``, a bound on how much of that common error its position carries: an accepted fix
-with gain ``K`` (horizontal block) gives ``s <- ||I - K|| s + ||K|| s_fix`` (spectral norms; the
-triangle inequality for fully correlated errors, so it never understates), VO and prediction leave it
-alone (they move the state by relative amounts), and :meth:`NavEstimator.initialise` sets it to 0 (an
-initial sigma is already absolute). Every output adds ``s**2`` to the horizontal position covariance
-(and states ``s`` as ``EstimatorState.shared_sigma_m``), so fusing more fixes never averages the
-common error away. The fixes' covariances still carry that part too: the output is conservative by up
-to that much, never optimistic. What compares the state with a map fix (the integrity rule's prior
-check) leaves ``s`` out, as this filter's own gate does: the fix carries the same map error.
-
-Provenance (what was actually fused, see :meth:`NavEstimator.provenance_at`)
----------------------------------------------------------------------------
-``satellite_anchored`` while the newest absolute-fix attempt was accepted and that fix's exposure is at
-most ``estimator.anchored_window_s`` old (an attempt that gave no fix, :meth:`NavEstimator.note_no_fix`,
-ends it at once); ``visual_propagated`` while VO updates are being fused (the last at most
-``vo_recent_s`` old); ``dead_reckoning`` when neither (prediction only); ``no_estimate`` when not
-initialised or when the horizontal sigma exceeds ``max_output_sigma_m``. Propagating the state to a
-later time changes the label only through these ages and the sigma, never by itself.
+In full, with why: docs/design.md, "`c5_estimator/ekf.py`: the filter".
 """
 
 from __future__ import annotations
