@@ -1,52 +1,24 @@
-"""C13 flight data recorder: size-bounded, crash-safe JSON-lines segments, and a reader for replay.
+"""C13 flight data recorder: size-bounded, crash-safe JSON-lines segments.
 
-Layout: ``<dir>/fdr-<start>-<seq>.jsonl`` where ``<start>`` is the recorder's start time
-(``YYYYMMDDTHHMMSS.mmmZ``, UTC) and ``<seq>`` the segment number (6 digits), so names sort in recording
-order across daemon restarts. When the clock reads no later than the newest earlier run's tag (a restart
-within the millisecond, or a companion computer with no real-time clock that boots at its last saved
-time), the run goes on under that tag, numbered after its files, so the order still holds; its
-``fdr.opened`` record carries the clock as read. One record per line::
+Input: ``record(kind, **fields)`` from every component (kinds in ``constants.FdrKind``), and optional
+frame images (``record_frame_image``). Output: ``<dir>/fdr-<start>-<seq>.jsonl`` segments, one record per
+line (``{"t_unix_s": ..., "kind": ..., "seq": ..., ...fields}``; fields converted to JSON, a field named
+like a common one stored as ``<name>_field``), images under ``<dir>/images/``, and ``health`` for the
+status line and ``GDN_FDR``.
 
-    {"t_unix_s": 1717000000.123, "kind": "pipeline.frame", "seq": 42, ...fields}
+Rules:
+- crash safety: one ``os.write`` per record on an ``O_APPEND`` descriptor, so a crash loses at most the
+  line being written; after a failed write the next record starts with a newline; on open a torn last
+  line is terminated; ``fdr.opened`` starts every run and ``fdr.closed`` ends a clean one;
+- size: a segment closes before it would pass ``segment_bytes``; the oldest segments (never the open
+  one) are deleted while all of them exceed ``max_bytes``; images have their own budget
+  (``images_max_bytes``) and are written as ``.part`` then renamed;
+- low disk: below ``min_free_bytes`` images go first; below a quarter of it, or when a write fails,
+  records are dropped and counted, so the daemon keeps flying without its recorder;
+- ``record`` never raises: errors are counted and logged (rate-limited), and opening a segment is
+  retried on the next record.
 
-Fields are converted to JSON: numpy arrays -> nested lists, numpy scalars -> Python numbers, UUID ->
-string, Enum -> its value, tuples/sets -> lists, dataclasses -> objects, Path/datetime -> strings,
-bytes -> hex, non-string mapping keys -> ``str(key)``; anything else -> ``repr``. Non-finite floats are
-written as ``NaN``/``Infinity`` (Python's JSON dialect; ``read_records`` reads them back). A field whose
-name collides with ``t_unix_s``/``kind``/``seq`` is stored as ``<name>_field``.
-
-Crash safety: each record is written with one ``os.write`` on an ``O_APPEND`` descriptor (no user-space
-buffer), so a crashed process loses at most the line being written; ``read_records`` skips a torn line.
-After a failed or short write, the next record starts with a newline, so the torn fragment never glues
-onto a good record. (No fsync per record: the bound is a process crash, not a power cut; segments are
-fsynced when they are closed.)
-
-Run markers: the first record a recorder writes is ``fdr.opened`` (pid, start time, and what it found at
-the end of the newest existing segment: torn lines, and whether that run closed cleanly); ``close``
-writes ``fdr.closed`` as the run's last record. A run with ``fdr.opened`` and no ``fdr.closed`` ended in
-a crash (``reader.FdrReader.runs`` reports it). Recovery on open: when the newest existing segment ends
-without a newline (a process killed mid-write), a newline is appended to it, so the torn fragment stays
-a line of its own that readers skip.
-
-Size bound: a segment is closed when the next record would take it past ``segment_bytes``; whenever the
-total of all ``fdr-*.jsonl`` files in the directory (including previous runs) exceeds ``max_bytes``, the
-oldest segments are deleted (never the open one).
-
-Frame images (optional): ``record_frame_image`` stores one JPEG (or lossless PNG) as
-``<dir>/images/img-<start>-<n>-<frame seq>.jpg|png`` (``<n>``: the image number in this run, 6 digits) and
-writes a ``pipeline.frame_image`` record naming it. Images have their own budget (``images_max_bytes``,
-earlier runs' images included; oldest deleted first) and are written whole (``.part`` then rename), so a
-crash never leaves half an image under a final name.
-
-Low-disk policy: images go first. While the file system's free space (``shutil.disk_usage``, checked at
-most every ``free_check_interval_s``) is below ``min_free_bytes``, no image is written and the oldest
-images are deleted until it is back above it (or none is left); records keep the ``max_bytes`` policy.
-Below a quarter of ``min_free_bytes`` (the records' floor), or when a write fails (ENOSPC...), records
-are dropped and counted: the daemon keeps flying without its recorder rather than filling the disk the
-OS and the autopilot link need. ``health`` is the snapshot the status line and ``GDN_FDR`` report.
-
-``record`` never raises: I/O errors are counted in ``errors`` and logged (rate-limited), and the
-recorder retries opening a segment on the next record.
+Files, encoding and every record kind: docs/fdr.md.
 """
 
 from __future__ import annotations
