@@ -1,95 +1,28 @@
 """C4 attitude check: is the autopilot's tilt as good as the pose solver is told it is?
 
-The solver leans on the autopilot's roll and pitch, weighed at ``pose.attitude_sigma_deg``, wherever the
-image cannot pin the camera's tilt (``c4_pose/solver.py``). A wrong attitude (an AHRS gone wrong, a camera
-mount knocked out of its calibration) then moves every fix by height x tilt error while each fix states
-it is fine. Measured in SITL with 3 deg added to the autopilot's roll from 20 s on (XFeat, 70 s flights,
-``docs/benchmarks.md``): same-source at 120 m AGL the fixes went 2-4 m off at a stated 1 m, across dates
-at 1200 m AGL 35-72 m off at 10-27 m: 134 and 360 of 724 GPS_INPUT went out beyond 3 sigma.
+The solver leans on the autopilot's roll and pitch (``pose.attitude_sigma_deg``) wherever the image cannot
+pin the camera's tilt, and so do VO and the IMU prediction; a wrong attitude (an AHRS fault, a knocked
+camera mount) would move every fix by height x tilt error while each fix states it is fine.
 
-The evidence: the image-only pose's world-down direction minus the autopilot's, on the camera's x and y
-axes (the camera is fixed to the airframe, so a mount or AHRS error is constant there), kept for the
-last ``pose.attitude_check_fixes`` solved fixes no older than ``pose.attitude_check_max_age_s``. One
-frame across dates cannot tell (the image's own tilt is 1-3 deg off from frame to frame); a bias is the
-same from frame to frame. Two tests, both on the scatter the fixes themselves show, never on the
-solver's formal covariance (across dates that is several times too small). Consecutive frames see
-mostly the same ground, and across dates the image's tilt error comes from that ground: measured over
-NAIP 2009/2014 at 1200 m AGL, ten fixes in a row (15 s, 600 m) shared a 5 deg tilt error. A window's
-fixes therefore count as ``1 + ground track / footprint`` independent ones (the footprint: the camera's
-horizontal field of view at the fix's height), never more than there are. Unless its fixes pin the
-tilt better than ``pose.attitude_sigma_deg`` (the image is then the better tilt sensor, as same-source
-imagery is, a few hundredths of a degree from frame to frame; the jump test's criterion below), a
-window needs two of them (``MIN_INDEPENDENT``), and its margin their degrees of freedom, before it can
-prove anything. Within less ground the fixes' scatter is the image's noise over one stretch of it,
-which says nothing of how far their mean strays: with the fix path on
-every frame (an H100, ``docs/benchmarks.md``, 2026-11-26) the image-only tilts across dates at 1200 m
-AGL strayed 1-4 deg together for tens of frames while scattering a few tenths among them, and windows
-of a few seconds "proved" the attitude off in three of five flights, refused every fix and left the
-autopilot without a position for 11 and 18 s, and in one for the rest of the flight.
+Input: per solved fix (or, in a second instance built with ``ground_correlated=False``, per VO pair from
+``c1_vio/ground_tilt.py``), the image-only world-down direction minus the autopilot's on the camera's x
+and y axes, with the fix's height and ground position. Output: an :class:`AttitudeVerdict` (``off``,
+``jump``, the bias and ``suspect_deg``) that the pipeline answers by refusing fixes (``attitude_off``,
+``attitude_jump``, ``vo_attitude_off``), raising the estimator's position sigma to ``2 AGL tan b`` and
+leaving the IMU out.
 
-- **Off**: over the newest 4, 8, ... fixes of the current state and over all of them, the mean is the
-  bias; the attitude is off when, in any of them, the bias less its one-sided 99 % Student-t margin (on
-  the independent fixes, with one fewer degrees of freedom) is beyond three times
-  ``pose.attitude_sigma_deg`` (the prior claims one sigma; a bias proven beyond three makes its fixes
-  lies). Once off it stays off until the newest evidence no longer shows a bias beyond the bound: the
-  run of fixes that departed from the off state's own interval (below), else the newest window that
-  spans enough ground; while no window of the off state says anything, it stays off. While off every
-  fix is refused (``attitude_off``).
-- **Jump**: where the state's fixes before pin the tilt better than ``pose.attitude_sigma_deg`` (their
-  99 % prediction interval is narrower: the image is the better tilt sensor there), a fix whose tilt
-  lies outside that interval and beyond the bound is held back (``attitude_jump``) until the next ones
-  say whether it was one bad fix or a new attitude: the fixes that left the interval in a row are
-  windows of their own (4, 8, ... of them; each against the same ground as the fixes before, so their
-  scatter is their own) and 4 of them prove it off. This refuses the fixes between the attitude going
-  wrong and the off test seeing it. A fix outside the interval but under the bound (a frame exposed
-  across the step, with part of it) goes through, and is kept out of the interval the next fixes are
-  judged by, as the held ones are. While off, the same run shows the attitude back: 4 fixes that left
-  the off state's interval in a row, their bias within the bound, let go. Across dates the interval is
-  the scatter of one fix, wider than the sigma, and nothing is held back (measured before this rule: 7
-  of 52 cross-date fixes held back for nothing).
-- **Each state's evidence is its own**: the windows, the runs and the interval are over the fixes since
-  the check last changed its mind (the smallest window that proved the attitude off, or the run that
-  showed it back, or else the fix it changed on). A window reaching into the state before mixes two
-  tilts. Measured in CI (2026-11-27, 3 deg of roll for 25 s, same-source): judged against the fixes
-  before the offset, whose autopilot error had wandered 0.5 deg since, the fixes after it kept
-  "departing", the offset's fixes stayed part of the run, and the run held the check off 15 s after the
-  attitude was back (44 of 69 fixes refused). And after a release, a second step was judged against an
-  interval holding both tilts, too wide to see it: in the unit tests' draws its first three fixes went
-  through 2.5 deg off.
+Rule, on the scatter the tilts themselves show (never the solver's formal covariance):
+- **off**: over the newest 4, 8, ... tilts of the current state and all of them, the mean bias less its
+  one-sided 99 % Student-t margin exceeds 3 x ``pose.attitude_sigma_deg``; a window's tilts count as
+  ``1 + ground track / footprint`` independent ones and it needs ``MIN_INDEPENDENT`` of them, unless
+  they pin the tilt better than the sigma. Off holds until the newest evidence shows no bias beyond it;
+- **jump**: where the state's tilts pin the tilt better than the sigma, a tilt outside their 99 %
+  prediction interval and beyond the bound is held back; 4 such in a row prove it off (and, while off,
+  4 back within the bound let go);
+- each state's windows, runs and interval are over the tilts since the check last changed its mind.
 
-What the estimate already holds leaned on the same attitude: the fixes fused before the check saw it,
-and VO, which turns each frame's rays to the ground with the autopilot's attitude. A tilt error ``b``
-fixed to the airframe puts every ray's ground point ``AGL tan b`` off towards a side that turns with
-the aircraft, so VO's error over any stretch is the change of that offset: at most ``2 AGL tan b``
-however long (measured: a 3 deg roll error through a 90 deg turn at 120 m AGL, 7 m). While the check
-has shown a tilt error (``AttitudeVerdict.suspect_deg``) the pipeline raises the sigma of the
-estimator's position to that bound (``c5_estimator/ekf.py``, ``raise_position_sigma``) and stops the
-IMU, whose accelerations the same attitude rotates (3 deg leaks 0.5 m/s^2 of gravity into the
-horizontal).
-
-What it can see: where the image is sharp (same-source imagery, a few hundred metres up) the scatter
-is a few hundredths of a degree and 4 fixes prove a bias of a degree or two, the fixes before held back
-as jumps. Across dates from 1200 m AGL a footprint is 1.7 km, more ground than the 120 s window covers
-at 12 m/s: there the fixes prove no bias at all (the unit tests find 10 deg once it spans more), the
-image cannot tell the autopilot's error from its own, and VO's ground tilt (below) is the only check
-left there (its reach at that height is not measured: its tests fly at 120 m).
-
-What it cannot see in time from the fixes alone: their evidence is as quick as the matcher. Measured
-with ALIKED and DISK on a 2-core CPU (a fix every 7-12 s, each landing 7-12 s after its exposure; 3 deg
-of roll for 25 s, ``docs/benchmarks.md``): 3-4 fixes fell inside the offset, too few to prove it or to
-pin the image's scatter for a jump, and VO and the IMU carried the estimate 5-8 m off at a stated 2 m
-(about 220 of 790 GPS_INPUT beyond 3 sigma). Classical and XFeat, solving every 0.3 and 1.4 s, sent none.
-A second instance of this check therefore runs on VO's ground tilt (``c1_vio/ground_tilt.py``: the
-camera's tilt to the ground from each pair of frames, with no map, at the camera rate), built with
-``ground_correlated=False``: a pair's tilt error comes from its own matches' noise (0.5 deg per axis at
-120 m AGL, 12 m/s, 3 Hz), not from the ground it shares with the next pair. Its verdicts are answered
-the same way (the pipeline refuses fixes as ``vo_attitude_off``, raises the position's sigma, leaves the
-IMU out). What both read as tilt is the tilt to the ground the camera sees: over a hillside steeper than
-the bound they call the attitude off and fixes are refused (the pose is solved against flat ground, so
-those fixes would lean on the slope), VO's within seconds, the fixes' over more ground.
-
-The image-only tilts keep coming while fixes are refused (they do not depend on the prior), so the check
-clears by itself when the attitude comes back.
+Why each part, and what it can and cannot see: docs/design.md, "`c4_pose/attitude_check.py`: the
+attitude check"; measured: docs/benchmarks.md, "When the autopilot's attitude is wrong".
 """
 
 from __future__ import annotations
