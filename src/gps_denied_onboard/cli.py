@@ -177,7 +177,8 @@ def _cmd_cache_vpr(args: argparse.Namespace) -> int:
 def _cmd_cache_features(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from gps_denied_onboard.components.c3_matcher.base import NULL_FDR, LearnedPairMatcher
+    from gps_denied_onboard.components.c3_matcher.base import NULL_FDR
+    from gps_denied_onboard.components.c3_matcher.learned import LearnedPairMatcher
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
     from gps_denied_onboard.components.c10_cache_build.tile_features import build_tile_features
     from gps_denied_onboard.runtime_root.compose import create_matcher, resolve_matcher

@@ -1,43 +1,21 @@
 """C1 ground tilt: the camera's tilt to the ground plane from two frames, without the autopilot's tilt.
 
-Why
----
-The pose solver, VO and the IMU prediction all lean on the autopilot's roll and pitch. The attitude
-check (``c4_pose/attitude_check.py``) tests that tilt against the image-only tilt of the absolute
-fixes, so it is as quick as the matcher: with DISK or ALIKED on a 2-core CPU (a fix every 7-12 s) a
-3 deg roll error lasting 25 s was never proven, and VO and the IMU carried the estimate 5-8 m off at a
-stated 2 m (``docs/benchmarks.md``). Two consecutive frames of flat ground also say where the ground's
-normal lies in the camera, at the camera rate and with no map.
+The attitude check on the absolute fixes is only as quick as the matcher; two consecutive frames of flat
+ground also say where the ground's normal lies in the camera, at the camera rate and with no map. This
+module measures it, for the second instance of ``c4_pose/attitude_check.py``.
 
-Geometry
---------
-Camera coordinates of frame 1 (``X1``) and frame 2 (``X2 = R X1 + t``); the ground is the plane
-``n . X1 = d`` (``n``: unit normal towards the ground, i.e. world down in camera 1's axes; ``d``: height
-above the ground, m). Normalised image points then map as ``x2 ~ H x1`` with
-``H = lambda (R + t n^T / d)``, so ``R^T H / lambda - I = u n^T`` with ``u = R^T t / d = -C / d``, where
-``C`` is camera 2's centre in camera 1's axes (the displacement). ``lambda`` is the middle singular
-value of ``H`` (a planar homography's middle singular value is 1 before scaling).
+Input: the frame-to-frame homography ``H`` in normalised image points, the autopilot's relative rotation
+``R``, and VO's metric displacement over the height (``u = R^T t / d``). Output: the tilt to the ground,
+minus the autopilot's, on the camera's x and y axes (the quantity ``PoseFix.image_tilt_off_cam_rad``
+gives for a fix), or none when the baseline ``|u|`` is below ``MIN_BASELINE_FRAC`` (hovering, very high).
 
-The autopilot's attitude gives ``R`` and (with VO's metric displacement and the height) ``u``; the
-upper-left 2 x 2 block of ``u n^T`` then pins ``(n_x, n_y)``. Only its symmetric trace-free part is
-used: ``M11 - M22 = u_x n_x - u_y n_y`` and ``M12 + M21 = u_x n_y + u_y n_x``, a 2 x 2 system with
-determinant ``|u_xy|^2``. Errors that do not belong to the ground plane drop out of that part: an error
-in the relative rotation the autopilot gives (to first order a skew matrix: anti-symmetric in the
-block, the rest off it), and an error in ``lambda`` or in the along-axis motion (a multiple of the
-identity). An error in ``u`` scales the tilt found by the same fraction (1 % of VO's scale: 0.03 deg of
-3 deg). A tilt error ``b`` that is the same in both frames (a mount or AHRS bias) changes ``R`` and
-the displacement only to second order, so what is found is the true tilt to the ground, and minus the
-autopilot's ``R_ned_cam^T [0, 0, 1]`` it is the same quantity the pose solver reports for a fix
-(``PoseFix.image_tilt_off_cam_rad``: image minus autopilot, camera x and y).
+Rule: ``R^T H / lambda - I = u n^T`` (``lambda``: the middle singular value of ``H``); the symmetric
+trace-free part of its upper-left 2 x 2 block, ``M11 - M22 = u_x n_x - u_y n_y`` and
+``M12 + M21 = u_x n_y + u_y n_x``, pins ``(n_x, n_y)``. Errors in the relative rotation, in ``lambda`` and
+in the along-axis motion drop out of that part; a bias the same in both frames changes it only to second
+order. A hillside reads as tilt.
 
-Precision comes from the baseline: a tilt ``b`` changes the flow across the image by about
-``|u| tan b`` of the focal length, so the estimate is as good as ``|u|`` is large. Measured over the
-GeoVision orthophoto rendered at 120 m AGL, 12 m/s, 3 Hz (``|u|`` 0.033, ORB, 600-800 homography
-inliers): 0.5 deg scatter per axis per pair, no bias beyond 0.05 deg. Below ``MIN_BASELINE_FRAC``
-(hovering, or very high) no tilt is given.
-
-What it measures is the tilt to the ground the frames see: a hillside reads as tilt, as it does for
-the fixes' image-only tilt (the pose is solved against flat ground too). In SITL the ground is flat.
+Geometry and precision in full: docs/design.md, "`c1_vio/ground_tilt.py`: VO's ground tilt".
 """
 
 from __future__ import annotations

@@ -1,44 +1,23 @@
 """Fix consistency: how wrong the absolute fixes really are, measured from the fixes themselves.
 
-The integrity rule (``integrity.py``) judges one fix on its own evidence. It cannot see a failure that
-every fix shares: measured on the NAIP cross-date flight (map 2009, frames 2020, 1200 m AGL, 5 m/px),
-XFeat + LighterGlue fixes had 80-220 inliers, inlier ratios 0.32-0.51 and mean confidences 0.4-0.6,
-and stated 5-7 m (1-sigma), while they were 2-104 m from the truth, scattered with about 30 m per axis
-and no common offset. The good and the bad fixes had the same evidence. Accepted, 7 of 13 were beyond
-3 sigma and the daemon sent 299 GPS_INPUT fixes farther from the truth than 3x their stated accuracy.
+One fix's evidence cannot show a failure that every fix shares (across dates, right and wrong fixes had
+the same evidence); two fixes of the same flight, compared through the VO between them, can.
 
-What does show it is two fixes of the same flight, compared through the visual odometry between them.
-For fixes ``i`` and ``j`` with VO displacement ``delta`` (covariance ``Q``, its increments summed),
+Input: every fix the integrity rule passed (whether or not the estimator's gate then took it), and on the
+track path (:meth:`FixConsistency.note_track`) the VO motions the estimator accepted. Output: from
+:meth:`FixConsistency.assess`, the scale for the next fix's covariance, or ``unverified`` (not fused).
 
-    d = (p_j - p_i) - delta,   NIS = d^T (R_i + R_j + Q)^-1 d
+Rule: for consecutive fixes ``i``, ``j`` joined by an unbroken VO chain at most ``consistency_max_gap_s``
+apart, ``d = (p_j - p_i) - delta`` and ``NIS = d^T (R_i + R_j + Q)^-1 d`` (chi-square, 2 dof, when the
+stated covariances are right). Over the last ``consistency_window_pairs`` pairs the covariance scale is
+``s^2 = max(1, sum(min(NIS, cap)) / chi2_{2n}.ppf(alpha))`` (``alpha`` = ``consistency_confidence``: the
+upper end of a one-sided interval). Before any pair a fix with full evidence is scaled by
+``unverified_sigma_scale`` and a weaker one is not fused: it anchors the next pair. Both calls run inside
+their time-axis units, so a replay of the journal repeats them in order. A larger covariance never makes
+a wrong fix pull harder.
 
-is chi-square with 2 degrees of freedom when the stated covariances ``R`` are right, and about ``s^2``
-times that when every fix's real covariance is ``s^2 R``. This component keeps the NIS of the last
-``consistency_window_pairs`` consecutive pairs of fixes (every fix the integrity rule passed, whether or
-not the estimator's gate then took it: leaving the gated ones out would select the consistent ones) and
-scales the next fix's covariance by
-
-    s^2 = max(1, sum(min(NIS, cap)) / chi2_{2n}.ppf(alpha))
-
-with ``n`` pairs and ``alpha`` = ``consistency_confidence``: the upper end of a one-sided confidence
-interval for the scale, so a few lucky pairs cannot talk it down, and it tends to 1 as honest pairs
-accumulate (with ``alpha`` 0.05: 1.8 for 10 pairs of mean NIS 2). The cap bounds what one wrong-tile
-fix (an outlier, which is the estimator gate's business) does to the scale of the fixes after it. Before
-any pair (the first fix of a run, or after VO broke the chain to every kept fix) nothing has been
-measured yet. A fix with full evidence (the integrity rule did not inflate its sigma) is then scaled by
-``unverified_sigma_scale``; one with weaker evidence is not fused at all (``unverified``): it is kept
-as the first fix of the next pair, which is fused with what that pair measured. On the cross-date
-flights the first fix of the run, scaled by 3, was still 2.6-2.9 sigma off (ALIKED + LightGlue 49 m
-against 19 m, XFeat + LighterGlue 71 m against 25 m) and held the estimate 45 m off for a minute.
-
-A pair needs an unbroken VO chain between the two fixes' frames (every frame between them tracked with
-a VO motion the estimator accepted), at most ``consistency_max_gap_s`` apart: without one, the motion in
-between is the estimator's prediction, which is what is being checked. The chain is fed on the track
-path (:meth:`FixConsistency.note_track`) and read on the fix path (:meth:`FixConsistency.assess`), each
-inside its time-axis unit, so a replay of the journal repeats them in the same order.
-
-A larger covariance makes the estimator weigh the fix less (a small gain) and its gate judge it with
-honest numbers; it never makes a wrong fix pull harder.
+Why, and what it measured: docs/design.md, "`c4_pose/consistency.py`: fix consistency"; docs/benchmarks.md,
+"Cross-date flights with the registry models, and the fix consistency monitor".
 """
 
 from __future__ import annotations

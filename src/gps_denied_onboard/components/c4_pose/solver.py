@@ -1,40 +1,25 @@
 """C4 pose solver: camera pose and position covariance from map-matched inliers on flat ground.
 
-Pipeline per candidate
-----------------------
-1. Each inlier's tile pixel -> (lon, lat) through the tile's georeference -> NED on the flat ground at
-   ``ground_alt_amsl_m``. The world points are planar (D = const up to Earth curvature: ~8 cm at 1 km).
-2. Image-only pose: planar PnP (``SOLVEPNP_IPPE``, both of its solutions; ``SOLVEPNP_SQPNP`` as
-   fallback) on points centred on their centroid (NED coordinates can be kilometres from the origin;
-   centring keeps the problem well conditioned), then ``solvePnPRefineLM``. Distortion is handled by
-   OpenCV from the calibration's coefficients. Its residuals give the per-coordinate image noise
-   ``sigma_px`` (variance with the dof correction 2I - 6), and its optical axis is checked against the
-   autopilot's (the gate below).
-3. Pose with the attitude prior: a tilt of the camera and a shift of it along the ground move a
-   near-nadir image almost alike, so from noisy matches (across dates, from high up) the image alone
-   trades one for the other: at 1200 m AGL each degree of tilt it gets wrong is 21 m of position
-   (measured: XFeat across eleven years of NAIP, image-only position error median 22 m, p95 64 m; with
-   the rotation held at the true attitude, 1.9 m and 6.0 m). The pose is therefore solved again as a
-   maximum a posteriori estimate (``scipy.optimize.least_squares``, Levenberg-Marquardt, from the
-   image-only pose) with two more residuals: the direction of gravity (world down) in the camera frame
-   against the autopilot's, on the two axes across it, over ``PoseConfig.attitude_sigma_deg``. Yaw stays
-   the image's (a compass heading is worse than the map's). Strong image evidence (same-source imagery,
-   low height) outweighs the prior; weak evidence leans on it, and the covariance says which.
-4. Covariance: ``(J^T J)^-1`` of the whitened system (reprojection residuals over ``sigma_px``, tilt
-   residuals over the attitude sigma) over (rvec, tvec), propagated to the camera centre
-   ``C = -R^T t`` with a numerical Jacobian, then floored per axis by ``PoseConfig.min_sigma_m``. The
-   floor stands for error the residuals cannot see: the map's own georeference error, terrain that is
-   not flat, and matches that are consistently biased (the same model error gives small residuals but a
-   shifted pose). That error is common to every fix against the map, so the fix also carries it apart
-   as ``PoseFix.shared_sigma_m``: the estimator must not average it away over many fixes. The part of
-   the covariance that comes from the attitude prior is shared as well (a boresight or AHRS bias is the
-   same for the next fix), so it goes into ``shared_sigma_m`` too.
-5. Plausibility gates (each a ``PoseError`` with a :class:`PoseRejectReason`): enough inliers, a 2-D
-   spread of the inliers in the image, a solver result in front of the camera, height above ground
-   vs the autopilot's AGL, the image-only optical axis vs the autopilot's attitude, a finite covariance.
+Input: a candidate's inliers (frame pixels, tile pixels and the tile's georeference), the calibration,
+the autopilot's attitude and AGL at the exposure. Output: a ``PoseFix`` (position, covariance,
+``shared_sigma_m``, the image-only tilt against the autopilot's) or a ``PoseError`` with a
+:class:`PoseRejectReason`.
 
-Frames: world = local NED (metres); camera = OpenCV; ``R`` from ``solvePnP`` maps world to camera, so
-``R_ned_cam = R^T`` and the camera's optical axis in NED is ``R[2, :]``.
+Rule, per candidate:
+1. tile pixels -> (lon, lat) -> NED on the flat ground at ``ground_alt_amsl_m``;
+2. image-only pose: planar PnP (``SOLVEPNP_IPPE``, both solutions; ``SOLVEPNP_SQPNP`` fallback) on
+   centred points, then ``solvePnPRefineLM``; its residuals give ``sigma_px`` (dof 2I - 6);
+3. pose with the attitude prior: a maximum a posteriori re-solve (``least_squares``, LM) with the camera's
+   world-down direction against the autopilot's over ``PoseConfig.attitude_sigma_deg``; yaw stays the
+   image's; at most ``max_independent_matches`` inliers count as independent evidence;
+4. covariance: ``(J^T J)^-1`` of the whitened system, propagated to the camera centre, floored per axis
+   at ``PoseConfig.min_sigma_m``; the floor and the attitude prior's share go into ``shared_sigma_m``;
+5. gates: enough inliers, their spread, in front of the camera, height vs the autopilot's AGL, the
+   image-only optical axis vs the autopilot's, a finite covariance.
+Frames: world = local NED (m); camera = OpenCV; ``R_ned_cam = R^T``, optical axis in NED ``R[2, :]``.
+
+Why the attitude prior and the floor: docs/design.md, "The attitude prior" and "`c4_pose/solver.py`: the
+pose solver".
 """
 
 from __future__ import annotations

@@ -1,40 +1,25 @@
 """C5 time axis: the one place that decides what time it is for the estimator.
 
-Every input carries the time it describes (a frame's exposure, an IMU sample's time), never the time it
-arrived, and every input goes through here. Three jobs, one mechanism:
+Input: every input with the time it describes (a frame's exposure, an IMU sample's time), never the time
+it arrived. Output: admitted inputs fused into the estimator at their own time, refusals counted by
+reason and logged, and the state at any requested time.
 
-1. **Admission** (refused inputs are counted by reason, logged, and never move the filter's clock):
-
-   ``future``
-       stamped more than ``max_future_s`` ahead of the daemon's clock. A frame from the future would
-       drag the filter ahead of every correct measurement after it; it is refused, whatever it is.
-   ``stale``
-       a frame older than ``max_frame_age_s`` when the daemon gets to it (its attitude is history).
-   ``out_of_order``
-       a frame whose exposure is not after the previous admitted frame's (VO needs dt > 0).
-   ``too_late``
-       a measurement older than what the filter can still be rewound to: more than ``max_delay_s``
-       behind the newest measurement fused, or before the filter was (re)initialised.
-
-2. **Delayed fusion**: the filter keeps a checkpoint before each fused input of the last
-   ``max_delay_s``. An input older than the newest one (a slow absolute fix, the F3 "parallel" path)
-   rewinds the filter to the checkpoint just before its time, is fused *at its own time*, and every
-   later input is fused again on top, in time order (their events are not logged twice). Fusing it at
-   its arrival time instead would put a position measured seconds ago at today's state: a bias the
-   size of the distance flown meanwhile.
-
-Whose clock: the daemon's (``gps_denied_onboard.clock.DaemonClock``: monotonic, anchored to Unix time
-once at start), never the wall clock, so a step of the host's clock neither refuses correct frames nor
-moves the filter. A frame's stamp is the host's wall clock at exposure; ``admit_frame`` maps it into the
-daemon's clock (``DaemonClock.from_wall_usec``) before judging it, and every later use of the frame
-(attitude lookup, VO, the fix, the FDR) uses the mapped time (``Admission.exposure_time_unix_usec``).
-
+Rule, three jobs:
+1. **Admission**: refused and never allowed to move the filter's clock: ``future`` (more than
+   ``max_future_s`` ahead of the daemon's clock), ``stale`` (a frame older than ``max_frame_age_s`` when
+   picked up), ``out_of_order`` (not after the previous admitted frame), ``too_late`` (more than
+   ``max_delay_s`` behind the newest measurement fused, or before the filter was (re)initialised).
+2. **Delayed fusion**: a checkpoint is kept before each fused input of the last ``max_delay_s``; an older
+   input rewinds to the checkpoint before its time, is fused there, and every later input is fused again
+   in time order (their events are not logged twice).
 3. **Output at any time**: :meth:`TimeAxis.state_at` predicts from the newest fused input to the
-   requested time (default: now) without changing the filter, through the estimator's IMU-driven
-   prediction. This is what the steady MAVLink stream sends between frames.
+   requested time without changing the filter; the steady MAVLink stream sends this.
+Whose clock: the daemon's (``DaemonClock``), never the wall clock. ``admit_frame`` maps a frame's
+wall-clock stamp into it (``DaemonClock.from_wall_usec``) and every later use of the frame uses the
+mapped time (``Admission.exposure_time_unix_usec``). Thread-safe: one lock for the VO worker, the fix
+worker and the output task.
 
-Thread-safe: the VO worker, the fix worker and the output task share one axis (one lock; each call is a
-few 6x6 matrix operations, a rewind a few dozen).
+Why: docs/design.md, "The time axis".
 """
 
 from __future__ import annotations
