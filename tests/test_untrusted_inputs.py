@@ -136,3 +136,96 @@ def test_cli_fdr_readers_with_a_nested_line_refuse_in_one_line(
     d = _fdr_with(tmp_path, NESTED_LINE)
     line = _one_line(_gdnav(tmp_path, *command, str(d)), 3)
     assert "no run tracked any frame" in line
+
+
+# --- manifests, profiles, the camera stream ---------------------------------------------------------
+
+
+def _sitl_args(tmp_path: Path, *overrides: str) -> list[str]:
+    """``--config sitl.yaml`` with local directories and unused loopback ports, then ``overrides``."""
+    from daemon_harness import REPO, free_tcp_port, free_udp_port
+
+    args = ["--config", str(REPO / "config" / "sitl.yaml")]
+    for item in (
+        f"camera.source=tcp://127.0.0.1:{free_tcp_port()}",
+        f"mavlink.url=udpin:127.0.0.1:{free_udp_port()}",
+        f"cache.dir={tmp_path / 'no-cache'}",
+        f"fdr.dir={tmp_path / 'fdr'}",
+        *overrides,
+    ):
+        args += ["--set", item]
+    return args
+
+
+@pytest.mark.parametrize(
+    "manifest",
+    [
+        b'{"format_version": 1, "x": ' + b"[" * 50_000 + b"]" * 50_000 + b"}",
+        b"[1, 2]",
+        b'{"format_version": 1}',
+    ],
+    ids=["nested", "not-an-object", "missing-keys"],
+)
+def test_cli_run_hostile_cache_manifest_exits_3(tmp_path: Path, manifest: bytes) -> None:
+    """A nested, non-object or incomplete manifest.json is refused at start-up: exit 3, one line naming
+    the manifest (the nested one raised RecursionError)."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "manifest.json").write_bytes(manifest)
+    line = _one_line(_gdnav(tmp_path, "run", *_sitl_args(tmp_path, f"cache.dir={cache}")), 3)
+    assert "manifest.json" in line
+
+
+def test_cache_manifest_with_infinite_numbers_is_refused(tmp_path: Path) -> None:
+    """An infinite tile count (int() raises OverflowError) is a CacheManifestError, not a crash."""
+    from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest, CacheManifestError
+
+    good = {
+        "format_version": 1,
+        "created_utc": "x",
+        "source": {"kind": "geotiff", "path": "m.tif", "sha256": "0", "crs": "EPSG:4326"},
+        "zoom": 18,
+        "tile_size_px": 256,
+        "tile_range": {"x0": 0, "y0": 0, "x1": 1, "y1": 1},
+        "bbox_lonlat": [0, 0, 1, 1],
+        "mosaic_shape": [2, 2, 3],
+        "tile_count": 1e999,
+        "min_tile_valid_fraction": 0.5,
+        "resampling": "area",
+        "vpr": {"backbone": "none", "model_sha256": None},
+        "artifacts": {},
+    }
+    (tmp_path / "manifest.json").write_text(json.dumps(good))
+    with pytest.raises(CacheManifestError, match="malformed"):
+        CacheManifest.load(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "profile",
+    [
+        "profile: " + "[" * 3000 + "]" * 3000 + "\n",
+        "a0: &a0 [x, x, x, x, x, x, x, x, x, x]\n"
+        + "".join(f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]\n" for i in range(1, 9)),
+    ],
+    ids=["nested", "alias-bomb"],
+)
+@pytest.mark.parametrize("command", [("run",), ("config", "check"), ("preflight", "--offline")])
+def test_cli_hostile_profile_exits_2(tmp_path: Path, profile: str, command: tuple[str, ...]) -> None:
+    """A profile nested past the YAML parser (RecursionError) or an alias bomb (a billion values once
+    expanded: `config check` ran for minutes) is a configuration error in one line, at once."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(profile)
+    proc = _gdnav(tmp_path, *command, "--config", str(bad))
+    line = _one_line(proc, 2) if command[0] != "preflight" else proc.stderr.strip().splitlines()[-1]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert str(bad) in line and "not a profile" in line
+
+
+def test_camera_stream_nested_header_is_a_stream_error() -> None:
+    """A frame header nested past the JSON decoder (a hostile camera peer) is a FrameStreamError (the
+    stream reconnects), not a RecursionError out of the camera task."""
+    from gps_denied_onboard.camera.stream import MAX_HEADER_BYTES, FrameStreamError, _parse_header
+
+    raw = b"[" * (MAX_HEADER_BYTES // 2) + b"]" * (MAX_HEADER_BYTES // 2)
+    with pytest.raises(FrameStreamError, match="nested too deeply"):
+        _parse_header(raw)

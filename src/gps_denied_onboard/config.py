@@ -585,9 +585,47 @@ def _apply_override(data: dict[str, Any], assignment: str) -> None:
             raise ConfigError(key, f"'{part}' is not a section")
         node = nxt
     try:
-        node[parts[-1]] = yaml.safe_load(raw) if raw.strip() else None
+        node[parts[-1]] = _safe_load(raw, key, None) if raw.strip() else None
     except yaml.YAMLError as exc:
         raise ConfigError(key, f"override value is not valid YAML: {exc}".replace("\n", " ")) from exc
+
+
+#: Bounds on what a profile (or one override) may hold: its file's size, and its nesting and node count
+#: with YAML aliases expanded (a profile is a few kB, 3 levels deep, a few hundred values; an alias
+#: "billion laughs" expands exponentially in every later step).
+MAX_PROFILE_BYTES: Final[int] = 1 << 20
+MAX_PROFILE_DEPTH: Final[int] = 32
+MAX_PROFILE_NODES: Final[int] = 100_000
+
+
+def _check_shape(data: Any, key: str, source: str | None) -> None:
+    """Refuse ``data`` nested deeper or holding more values than the bounds above (walked without
+    recursion, aliases counted each time they are used)."""
+    stack: list[tuple[Any, int]] = [(data, 1)]
+    nodes = 0
+    while stack:
+        node, depth = stack.pop()
+        nodes += 1
+        if depth > MAX_PROFILE_DEPTH or nodes > MAX_PROFILE_NODES:
+            if depth > MAX_PROFILE_DEPTH:
+                what = f"nested deeper than {MAX_PROFILE_DEPTH}"
+            else:
+                what = f"more than {MAX_PROFILE_NODES} values (YAML aliases expanded)"
+            raise ConfigError(key, f"{what}: not a profile", source=source)
+        if isinstance(node, Mapping):
+            stack.extend((v, depth + 1) for v in node.values())
+        elif isinstance(node, (list, tuple)):
+            stack.extend((v, depth + 1) for v in node)
+
+
+def _safe_load(text: str, key: str, source: str | None) -> Any:
+    """``yaml.safe_load`` whose deep nesting (RecursionError in PyYAML's composer) is a ConfigError."""
+    try:
+        loaded = yaml.safe_load(text)
+    except RecursionError:
+        raise ConfigError(key, "nested too deeply to parse: not a profile", source=source) from None
+    _check_shape(loaded, key, source)
+    return loaded
 
 
 def config_with_overrides(
@@ -595,6 +633,7 @@ def config_with_overrides(
 ) -> Config:
     """A config from a mapping (e.g. the ``daemon.config`` an FDR recorded) with ``KEY.PATH=VALUE``
     overrides applied, validated like a file."""
+    _check_shape(data, "<root>", source)
     copy = json.loads(json.dumps(dict(data)))
     for item in overrides:
         _apply_override(copy, item)
@@ -615,7 +654,11 @@ def load_config(path: str | Path | None, overrides: Sequence[str] = ()) -> Confi
         if not p.is_file():
             raise ConfigError("<file>", "config file not found", source=source)
         try:
-            loaded = yaml.safe_load(p.read_text(encoding="utf-8"))
+            if p.stat().st_size > MAX_PROFILE_BYTES:
+                raise ConfigError(
+                    "<file>", f"larger than {MAX_PROFILE_BYTES} bytes: not a profile", source=source
+                )
+            loaded = _safe_load(p.read_text(encoding="utf-8"), "<file>", source)
         except UnicodeDecodeError as exc:
             raise ConfigError(
                 "<file>", f"not UTF-8 text (byte {exc.start}: {exc.reason})", source=source

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from gps_denied_onboard.constants import FRAME_STREAM_MAGIC
+from gps_denied_onboard.helpers import bounded_json
 
 _U32 = struct.Struct(">I")
 MAX_HEADER_BYTES = 4096
@@ -166,9 +167,9 @@ def encode_frame(
 
 def _parse_header(raw: bytes) -> dict[str, object]:
     try:
-        header = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise FrameStreamError(f"frame header is not UTF-8 JSON: {exc}") from exc
+        header = bounded_json.loads(raw, max_bytes=MAX_HEADER_BYTES, what="frame header")
+    except bounded_json.BoundedJsonError as exc:
+        raise FrameStreamError(str(exc)) from exc
     if not isinstance(header, dict):
         raise FrameStreamError("frame header must be a JSON object")
     for key in ("seq", "exposure_time_unix_usec", "width_px", "height_px"):

@@ -25,9 +25,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from gps_denied_onboard.helpers import bounded_json
+
 #: Version of the cache layout; bump on any incompatible change.
 CACHE_FORMAT_VERSION = 1
 MANIFEST_NAME = "manifest.json"
+#: The largest manifest read (a real one is a few kB; its tile list is in tiles.json), bytes.
+MAX_MANIFEST_BYTES = 1 << 20
 TILES_NAME = "tiles.json"
 TILE_VALID_FRACTION_NAME = "tile_valid_fraction.npy"
 _HASH_CHUNK_BYTES = 8 << 20
@@ -255,15 +259,17 @@ class CacheManifest:
                     for name, info in payload.get("tile_features", {}).items()
                 },
             )
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise CacheManifestError(f"malformed cache manifest: {exc!r}", path=path) from exc
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as exc:
+            raise CacheManifestError(f"malformed cache manifest: {exc!r}"[:500], path=path) from exc
 
     @classmethod
     def load(cls, cache_dir: Path) -> CacheManifest:
         """Read ``cache_dir/manifest.json``; a missing or unreadable manifest raises CacheManifestError."""
         path = Path(cache_dir) / MANIFEST_NAME
         try:
-            text = path.read_text(encoding="utf-8")
+            with path.open("rb") as fh:
+                raw = fh.read(MAX_MANIFEST_BYTES + 1)
+            text = raw.decode("utf-8")
         except FileNotFoundError as exc:
             raise CacheManifestError(
                 "no cache manifest: the directory is not a cache or its build did not finish", path=str(path)
@@ -275,9 +281,13 @@ class CacheManifest:
                 f"cache manifest is not UTF-8 text (byte {exc.start}: {exc.reason})", path=str(path)
             ) from exc
         try:
-            payload = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise CacheManifestError(f"cache manifest is not valid JSON: {exc}", path=str(path)) from exc
+            payload = bounded_json.loads(text, max_bytes=MAX_MANIFEST_BYTES, what="cache manifest")
+        except bounded_json.BoundedJsonError as exc:
+            raise CacheManifestError(str(exc), path=str(path)) from exc
+        if not isinstance(payload, dict):
+            raise CacheManifestError(
+                f"cache manifest is a JSON {type(payload).__name__}, expected an object", path=str(path)
+            )
         return cls.from_json(payload, path=str(path))
 
     def save(self, cache_dir: Path) -> None:

@@ -457,8 +457,8 @@ def _load_tiles(path: Path, manifest: CacheManifest) -> tuple[tuple[TileId, ...]
         entries = payload["tiles"]
         xy = np.array([(int(t["x"]), int(t["y"])) for t in entries], dtype=np.int64).reshape(-1, 2)
         tile_ids = tuple(TileId.of(manifest.zoom, t["lat_deg"], t["lon_deg"]) for t in entries)
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise TileStoreError(f"malformed tile list {path.name!r}: {exc!r}", path=str(path)) from exc
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, OverflowError, RecursionError) as exc:
+        raise TileStoreError(f"malformed tile list {path.name!r}: {exc!r}"[:500], path=str(path)) from exc
     tr = manifest.tile_range
     in_range = (xy[:, 0] >= tr.x0) & (xy[:, 0] <= tr.x1) & (xy[:, 1] >= tr.y0) & (xy[:, 1] <= tr.y1)
     if len(tile_ids) != manifest.tile_count or not bool(np.all(in_range)):
