@@ -31,7 +31,8 @@ import numpy as np
 import structlog
 from tqdm import tqdm
 
-from gps_denied_onboard.components.c3_matcher.base import Features, LearnedPairMatcher
+from gps_denied_onboard.components.c3_matcher.features import Features
+from gps_denied_onboard.components.c3_matcher.learned import LearnedPairMatcher
 from gps_denied_onboard.components.c3_matcher.tile_features import (
     TILE_TABLE_DTYPE,
     ExtractorIdentity,

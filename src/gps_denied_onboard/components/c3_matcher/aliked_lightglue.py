@@ -35,24 +35,14 @@ from typing import Final
 import cv2
 import numpy as np
 
-from gps_denied_onboard.components.c3_matcher.base import (
-    Features,
+from gps_denied_onboard.components.c3_matcher.features import Features, no_features
+from gps_denied_onboard.components.c3_matcher.learned import (
     LearnedPairMatcher,
-    TileFeatureSource,
-    no_features,
-    require_runtimes,
+    strongest,
+    unpack_extractor_outputs,
 )
-from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
-from gps_denied_onboard.components.c7_inference.protocol import (
-    EngineLoadError,
-    EngineSignature,
-    InferenceRuntime,
-)
-from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
-from gps_denied_onboard.config import MatcherConfig
-from gps_denied_onboard.helpers.lightglue_runtime_protocol import LightGluePairMatcher
+from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError, EngineSignature
 from gps_denied_onboard.helpers.onnx_signatures import extractor_signature
-from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 
 LABEL: Final[str] = "aliked_lightglue"
 
@@ -143,45 +133,18 @@ def _valid_image_mask(image_bgr: np.ndarray) -> np.ndarray | None:
 
 
 class AlikedLightGlueMatcher(LearnedPairMatcher):
-    """ALIKED features via C7 + shared LightGlue + shared RANSAC (see module docstring)."""
+    """ALIKED features via C7 + shared LightGlue + shared RANSAC (see module docstring); the engine comes
+    from ``config.aliked_weights_path``."""
 
     label = LABEL
     query_phase = "aliked_forward_query"
     tile_phase = "aliked_forward"
-    match_phase = "lightglue_match"
+    weights_field = "aliked_weights_path"
+    signature = ALIKED_SIGNATURE
+    model_needed = "an ALIKED ONNX model (gdnav models export --weights-dir DIR --out DIR)"
 
-    def __init__(
-        self,
-        runtime: InferenceRuntime,
-        lightglue_runtime: LightGluePairMatcher,
-        ransac_filter: RansacFilter,
-        fdr_client: FdrClient | None,
-        health_window: RollingHealthWindow,
-        config: MatcherConfig,
-        tile_features: TileFeatureSource | None = None,
-    ) -> None:
-        """Loads the ALIKED engine from ``config.aliked_weights_path`` (raises C7's ``EngineLoadError``)."""
-        super().__init__(
-            ransac_filter=ransac_filter, fdr_client=fdr_client, health_window=health_window, config=config
-        )
-        if not config.aliked_weights_path:
-            raise EngineLoadError(
-                "not set; the aliked_lightglue strategy needs an ALIKED ONNX model "
-                "(gdnav models export --weights-dir DIR --out DIR)",
-                path="matcher.aliked_weights_path",
-            )
-        self._runtime = runtime
-        self._lightglue_runtime = lightglue_runtime
-        self._model_path = str(config.aliked_weights_path)
-        self._engine_id = runtime.load_engine(self._model_path, ALIKED_SIGNATURE)
+    def _check_model(self) -> None:
         self._input_hw, self._descriptor_dim = self._model_layout()
-        self._long_side_px = int(config.input_long_side_px)
-        self._max_keypoints = int(config.max_keypoints)
-        self._init_tile_features(str(self._model_path), tile_features)
-
-    @property
-    def engine_id(self) -> str:
-        return self._engine_id
 
     @property
     def input_hw(self) -> tuple[int, int] | None:
@@ -225,23 +188,8 @@ class AlikedLightGlueMatcher(LearnedPairMatcher):
         input_hw = self._input_hw or dynamic_input_hw((h, w), self._long_side_px)
         box = letterbox(image_bgr, input_hw)
         outputs = self._runtime.run(self._engine_id, {"image": box.tensor})
-        try:
-            kpts = np.asarray(outputs["keypoints"])
-            scores = np.asarray(outputs["scores"])
-            desc = np.asarray(outputs["descriptors"])
-        except KeyError as exc:
-            raise AlikedOutputError(f"ALIKED output {exc} missing; got {sorted(outputs)}") from exc
-        if kpts.ndim != 3 or kpts.shape[0] != 1 or kpts.shape[2] != 2:
-            raise AlikedOutputError(f"keypoints must be (1, N, 2), got {kpts.shape}")
-        n = kpts.shape[1]
-        if scores.shape != (1, n) or desc.ndim != 3 or desc.shape[:2] != (1, n):
-            raise AlikedOutputError(
-                f"scores {scores.shape} / descriptors {desc.shape} do not match {n} keypoints"
-            )
-        dim = int(desc.shape[2])
-        pts = kpts[0].astype(np.float32)
-        sc = scores[0].astype(np.float32)
-        d = desc[0].astype(np.float32)
+        pts, sc, d = unpack_extractor_outputs(outputs, "ALIKED", AlikedOutputError)
+        dim = int(d.shape[1])
         # Back to the original image's pixels (pixel centres: (u + 0.5) / s - 0.5).
         orig = (pts + np.float32(0.5)) / np.float32(box.scale) - np.float32(0.5)
         # Keypoints in (or at the edge of) the letterbox padding are not on the image; fixed-top-k
@@ -258,28 +206,12 @@ class AlikedLightGlueMatcher(LearnedPairMatcher):
         orig, sc, d = orig[keep], sc[keep], d[keep]
         if orig.shape[0] == 0:
             return no_features((w, h), dim)
-        if orig.shape[0] > self._max_keypoints:
-            order = np.argsort(-sc, kind="stable")[: self._max_keypoints]
-            orig, d = orig[order], d[order]
+        orig, d = strongest(orig, sc, d, self._max_keypoints)
         return Features(
             np.ascontiguousarray(orig, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32), (w, h)
         )
 
 
-def create(
-    config: MatcherConfig,
-    lightglue_runtime: LightGluePairMatcher,
-    ransac_filter: RansacFilter,
-    inference_runtime: InferenceRuntime,
-    health_window: RollingHealthWindow,
-    fdr_client: FdrClient | None = None,
-    tile_features: TileFeatureSource | None = None,
-) -> AlikedLightGlueMatcher:
-    """Registry factory for ``aliked_lightglue``: builds the strategy, which loads the ALIKED engine now
-    (``inference_runtime.load_engine(config.aliked_weights_path, ALIKED_SIGNATURE)``)."""
-    require_runtimes(
-        "aliked_lightglue", inference_runtime=inference_runtime, lightglue_runtime=lightglue_runtime
-    )
-    return AlikedLightGlueMatcher(
-        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config, tile_features
-    )
+#: Registry factory for ``aliked_lightglue``: builds the strategy, which loads the ALIKED engine now
+#: (``inference_runtime.load_engine(config.aliked_weights_path, ALIKED_SIGNATURE)``).
+create = AlikedLightGlueMatcher.create

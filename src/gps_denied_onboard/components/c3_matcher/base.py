@@ -15,7 +15,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Final, NoReturn, Protocol
+from typing import Any, ClassVar, Final, NoReturn
 
 import cv2
 import numpy as np
@@ -24,6 +24,7 @@ import structlog
 from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
 from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherBackboneError
+from gps_denied_onboard.components.c3_matcher.features import Features, TileFeatureSource
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, MatcherHealth, MatchResult
 from gps_denied_onboard.components.c6_tiles.types import TileId, TilePixelsHandle
@@ -37,24 +38,6 @@ _LOG = structlog.get_logger(__name__)
 
 #: Default number of tiles whose features are kept (see ``TileFeatureCache``).
 DEFAULT_TILE_CACHE_SIZE: Final[int] = 16
-
-
-@dataclass(frozen=True)
-class Features:
-    """Local features of one image.
-
-    - ``keypoints_px``: (N, 2) float32 (x, y) pixels of the image they were extracted from;
-    - ``descriptors``: (N, D), float32 (learned, SIFT) or uint8 (binary ORB/AKAZE);
-    - ``image_size``: (width_px, height_px) of that image.
-    """
-
-    keypoints_px: np.ndarray
-    descriptors: np.ndarray
-    image_size: tuple[int, int]
-
-    @property
-    def count(self) -> int:
-        return int(self.keypoints_px.shape[0])
 
 
 class TileFeatureCache:
@@ -121,15 +104,6 @@ class QueryView:
     #: The GSD the query was rectified to, m/px: the coarser of the map's and the frame's (None = not
     #: rectified). Chips finer than this are downsampled to it before their features are extracted.
     match_gsd_m_px: float | None = None
-
-
-class TileFeatureSource(Protocol):
-    """Precomputed tile features (``c3_matcher.tile_features.PrecomputedTileFeatures``)."""
-
-    @property
-    def identity(self) -> Any: ...
-
-    def lookup(self, handle: TilePixelsHandle, chip_wh: tuple[int, int]) -> Features | None: ...
 
 
 class _NullFdrClient:
@@ -502,51 +476,6 @@ class CandidateLoopMatcher(abc.ABC):
         ) from cause
 
 
-class LearnedPairMatcher(CandidateLoopMatcher):
-    """A learned extractor run the same way on the query and on tiles (``_forward``), whose features
-    are matched by the shared LightGlue helper (``self._lightglue_runtime``): DISK, ALIKED, XFeat."""
-
-    _lightglue_runtime: Any
-    _identity: Any = None
-    _model_file: str = ""
-
-    @abc.abstractmethod
-    def _forward(self, image_bgr: np.ndarray) -> Features:
-        """Features of one image in its original pixel coordinates."""
-
-    def extract_query(self, image_bgr: np.ndarray) -> Features:
-        return self._forward(image_bgr)
-
-    def extract_tile(self, chip_bgr: np.ndarray) -> Features:
-        return self._forward(chip_bgr)
-
-    def match_features(self, query: Features, tile: Features) -> np.ndarray:
-        return match_with_lightglue(self._lightglue_runtime, query, tile)
-
-    @property
-    def extractor_identity(self) -> Any:
-        """``tile_features.ExtractorIdentity`` of this strategy's tile features (model sha256, chip size,
-        keypoint cap, input size): what a precomputed set must have been made with. Hashes the model
-        file on first use (OSError when it cannot be read)."""
-        if self._identity is None:
-            from gps_denied_onboard.components.c3_matcher.tile_features import ExtractorIdentity
-
-            self._identity = ExtractorIdentity.of(self.label, self._model_file, self._config)
-        return self._identity
-
-    def _init_tile_features(self, model_path: str, tile_features: TileFeatureSource | None) -> None:
-        """Called by each learned strategy once its extractor is loaded: takes ``tile_features`` only
-        when they were made by this very extractor (ValueError otherwise: a set of another model must
-        never be mixed in; the composition root opens the set for this identity)."""
-        self._model_file = model_path
-        if tile_features is not None and tile_features.identity != self.extractor_identity:
-            raise ValueError(
-                f"precomputed tile features made by {tile_features.identity} given to the {self.label} "
-                f"strategy whose extractor is {self.extractor_identity}"
-            )
-        self._tile_features = tile_features
-
-
 @dataclass
 class _FrameState:
     """Mutable per-frame bookkeeping shared by ``match`` and its ``finally``."""
@@ -570,20 +499,11 @@ def _check_correspondences(corr: np.ndarray) -> tuple[np.ndarray, np.ndarray | N
     """((M, 4) float32 correspondences, (M,) float32 confidences or None) from a hook's output."""
     arr = np.asarray(corr)
     if arr.ndim != 2 or arr.shape[1] not in (4, 5):
-        raise ValueError(
-            f"strategy returned correspondences of shape {arr.shape}, expected (M, 4) or (M, 5)"
-        )
+        raise ValueError(f"strategy returned correspondences of shape {arr.shape}, expected (M, 4) or (M, 5)")
     arr = arr.astype(np.float32, copy=False)
     if arr.shape[1] == 4:
         return arr, None
     return np.ascontiguousarray(arr[:, :4]), np.ascontiguousarray(arr[:, 4])
-
-
-def no_features(image_size: tuple[int, int], descriptor_dim: int, dtype: type = np.float32) -> Features:
-    """An empty feature set (an image with no texture is not an error)."""
-    return Features(
-        np.empty((0, 2), dtype=np.float32), np.empty((0, descriptor_dim), dtype=dtype), image_size
-    )
 
 
 def match_with_lightglue(lightglue_runtime: Any, query: Features, tile: Features) -> np.ndarray:
@@ -619,11 +539,3 @@ def match_with_lightglue(lightglue_runtime: Any, query: Features, tile: Features
     if getattr(lightglue_runtime, "mode", None) == "lightglue" and conf is not None and conf.size == len(idx):
         return np.hstack([corr, conf[:, None]])
     return corr
-
-
-def require_runtimes(label: str, **runtimes: object) -> None:
-    """Refuse to build a learned strategy whose ONNX collaborators the composition root did not wire
-    (ValueError naming the strategy and the missing ones)."""
-    missing = [name for name, value in runtimes.items() if value is None]
-    if missing:
-        raise ValueError(f"the {label} strategy needs {missing} (not wired by the composition root)")

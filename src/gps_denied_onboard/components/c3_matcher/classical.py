@@ -17,12 +17,8 @@ import cv2
 import numpy as np
 import structlog
 
-from gps_denied_onboard.components.c3_matcher.base import (
-    DEFAULT_TILE_CACHE_SIZE,
-    CandidateLoopMatcher,
-    Features,
-    no_features,
-)
+from gps_denied_onboard.components.c3_matcher.base import DEFAULT_TILE_CACHE_SIZE, CandidateLoopMatcher
+from gps_denied_onboard.components.c3_matcher.features import Features, no_features
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import MatcherConfig

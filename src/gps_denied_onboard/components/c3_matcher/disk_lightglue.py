@@ -17,23 +17,15 @@ from typing import Final
 import cv2
 import numpy as np
 
-from gps_denied_onboard.components.c3_matcher.base import (
-    Features,
+from gps_denied_onboard.components.c3_matcher.features import Features
+from gps_denied_onboard.components.c3_matcher.learned import (
     LearnedPairMatcher,
-    TileFeatureSource,
-    require_runtimes,
+    strongest,
+    tensor_to_image_px,
+    unpack_extractor_outputs,
 )
-from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
-from gps_denied_onboard.components.c7_inference.protocol import (
-    EngineLoadError,
-    EngineSignature,
-    InferenceRuntime,
-)
-from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
-from gps_denied_onboard.config import MatcherConfig
-from gps_denied_onboard.helpers.lightglue_runtime_protocol import LightGluePairMatcher
+from gps_denied_onboard.components.c7_inference.protocol import EngineSignature
 from gps_denied_onboard.helpers.onnx_signatures import extractor_signature
-from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 
 LABEL: Final[str] = "disk_lightglue"
 
@@ -78,90 +70,28 @@ def preprocess_disk(image_bgr: np.ndarray, long_side_px: int) -> tuple[np.ndarra
 
 
 class DiskLightGlueMatcher(LearnedPairMatcher):
-    """DISK features via C7 + shared LightGlue + shared RANSAC (see module docstring)."""
+    """DISK features via C7 + shared LightGlue + shared RANSAC (see module docstring); the engine comes
+    from ``config.disk_weights_path``."""
 
     label = LABEL
     query_phase = "disk_forward_query"
     tile_phase = "disk_forward"
-    match_phase = "lightglue_match"
+    weights_field = "disk_weights_path"
+    signature = DISK_SIGNATURE
+    model_needed = "a DISK ONNX model"
 
-    def __init__(
-        self,
-        runtime: InferenceRuntime,
-        lightglue_runtime: LightGluePairMatcher,
-        ransac_filter: RansacFilter,
-        fdr_client: FdrClient | None,
-        health_window: RollingHealthWindow,
-        config: MatcherConfig,
-        tile_features: TileFeatureSource | None = None,
-    ) -> None:
-        """Loads the DISK engine from ``config.disk_weights_path`` (raises C7's ``EngineLoadError``)."""
-        super().__init__(
-            ransac_filter=ransac_filter, fdr_client=fdr_client, health_window=health_window, config=config
-        )
-        if not config.disk_weights_path:
-            raise EngineLoadError(
-                "not set; the disk_lightglue strategy needs a DISK ONNX model",
-                path="matcher.disk_weights_path",
-            )
-        self._runtime = runtime
-        self._lightglue_runtime = lightglue_runtime
-        self._engine_id = runtime.load_engine(config.disk_weights_path, DISK_SIGNATURE)
-        self._long_side_px = int(config.input_long_side_px)
-        self._max_keypoints = int(config.max_keypoints)
-        self._init_tile_features(str(config.disk_weights_path), tile_features)
-
-    @property
-    def engine_id(self) -> str:
-        return self._engine_id
-
-    # --- internals -----------------------------------------------------------------------------------
     def _forward(self, image_bgr: np.ndarray) -> Features:
         h, w = image_bgr.shape[:2]
         tensor, (sx, sy) = preprocess_disk(image_bgr, self._long_side_px)
         outputs = self._runtime.run(self._engine_id, {"image": tensor})
-        try:
-            kpts = np.asarray(outputs["keypoints"])
-            scores = np.asarray(outputs["scores"])
-            desc = np.asarray(outputs["descriptors"])
-        except KeyError as exc:
-            raise DiskOutputError(f"DISK output {exc} missing; got {sorted(outputs)}") from exc
-        if kpts.ndim != 3 or kpts.shape[0] != 1 or kpts.shape[2] != 2:
-            raise DiskOutputError(f"keypoints must be (1, N, 2), got {kpts.shape}")
-        n = kpts.shape[1]
-        if scores.shape != (1, n) or desc.ndim != 3 or desc.shape[:2] != (1, n):
-            raise DiskOutputError(
-                f"scores {scores.shape} / descriptors {desc.shape} do not match {n} keypoints"
-            )
-        pts = kpts[0].astype(np.float32)
-        sc = scores[0].astype(np.float32)
-        d = desc[0].astype(np.float32)
+        pts, sc, d = unpack_extractor_outputs(outputs, "DISK", DiskOutputError)
         # Keypoints in the zero padding are not on the image.
         new_w, new_h = w * sx, h * sy
         on_image = (pts[:, 0] >= 0) & (pts[:, 1] >= 0) & (pts[:, 0] < new_w) & (pts[:, 1] < new_h)
-        pts, sc, d = pts[on_image], sc[on_image], d[on_image]
-        if pts.shape[0] > self._max_keypoints:
-            order = np.argsort(-sc, kind="stable")[: self._max_keypoints]
-            pts, d = pts[order], d[order]
-        # Back to the original image's pixels (pixel centres: (u + 0.5) / s - 0.5).
-        pts = np.column_stack([(pts[:, 0] + 0.5) / sx - 0.5, (pts[:, 1] + 0.5) / sy - 0.5]).astype(np.float32)
-        return Features(pts, np.ascontiguousarray(d, dtype=np.float32), (w, h))
+        pts, d = strongest(pts[on_image], sc[on_image], d[on_image], self._max_keypoints)
+        return Features(tensor_to_image_px(pts, sx, sy), np.ascontiguousarray(d, dtype=np.float32), (w, h))
 
 
-def create(
-    config: MatcherConfig,
-    lightglue_runtime: LightGluePairMatcher,
-    ransac_filter: RansacFilter,
-    inference_runtime: InferenceRuntime,
-    health_window: RollingHealthWindow,
-    fdr_client: FdrClient | None = None,
-    tile_features: TileFeatureSource | None = None,
-) -> DiskLightGlueMatcher:
-    """Registry factory for ``disk_lightglue``: builds the strategy, which loads the DISK engine now
-    (``inference_runtime.load_engine(config.disk_weights_path, DISK_SIGNATURE)``)."""
-    require_runtimes(
-        "disk_lightglue", inference_runtime=inference_runtime, lightglue_runtime=lightglue_runtime
-    )
-    return DiskLightGlueMatcher(
-        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config, tile_features
-    )
+#: Registry factory for ``disk_lightglue``: builds the strategy, which loads the DISK engine now
+#: (``inference_runtime.load_engine(config.disk_weights_path, DISK_SIGNATURE)``).
+create = DiskLightGlueMatcher.create

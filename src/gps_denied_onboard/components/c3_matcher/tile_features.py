@@ -36,7 +36,7 @@ from typing import Any, Final
 import numpy as np
 import structlog
 
-from gps_denied_onboard.components.c3_matcher.base import Features
+from gps_denied_onboard.components.c3_matcher.features import Features
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileId, TilePixelsHandle
 from gps_denied_onboard.components.c10_cache_build.manifest import (

@@ -28,25 +28,21 @@ import cv2
 import numpy as np
 import structlog
 
-from gps_denied_onboard.components.c3_matcher.base import (
-    Features,
+from gps_denied_onboard.components.c3_matcher.features import Features, no_features
+from gps_denied_onboard.components.c3_matcher.learned import (
     LearnedPairMatcher,
-    TileFeatureSource,
-    no_features,
-    require_runtimes,
+    strongest,
+    tensor_to_image_px,
+    unpack_extractor_outputs,
 )
-from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c7_inference.protocol import (
     EngineLoadError,
     EngineSignature,
     InferenceError,
     InferenceRuntime,
 )
-from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
-from gps_denied_onboard.config import MatcherConfig
 from gps_denied_onboard.helpers.lightglue_runtime_protocol import LightGluePairMatcher
 from gps_denied_onboard.helpers.onnx_signatures import XFEAT_EXTRACTOR
-from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 
 _LOG = structlog.get_logger(__name__)
 
@@ -167,48 +163,30 @@ def _check_lightglue_descriptor_dim(
 
 
 class XFeatMatcher(LearnedPairMatcher):
-    """XFeat features via C7 + shared LightGlue helper + shared RANSAC (see module docstring)."""
+    """XFeat features via C7 + shared LightGlue helper + shared RANSAC (see module docstring).
+
+    The engine comes from ``config.xfeat_weights_path``; refused (``EngineLoadError``) when the model does
+    not match ``XFEAT_SIGNATURE`` (D != 64, C not in {1, 3}) or the configured LightGlue model.
+    """
 
     label = LABEL
     query_phase = "xfeat_forward_query"
     tile_phase = "xfeat_forward"
-    match_phase = "lightglue_match"
+    weights_field = "xfeat_weights_path"
+    signature = XFEAT_SIGNATURE
+    model_needed = "an XFeat ONNX model"
 
-    def __init__(
-        self,
-        runtime: InferenceRuntime,
-        lightglue_runtime: LightGluePairMatcher,
-        ransac_filter: RansacFilter,
-        fdr_client: FdrClient | None,
-        health_window: RollingHealthWindow,
-        config: MatcherConfig,
-        tile_features: TileFeatureSource | None = None,
-    ) -> None:
-        """Loads the XFeat engine from ``config.xfeat_weights_path`` and reads its input C.
-
-        Raises C7's ``EngineLoadError`` when the path is unset, the file is missing, or the model does
-        not match ``XFEAT_SIGNATURE`` (D != 64, C not in {1, 3}) or the configured LightGlue model.
-        """
-        super().__init__(
-            ransac_filter=ransac_filter, fdr_client=fdr_client, health_window=health_window, config=config
+    def _check_model(self) -> None:
+        self._channels = model_input_channels(self._runtime, self._engine_id, self._model_path)
+        if self._lightglue_runtime is not None:
+            _check_lightglue_descriptor_dim(self._runtime, self._lightglue_runtime)
+        _LOG.debug(
+            "c3.matcher.xfeat_engine",
+            strategy=self.label,
+            engine_id=self._engine_id,
+            input_channels=self._channels,
+            lightglue_mode=getattr(self._lightglue_runtime, "mode", None),
         )
-        path = config.xfeat_weights_path
-        if not path:
-            raise EngineLoadError(
-                "not set; the xfeat strategy needs an XFeat ONNX model", path="matcher.xfeat_weights_path"
-            )
-        self._runtime = runtime
-        self._lightglue_runtime = lightglue_runtime
-        self._engine_id = runtime.load_engine(path, XFEAT_SIGNATURE)
-        self._channels = model_input_channels(runtime, self._engine_id, path)
-        _check_lightglue_descriptor_dim(runtime, lightglue_runtime)
-        self._long_side_px = int(config.input_long_side_px)
-        self._max_keypoints = int(config.max_keypoints)
-        self._init_tile_features(str(path), tile_features)
-
-    @property
-    def engine_id(self) -> str:
-        return self._engine_id
 
     @property
     def input_channels(self) -> int:
@@ -232,52 +210,14 @@ class XFeatMatcher(LearnedPairMatcher):
             & (pts[:, 0] < tw)
             & (pts[:, 1] < th)
         )
-        pts, scores, desc = pts[valid], scores[valid], desc[valid]
-        if pts.shape[0] > self._max_keypoints:
-            order = np.argsort(-scores, kind="stable")[: self._max_keypoints]
-            pts, desc = pts[order], desc[order]
-        # Tensor px -> original image px (pixel centres: (u + 0.5) / s - 0.5).
-        pts = np.column_stack([(pts[:, 0] + 0.5) / sx - 0.5, (pts[:, 1] + 0.5) / sy - 0.5]).astype(np.float32)
-        return Features(pts, np.ascontiguousarray(desc, dtype=np.float32), (w, h))
+        pts, desc = strongest(pts[valid], scores[valid], desc[valid], self._max_keypoints)
+        return Features(tensor_to_image_px(pts, sx, sy), np.ascontiguousarray(desc, dtype=np.float32), (w, h))
 
 
 def unpack_xfeat_outputs(outputs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Model outputs -> keypoints (N, 2) float32, scores (N,) float32, descriptors (N, 64) float32."""
-    try:
-        kpts = np.asarray(outputs["keypoints"])
-        scores = np.asarray(outputs["scores"])
-        desc = np.asarray(outputs["descriptors"])
-    except KeyError as exc:
-        raise XFeatOutputError(f"XFeat output {exc} missing; got {sorted(outputs)}") from exc
-    if kpts.ndim != 3 or kpts.shape[0] != 1 or kpts.shape[2] != 2:
-        raise XFeatOutputError(f"keypoints must be (1, N, 2), got {kpts.shape}")
-    n = kpts.shape[1]
-    if scores.shape != (1, n) or desc.shape != (1, n, XFEAT_DESCRIPTOR_DIM):
-        raise XFeatOutputError(
-            f"scores {scores.shape} / descriptors {desc.shape} do not match (1, {n}) / "
-            f"(1, {n}, {XFEAT_DESCRIPTOR_DIM})"
-        )
-    return kpts[0].astype(np.float32), scores[0].astype(np.float32), desc[0].astype(np.float32)
+    return unpack_extractor_outputs(outputs, "XFeat", XFeatOutputError, XFEAT_DESCRIPTOR_DIM)
 
 
-def create(
-    config: MatcherConfig,
-    lightglue_runtime: LightGluePairMatcher,
-    ransac_filter: RansacFilter,
-    inference_runtime: InferenceRuntime,
-    health_window: RollingHealthWindow,
-    fdr_client: FdrClient | None = None,
-    tile_features: TileFeatureSource | None = None,
-) -> XFeatMatcher:
-    """Registry factory for ``xfeat``: builds the strategy, which loads the XFeat engine now."""
-    require_runtimes("xfeat", inference_runtime=inference_runtime, lightglue_runtime=lightglue_runtime)
-    matcher = XFeatMatcher(
-        inference_runtime, lightglue_runtime, ransac_filter, fdr_client, health_window, config, tile_features
-    )
-    _LOG.debug(
-        "c3.matcher.xfeat_engine",
-        engine_id=matcher.engine_id,
-        input_channels=matcher.input_channels,
-        lightglue_mode=getattr(lightglue_runtime, "mode", None),
-    )
-    return matcher
+#: Registry factory for ``xfeat``: builds the strategy, which loads the XFeat engine now.
+create = XFeatMatcher.create
