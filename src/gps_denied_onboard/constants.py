@@ -104,6 +104,9 @@ class LogEvent:
     MAVLINK_LINK_LOST: Final = "c8.mavlink.link_lost"
     MAVLINK_SEND_ERROR: Final = "c8.mavlink.send_error"
     MAVLINK_LINK_RESTORED: Final = "c8.mavlink.link_restored"
+    #: A listening link (udpin/tcpin) now writes to another address: the autopilot's valid HEARTBEAT came
+    #: from there.
+    MAVLINK_AUTOPILOT_ADDRESS: Final = "c8.mavlink.autopilot_address"
     #: SET_GPS_GLOBAL_ORIGIN sent (the daemon's local frame offered to the autopilot).
     MAVLINK_ORIGIN_SENT: Final = "c8.mavlink.origin_sent"
     #: The frame VISION_POSITION_ESTIMATE is sent in changed (the autopilot reported its GPS_GLOBAL_ORIGIN).

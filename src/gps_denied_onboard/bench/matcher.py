@@ -1,43 +1,20 @@
 """C3 matcher benchmark: latency, memory and inlier counts of each strategy, side by side with classical.
 
-``run_matcher_benchmark(...)``:
+``run_matcher_benchmark(...)`` renders ``n_frames`` nav frames from a real orthophoto with the SITL
+renderer (random heading, roll/pitch within +-3 deg; from ``frames_path`` for another date), cuts
+``n_candidates`` chips per frame (the true chip, offset like a prior tens of metres off, or from a cache
+with ``first_chip``; then chips that see none of the footprint), builds every strategy through the real
+registry (``create_matcher``) with the real ONNX Runtime, ``LightGlueRuntime`` and ``RansacFilter``, and
+runs them interleaved frame by frame so that each sees the same machine load.
 
-1. renders ``n_frames`` nav frames from a real orthophoto with the SITL renderer
-   (``sitl.render.MapRenderer``): camera ``frame_size`` px, ``hfov_deg`` HFOV, ``alt_agl_m`` above
-   ground, heading uniform in [0, 360), roll/pitch uniform in +-3 deg, position uniform over the map
-   shrunk so that the frame and its chip stay on it; with ``frames_path`` the frames are rendered from
-   that image of the same area instead (another date: the cross-date pairs), the chips stay the map's;
-2. cuts ``n_candidates`` square chips of ``chip_size_px`` from the same raster per frame - the true
-   chip (around the ground point under the principal point, offset by up to 15 % of the chip like a
-   prior with tens of metres of error) first, then chips that see none of the frame's footprint - each
-   wrapped in ``RasterChip``, an in-memory ``TilePixelsHandle``;
-3. builds each strategy through the real registry (``create_matcher``) with the real
-   ``OnnxInferenceRuntime`` (CPU provider unless told otherwise), ``LightGlueRuntime`` and
-   ``RansacFilter``; ``classical`` always runs, the learned ones when their model files are given;
-4. per frame, strategy after strategy (interleaved, so that every strategy sees the same machine
-   load and the ratios to classical are side by side):
+Output: per strategy, frame cold / warm, candidate cold / warm and query extraction times, the true and
+best wrong chip's inliers, whether the true chip ranked first, where the best candidate's solution puts
+the ground under the principal point against the truth, RSS growth while building it, the process peak
+RSS and a ``tracemalloc`` peak over one cold frame (a separate pass; Python and numpy only). Prints a
+table (``format_report``) and returns every figure as a JSON-serialisable dict, frame by frame too.
 
-   - **frame cold**: ``match()`` with an empty tile-feature cache = query extraction (rectified query)
-     + N x (tile extraction + match + RANSAC) + the shared loop's bookkeeping;
-   - **frame warm**: ``match()`` again on the same frame: the tile features come from the cache, as
-     they mostly do when consecutive frames see the same tiles;
-   - **candidate cold**: one chip's tile extraction + match + RANSAC, timed around the strategy's
-     hooks (``extract_tile``, ``match_features``) and the shared ``RansacFilter``;
-   - **candidate warm**: match + RANSAC only (tile features cached);
-   - **query**: the query extraction alone;
-   - inliers: RANSAC inliers of the true chip and the best wrong chip, and whether ``match()`` ranked
-     the true chip first (so a broken matcher cannot hide behind a good latency);
-   - solutions: where the best candidate's inliers put the ground under the principal point, against
-     the truth (a wrong solution cannot hide behind a high inlier count either);
-
-5. memory: the process's current RSS (``/proc/self/statm``) before and after each strategy is built
-   (model sessions), its peak RSS (``getrusage`` ``ru_maxrss``, the whole process's high-water mark,
-   all strategies together), and per strategy the peak of ``tracemalloc`` over one cold frame, in a
-   separate pass so that tracing does not slow the timed ones. tracemalloc sees Python objects and
-   numpy buffers only: ONNX Runtime's arena and OpenCV's internal buffers are not in it (they are in
-   RSS).
-
-Prints a table (``format_report``) and returns every figure as a JSON-serialisable dict.
+Every column in full: docs/design.md, "`bench/matcher.py`: the matcher benchmark"; figures:
+docs/benchmarks.md, "C3 matcher".
 """
 
 from __future__ import annotations

@@ -8,39 +8,17 @@ export``, LightGlue-ONNX separate layout, ``c3_matcher.xfeat.XFEAT_SIGNATURE``) 
       -> resized so its long side is ``VladParams.work_size_px`` (multiple of 32), grey or RGB as the
          model declares (``c3_matcher.xfeat.preprocess_xfeat``, the matcher's own preprocessing)
       -> keypoints (1, N, 2), scores (1, N), descriptors (1, N, 64)
-      -> keypoints on or near invalid pixels dropped (the edge of the camera footprint in a normalised
-         query, map nodata: a strong false edge for a detector that has no mask), then at most
-         ``VladParams.max_keypoints`` by score
+      -> keypoints on or near invalid pixels dropped (``INVALID_MARGIN_PX``: the zero border of a
+         rectified query, map nodata), then at most ``VladParams.max_keypoints`` by score
       -> (n, 64) float32 descriptors (XFeat's, unit L2 norm)
 
 ``model_sha256`` (of the ONNX file) is recorded in the cache manifest when the vocabulary and index are
 built (``c10_cache_build.vpr_index``), and ``VladVpr.from_cache`` refuses a cache built with another model.
-Everything else (vocabulary learned from the cache's own chips, VLAD with intra-normalisation and power
-law, PCA-whitening, the HNSW index, query normalisation) is ``vlad``'s, unchanged.
+Everything else (vocabulary from the cache's own chips, VLAD, PCA-whitening, the HNSW index, query
+normalisation: north-up at the map's GSD, so no rotation search) is ``vlad``'s, unchanged.
 
-Why XFeat first: 64-D descriptors (VLAD of k words is 64 k before PCA) and the cheapest registry extractor
-on a CPU. Its descriptors were trained to match across viewpoint and illumination, which is what
-separates two dates of the same field; dense RootSIFT on the same frames describes mostly the texture of
-this year's crops.
-
-Measured on NAIP (map 2009, 99 tiles z16 of 128 px at 3.3 m/px; 60 frames rendered from the 2020 and the
-2014 image at 1500-2000 m AGL, any heading; corpus-wide Recall@1/@5/@10; ``bench.vpr``, 2 shared cores
-under load 5-8)::
-
-                                               frames 2020         frames 2014
-    k=64, PCA 256, eps 1.0, 1024 kpts, 512 px  0.67 / 0.92 / 0.97  0.82 / 0.93 / 0.97   <- default
-    no PCA (4096-d)                            0.70 / 0.92 / 0.95  0.77 / 0.95 / 0.98
-    k=32                                       0.63 / 0.87 / 0.95  0.70 / 0.83 / 0.90
-    k=128                                      0.67 / 0.92 / 0.95  0.85 / 0.98 / 1.00   (2x index, 2x PCA)
-    512 keypoints                              0.55 / 0.85 / 0.88  0.63 / 0.83 / 0.92
-    2048 keypoints                             0.72 / 0.90 / 0.93  0.82 / 0.97 / 1.00
-    input 384 px (chip 512 px)                 0.67 / 0.88 / 0.93  0.92 / 1.00 / 1.00   (0.56x the pixels)
-    whiten_eps 0.1                             0.53 / 0.88 / 0.95  0.65 / 0.92 / 0.97
-    dense RootSIFT ``vlad`` (its defaults)     0.13 / 0.27 / 0.35  0.20 / 0.37 / 0.53
-
-The query is already north-up at the map's GSD (``query_norm``), so no rotation search or rescaling is
-done; keypoints near the footprint's edge are dropped (``INVALID_MARGIN_PX``) because the zero border of a
-rectified frame is the strongest "corner" in it.
+Why XFeat, and the settings tried: docs/design.md, "`c2_vpr/learned_local.py`"; docs/benchmarks.md,
+"Learned local descriptors".
 """
 
 from __future__ import annotations

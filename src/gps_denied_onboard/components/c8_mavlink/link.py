@@ -16,6 +16,9 @@
   the ground always ends up seeing the latest state.
 - MAVLink 2 signing when ``signing_key_file`` is set: outgoing messages are signed; incoming unsigned or
   wrongly signed messages are rejected (except RADIO_STATUS, which radios inject unsigned).
+- Listening links (``udpin:``/``udp:``/``tcpin:``, ``transport`` module) write only to where the
+  configured autopilot's valid HEARTBEAT (signed when signing is on) last came from, never to any other
+  sender, and send nothing before one.
 - VISION_POSITION_ESTIMATE is a local NED position, so it is only sent in a frame the autopilot shares.
   With ``vision_position_estimate`` in ``outputs``, while the autopilot is alive and has not reported a
   GPS_GLOBAL_ORIGIN, the link sends SET_GPS_GLOBAL_ORIGIN (the daemon's tangent-plane origin) and a
@@ -49,6 +52,7 @@ import structlog
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c8_mavlink import messages
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT, mavutil
+from gps_denied_onboard.components.c8_mavlink.transport import AutopilotTcpIn, AutopilotUdpIn, open_transport
 from gps_denied_onboard.components.c8_mavlink.vehicle_state import AUTOPILOT_COMPONENT_ID, VehicleStateTracker
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import MavlinkConfig, check_mavlink_url
@@ -303,13 +307,8 @@ class MavlinkLink:
     def _connect(self, now: float) -> bool:
         cfg = self._config
         try:
-            conn = mavutil.mavlink_connection(
-                cfg.url,
-                baud=cfg.baud,
-                source_system=cfg.system_id,
-                source_component=cfg.component_id,
-                autoreconnect=False,  # reconnects are ours: pymavlink's sleep and block
-                retries=0,
+            conn = open_transport(
+                cfg.url, baud=cfg.baud, source_system=cfg.system_id, source_component=cfg.component_id
             )
         except (OSError, ValueError) as exc:
             self._schedule_reconnect(now, reason=f"connect failed: {exc}")
@@ -394,7 +393,8 @@ class MavlinkLink:
                             self._bad += 1
                             continue
                         count += 1
-                        self._tracker.handle(msg, now)
+                        if self._tracker.handle(msg, now) and msg.get_type() == "HEARTBEAT":
+                            self._follow_autopilot(conn, msg)
                 except (OSError, _PeerClosed) as exc:
                     self._drop_connection()
                     self._schedule_reconnect(now, reason=f"receive failed: {exc}")
@@ -403,6 +403,18 @@ class MavlinkLink:
         self._maybe_send_origin(now)
         self._flush_pending_status(now)
         return count
+
+    def _follow_autopilot(self, conn: Any, heartbeat: Any) -> None:
+        """Send to where the autopilot's HEARTBEAT came from (a listening link; a signed one when signing
+        is on); logged and recorded when that moves."""
+        if not isinstance(conn, (AutopilotUdpIn, AutopilotTcpIn)):
+            return
+        if self._signing_key is not None and not heartbeat.get_signed():
+            return
+        address = conn.follow_source()
+        if address is not None:
+            _log.info(LogEvent.MAVLINK_AUTOPILOT_ADDRESS, url=self._config.url, address=address)
+            self._record_event("autopilot_address", address=address)
 
     def _schedule_reconnect(self, now: float, *, reason: str) -> None:
         delay = self._backoff_s * (1.0 + self._rng.uniform(-RECONNECT_JITTER_FRAC, RECONNECT_JITTER_FRAC))
