@@ -1,34 +1,24 @@
 """C1 frame-to-frame visual odometry for the nadir nav camera: features, homography RANSAC, ground plane.
 
-Per frame
----------
-1. Features (ORB by default, or SIFT) on the grey image; too few -> ``VoError(low_texture)``.
-2. Match against the previous frame's features (k=2 nearest neighbours + ratio test), then RANSAC on a
-   homography: over flat ground the true inter-frame mapping is a homography, so its inliers are the
-   matches consistent with one rigid camera motion over the ground plane (moving objects and blunders
-   drop out).
-3. Metric motion: each inlier is undistorted, turned into a ray in NED with that frame's attitude
-   (``Attitude.R_ned_cam``) and intersected with the ground ``alt_agl_m`` below that frame's camera.
-   With each camera at the origin of its own NED copy, a ground point seen at ``g_prev`` and ``g_cur``
-   gives ``camera_cur - camera_prev = g_prev - g_cur``; the displacement is the per-axis median of
-   these offsets (robust to residual mismatches).
-4. Covariance: ``(pi/2) * cov(offsets) / n`` (the variance of a median of n Gaussian samples is pi/2
-   that of the mean) plus, per axis, the errors common to all points that their spread cannot reveal:
-   the attitude error *between* the two exposures, ``(sqrt(2) * AGL * rel_attitude_sigma_rad)^2`` (the
-   autopilot's attitude is smooth, so consecutive errors are strongly correlated: 0.05 deg default,
-   not its absolute accuracy), and the AGL scale error, ``(scale_sigma_frac * |displacement|)^2``
-   (1 % default). A flat 0.5 %-of-AGL floor used before made VO almost worthless at high altitude
-   (6 m per frame at 1200 m AGL for a 13 m displacement): the filter could not follow a turn and then
-   rejected every correct fix.
+Input: a frame with its attitude (``Attitude.R_ned_cam``) and height above ground at its exposure.
+Output: a ``VoMotion`` (NED displacement since the reference frame, its covariance, the interval, and
+``ground_tilt_off_cam_rad``) or a ``VoError``.
 
-5. Ground tilt: the same inliers, with the displacement and the autopilot's relative rotation, say where
-   the ground's normal lies in the previous camera (``c1_vio/ground_tilt.py``): the camera's tilt
-   without the autopilot's, for the attitude check (``VoMotion.ground_tilt_off_cam_rad``).
+Rule, per frame:
+1. features (ORB by default, or SIFT) on the grey image; too few -> ``VoError(low_texture)``;
+2. k=2 matching against the reference frame with a ratio test, then homography RANSAC (over flat ground
+   the true mapping is a homography);
+3. each inlier's ray in NED meets the ground ``alt_agl_m`` below its camera; the displacement is the
+   per-axis median of ``g_prev - g_cur``;
+4. covariance: ``(pi/2) * cov(offsets) / n`` plus the errors all points share: the attitude change
+   between the exposures, ``(sqrt(2) * AGL * rel_attitude_sigma_rad)^2``, and the height's scale error,
+   ``(scale_sigma_frac * |displacement|)^2``;
+5. ground tilt from the same inliers (``c1_vio/ground_tilt.py``) for the attitude check.
+Only the reference frame's keypoints, descriptors, attitude, height and time are kept (never images). A
+frame that cannot be a reference (no attitude or height, no texture) leaves the previous one in place, up
+to ``max_gap_s``; a frame whose matching failed becomes the new reference.
 
-Only the previous frame's keypoints, descriptors, attitude, altitude and time are kept (never images).
-A frame that cannot serve as a reference (no attitude/altitude, no texture) leaves the previous
-reference in place so the next good frame measures motion over the whole interval (up to
-``max_gap_s``); a frame whose matching failed becomes the new reference.
+Why the covariance is built this way: docs/design.md, "`c1_vio/homography_vo.py`: visual odometry".
 """
 
 from __future__ import annotations

@@ -1,34 +1,21 @@
 """C4 boresight: the camera's mount as a flight's own images measured it (``gdnav fdr boresight``).
 
-Why
----
-VO, the pose solver and both tilt checks take the camera's tilt from the autopilot's roll and pitch
-through the nadir mount. A mount a fraction of a degree off (or an AHRS a little off level: from the
-camera's side the two are the same) moves every fix by height x tan(offset), the same way each time:
-0.25 deg at 1200 m AGL is 5 m (measured effect in SITL: ``docs/benchmarks.md``, "Camera boresight").
-``pose.attitude_sigma_deg`` must cover such an offset, so it is stated, not removed, until the mount
-is measured and set (``camera.mount_roll_deg``, ``camera.mount_pitch_deg``; ``camera/types.py``
-``CameraMount``).
+A mount a fraction of a degree off nadir (or an AHRS a little off level: from the camera the two are the
+same) moves every fix by height x tan(offset), the same way each time. ``pose.attitude_sigma_deg`` must
+cover it until the mount is measured and set (``camera.mount_roll_deg``, ``camera.mount_pitch_deg``).
 
-The evidence
-------------
-Every pair of VO frames gives the camera's tilt to the ground minus the autopilot's
-(``c1_vio/ground_tilt.py``; recorded per frame in ``pipeline.frame`` ``ground_tilt_check.tilt_off_deg``,
-after the mount in use), each pair's error its own (its matches' noise): 0.6-0.7 deg per axis at
-100-150 m AGL, 1.5-1.8 deg at 1200 m. Their mean over a flight is the offset still left, with a
-Student-t interval; the mount to set is the one in use plus that mean (to first order a mount roll and
-pitch move world-down in the camera by the same angles on its x and y axes, ``CameraMount``). The fixes'
-image-only tilts (``pipeline.fix`` ``attitude_check.tilt_off_deg``) are shown beside it as a check, with
-no interval: across dates their errors are shared over a footprint of ground
-(``c4_pose/attitude_check.py``), and everywhere they carry the autopilot's own slow attitude wander, so
-their count overstates what they pin. (Same-source at 120 m AGL they scatter only 0.09 deg; a flight
-of them says more than VO, but how much more depends on that wander, which nothing here measures.)
+Input: a flight's FDR records: every VO pair's tilt to the ground minus the autopilot's (``pipeline.frame``
+``ground_tilt_check.tilt_off_deg``, after the mount in use; each pair's error its own) and the fixes'
+image-only tilts (``pipeline.fix`` ``attitude_check.tilt_off_deg``). Output: the offset still left per
+axis with a 99 % Student-t interval from the VO tilts, the fixes' mean beside it as a check (no interval:
+their errors are shared and carry the autopilot's wander), and the mount to set (the one in use plus the
+offset), or why not.
 
-A mount is settable when at least ``MIN_SAMPLES`` tilts pin both axes to ``max_half_width_deg`` (99 %).
-That takes a calibration flight low over textured flat ground: at 120 m AGL and 0.6-0.7 deg per pair,
-about 330 pairs (2 minutes at 3 Hz) for 0.1 deg (the 80 s SITL flight ``nominal_real`` gives
-0.11-0.12). Over a hillside the ground's slope reads as tilt: calibrate over flat ground. A yaw offset
-of the mount is not measured here (the fixes solve the heading from the map).
+Rule: a mount is settable when at least ``MIN_SAMPLES`` tilts pin both axes to ``max_half_width_deg``
+(about 330 pairs, 2 minutes at 3 Hz, at 120 m AGL for 0.1 deg). Calibrate low over flat, textured ground:
+a slope reads as tilt. A yaw offset of the mount is not measured (the fixes solve the heading).
+
+Why, and what it changed: docs/design.md, "The camera boresight"; docs/benchmarks.md, "Camera boresight".
 """
 
 from __future__ import annotations
