@@ -229,3 +229,25 @@ def test_camera_stream_nested_header_is_a_stream_error() -> None:
     raw = b"[" * (MAX_HEADER_BYTES // 2) + b"]" * (MAX_HEADER_BYTES // 2)
     with pytest.raises(FrameStreamError, match="nested too deeply"):
         _parse_header(raw)
+
+
+# --- replay inputs ----------------------------------------------------------------------------------
+
+
+def test_cli_replay_unreadable_frame_image_exits_3(tmp_path: Path) -> None:
+    """A frame image that OpenCV cannot read, met mid-replay, is one line naming it and exit 3 (it
+    was exit 1 with a traceback)."""
+    import cv2
+    import numpy as np
+
+    images = tmp_path / "img"
+    images.mkdir()
+    cv2.imwrite(str(images / "a.png"), np.full((48, 64, 3), 128, np.uint8))
+    (images / "b.png").write_bytes(b"\x89PNG\r\n\x1a\n not really a png")
+    rows = "file,lat,lon,alt_agl_m,time_unix_s\na.png,47.0,8.5,100,1\nb.png,47.0001,8.5,100,2\n"
+    (tmp_path / "pose.csv").write_text(rows)
+    proc = _gdnav(
+        tmp_path, "replay", "--images", str(images), "--csv", str(tmp_path / "pose.csv"), "--report", "r.json"
+    )
+    line = _one_line(proc, 3)
+    assert "b.png" in line and "not an image" in line

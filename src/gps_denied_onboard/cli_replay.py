@@ -194,14 +194,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         _err(str(exc))
         return EXIT_CONFIG
-    report = run_replay(
-        inp,
-        config,
-        with_map=with_map,
-        vo_max_gap_s=args.vo_max_gap_s,
-        force_sequential=args.sequential,
-        records_out=args.records,
-    )
+    try:
+        # Frames are read as the replay reaches them: an unreadable one is refused here.
+        report = run_replay(
+            inp,
+            config,
+            with_map=with_map,
+            vo_max_gap_s=args.vo_max_gap_s,
+            force_sequential=args.sequential,
+            records_out=args.records,
+        )
+    except ReplayInputError as exc:
+        _err(str(exc))
+        return EXIT_RESOURCE if exc.resource else EXIT_CONFIG
     args.report.parent.mkdir(parents=True, exist_ok=True)
     args.report.write_text(json.dumps(report, indent=2, allow_nan=True))
     for line in summary_lines(report):

@@ -118,9 +118,19 @@ def _read_image(path: Path, scale: float) -> Callable[[], np.ndarray]:
     def load() -> np.ndarray:
         import cv2
 
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None:
+        try:
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        except cv2.error as exc:  # e.g. more pixels than OpenCV's decoder limit
+            why = " ".join(str(exc).split())
+            raise ReplayInputError(f"{path}: not an image OpenCV can read ({why})") from exc
+        if img is None or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3, 4)):
             raise ReplayInputError(f"{path}: not an image OpenCV can read")
+        if img.dtype == np.uint16:
+            img = (img >> 8).astype(np.uint8)
+        elif img.dtype != np.uint8:
+            raise ReplayInputError(f"{path}: {img.dtype} pixels; expected 8- or 16-bit")
+        if img.ndim == 3 and img.shape[2] == 1:
+            img = img[:, :, 0]
         if img.ndim == 2:
             img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
         elif img.shape[2] == 4:
