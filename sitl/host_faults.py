@@ -1,38 +1,22 @@
 """Faults of the companion computer the daemon runs on, injected for real during a SITL flight.
 
 The scenario's ``clock_jump``, ``ort_fault``, ``tile_corrupt`` and ``fdr_full`` faults (``sitl.scenario``)
-are not messages the simulator sends but things that happen to the daemon's host. Each is made to
-happen for real, to the unmodified daemon process, without touching the machine itself:
+are not messages the simulator sends but things that happen to the daemon's host. Each is made to happen
+for real, to the unmodified daemon process, without touching the machine itself:
+- ``clock_jump``: the host's wall clock steps for the daemon through libfaketime (preloaded, its offset
+  read from a file this module rewrites ``CLOCK_STEP_LEAD_S`` before a whole second, re-read once per
+  wall second; the monotonic clock is not faked); the SITL camera stamps with the stepped clock
+  (``Scenario.wall_step_s``); the autopilot's clock does not step;
+- ``ort_fault``: ONNX Runtime itself refuses the next ``count`` runs through the C7 test hook
+  (``GDNAV_TEST_ORT_FAULT_FILE``); with a weights-free matcher the count is never consumed;
+- ``tile_corrupt``: the map cell under the aircraft's position 3 s later is overwritten with noise in the
+  run's own copy of the cache, in place, and put back at the window's end;
+- ``fdr_full``: the FDR's directory is a tmpfs mounted for the run, filled to its last byte by a ballast
+  file during the window; the records are copied to ``<workdir>/fdr`` afterwards. Mounting needs root;
+  without it the run is refused with a message naming the fault.
 
-``clock_jump``
-    The host's wall clock (``CLOCK_REALTIME``) steps, as NTP/chrony or ``date -s`` would step it. The
-    machine's clock is never changed: the daemon process runs with libfaketime preloaded (the
-    ``libfaketime`` package's library), reading its offset from a file this module rewrites just before
-    the fault's time; its monotonic clock is not faked. libfaketime's file reader is not thread-safe:
-    re-read on every clock call (``FAKETIME_NO_CACHE``) from the daemon's threads, one read saw a torn
-    buffer and libfaketime ended the daemon ("failed to parse FAKETIME timestamp", exit 1; 1 of 4
-    ``faults`` flights of ``gdnav bench flights``). It is therefore re-read once per wall second
-    (``FAKETIME_CACHE_DURATION=0``: at the first clock call of each new second). So that a step lands at
-    its flight time, a flight with clock steps starts on a whole second (``sitl.runner``), steps are at
-    whole seconds (``sitl.scenario`` refuses others), and the file is rewritten ``CLOCK_STEP_LEAD_S``
-    before the second it takes effect in. The SITL camera, a process on the same host, stamps its frames
-    with the stepped clock (``Scenario.wall_step_s``). The autopilot's clock (SYSTEM_TIME) is its own and
-    does not step.
-``ort_fault``
-    ONNX Runtime refuses the next ``count`` runs, through the C7 test hook (``GDNAV_TEST_ORT_FAULT_FILE``):
-    ONNX Runtime itself raises from inside the real session. Only a learned matcher runs ONNX Runtime;
-    with the weights-free matcher the armed count is never consumed (the report says so).
-``tile_corrupt``
-    The bytes of the map cell under the aircraft's position 3 s later are overwritten with noise in the
-    daemon's cache file, in place (the daemon's memory mapping sees the change, as it would see a
-    failing flash page), and put back at the window's end. The run uses its own copy of the cache, so
-    a crash of the simulator never leaves the shared cache corrupt.
-``fdr_full``
-    The flight data recorder's directory is on a tmpfs mounted for the run (a small file system of its
-    own: the disk of the machine is never filled); during the window a ballast file fills it to its last
-    byte, so the daemon's writes meet a real full file system. After the flight the records are copied
-    to ``<workdir>/fdr`` and the tmpfs is unmounted. Mounting needs root (CAP_SYS_ADMIN); without it the
-    run is refused with a message naming the fault.
+Why libfaketime is re-read only once a second, and the rest in full: docs/design.md,
+"`sitl/host_faults.py`: host faults".
 """
 
 from __future__ import annotations

@@ -1,35 +1,21 @@
 """VPR benchmark: Recall@K of C2 (corpus-wide and prior-gated) and C2.5, and HNSW latency/memory.
 
-``run_vpr_benchmark(map_path, strategies=("vlad", "vlad_xfeat"))``:
+``run_vpr_benchmark(map_path, strategies=("vlad", "vlad_xfeat"))`` builds a tile cache from the GeoTIFF
+and, per strategy, its vocabulary, descriptors and HNSW index (timed); renders ``n_queries`` nav frames
+with the SITL renderer (from ``frames_path`` for another date; 640x480, 70 deg HFOV, altitude in
+``alt_range_m``, any heading, roll/pitch within +-3 deg); and scores them against the truth:
+- a **true tile** is one whose matcher chip holds the ground under the principal point at least
+  ``edge_margin`` x chip side inside its edges;
+- **Recall@K**: the share of frames with a true tile among the first K, corpus-wide (F6) and prior-gated
+  (prior = truth + N(0, ``prior_sigma_m``), radius as the pipeline's search region);
+- post-rerank Recall@1/3 (``InlierRerank``, K=10 -> N=3), and the latency of embedding, retrieval and
+  rerank (p50/p95);
+- HNSW on ``synthetic_n`` random unit vectors: build time, file size, resident memory after a
+  memory-mapped load, top-10 latency and recall against exact search.
 
-1. builds a tile cache from the GeoTIFF ``map_path`` (C10) in ``out`` (a temporary directory when None),
-   then, for each strategy in turn on that cache, its VLAD vocabulary, descriptors and HNSW index
-   (``c10_cache_build.vpr_index``; ``vlad_xfeat`` with the XFeat extractor of ``model_dir``), timing
-   each, and measures it (3.) on the same query frames;
-2. renders ``n_queries`` nav frames with the SITL renderer (``sitl.render.MapRenderer``) from
-   ``frames_path`` (default: the map itself; another date of the same area gives the cross-date
-   figure): camera 640x480, 70 deg HFOV, altitude uniform in ``alt_range_m``, heading uniform in
-   [0, 360), roll/pitch uniform in +-3 deg, position uniform over the map shrunk by the footprint so
-   frames see map, not nodata;
-3. measures, with the known truth:
-
-   - **true tile**: a tile whose matcher chip (the ``chip_size_px`` square around the tile that C3
-     matches against) contains the frame-centre ground point (the ground under the principal point)
-     at least ``edge_margin`` x chip side (default 1/8, i.e. 18 m on geovision, 210 m on NAIP z16)
-     inside its edges, so the matcher sees the frame centre well inside the chip; with 512 px chips
-     that is 1-4 tiles per frame with 256 px tiles (geovision), about 9 with 128 px tiles (NAIP);
-   - **Recall@K**: fraction of frames with at least one true tile among the first K results;
-   - corpus-wide (F6: ``region=None``) and prior-gated (prior = truth + N(0, ``prior_sigma_m``) per
-     axis; radius as ``pipeline._search_region``: 3 sigma + half footprint, clamped to [60, 2000] m);
-   - post-rerank Recall@1/3: ``InlierRerank`` (K=10 -> N=3) on the corpus-wide top-10;
-   - per-frame latency of ``embed_query`` (query normalisation + description), ``retrieve_topk`` and
-     ``rerank`` (p50/p95);
-
-4. HNSW synthetic figures (``synthetic_n`` random unit vectors of the first strategy's dim): build time, file
-   size, resident memory after a memory-mapped load, top-10 latency p50/p95 and recall@10 of the graph
-   search against exact search.
-
-Prints a table and returns the figures as a dict (also written to ``out/vpr_bench.json``).
+Prints a table and returns the figures as a dict (also written to ``out/vpr_bench.json``). Every step in
+full: docs/design.md, "`bench/vpr.py`: the VPR benchmark"; figures: docs/benchmarks.md, "C2 place
+recognition".
 """
 
 from __future__ import annotations

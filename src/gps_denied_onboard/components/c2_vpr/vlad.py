@@ -1,37 +1,19 @@
-"""``vlad``: weights-free appearance VPR — dense upright RootSIFT aggregated with VLAD.
+"""``vlad``: weights-free appearance VPR: dense upright RootSIFT aggregated with VLAD.
 
-Why this recipe:
+Input: a tile chip (C10, at cache time) or a query normalised to the map's frame (``query_norm``:
+north-up, map GSD, chip-sized), with its invalid pixels. Output: a descriptor (``VladEncoder``) and, in
+``VladVpr``, the nearest tiles from the HNSW index.
 
-- **Dense, upright** SIFT-layout descriptors on a fixed grid at one scale: the query is normalised to the
-  map's frame first (``query_norm``: north-up, map GSD, chip-sized), so rotation and scale invariance
-  are not needed, and detector repeatability across dates/sensors is not relied on. Patches touching an
-  invalid pixel (outside the camera footprint, map nodata) are dropped on both sides.
-- **RootSIFT** (L1-normalise, square root): Hellinger kernel, the standard improvement for SIFT bags.
-- **VLAD** over a k-means vocabulary (``faiss.Kmeans``, seeded) learned at cache time from the corpus's
-  own chips: residuals summed per word, **intra-normalised** (per-word L2, against bursty texture such
-  as fields or roofs), **power-law** (signed square root), then L2.
-- **PCA** to ``pca_dim`` with *regularised* whitening (eigenvalue + ``whiten_eps`` x the largest),
-  learned at cache time on chips sampled at random mosaic positions (enough samples on small corpora).
+Rule (the recipe): dense, upright SIFT-layout descriptors on a fixed grid at one scale (patches touching
+an invalid pixel dropped), RootSIFT; VLAD over a k-means vocabulary learned at cache time from the
+corpus's own chips, intra-normalised, power-law, L2; PCA to ``pca_dim`` with regularised whitening
+(eigenvalue + ``whiten_eps`` x the largest). ``VladVocabulary`` is the learned state, a cache artifact
+whose sha256 is the manifest's ``vpr.model_sha256``. The local descriptors are a seam, ``LocalDescriber``
+(``VladParams.descriptor``): ``RootSiftDescriber`` here, ``learned_local.XFeatDescriber`` for
+``vlad_xfeat`` (then ``vpr.model_sha256`` is the extractor model's, and another model is refused).
 
-Measured on geovision (136 tiles at 0.285 m/px, 60 rendered frames at 100-150 m AGL, any heading,
-corpus-wide Recall@1/@10; ``bench.vpr``, 2 shared cores):
-
-    k=64, no PCA (8192-d)              0.83 / 0.97
-    k=64, PCA 256, whiten_eps 1.0      0.87 / 0.98   <- default (32x smaller index than 8192-d)
-    k=64, PCA 256, whiten_eps 0.1      0.82 / 0.98
-    k=64, PCA 256, whiten_eps 0.01     0.68 / 0.95   (full whitening amplifies noise directions)
-    k=64, PCA 128 / 512, eps 0.01      0.75 / 0.95,  0.60 / 0.88
-    k=32, PCA 256, eps 0.01            0.63 / 0.90
-    grid step 6 px, eps 0.01           0.77 / 0.95 at 2.5x the extraction cost (vs 0.68 / 0.95 at 8 px)
-
-``VladEncoder`` is the image -> descriptor function (used by C10 for every tile chip and by ``VladVpr``
-for the normalised query); ``VladVocabulary`` is its learned state, saved as a cache artifact whose
-sha256 is the manifest's ``vpr.model_sha256``.
-
-Where the local descriptors come from is a seam, ``LocalDescriber`` (``VladParams.descriptor`` names
-it): ``RootSiftDescriber`` here, and ``learned_local.XFeatDescriber`` for strategy ``vlad_xfeat`` (a
-registry model's keypoint descriptors, far better across dates; measured there). With a learned
-describer the manifest's ``vpr.model_sha256`` is the extractor model's, so another model is refused.
+Why this recipe, and the settings tried: docs/design.md, "`c2_vpr/vlad.py`: weights-free VPR";
+docs/benchmarks.md, "C2 place recognition".
 """
 
 from __future__ import annotations
