@@ -1,28 +1,18 @@
 """C6 descriptor index: FAISS HNSW over the tiles' global descriptors (C2), built at cache time.
 
-Layout: row ``i`` of the index is tile ``TileStore.tile_ids[i]`` (the cache's tile order, pinned by the
-hashed ``tiles.json``), so the FAISS label *is* the tile position and no separate id map is stored.
+Input: one L2-normalised float32 descriptor per tile, in ``TileStore.tile_ids`` order (pinned by the
+hashed ``tiles.json``), so the FAISS label is the tile's position and no id map is stored. Output: the
+nearest tiles to a query descriptor, with their L2 distance ``sqrt(d2)`` in ``[0, 2]`` (``d2 = 2 - 2 cos``).
 
-Metric: ``IndexHNSWFlat`` with L2 on L2-normalised float32 vectors. FAISS returns squared L2; this
-module returns the L2 distance ``sqrt(d2)`` in ``[0, 2]`` (cosine-equivalent: ``d2 = 2 - 2 cos``).
-Parameters: M=32 neighbours, efConstruction=80, efSearch=128. Tuning (``bench.vpr.hnsw_figures``,
-100k random unit vectors of dim 256, queries = stored vectors + noise, 2 shared cores): the stored
-source is returned first for 64 % / 96.3 % / 99.7 % of queries at efSearch 16 / 64 / 128, top-10
-p50 0.23 / 0.56 / 1.07 ms; 128 buys the last 3.4 % for half a millisecond at 3 Hz. Build 191 s.
+Rule: ``IndexHNSWFlat``, L2, M=32 neighbours, efConstruction=80, efSearch=128. Loaded with
+``faiss.IO_FLAG_MMAP_IFC``, so the flat vectors stay memory-mapped and only the graph is read
+(``IO_FLAG_MMAP`` alone does not map HNSW storage; without the flag, an older FAISS reads it normally).
+Prior-gated search over a subset of tiles: up to ``exact_subset_max`` tiles their vectors are
+reconstructed and searched exactly; above that HNSW with an ``IDSelectorBatch`` and efSearch raised to
+at least 4k (the graph walk over a small allowed fraction visits mostly disallowed nodes and can return
+fewer than k results, which is the nominal-flight case).
 
-Memory mapping: ``faiss.read_index(path, faiss.IO_FLAG_MMAP_IFC)`` (checked with FAISS 1.15) maps the
-flat vector storage of an HNSW index from the file instead of copying it; only the graph (about
-``4 * 2M`` bytes per vector) is read into memory. ``IO_FLAG_MMAP`` alone does not map HNSW storage.
-Measured on 100k x 256 vectors (130 MB file): 28 MB resident after load with ``IO_FLAG_MMAP_IFC``,
-126 MB with ``IO_FLAG_MMAP`` or a plain read. Without the flag (older FAISS) the index is read normally.
-
-Prior-gated search (a subset of allowed tiles): up to ``exact_subset_max`` tiles the subset's vectors
-are reconstructed and searched exactly (a few hundred dot products, microseconds, and exact); above
-that FAISS's HNSW search with an ``IDSelectorBatch`` is used with efSearch raised to at least 4k.
-Why not always the selector: HNSW's graph walk visits mostly disallowed nodes when the subset is a
-small fraction of the corpus and can return fewer than k results, which is the common nominal-flight
-case (tens of tiles around the prior out of a large corpus). Measured (100k x 256): 300 allowed
-tiles exact p50 0.17 ms; 20k allowed tiles via the selector p50 5.8 ms.
+Tuning and memory, measured: docs/benchmarks.md, "C2 place recognition".
 """
 
 from __future__ import annotations

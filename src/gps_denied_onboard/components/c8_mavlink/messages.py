@@ -1,42 +1,25 @@
 """C8 outgoing messages: pure builders from an ``EstimatorState`` to pymavlink message objects.
 
-Every builder takes a pymavlink ``MAVLink`` instance (``connection.mav``, or ``MAVLink(None)`` in tests)
-and returns an encoded-but-unsent message object; nothing here touches a socket.
+Input: an ``EstimatorState`` and a pymavlink ``MAVLink`` instance (``connection.mav``, or
+``MAVLink(None)`` in tests). Output: an encoded-but-unsent message; nothing here touches a socket.
 
-Policy (what the autopilot is told, and why)
---------------------------------------------
-- **fix_type** (``fix_type_for``): ``satellite_anchored`` and ``visual_propagated`` are a 3D fix (3)
-  while the horizontal 1-sigma is at most ``FIX_3D_MAX_HORIZ_SIGMA_M`` and the position is finite;
-  above that limit they are "no fix" (1). ``dead_reckoning`` is "no fix" (1): it is a constant-velocity
-  prediction without any image measurement, and the autopilot's own IMU dead reckoning is better, so we
-  must not let the EKF fuse it as a measurement. ``no_estimate`` (or a non-finite position) is
-  "no GPS" (0). ArduPilot only uses GPS_INPUT with fix_type >= 3 and time_week > 0.
-- **accuracy**: ``horiz_accuracy``/``vert_accuracy``/``speed_accuracy`` are the state's 1-sigma values
-  (metres, m/s) straight from the covariance, never a constant.
-- **hdop/vdop**: ArduPilot echoes ``hdop * 100`` as GPS_RAW_INT.eph and uses hdop in its GPS health
-  checks, so hdop must move with the covariance: ``hdop = horiz_sigma_m / NOMINAL_UERE_M`` (and
-  ``vdop = vert_sigma_m / NOMINAL_UERE_M``), with a nominal user-equivalent range error of 5 m, so a
-  GNSS-like 5 m sigma reads as hdop 1.0. Clamped to [0.01, HDOP_MAX].
-- **ignore_flags**: only for fields that are truly unknown: non-finite altitude (ALT, VDOP,
-  VERTICAL_ACCURACY), non-finite horizontal velocity or its covariance (VEL_HORIZ, SPEED_ACCURACY), a
-  non-finite vertical velocity or variance (VEL_VERT). Ignored fields are sent as 0, never NaN.
-- **yaw** (GPS_INPUT.yaw, centidegrees): 0 means unknown, so north is sent as 36000.
-- **satellites_visible**: a synthetic count (``SATELLITES_WITH_FIX``) while fix_type is 3, else 0,
-  because ArduPilot's pre-arm/EKF checks look at the satellite count of a GPS.
-- **GLOBAL_POSITION_SENSOR.id** is ``mavlink.global_position_sensor_id``: PX4 fuses the message only
-  when that id equals one of its ``EKF2_AGP{i}_ID`` parameters.
-- **VISION_POSITION_ESTIMATE frame**: local NED at an origin the autopilot shares (its
-  GPS_GLOBAL_ORIGIN, or ours offered with SET_GPS_GLOBAL_ORIGIN); ``ned_in_frame`` re-expresses a
-  position of the daemon's tangent plane in another one through geodetic coordinates. The link
-  (``link.py``) decides which frame, and when the position is not sent at all.
-- **reset_counter** (``vision_position_jumped``): bumped when the estimate re-initialises
-  (``no_estimate`` -> an estimate), when the frame changes, and when one sent position differs from the
-  previous one carried forward at its velocity by more than ``VISION_RESET_JUMP_SIGMAS`` times the
-  previous (propagated) 1-sigma, horizontally or vertically (at least ``VISION_RESET_MIN_JUMP_M``).
-  An ordinary fix moves the state by less than its prior sigma in expectation (the correction's
-  variance is below the prior's), so 3 sigma is not crossed by ordinary fixes or motion, while a
-  re-acquisition that lands well outside the prior is; the autopilot's own innovation gates (a few
-  sigma) would otherwise reject such a step instead of resetting to it.
+Rule (what the autopilot is told):
+- **fix_type** (``fix_type_for``): ``satellite_anchored`` and ``visual_propagated`` are 3 while the
+  horizontal 1-sigma is at most ``FIX_3D_MAX_HORIZ_SIGMA_M`` and the position is finite, else 1;
+  ``dead_reckoning`` is 1 (never to be fused as a measurement); ``no_estimate`` or a non-finite position 0;
+- **accuracy** fields are the state's 1-sigma values, never a constant; ``hdop``/``vdop`` are those over
+  ``NOMINAL_UERE_M`` (5 m), clamped to [0.01, HDOP_MAX];
+- **ignore_flags** only for fields that are truly unknown (non-finite), sent as 0, never NaN;
+- **yaw**: 0 means unknown, so north is sent as 36000; **satellites_visible**: ``SATELLITES_WITH_FIX``
+  while fix_type is 3, else 0;
+- **GLOBAL_POSITION_SENSOR.id** is ``mavlink.global_position_sensor_id`` (PX4's ``EKF2_AGP{i}_ID``);
+- **VISION_POSITION_ESTIMATE**: local NED at an origin the autopilot shares (``ned_in_frame``
+  re-expresses a position through geodetic coordinates; the link decides which frame and when);
+  ``reset_counter`` (``vision_position_jumped``) goes up on re-initialisation, a frame change, or a jump
+  beyond ``VISION_RESET_JUMP_SIGMAS`` of the previous sigma (at least ``VISION_RESET_MIN_JUMP_M``).
+
+Why each choice: docs/design.md, "`c8_mavlink/messages.py`: what the autopilot is told"; every message:
+docs/mavlink.md.
 """
 
 from __future__ import annotations
