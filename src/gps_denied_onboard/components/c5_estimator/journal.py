@@ -1,31 +1,22 @@
 """C5 input journal: what the estimator was given, unit by unit, so a replay can give it the same again.
 
-The estimator's result depends on three things besides the frames: the order in which the two pipeline
-halves reached the time axis (the daemon runs them on two threads), the daemon's clock at each step, and
-the acceleration the autopilot's IMU gave for each prediction interval *at that moment* (samples that
-arrive later change a later answer for the same interval). A **unit** is one atomic visit of a pipeline
-half to the time axis, under the axis' lock:
+The estimator's result depends, besides the frames, on the order in which the two pipeline halves reached
+the time axis, the daemon's clock at each step, and the IMU's answer for each prediction interval at that
+moment. A **unit** is one atomic visit of a pipeline half to the time axis, under the axis' lock:
+``track`` (a frame's VO fused at its exposure, and the initialisation on the first frame with a prior),
+``fix_prior`` (the state the fix path searches around, read when it starts), ``fix`` (the fix, or the
+note that there was none, fused at its frame's exposure).
 
-``track``
-    a frame's VO fused at its exposure (and the initialisation, on the first frame that has a prior),
-    then the state at that exposure;
-``fix_prior``
-    the state the absolute-fix path searches around (C2's region), read when that path starts;
-``fix``
-    the fix (or the note that there was none) fused at its frame's exposure.
+:class:`RecordingJournal` sits between the estimator and the real acceleration source, passes every
+answer through and keeps those inside a unit; at the unit's end it hands one record (``n``, ``unit``,
+``time_unix_usec``, ``clock_unix_usec``, the ``accel`` answers in order) to its sink (the FDR's
+``estimator.input``). ``n`` is given under the lock (the order the units happened); the record is
+written after the lock is released, so readers order by ``n``. Queries outside a unit (the output
+stream's ``state_at(now)``) never change the filter and are not kept.
 
-:class:`RecordingJournal` sits between the estimator and the real acceleration source: it passes every
-answer through and, inside a unit, keeps it; at the unit's end it hands one record (``n``, ``unit``,
-``time_unix_usec``, ``clock_unix_usec``, the ``accel`` answers in the order they were asked) to its sink
-(the FDR's ``estimator.input``). ``n`` is given under the axis' lock, so it is the order the units
-happened; the record is written after the lock is released (the FDR's write never holds up the other
-thread or the output stream), so a reader orders the records by ``n``. Queries outside a unit (the
-output stream's ``state_at(now)``) never change the filter and are not kept.
-
-:class:`ReplayJournal` plays the records back: the replay performs the same units in the same order,
-and inside each one the estimator gets exactly the recorded answers and the axis the recorded clock.
-A question the recording does not hold (another interval, another unit) raises
-:class:`ReplayDivergence`: the replay says where it stopped being exact instead of inventing an answer.
+:class:`ReplayJournal` plays the records back: the same units in the same order, the recorded answers
+and the recorded clock. A question the recording does not hold raises :class:`ReplayDivergence`: the
+replay says where it stopped being exact instead of inventing an answer.
 """
 
 from __future__ import annotations

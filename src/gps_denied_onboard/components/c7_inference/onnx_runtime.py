@@ -1,29 +1,25 @@
 """C7 ``InferenceRuntime`` on ONNX Runtime.
 
-One ``onnxruntime.InferenceSession`` per loaded model, created at load time (never at the first frame):
+Input: a model path and the caller's ``EngineSignature``. Output: a loaded engine, one
+``onnxruntime.InferenceSession`` per model, created at load time (never at the first frame), or an
+``EngineLoadError`` naming the file and every mismatch.
 
-1. execution providers are tried in the order TensorRT -> CUDA -> CPU, keeping only those that
-   ``onnxruntime.get_available_providers()`` reports; if a session cannot be created with a provider it
-   is dropped and the next one is tried (``c7.inference.provider_fallback``);
-2. the model's inputs/outputs are checked against the caller's ``EngineSignature`` (names, ranks,
-   dtypes, fixed dims); any mismatch is an ``EngineLoadError`` naming the file and every mismatch;
-3. one warm-up forward pass runs on a small dummy input built from the model's input shapes, so that
-   provider initialisation (CUDA context, TensorRT engine build) happens at start-up, not in flight;
-4. ``c7.inference.engine_loaded`` is logged with the path, the provider actually in use, the inputs,
-   outputs and load time.
+Rule:
+1. execution providers are tried in the order TensorRT -> CUDA -> CPU, keeping those
+   ``onnxruntime.get_available_providers()`` reports; a provider whose session cannot be created is
+   dropped for the next (``c7.inference.provider_fallback``);
+2. inputs and outputs are checked against the signature (names, ranks, dtypes, fixed dims);
+3. one warm-up pass on a dummy input, so provider initialisation happens at start-up, not in flight;
+4. ``c7.inference.engine_loaded`` logs the path, the provider in use, the tensors and the load time.
+Sessions run with ``intra_op_num_threads`` from config, one inter-op thread, sequential execution, and a
+lock each, so callers from several threads are served one at a time.
 
-Sessions run with ``intra_op_num_threads`` from config, one inter-op thread and sequential execution;
-each session is guarded by its own lock so that callers from several threads are served one at a time.
-
-Test hook (fault injection, for the SITL soak): when the environment variable named by
-``ORT_FAULT_FILE_ENV`` is set when the runtime is built, every ``run`` first looks for that file. While
-it exists and holds a positive count N, the run is handed to ONNX Runtime with ``RunOptions.terminate``
-set, N is decremented (the file is removed at 0), and ONNX Runtime itself refuses the run and raises its
-own ``Fail`` from inside ``InferenceSession.run``: the same call, exception type and error path as any
-runtime failure in flight, on the real session, which keeps working afterwards. It proves that a raising
-runtime costs the frame, is recorded and logged, and that the daemon flies on with the same sessions; it
-does not reproduce a crash inside native code (that is the kill -9 restart path) or a run that never
-returns. Arming it is logged (``c7.inference.fault_hook_armed``); without the variable nothing is checked.
+Test hook (SITL soak): when the variable named by ``ORT_FAULT_FILE_ENV`` is set when the runtime is built,
+each ``run`` reads that file; while it holds a count N > 0, the run goes to ONNX Runtime with
+``RunOptions.terminate`` set (ONNX Runtime itself raises its ``Fail``) and N is decremented (the file
+removed at 0). It proves a raising runtime costs the frame and the daemon flies on with the same
+sessions; not a native crash or a run that never returns. Arming it is logged
+(``c7.inference.fault_hook_armed``); without the variable nothing is checked.
 """
 
 from __future__ import annotations
