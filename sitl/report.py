@@ -1,7 +1,7 @@
 """Scoring a SITL flight: what the autopilot side received, against the scenario's truth.
 
 The daemon sends a steady estimate stream (``mavlink.estimate_rate_hz``), each GPS_INPUT stamped with
-the time its state was propagated to. Definitions (also in the README):
+the time its state was propagated to. Definitions (also in docs/sitl.md, "Report"):
 
 - ``horizontal_error_m``: great-circle distance between each GPS_INPUT with fix_type >= 3 and the
   truth at that GPS_INPUT's ``time_usec``.

@@ -7,7 +7,7 @@ the ground station because the autopilot forwards broadcast messages between its
 routing) and MAVProxy passes everything its master sends to every `--out`. MAVProxy does NOT pass what
 one `--out` sends to another `--out` (mavproxy.py ``process_mavlink``: messages from an output go to
 the master only), so a daemon placed on a MAVProxy `--out` is heard by the autopilot but not by a
-ground station on another `--out`: the README says so.
+ground station on another `--out`: docs/ardupilot.md, "Routing", says so.
 
 MAVProxy (PyPI ``mavproxy``) is installed by ``scripts/_venv.sh`` with the dev extra, ``--no-deps``: it
 declares ``opencv-python`` (the GUI build, which clashes with the project's ``opencv-python-headless``:
