@@ -1,30 +1,26 @@
 """ALIKED keypoint + descriptor network in PyTorch (build-time only: used to export ONNX and in tests).
 
-Written for this project from the facts of the paper (Zhao et al., "ALIKED: A Lighter Keypoint and
-Descriptor Extraction Network via Deformable Transformation", IEEE TIM 2023) and the layer names and
-shapes of the official state dicts, which load with ``strict=True``. The daemon never imports this module;
-it runs the exported ONNX file.
+Written for this project from the paper (Zhao et al., "ALIKED: A Lighter Keypoint and Descriptor
+Extraction Network via Deformable Transformation", IEEE TIM 2023) and the layer names and shapes of the
+official state dicts, which load with ``strict=True``. The daemon never imports it; it runs the export.
 
-Pipeline, for one RGB image ``(1, 3, H, W)`` in [0, 1], H and W multiples of 32:
+Input: one RGB image ``(1, 3, H, W)`` in [0, 1], H and W multiples of 32. Output: keypoints, scores and
+L2-normalised descriptors, through:
+* encoder: two plain 3x3 conv blocks (full and 1/2 resolution), two residual blocks with deformable 3x3
+  convs (1/8 and 1/32); BatchNorm + SELU;
+* aggregation: each scale projected to ``dim/4`` channels, upsampled (bilinear, align_corners) and
+  concatenated -> ``(1, dim, H, W)``, L2-normalised: the dense feature map;
+* score head: a small conv stack + sigmoid -> ``(1, 1, H, W)``;
+* DKD: NMS by max-pooling (radius 2), border removal, fixed top-k, soft-argmax refinement in a 5x5
+  window (temperature 0.1), score = bilinear sample of the score map at the refined point;
+* SDDH: per keypoint a 3x3 patch predicts M=16 sample offsets; features sampled there, projected (1x1
+  conv + SELU) and aggregated by per-position matrices -> L2-normalised descriptor.
 
-* encoder: two plain 3x3 conv blocks (full and 1/2 resolution), then two residual blocks whose 3x3 convs
-  are deformable (1/8 and 1/32 resolution); BatchNorm + SELU everywhere;
-* aggregation: each scale is projected to ``dim/4`` channels, upsampled (bilinear, align_corners) to full
-  resolution and concatenated -> ``(1, dim, H, W)``; its L2 normalisation is the dense feature map;
-* score head: a small conv stack + sigmoid -> ``(1, 1, H, W)`` score map;
-* DKD: NMS by max-pooling (radius 2), border removal, fixed top-k, soft-argmax sub-pixel refinement in a
-  5x5 window (temperature 0.1), keypoint score = bilinear sample of the score map at the refined point;
-* SDDH: per keypoint, a 3x3 feature patch predicts M=16 sample offsets; features are sampled there,
-  projected (1x1 conv + SELU) and aggregated by per-position matrices -> L2-normalised descriptor.
-
-Deformable convolution (v2 form, no modulation mask: the official configs use ``mask=False``) is written
-with ``grid_sample`` so that it exports to ONNX opset >= 16 as ``GridSample`` and runs on ONNX Runtime CPU
-without torchvision or the opset-19 ``DeformConv`` op.
-
-Everything is written so that the legacy TorchScript exporter traces it with dynamic H and W: sizes come
-from ``x.shape`` or ``torch._shape_as_tensor`` (recorded as ``Shape`` nodes), never from ``torch.arange(H)``,
-``flatten``/``unflatten`` of spatial axes or Python ``max``, which freeze the trace size (caught by the
-dynamic-size parity test).
+Deformable convolution (v2, no modulation mask, as the official configs) is written with
+``grid_sample``, so it exports to ONNX opset >= 16 as ``GridSample`` without the opset-19 ``DeformConv``.
+Traceable with dynamic H and W: sizes come from ``x.shape`` or ``torch._shape_as_tensor``, never from
+``torch.arange(H)``, ``flatten``/``unflatten`` of spatial axes or Python ``max`` (the dynamic-size parity
+test catches that).
 """
 
 from __future__ import annotations
