@@ -251,3 +251,60 @@ def test_cli_replay_unreadable_frame_image_exits_3(tmp_path: Path) -> None:
     )
     line = _one_line(proc, 3)
     assert "b.png" in line and "not an image" in line
+
+
+# --- the commands' top level ------------------------------------------------------------------------
+
+
+def test_cli_unexpected_exception_is_one_line_exit_1_and_a_kept_traceback(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An exception no refusal maps (here the FDR summariser failing) is one line naming the command and
+    the exception, exit 1, and its traceback appended to the debug log, not printed."""
+    from gps_denied_onboard import cli, cli_fdr
+
+    def broken(_reader: object) -> dict[str, object]:
+        raise ZeroDivisionError("float division by zero")
+
+    log = tmp_path / "logs" / "debug.log"
+    monkeypatch.setenv("GDNAV_DEBUG_LOG", str(log))
+    monkeypatch.setattr(cli_fdr, "summarise", broken)
+    code = cli.main(["fdr", "summary", str(_fdr_with(tmp_path))])
+    out = capsys.readouterr()
+    assert code == 1 and out.out == ""
+    assert out.err.count("\n") == 1 and "Traceback" not in out.err
+    expected = "gdnav: fdr summary: unexpected error: ZeroDivisionError: float division by zero"
+    assert out.err.startswith(expected)
+    assert str(log) in out.err
+    kept = log.read_text()
+    assert "Traceback" in kept and "def broken" not in kept and "in broken" in kept
+    cli.main(["fdr", "summary", str(_fdr_with(tmp_path / "again"))])
+    assert log.read_text().count("Traceback") == 2
+
+
+def test_cli_unexpected_exception_with_an_unwritable_debug_log_still_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """When the debug log cannot be written the line says so, and still no traceback reaches stderr."""
+    from gps_denied_onboard import cli, cli_fdr
+
+    def broken(_reader: object) -> dict[str, object]:
+        raise KeyError("x")
+
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv("GDNAV_DEBUG_LOG", str(tmp_path / "file" / "debug.log"))
+    monkeypatch.setattr(cli_fdr, "summarise", broken)
+    assert cli.main(["fdr", "summary", str(_fdr_with(tmp_path))]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "traceback not kept" in err and "GDNAV_DEBUG_LOG" in err
+
+
+def test_replay_nested_truth_json_is_refused(tmp_path: Path) -> None:
+    """A --truth JSON nested past the decoder is a ReplayInputError naming it (it raised RecursionError)."""
+    from gps_denied_onboard.cli_replay import load_truth
+    from gps_denied_onboard.replay.inputs import ReplayInputError
+
+    truth = tmp_path / "truth.json"
+    truth.write_text('{"per_frame": ' + "[" * 50_000 + "]" * 50_000 + "}")
+    with pytest.raises(ReplayInputError, match=r"truth\.json"):
+        load_truth(truth)

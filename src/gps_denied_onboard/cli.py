@@ -1,8 +1,9 @@
 """``gdnav``: the daemon, the simulator, and the pre-flight tools.
 
-Exit codes: 0 success; 1 runtime failure; 2 bad configuration or arguments; 3 a resource the daemon
-needs is missing or refused (cache, model, calibration, signing key file, a UDP port another process
-holds). A refusal (2 or 3) is one line on stderr, never a traceback; ``main`` maps the error types.
+Exit codes: 0 success; 1 runtime failure (also any exception no refusal maps: a bug, one line naming it,
+its traceback in the debug log, ``logging_setup.log_unexpected``); 2 bad configuration or arguments; 3 a
+resource the daemon needs is missing or refused (cache, model, calibration, signing key file, a UDP port
+another process holds); 130 interrupted. Never a traceback on stderr; ``main`` maps the error types.
 """
 
 from __future__ import annotations
@@ -19,9 +20,11 @@ import structlog
 from gps_denied_onboard import __version__
 from gps_denied_onboard.config import ConfigError, config_to_dict, load_config
 from gps_denied_onboard.constants import FdrKind, LogEvent
-from gps_denied_onboard.logging_setup import configure_logging
+from gps_denied_onboard.logging_setup import configure_logging, log_unexpected
 
 EXIT_OK, EXIT_FAILURE, EXIT_CONFIG, EXIT_RESOURCE = 0, 1, 2, 3
+#: Ctrl-C (or a SIGTERM a command turns into one): the shell's convention, 128 + SIGINT.
+EXIT_INTERRUPTED = 130
 
 
 def _err(message: str) -> None:
@@ -463,11 +466,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_name(args: argparse.Namespace) -> str:
+    """``run``, ``fdr summary``...: the command and subcommand the arguments chose."""
+    words = [args.command]
+    words += [str(v) for k, v in sorted(vars(args).items()) if k.endswith("_command") and v]
+    return " ".join(words)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    # The one place where typed refusals become exit codes. Any other exception is a bug: it keeps its
-    # traceback and exits 1. (An except clause's types are evaluated only when an exception reaches it.)
+    # The one place where typed refusals become exit codes. Any other exception is a bug: one line naming
+    # it, exit 1 (a runtime failure: under systemd a daemon's bug is restarted, a refusal is not), and
+    # its traceback in the debug log. (An except clause's types are evaluated only when one reaches it.)
     try:
         return int(args.func(args))
     except ConfigError as exc:
@@ -476,6 +487,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except _resource_refusals() as exc:
         _err(str(exc))
         return EXIT_RESOURCE
+    except KeyboardInterrupt:
+        _err("interrupted")
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # the top level: every other exception is reported here
+        command = _command_name(args)
+        kept = log_unexpected(command, exc)
+        what = " ".join(str(exc).split())[:300]
+        _err(f"{command}: unexpected error: {type(exc).__name__}: {what} (a bug; {kept})")
+        return EXIT_FAILURE
 
 
 if __name__ == "__main__":

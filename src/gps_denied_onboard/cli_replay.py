@@ -21,6 +21,8 @@ from typing import Any
 
 import structlog
 
+from gps_denied_onboard.helpers import bounded_json
+
 EXIT_OK, EXIT_CONFIG, EXIT_RESOURCE = 0, 2, 3
 
 
@@ -42,7 +44,8 @@ def load_truth(path: Path) -> list[Any]:
     out: list[TruthSample] = []
     if path.suffix.lower() == ".json":
         try:
-            rows = json.loads(text)["per_frame"]
+            # A SITL report holds a row per frame: tens of MB for a long flight at most.
+            rows = bounded_json.loads(text, max_bytes=1 << 28, what="truth JSON")["per_frame"]
             for r in rows:
                 out.append(
                     TruthSample(
@@ -51,7 +54,7 @@ def load_truth(path: Path) -> list[Any]:
                         float(r["true_lon_deg"]),
                     )
                 )
-        except (ValueError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError, OverflowError) as exc:
             raise ReplayInputError(
                 f"{path}: not a SITL report (per_frame rows with true_lat_deg): {exc}"
             ) from exc

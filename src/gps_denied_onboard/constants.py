@@ -20,6 +20,13 @@ GPS_INPUT_GPS_ID: Final[int] = 0
 #: SET_GPS_GLOBAL_ORIGIN is repeated at this interval until the autopilot reports GPS_GLOBAL_ORIGIN, s.
 SET_GPS_GLOBAL_ORIGIN_INTERVAL_S: Final[float] = 10.0
 
+#: Where a command's unexpected exception (a bug) keeps its traceback: the file this environment variable
+#: names, else DEBUG_LOG_FILENAME in $LOGS_DIRECTORY (systemd's LogsDirectory=), else in
+#: ~/.local/state/gdnav. The file is started afresh once it exceeds DEBUG_LOG_MAX_BYTES.
+DEBUG_LOG_ENV: Final[str] = "GDNAV_DEBUG_LOG"
+DEBUG_LOG_FILENAME: Final[str] = "debug.log"
+DEBUG_LOG_MAX_BYTES: Final[int] = 1 << 20
+
 # NAMED_VALUE_* names: 10 characters at most (MAVLink field size).
 NV_PROVENANCE: Final[str] = "GDN_PROV"
 NV_INLIERS: Final[str] = "GDN_INL"
@@ -90,6 +97,8 @@ class LogEvent:
     DAEMON_STOPPED: Final = "daemon.stopped"
     DAEMON_TASK_FAILED: Final = "daemon.task_failed"
     DAEMON_TASK_STUCK: Final = "daemon.task_stuck"
+    #: A command ended on an exception no refusal maps (a bug): its traceback, at debug level.
+    CLI_UNEXPECTED_ERROR: Final = "cli.unexpected_error"
     DAEMON_STATUS: Final = "daemon.status"
     CAMERA_CONNECTED: Final = "camera.connected"
     CAMERA_DISCONNECTED: Final = "camera.disconnected"

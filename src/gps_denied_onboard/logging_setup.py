@@ -1,11 +1,18 @@
-"""structlog configuration: one JSON object per line on stderr (journald/FDR friendly)."""
+"""structlog configuration: one JSON object per line on stderr (journald/FDR friendly), and the debug
+log file where a command's unexpected exception keeps its traceback (``log_unexpected``)."""
 
 from __future__ import annotations
 
+import datetime
 import logging
+import os
 import sys
+import traceback
+from pathlib import Path
 
 import structlog
+
+from gps_denied_onboard.constants import DEBUG_LOG_ENV, DEBUG_LOG_FILENAME, DEBUG_LOG_MAX_BYTES, LogEvent
 
 _LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}
 
@@ -27,3 +34,32 @@ def configure_logging(level: str = "info", *, json: bool = True) -> None:
         logger_factory=structlog.PrintLoggerFactory(file=sys.stderr),
         cache_logger_on_first_use=False,
     )
+
+
+def debug_log_path() -> Path:
+    """Where ``log_unexpected`` keeps tracebacks (see ``constants.DEBUG_LOG_ENV``)."""
+    named = os.environ.get(DEBUG_LOG_ENV)
+    if named:
+        return Path(named)
+    logs = os.environ.get("LOGS_DIRECTORY")  # systemd: the first of LogsDirectory='s paths
+    base = Path(logs.split(":")[0]) if logs else Path.home() / ".local" / "state" / "gdnav"
+    return base / DEBUG_LOG_FILENAME
+
+
+def log_unexpected(command: str, exc: BaseException) -> str:
+    """Keep the traceback of ``exc``, which ended ``command`` unmapped (a bug): logged at debug level and
+    appended to the debug log file. Returns where it went, for the one line on stderr."""
+    text = "".join(traceback.format_exception(exc))
+    if structlog.is_configured():  # unconfigured, structlog would print every level on stdout
+        structlog.get_logger("gdnav").debug(LogEvent.CLI_UNEXPECTED_ERROR, command=command, traceback=text)
+    path = debug_log_path()
+    stamp = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
+    entry = f"--- {stamp} gdnav {command} (pid {os.getpid()})\n{text}"
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fresh = not path.exists() or path.stat().st_size + len(entry) > DEBUG_LOG_MAX_BYTES
+        with path.open("w" if fresh else "a", encoding="utf-8") as fh:
+            fh.write(entry)
+    except OSError as exc_io:
+        return f"traceback not kept: {path}: {exc_io.strerror or exc_io}; set {DEBUG_LOG_ENV}"
+    return f"traceback in {path}"
