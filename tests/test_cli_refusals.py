@@ -138,3 +138,14 @@ def test_cli_run_udpin_port_held_by_another_socket_exits_3(
         url = f"udpin:127.0.0.1:{port}"
         line = _refusal(_gdnav(tmp_path, RUN, f"cache.dir={cache}", f"mavlink.url={url}"), 3)
     assert f"UDP port {port}" in line and "already bound" in line and url in line
+
+
+@pytest.mark.parametrize("command", [RUN, CHECK], ids=["run", "check"])
+@pytest.mark.parametrize("under", [False, True], ids=["file", "below-a-file"])
+def test_cli_fdr_dir_not_a_directory_exits_3(tmp_path: Path, command: tuple[str, ...], under: bool) -> None:
+    """An fdr.dir that is a regular file (or lies below one) is refused at start with exit 3: the daemon
+    flew with no recorder, so its next restart had nothing to resume from."""
+    (tmp_path / "fdr-file").write_text("not a directory\n")
+    fdr = tmp_path / "fdr-file" / "fdr" if under else tmp_path / "fdr-file"
+    line = _refusal(_gdnav(tmp_path, command, f"fdr.dir={fdr}"), 3)
+    assert "fdr.dir" in line and str(fdr) in line and "not a directory" in line

@@ -137,12 +137,30 @@ def _check_signing_key(config: Config) -> None:
         raise StartupError("mavlink.signing_key_file", str(exc)) from exc
 
 
+def _check_fdr_dir(config: Config) -> None:
+    """Refuse an ``fdr.dir`` that exists and is not a directory, or that cannot be created because a path
+    above it is a file: the recorder would record nothing and the next restart would be blind."""
+    d = Path(config.fdr.dir)
+    for p in (d, *d.absolute().parents):
+        try:
+            if not p.exists():
+                continue
+            if p.is_dir():
+                return
+        except OSError:  # not searchable by this user: the recorder's own errors will say so
+            return
+        why = "is not a directory" if p == d else f"cannot be created: {p} is not a directory"
+        raise StartupError("fdr.dir", f"{d} {why}; expected a directory for the flight data recorder")
+
+
 def preflight(config: Config) -> None:
-    """The start-up checks that are cheap and need no cache, model or network: the calibration file and
-    the signing key file (``gdnav config check``, the unit's ExecStartPre, runs them as the service
-    user). Raises ``StartupError`` naming the file; ``compose_root`` runs the same checks."""
+    """The start-up checks that are cheap and need no cache, model or network: the calibration file, the
+    signing key file and ``fdr.dir`` (``gdnav config check``, the unit's ExecStartPre,
+    runs them as the service user). Raises ``StartupError`` naming the key; ``compose_root`` runs the same
+    checks."""
     _calibration(config)
     _check_signing_key(config)
+    _check_fdr_dir(config)
 
 
 #: C3 strategies that need no model file (and so no ONNX runtime objects).
@@ -563,6 +581,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     config = resolve_matcher(config)
     calibration = _calibration(config)
     _check_signing_key(config)
+    _check_fdr_dir(config)
     tiles = open_tile_store(config)
     center_lon, center_lat = tiles.center_lonlat
     ltp = LocalTangentPlane(center_lat, center_lon, config.terrain.ground_alt_amsl_m)
