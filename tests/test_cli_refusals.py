@@ -149,3 +149,19 @@ def test_cli_fdr_dir_not_a_directory_exits_3(tmp_path: Path, command: tuple[str,
     fdr = tmp_path / "fdr-file" / "fdr" if under else tmp_path / "fdr-file"
     line = _refusal(_gdnav(tmp_path, command, f"fdr.dir={fdr}"), 3)
     assert "fdr.dir" in line and str(fdr) in line and "not a directory" in line
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "valid"),
+    [("matcher.strategy", "clasical", "classical"), ("rerank.strategy", "inlier", "passthrough")],
+    ids=["matcher", "rerank"],
+)
+def test_cli_config_check_refuses_a_misspelt_strategy_as_run_does(
+    tmp_path: Path, key: str, value: str, valid: str
+) -> None:
+    """A misspelt strategy name fails `config check` with exit 3 and the very line `run` refuses it with
+    (check passed it before), listing the valid names."""
+    check = _refusal(_gdnav(tmp_path, CHECK, f"{key}={value}"), 3)
+    run = _refusal(_gdnav(tmp_path, RUN, f"{key}={value}"), 3)
+    assert check == run
+    assert key in check and repr(value) in check and valid in check

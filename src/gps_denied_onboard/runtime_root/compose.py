@@ -153,14 +153,28 @@ def _check_fdr_dir(config: Config) -> None:
         raise StartupError("fdr.dir", f"{d} {why}; expected a directory for the flight data recorder")
 
 
+def _check_strategy_names(config: Config) -> None:
+    """Refuse an unknown strategy name as ``compose_root`` refuses it when it builds the strategy."""
+    _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)
+    _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)
+    name = config.matcher.strategy
+    if name != "auto" and name not in matcher_registry.available_strategies():
+        raise StartupError(
+            "matcher.strategy",
+            f"C3 matcher strategy {name!r} is not linked; available: "
+            f"{', '.join(matcher_registry.available_strategies())}",
+        )
+
+
 def preflight(config: Config) -> None:
     """The start-up checks that are cheap and need no cache, model or network: the calibration file, the
-    signing key file and ``fdr.dir`` (``gdnav config check``, the unit's ExecStartPre,
+    signing key file, ``fdr.dir`` and the strategy names (``gdnav config check``, the unit's ExecStartPre,
     runs them as the service user). Raises ``StartupError`` naming the key; ``compose_root`` runs the same
     checks."""
     _calibration(config)
     _check_signing_key(config)
     _check_fdr_dir(config)
+    _check_strategy_names(config)
 
 
 #: C3 strategies that need no model file (and so no ONNX runtime objects).
@@ -582,6 +596,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     calibration = _calibration(config)
     _check_signing_key(config)
     _check_fdr_dir(config)
+    _check_strategy_names(config)
     tiles = open_tile_store(config)
     center_lon, center_lat = tiles.center_lonlat
     ltp = LocalTangentPlane(center_lat, center_lon, config.terrain.ground_alt_amsl_m)
