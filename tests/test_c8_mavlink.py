@@ -148,15 +148,18 @@ def udp_pair() -> Iterator[tuple[MavlinkLink, Any, FakeClock, int]]:
 
 
 def test_tracker_interpolates_attitude_over_udp_with_yaw_wrap(udp_pair: tuple) -> None:
-    """ATTITUDE over UDP, time-mapped by SYSTEM_TIME; yaw interpolates across +-pi the short way."""
-    link, ap, _clock, _ = udp_pair
+    """ATTITUDE over UDP, time-mapped by its receive time (the test autopilot answers no TIMESYNC); yaw
+    interpolates across +-pi the short way."""
+    link, ap, clock, _ = udp_pair
     ap.mav.send(_ap_heartbeat(ap.mav))
     ap.mav.system_time_send(T0_UNIX_USEC, BOOT0_MS)
     ap.mav.attitude_send(BOOT0_MS, 0.1, -0.05, 3.1, 0, 0, 0)
-    ap.mav.attitude_send(BOOT0_MS + 100, 0.2, -0.15, -3.1, 0, 0, 0)
     tr = link.tracker
+    assert _pump(link, lambda: tr.snapshot().attitude_samples == 1)
+    clock.t += 0.1  # received as they were sent, 100 ms apart
+    ap.mav.attitude_send(BOOT0_MS + 100, 0.2, -0.15, -3.1, 0, 0, 0)
     assert _pump(link, lambda: tr.snapshot().attitude_samples == 2)
-    assert tr.time_source is TimeSource.SYSTEM_TIME
+    assert tr.time_source is TimeSource.RECEIVE_TIME
     mid = tr.attitude_at(T0_UNIX_USEC + 50_000)
     assert mid is not None
     assert mid.roll_rad == pytest.approx(0.15, abs=1e-6)
@@ -174,8 +177,10 @@ def test_tracker_interpolates_attitude_over_udp_with_yaw_wrap(udp_pair: tuple) -
     assert tr.attitude_at(T0_UNIX_USEC - 301_000) is None
 
 
-def test_tracker_falls_back_to_receive_time_without_system_time() -> None:
-    """Without SYSTEM_TIME, boot time maps to Unix via receive times, and the state says so."""
+def test_tracker_never_maps_by_the_autopilots_unix_time() -> None:
+    """Without TIMESYNC, boot time maps to the daemon's clock by receive times, and the state says so; a
+    SYSTEM_TIME whose Unix time is 5 s off (an autopilot clock nobody set) moves nothing (issue 26:
+    SITL's ran 2.0 s behind and every frame was refused as stale)."""
     tr = _tracker()
     assert tr.time_source is TimeSource.NONE and tr.attitude_at(T0_UNIX_USEC) is None
     recv_s = T0_UNIX_USEC / 1e6
@@ -184,11 +189,47 @@ def test_tracker_falls_back_to_receive_time_without_system_time() -> None:
     assert tr.time_source is TimeSource.RECEIVE_TIME
     att = tr.attitude_at(T0_UNIX_USEC + 10_000)
     assert att is not None and att.yaw_rad == pytest.approx(1.1, abs=1e-3)
-    # a later SYSTEM_TIME takes over the mapping
-    tr.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC + 5_000_000, BOOT0_MS)), recv_s + 0.03)
-    assert tr.time_source is TimeSource.SYSTEM_TIME
-    assert tr.attitude_at(T0_UNIX_USEC + 10_000) is None  # 5 s away from any sample now
-    assert tr.attitude_at(T0_UNIX_USEC + 5_010_000) is not None
+    tr.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC - 5_000_000, BOOT0_MS)), recv_s + 0.03)
+    assert tr.time_source is TimeSource.RECEIVE_TIME
+    att = tr.attitude_at(T0_UNIX_USEC + 10_000)
+    assert att is not None and att.yaw_rad == pytest.approx(1.1, abs=1e-3)
+    assert tr.attitude_at(T0_UNIX_USEC - 4_990_000) is None
+
+
+def test_link_maps_the_autopilot_clock_with_timesync_over_udp(udp_pair: tuple) -> None:
+    """The link asks the autopilot for TIMESYNC; the answer (tc1: its boot time when the request arrived,
+    as ArduPilot's ``handle_timesync`` does) maps its boot time onto the daemon's clock even though its
+    SYSTEM_TIME says the Unix time is 2 s earlier and its messages arrive 80 ms late. The link also
+    answers the autopilot's own TIMESYNC request."""
+    link, ap, clock, _ = udp_pair
+    offset_usec = T0_UNIX_USEC - BOOT0_MS * 1000  # the truth: daemon clock minus boot time
+
+    def boot_usec() -> int:
+        return int(clock.t * 1e6 - offset_usec)
+
+    ap.mav.send(_ap_heartbeat(ap.mav))
+    assert _pump(link, lambda: link.tracker.autopilot_seen)
+    answered = 0
+    for _ in range(6):
+        clock.t += 0.3
+        link.poll()
+        for req in _recv_all(ap, "TIMESYNC", wait_s=0.1):
+            if req.tc1 == 0:
+                ap.mav.timesync_send(boot_usec() * 1000, req.ts1)
+                answered += 1
+        clock.t += 0.002
+        ap.mav.system_time_send(int(clock.t * 1e6) - 2_000_000, boot_usec() // 1000)
+        ap.mav.attitude_send(boot_usec() // 1000 - 80, 0.1, 0.0, 0.0, 0, 0, 0)  # stamped 80 ms earlier
+        _pump(link, lambda: False, timeout_s=0.05)
+    tr = link.tracker
+    assert answered >= 3
+    assert tr.time_source is TimeSource.TIMESYNC
+    assert tr.snapshot().boot_to_unix_offset_usec == pytest.approx(offset_usec, abs=3_000)
+    # its own request is answered with our time, ts1 echoed
+    ap.mav.timesync_send(0, 777)
+    _pump(link, lambda: False, timeout_s=0.2)
+    answers = [m for m in _recv_all(ap, "TIMESYNC", wait_s=0.3) if m.ts1 == 777]
+    assert answers and answers[0].tc1 == pytest.approx(clock.t * 1e9, abs=1e6)
 
 
 def test_tracker_altitude_priority_and_staleness() -> None:

@@ -115,6 +115,7 @@ def _serve_autopilot(port: int, stop: threading.Event) -> None:
             try:
                 ap.send_heartbeat()
                 ap.send_system_time(time.time())
+                ap.poll()  # answers the preflight's TIMESYNC
             except OSError:
                 pass
             stop.wait(0.05)
@@ -164,15 +165,16 @@ async def _online_preflight(tmp_path: Path, cache: Path) -> tuple[subprocess.Com
 
 
 def test_preflight_online_passes_with_camera_and_autopilot(tmp_path: Path, small_cache: Path) -> None:
-    """Online, a frame server's one 640x480 frame and a SimAutopilot's HEARTBEAT + SYSTEM_TIME make every
-    check pass, with the measured waits in the table."""
+    """Online, a frame server's one 640x480 frame and a SimAutopilot's HEARTBEAT + TIMESYNC answer make
+    every check pass, with the measured waits in the table."""
     proc, delivered = asyncio.run(_online_preflight(tmp_path, small_cache))
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert delivered == 1
     rows = _rows(proc.stdout)
     assert rows["camera"][0] == "PASS" and f"{FRAME_W_PX}x{FRAME_H_PX} px frame decoded" in rows["camera"][1]
     assert rows["autopilot"][0] == "PASS", proc.stdout
-    assert "HEARTBEAT from system 1" in rows["autopilot"][1] and "SYSTEM_TIME after" in rows["autopilot"][1]
+    autopilot = rows["autopilot"][1]
+    assert "HEARTBEAT from system 1" in autopilot and "TIMESYNC answered after" in autopilot
 
 
 def test_preflight_online_without_camera_or_autopilot_exits_3(tmp_path: Path, small_cache: Path) -> None:

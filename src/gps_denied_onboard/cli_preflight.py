@@ -19,8 +19,11 @@ probe, so a pass means ``gdnav run`` gets past the same step:
 - ``mavlink_port``: a ``udpin:``/``udp:`` port no other socket holds, a serial device that opens, a
   ``tcp:`` endpoint that accepts a connection (online only);
 - ``camera`` and ``autopilot`` (online only; ``--offline`` skips them): the camera delivers one frame of
-  the calibrated size that decodes, and the autopilot's HEARTBEAT and SYSTEM_TIME arrive, each within
-  ``--timeout``.
+  the calibrated size that decodes, and the autopilot's HEARTBEAT arrives and it answers TIMESYNC, each
+  within ``--timeout``;
+- ``start_point``: the configured start point (``init.lat_deg``/``lon_deg``), or else HOME_POSITION when
+  the autopilot check received it, lies on the map (the cache's mapped area, give or take
+  ``init.sigma_m``); without one the search starts on the whole map and the check is skipped.
 
 Exit 0 when no check fails (a skipped check is not a failure), 2 when the configuration is refused, 3 when
 any other check fails; the table is printed either way and one ``gdnav:`` line on stderr names the first
@@ -72,7 +75,7 @@ CHECKS: Final[tuple[str, ...]] = (
 )
 #: Checks that need the camera and the autopilot to be there; ``--offline`` skips them.
 ONLINE_CHECKS: Final[frozenset[str]] = frozenset({"camera", "autopilot"})
-#: Default of ``--timeout``: the wait for the first frame and for HEARTBEAT + SYSTEM_TIME, s.
+#: Default of ``--timeout``: the wait for the first frame and for HEARTBEAT + a TIMESYNC answer, s.
 DEFAULT_TIMEOUT_S: Final[float] = 10.0
 #: How often the autopilot check polls the link, s.
 _POLL_INTERVAL_S: Final[float] = 0.02
@@ -378,7 +381,7 @@ def _check_autopilot(config: Config, timeout_s: float) -> str:
             now = time.monotonic() - t0
             if heartbeat_s is None and tracker.autopilot_seen:
                 heartbeat_s = now
-            if time_s is None and tracker.time_source is TimeSource.SYSTEM_TIME:
+            if time_s is None and tracker.time_source is TimeSource.TIMESYNC:
                 time_s = now
             if heartbeat_s is not None and time_s is not None:
                 break
@@ -390,10 +393,13 @@ def _check_autopilot(config: Config, timeout_s: float) -> str:
         raise CheckFailed(f"no HEARTBEAT from {who} within {timeout_s:g} s")
     if time_s is None:
         raise CheckFailed(
-            f"HEARTBEAT from {who} after {heartbeat_s:.2f} s, but no SYSTEM_TIME within {timeout_s:g} s "
-            f"(time source: {tracker.time_source.value})"
+            f"HEARTBEAT from {who} after {heartbeat_s:.2f} s, but no answer to TIMESYNC within "
+            f"{timeout_s:g} s (time source: {tracker.time_source.value}); the daemon maps the autopilot's "
+            "clock with TIMESYNC: route it between the two"
         )
-    return f"HEARTBEAT from {who} after {heartbeat_s:.2f} s, SYSTEM_TIME after {time_s:.2f} s"
+    rtt = tracker.autopilot_clock.rtt_usec
+    rtt_txt = f", round trip {rtt / 1000:.1f} ms" if rtt is not None else ""
+    return f"HEARTBEAT from {who} after {heartbeat_s:.2f} s, TIMESYNC answered after {time_s:.2f} s{rtt_txt}"
 
 
 async def _online(config: Config, timeout_s: float) -> tuple[CheckResult, CheckResult]:
@@ -519,7 +525,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         help="check everything that can be checked before flight (pass/fail table)",
         description="Check the profile, the cache (hashes), the models, the calibration, the signing key, "
         "the FDR directory and the MAVLink port, then (unless --offline) that the camera delivers a frame "
-        "and the autopilot its HEARTBEAT and SYSTEM_TIME. Exit 0: all pass; 2: bad profile; 3: another "
+        "and the autopilot its HEARTBEAT and a TIMESYNC answer. Exit 0: all pass; 2: bad profile; 3: another "
         "check failed.",
     )
     p.add_argument("--config", required=True, type=Path, help="YAML profile, e.g. config/airborne.yaml")

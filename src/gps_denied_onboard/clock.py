@@ -28,15 +28,26 @@ that gives the frame a plausible age (``from_wall_usec``).
 
 Steps are detected (``check_step``), logged, recorded in the flight data recorder and counted by the
 daemon; they change nothing else.
+
+The autopilot's clock
+---------------------
+``AutopilotClock`` maps the autopilot's boot time onto the daemon's clock: MAVLink TIMESYNC round trips
+(offset and drift, continuously re-synced), bounded by the receive times of its timestamped messages;
+the receive-time bound alone when the autopilot does not answer TIMESYNC. The autopilot's own Unix time
+(SYSTEM_TIME) is never the link: without GNSS it is whatever somebody set.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import Enum
 from typing import Final
+
+import numpy as np
 
 #: A change of the wall clock's offset from the daemon's clock larger than this is a step, s. NTP slews
 #: at most 500 ppm (0.5 ms per second checked); ntpd steps above 0.128 s.
@@ -181,3 +192,218 @@ class DaemonClock:
         with self._lock:
             return self._unreported.pop(0) if self._unreported else None
 
+
+
+# -- the autopilot's clock ------------------------------------------------------------------------------
+
+#: TIMESYNC samples kept for the fit, and the oldest one used, s.
+TIMESYNC_WINDOW_S: Final[float] = 60.0
+TIMESYNC_MAX_SAMPLES: Final[int] = 64
+#: A round trip longer than this says nothing useful about the offset, s.
+TIMESYNC_MAX_RTT_S: Final[float] = 0.5
+#: Samples within this of the shortest round trip in the window are used (queueing only adds delay), s.
+TIMESYNC_RTT_MARGIN_S: Final[float] = 0.005
+#: The drift is fitted once the used samples span this long, s; it is clamped to +-MAX_DRIFT_PPM (a
+#: crystal is within 100 ppm; SITL under load runs slower than the host, which the clamp also covers).
+TIMESYNC_DRIFT_MIN_SPAN_S: Final[float] = 20.0
+TIMESYNC_MAX_DRIFT_PPM: Final[float] = 20_000.0
+#: This many answers in a row that exclude the current mapping by more than the jump tolerance restart
+#: it (the autopilot's clock stood still or was reset).
+TIMESYNC_JUMP_SAMPLES: Final[int] = 3
+TIMESYNC_JUMP_TOLERANCE_S: Final[float] = 0.05
+#: Receive-time bound: the smallest (receive - boot) per bucket of this length, over this window, s.
+RECEIVE_BOUND_BUCKET_S: Final[float] = 1.0
+RECEIVE_BOUND_WINDOW_S: Final[float] = 6.0
+#: Requests whose answers are still awaited (older ones are forgotten).
+TIMESYNC_PENDING: Final[int] = 16
+#: Boot time going back by more than this is a reboot of the autopilot, s.
+AUTOPILOT_REBOOT_BACK_S: Final[float] = 1.0
+
+
+class TimeSource(str, Enum):
+    """How the autopilot's boot time is mapped onto the daemon's clock."""
+
+    NONE = "none"
+    TIMESYNC = "timesync"
+    RECEIVE_TIME = "receive_time"
+
+
+@dataclass(frozen=True)
+class TimesyncSample:
+    """One answered TIMESYNC request: sent and answered in the daemon's clock (us); ``tc1_usec`` the
+    autopilot's boot time when it received the request (ArduPilot: ``handle_timesync``, the receive
+    time of the request, GCS_Common.cpp)."""
+
+    sent_usec: int
+    recv_usec: int
+    tc1_usec: int
+
+    @property
+    def rtt_usec(self) -> int:
+        return self.recv_usec - self.sent_usec
+
+    @property
+    def offset_usec(self) -> float:
+        """Daemon minus autopilot boot time, assuming the request spent half the round trip."""
+        return (self.sent_usec + self.recv_usec) / 2.0 - self.tc1_usec
+
+
+class AutopilotClock:
+    """The autopilot's boot time on the daemon's clock; thread-safe.
+
+    ``offset_usec(now)`` is daemon minus boot time. With TIMESYNC answers: the low-round-trip samples of
+    the last ``TIMESYNC_WINDOW_S`` give the offset (their midpoint) and, over a long enough span, its
+    drift (least squares); the result is kept inside what the messages prove: an answer cannot come
+    before its request (offset >= sent - tc1) and a message cannot arrive before it was stamped
+    (offset <= receive - boot, the lower envelope of every timestamped message). Without answers the
+    receive-time bound is the mapping (late by the link's smallest latency). A reboot (boot time going
+    back) or answers that exclude the mapping ``TIMESYNC_JUMP_SAMPLES`` times in a row restart it.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._samples: deque[TimesyncSample] = deque(maxlen=TIMESYNC_MAX_SAMPLES)
+        self._rx_min: dict[int, float] = {}  # bucket -> smallest (receive - boot), us
+        self._last_boot_usec: int | None = None
+        self._fit: tuple[float, float, float] | None = None  # (t_ref_usec, offset_usec, drift)
+        self._excluded = 0
+        self._resets = 0
+        self._answers = 0
+        self._pending: deque[int] = deque(maxlen=TIMESYNC_PENDING)  # ts1 of requests not yet answered
+
+    # -- input ---------------------------------------------------------------------------------------
+
+    def note_stamp(self, boot_usec: int, recv_usec: int) -> bool:
+        """A message stamped ``boot_usec`` (autopilot boot time) arrived at ``recv_usec`` (daemon clock).
+        Returns True when it showed a reboot (the mapping was restarted)."""
+        with self._lock:
+            rebooted = self._note_boot(int(boot_usec))
+            bucket = int(recv_usec // (RECEIVE_BOUND_BUCKET_S * 1e6))
+            d = float(recv_usec - boot_usec)
+            cur = self._rx_min.get(bucket)
+            if cur is None or d < cur:
+                self._rx_min[bucket] = d
+            oldest = bucket - int(RECEIVE_BOUND_WINDOW_S / RECEIVE_BOUND_BUCKET_S)
+            for b in [b for b in self._rx_min if b < oldest]:
+                del self._rx_min[b]
+            return rebooted
+
+    def request(self, now_usec: int) -> int:
+        """The ``ts1`` (ns) of a TIMESYNC request sent now; its answer is matched by it."""
+        ts1_ns = int(now_usec) * 1000
+        with self._lock:
+            self._pending.append(ts1_ns)
+        return ts1_ns
+
+    def answer(self, tc1_ns: int, ts1_ns: int, recv_usec: int) -> bool:
+        """A TIMESYNC with ``tc1`` != 0 arrived at ``recv_usec``: used when it answers one of our
+        requests (any other, e.g. an answer to another node's request, is ignored)."""
+        with self._lock:
+            if ts1_ns not in self._pending:
+                return False
+            self._pending.remove(ts1_ns)
+        return self.note_timesync(TimesyncSample(ts1_ns // 1000, int(recv_usec), int(tc1_ns) // 1000))
+
+    def note_timesync(self, sample: TimesyncSample) -> bool:
+        """An answer to one of our TIMESYNC requests. Returns True when it was used."""
+        if sample.rtt_usec < 0 or sample.rtt_usec > TIMESYNC_MAX_RTT_S * 1e6 or sample.tc1_usec <= 0:
+            return False
+        with self._lock:
+            self._note_boot(sample.tc1_usec)
+            self._answers += 1
+            if self._fit is not None:
+                predicted = _offset_at(self._fit, sample.sent_usec)
+                lo = sample.sent_usec - sample.tc1_usec - TIMESYNC_JUMP_TOLERANCE_S * 1e6
+                hi = sample.recv_usec - sample.tc1_usec + TIMESYNC_JUMP_TOLERANCE_S * 1e6
+                if not lo <= predicted <= hi:
+                    self._excluded += 1
+                    if self._excluded < TIMESYNC_JUMP_SAMPLES:
+                        return False
+                    self._samples.clear()
+                    self._resets += 1
+                self._excluded = 0
+            self._samples.append(sample)
+            self._refit(sample.recv_usec)
+            return True
+
+    def _note_boot(self, boot_usec: int) -> bool:
+        last = self._last_boot_usec
+        if last is not None and boot_usec < last - AUTOPILOT_REBOOT_BACK_S * 1e6:
+            self._samples.clear()
+            self._rx_min.clear()
+            self._fit = None
+            self._excluded = 0
+            self._resets += 1
+            self._last_boot_usec = boot_usec
+            return True
+        if last is None or boot_usec > last:
+            self._last_boot_usec = boot_usec
+        return False
+
+    def _refit(self, now_usec: int) -> None:
+        horizon = now_usec - TIMESYNC_WINDOW_S * 1e6
+        while self._samples and self._samples[0].recv_usec < horizon:
+            self._samples.popleft()
+        if not self._samples:
+            self._fit = None
+            return
+        best = min(s.rtt_usec for s in self._samples)
+        used = [s for s in self._samples if s.rtt_usec <= best + TIMESYNC_RTT_MARGIN_S * 1e6]
+        t = np.array([s.sent_usec for s in used], dtype=np.float64)
+        off = np.array([s.offset_usec for s in used], dtype=np.float64)
+        t_ref = float(t[-1])
+        drift = 0.0
+        if len(used) >= 4 and t[-1] - t[0] >= TIMESYNC_DRIFT_MIN_SPAN_S * 1e6:
+            slope = float(np.polyfit(t - t_ref, off, 1)[0])
+            drift = float(np.clip(slope, -TIMESYNC_MAX_DRIFT_PPM * 1e-6, TIMESYNC_MAX_DRIFT_PPM * 1e-6))
+        offset = float(np.median(off - drift * (t - t_ref)))
+        self._fit = (t_ref, offset, drift)
+
+    # -- queries -------------------------------------------------------------------------------------
+
+    def _rx_bound(self) -> float | None:
+        return min(self._rx_min.values()) if self._rx_min else None
+
+    def offset_usec(self, now_usec: float) -> float | None:
+        """Daemon clock minus autopilot boot time at ``now_usec`` (daemon clock), us; None before any
+        TIMESYNC answer or timestamped message."""
+        with self._lock:
+            bound = self._rx_bound()
+            if self._fit is None:
+                return bound
+            offset = _offset_at(self._fit, now_usec)
+            return offset if bound is None else min(offset, bound)
+
+    @property
+    def source(self) -> TimeSource:
+        with self._lock:
+            if self._fit is not None:
+                return TimeSource.TIMESYNC
+            return TimeSource.RECEIVE_TIME if self._rx_min else TimeSource.NONE
+
+    @property
+    def rtt_usec(self) -> int | None:
+        """The shortest round trip in the window (twice the mapping's worst error), or None."""
+        with self._lock:
+            return min((s.rtt_usec for s in self._samples), default=None)
+
+    @property
+    def drift_ppm(self) -> float | None:
+        with self._lock:
+            return None if self._fit is None else self._fit[2] * 1e6
+
+    @property
+    def resets(self) -> int:
+        """Mappings restarted (autopilot reboots, clock jumps)."""
+        with self._lock:
+            return self._resets
+
+    @property
+    def answers(self) -> int:
+        with self._lock:
+            return self._answers
+
+
+def _offset_at(fit: tuple[float, float, float], now_usec: float) -> float:
+    t_ref, offset, drift = fit
+    return offset + drift * (now_usec - t_ref)

@@ -13,7 +13,7 @@ import structlog
 
 from gps_denied_onboard.camera.sources import CameraSourceError, FrameSource, open_frame_source
 from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration, CameraMount
-from gps_denied_onboard.clock import DaemonClock
+from gps_denied_onboard.clock import AutopilotClock, DaemonClock
 from gps_denied_onboard.components.c1_vio import HomographyVo
 from gps_denied_onboard.components.c2_5_rerank.footprint import FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
@@ -514,6 +514,7 @@ def open_camera_source(config: Config) -> FrameSource:
 
 def _time_axis(
     config: Config,
+        autopilot_clock=AutopilotClock(),
     ltp: LocalTangentPlane,
     journal: Any | None,
     *,

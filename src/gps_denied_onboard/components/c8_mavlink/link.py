@@ -81,6 +81,10 @@ RECONNECT_BACKOFF_MAX_S: Final[float] = 10.0
 RECONNECT_JITTER_FRAC: Final[float] = 0.2
 #: At most this many messages are handled per poll() (keeps one callback short under a flood).
 MAX_MESSAGES_PER_POLL: Final[int] = 1000
+#: TIMESYNC requests to the autopilot (``clock.AutopilotClock``): fast until this many answers, then slow.
+TIMESYNC_FAST_INTERVAL_S: Final[float] = 0.25
+TIMESYNC_SLOW_INTERVAL_S: Final[float] = 1.0
+TIMESYNC_FAST_ANSWERS: Final[int] = 8
 #: send_error logs are emitted at most once per this interval (the count is always kept).
 SEND_ERROR_LOG_INTERVAL_S: Final[float] = 5.0
 #: Message ids accepted unsigned when signing is on (RADIO_STATUS is injected by SiK radios).
@@ -290,6 +294,7 @@ class MavlinkLink:
         self._ap_frame: LocalTangentPlane | None = None  # the autopilot's frame, or our ltp when they agree
         self._last_vision_frame: LocalTangentPlane | None = None
         self._last_vision_state: EstimatorState | None = None
+        self._last_timesync_s = -float("inf")
 
     # --- lifecycle ----------------------------------------------------------------------------------
     def open(self) -> None:
@@ -393,16 +398,39 @@ class MavlinkLink:
                             self._bad += 1
                             continue
                         count += 1
-                        if self._tracker.handle(msg, now) and msg.get_type() == "HEARTBEAT":
+                        recv_s = self._clock()  # each message at its own arrival: the clock's bound
+                        if self._tracker.handle(msg, recv_s) and msg.get_type() == "HEARTBEAT":
                             self._follow_autopilot(conn, msg)
+                        if msg.get_type() == "TIMESYNC":
+                            self._answer_timesync(msg, recv_s)
                 except (OSError, _PeerClosed) as exc:
                     self._drop_connection()
                     self._schedule_reconnect(now, reason=f"receive failed: {exc}")
             self._received += count
         self._check_liveness(now)
+        self._maybe_request_timesync(now)
         self._maybe_send_origin(now)
         self._flush_pending_status(now)
         return count
+
+    def _maybe_request_timesync(self, now: float) -> None:
+        """Keep the autopilot's clock mapped: a TIMESYNC request while its link is alive."""
+        ap_clock = self._tracker.autopilot_clock
+        fast = ap_clock.answers < TIMESYNC_FAST_ANSWERS
+        interval = TIMESYNC_FAST_INTERVAL_S if fast else TIMESYNC_SLOW_INTERVAL_S
+        if now - self._last_timesync_s < interval or not self._tracker.link_alive(now):
+            return
+        self._last_timesync_s = now
+        ts1_ns = ap_clock.request(int(self._clock() * 1e6))
+        self._build_and_send(lambda mav: messages.timesync(mav, tc1_ns=0, ts1_ns=ts1_ns))
+
+    def _answer_timesync(self, msg: Any, recv_s: float) -> None:
+        """Answer the autopilot's own TIMESYNC request (ArduPilot sends one every 10 s and logs the
+        round trip), with our receive time."""
+        if int(msg.tc1) != 0 or msg.get_srcSystem() != self._config.autopilot_system_id:
+            return
+        ts1 = int(msg.ts1)
+        self._build_and_send(lambda mav: messages.timesync(mav, tc1_ns=int(recv_s * 1e9), ts1_ns=ts1))
 
     def _follow_autopilot(self, conn: Any, heartbeat: Any) -> None:
         """Send to where the autopilot's HEARTBEAT came from (a listening link; a signed one when signing
@@ -661,6 +689,19 @@ class MavlinkLink:
             )
         ]
         return all(sent)
+
+    def request_flight_phase(self) -> bool:
+        """Ask the autopilot for EXTENDED_SYS_STATE (its landed state) now (MAV_CMD_REQUEST_MESSAGE): the
+        start-up rules in ``c5_estimator.prior`` must know whether the vehicle is in the air."""
+        target = self._config.autopilot_system_id
+        return self._build_and_send(
+            lambda mav: messages.request_message(
+                mav,
+                target_system=target,
+                target_component=AUTOPILOT_COMPONENT_ID,
+                message_id=DIALECT.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+            )
+        )
 
     def send_status_values(
         self,

@@ -255,6 +255,12 @@ def set_gps_global_origin(
     )
 
 
+def timesync(mav: Any, *, tc1_ns: int, ts1_ns: int) -> MavlinkMessage:
+    """TIMESYNC: a request (``tc1_ns`` = 0, ``ts1_ns`` = our now) or the answer to another node's
+    request (``tc1_ns`` = our now, ``ts1_ns`` = theirs, echoed)."""
+    return mav.timesync_encode(int(tc1_ns), int(ts1_ns))
+
+
 def request_message(
     mav: Any, *, target_system: int, target_component: int, message_id: int
 ) -> MavlinkMessage:

@@ -1,5 +1,5 @@
-"""C8 inbound: the autopilot's attitude, altitude, home, local-frame origin (GPS_GLOBAL_ORIGIN), IMU and
-liveness, from decoded MAVLink messages.
+"""C8 inbound: the autopilot's attitude, altitude, home, local-frame origin (GPS_GLOBAL_ORIGIN), IMU,
+flight phase (armed, landed state) and liveness, from decoded MAVLink messages.
 
 Only the configured autopilot's messages are used: source system ``autopilot_system_id`` and
 component 1 (MAV_COMP_ID_AUTOPILOT1). A HEARTBEAT counts only when it also declares a real autopilot
@@ -9,16 +9,10 @@ or another companion computer cannot keep the link "alive".
 Time
 ----
 Samples are stored in the autopilot's boot time (``time_boot_ms`` / ``time_usec`` since boot), which
-keeps their spacing exact; queries in Unix time are mapped with an offset ``unix - boot``:
-
-- from SYSTEM_TIME (``time_unix_usec - time_boot_ms * 1000``), exponentially smoothed, when the
-  autopilot has a Unix time (``time_unix_usec > 0``): ``TimeSource.SYSTEM_TIME``;
-- otherwise from the local receive time of each timestamped message (same smoothing; biased late by
-  the link latency): ``TimeSource.RECEIVE_TIME``.
-
-A jump of the offset by more than ``OFFSET_RESET_S`` (autopilot reboot, clock set) resets the smoothing;
-``time_boot_ms`` going backwards by more than that clears every buffer (the old samples belong to the
-previous boot).
+keeps their spacing exact. Queries in the daemon's time are mapped through the one
+``clock.AutopilotClock`` (TIMESYNC answers, bounded by every timestamped message's receive time); the
+autopilot's SYSTEM_TIME Unix time is never used for it. Boot time going back by more than
+``OFFSET_RESET_S`` (a reboot) clears every buffer: the old samples belong to the previous boot.
 
 Altitude (above home, i.e. AGL over flat ground at home height), in priority order, the first source
 with a sample within ``altitude_max_age_s`` of the query wins:
@@ -43,6 +37,7 @@ import numpy as np
 import structlog
 
 from gps_denied_onboard.camera.types import Attitude
+from gps_denied_onboard.clock import AutopilotClock, TimeSource
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
 from gps_denied_onboard.constants import LogEvent
 
@@ -54,9 +49,7 @@ AUTOPILOT_COMPONENT_ID: Final[int] = 1
 BUFFER_LEN: Final[int] = 512
 #: Attitude is extrapolated past the newest sample (or before the oldest) by at most this, then held.
 EXTRAPOLATION_LIMIT_S: Final[float] = 0.05
-#: Smoothing factor of the boot->Unix offset (per sample).
-OFFSET_ALPHA: Final[float] = 0.05
-#: Offset jumps larger than this restart the smoothing; boot time going back this much = reboot.
+#: Boot time going back this much = reboot.
 OFFSET_RESET_S: Final[float] = 1.0
 #: An IMU sample farther than this from an interval cannot describe it (prediction falls back to
 #: constant velocity), s.
@@ -77,14 +70,6 @@ _NOT_AUTOPILOT_TYPES: Final[frozenset[int]] = frozenset(
         DIALECT.MAV_TYPE_CAMERA,
     }
 )
-
-
-class TimeSource(str, Enum):
-    """How autopilot boot time is mapped to Unix time."""
-
-    NONE = "none"
-    SYSTEM_TIME = "system_time"
-    RECEIVE_TIME = "receive_time"
 
 
 class AltitudeSource(str, Enum):
@@ -126,6 +111,30 @@ class AutopilotPosition:
         good = self.ekf_flags & DIALECT.EKF_POS_HORIZ_ABS
         const = self.ekf_flags & DIALECT.EKF_CONST_POS_MODE
         return bool(good) and not const
+
+
+#: MAV_LANDED_STATE values an autopilot may report (UNDEFINED says nothing and is not kept).
+_LANDED_STATES: Final[frozenset[int]] = frozenset(
+    {
+        DIALECT.MAV_LANDED_STATE_ON_GROUND,
+        DIALECT.MAV_LANDED_STATE_IN_AIR,
+        DIALECT.MAV_LANDED_STATE_TAKEOFF,
+        DIALECT.MAV_LANDED_STATE_LANDING,
+    }
+)
+
+
+@dataclass(frozen=True)
+class FlightPhase:
+    """What the autopilot says of the vehicle being on the ground or in the air, for the start-up rules
+    (F8) in ``c5_estimator.prior``: HEARTBEAT's MAV_MODE_FLAG_SAFETY_ARMED and
+    EXTENDED_SYS_STATE.landed_state (MAV_LANDED_STATE), each None when not received recently."""
+
+    armed: bool | None
+    landed_state: int | None
+    #: When the autopilot last said the vehicle was on the ground (disarmed, or landed_state
+    #: ON_GROUND), Unix s, in this run; None if it never did.
+    last_on_ground_unix_s: float | None
 
 
 @dataclass(frozen=True)
@@ -229,7 +238,10 @@ class VehicleStateTracker:
         altitude_max_age_s: float,
         link_timeout_s: float,
         clock: Callable[[], float] = time.time,
+        autopilot_clock: AutopilotClock | None = None,
     ) -> None:
+        """``clock``: the daemon's now, Unix seconds; ``autopilot_clock``: the mapping of the autopilot's
+        boot time onto it (a new one when not given)."""
         if attitude_max_age_s <= 0 or altitude_max_age_s <= 0 or link_timeout_s <= 0:
             raise ValueError(
                 "max ages and link timeout must be > 0, got "
@@ -254,10 +266,14 @@ class VehicleStateTracker:
         self._ekf_flags: tuple[int, int] | None = None
         #: Specific force, body FRD, m/s^2, keyed by boot time.
         self._accel_body = _Series()
-        self._sys_offset_usec: float | None = None
-        self._rx_offset_usec: float | None = None
+        self._ap_clock = autopilot_clock if autopilot_clock is not None else AutopilotClock()
         self._last_boot_usec: int | None = None
         self._last_heartbeat_s: float | None = None
+        #: Flight phase (``flight_phase``): HEARTBEAT's armed flag and EXTENDED_SYS_STATE.landed_state, each
+        #: with its receive time (Unix s); when either last said "on the ground" (disarmed, ON_GROUND).
+        self._armed: tuple[float, bool] | None = None
+        self._landed_state: tuple[float, int] | None = None
+        self._last_on_ground_s: float | None = None
         self._autopilot_seen = False
         self._used = 0
         self._ignored = 0
@@ -291,6 +307,7 @@ class VehicleStateTracker:
         if msg.autopilot == DIALECT.MAV_AUTOPILOT_INVALID or msg.type in _NOT_AUTOPILOT_TYPES:
             return False
         self._last_heartbeat_s = recv_usec / 1e6
+        self._note_armed(bool(int(msg.base_mode) & DIALECT.MAV_MODE_FLAG_SAFETY_ARMED), recv_usec / 1e6)
         if not self._autopilot_seen:
             self._autopilot_seen = True
             _log.info(
@@ -301,6 +318,21 @@ class VehicleStateTracker:
             )
         return True
 
+    def _note_armed(self, armed: bool, recv_s: float) -> None:
+        self._armed = (recv_s, armed)
+        if not armed:
+            self._last_on_ground_s = recv_s
+
+    def _on_extended_sys_state(self, msg: Any, recv_usec: int) -> bool:
+        landed = int(msg.landed_state)
+        if landed not in _LANDED_STATES:
+            return False
+        recv_s = recv_usec / 1e6
+        self._landed_state = (recv_s, landed)
+        if landed == DIALECT.MAV_LANDED_STATE_ON_GROUND:
+            self._last_on_ground_s = recv_s
+        return True
+
     def _note_boot_time(self, boot_usec: int) -> None:
         """Detect an autopilot reboot (boot time going back) and drop the previous boot's samples."""
         last = self._last_boot_usec
@@ -309,8 +341,6 @@ class VehicleStateTracker:
             self._accel_body.clear()
             for s in self._alt.values():
                 s.clear()
-            self._sys_offset_usec = None
-            self._rx_offset_usec = None
             self._imu = None
             self._gps_origin = None  # a rebooted autopilot has no origin until it reports one again
             self._position = None
@@ -318,23 +348,17 @@ class VehicleStateTracker:
         if last is None or boot_usec > last or boot_usec < last - OFFSET_RESET_S * 1e6:
             self._last_boot_usec = boot_usec
 
-    @staticmethod
-    def _smooth(current: float | None, sample: float) -> float:
-        if current is None or abs(sample - current) > OFFSET_RESET_S * 1e6:
-            return sample
-        return current + OFFSET_ALPHA * (sample - current)
-
     def _timestamped(self, boot_usec: int, recv_usec: int) -> int:
         """Register a boot-time stamp received at ``recv_usec``; returns the boot time (usec)."""
         self._note_boot_time(boot_usec)
-        self._rx_offset_usec = self._smooth(self._rx_offset_usec, recv_usec - boot_usec)
+        self._ap_clock.note_stamp(boot_usec, recv_usec)
         return boot_usec
 
     def _to_boot_usec(self, time_usec: int, recv_usec: int) -> int:
-        """A message's ``time_usec`` (Unix or since boot) as boot time."""
+        """A message's ``time_usec`` as boot time: a Unix stamp is on the autopilot's own Unix clock,
+        which is not ours, so such a message counts as sampled when it was received."""
         if time_usec >= _UNIX_USEC_THRESHOLD:
-            offset = self._offset_usec()
-            return int(time_usec - offset) if offset is not None else self._recv_as_boot(recv_usec)
+            return self._recv_as_boot(recv_usec)
         return self._timestamped(time_usec, recv_usec)
 
     def _recv_as_boot(self, recv_usec: int) -> int:
@@ -342,12 +366,14 @@ class VehicleStateTracker:
         return int(recv_usec - offset) if offset is not None else recv_usec
 
     def _on_system_time(self, msg: Any, recv_usec: int) -> bool:
-        boot_usec = int(msg.time_boot_ms) * 1000
-        self._timestamped(boot_usec, recv_usec)
-        if int(msg.time_unix_usec) <= 0:
-            return True  # the autopilot has no Unix time (no GNSS, no RTC): keep receive-time mapping
-        self._sys_offset_usec = self._smooth(self._sys_offset_usec, int(msg.time_unix_usec) - boot_usec)
+        # its boot time bounds the mapping like any stamp; its Unix time is the autopilot's own, unused
+        self._timestamped(int(msg.time_boot_ms) * 1000, recv_usec)
         return True
+
+    def _on_timesync(self, msg: Any, recv_usec: int) -> bool:
+        if int(msg.tc1) == 0:
+            return False  # a request (the link answers it), not an answer
+        return self._ap_clock.answer(int(msg.tc1), int(msg.ts1), recv_usec)
 
     def _on_attitude(self, msg: Any, recv_usec: int) -> bool:
         vals = (float(msg.roll), float(msg.pitch), float(msg.yaw))
@@ -427,14 +453,16 @@ class VehicleStateTracker:
 
     # --- queries ------------------------------------------------------------------------------------
     def _offset_usec(self) -> float | None:
-        return self._sys_offset_usec if self._sys_offset_usec is not None else self._rx_offset_usec
+        """The daemon's clock minus the autopilot's boot time, now, us (``clock.AutopilotClock``)."""
+        return self._ap_clock.offset_usec(self._clock() * 1e6)
 
     @property
     def time_source(self) -> TimeSource:
-        with self._lock:
-            if self._sys_offset_usec is not None:
-                return TimeSource.SYSTEM_TIME
-            return TimeSource.RECEIVE_TIME if self._rx_offset_usec is not None else TimeSource.NONE
+        return self._ap_clock.source
+
+    @property
+    def autopilot_clock(self) -> AutopilotClock:
+        return self._ap_clock
 
     def attitude_at(self, time_unix_usec: int) -> Attitude | None:
         """Autopilot attitude at a Unix time, or None when no sample lies within attitude_max_age_s."""
@@ -534,6 +562,20 @@ class VehicleStateTracker:
                 flags = self._ekf_flags[1]
         return AutopilotPosition(lat, lon, (vn, ve), t_unix, flags)
 
+    def flight_phase(self, now_unix_s: float | None = None) -> FlightPhase:
+        """What the autopilot last said of arming and landing, each only while fresher than
+        ``link_timeout_s`` (None otherwise), and when it last said the vehicle was on the ground."""
+        now_s = self._clock() if now_unix_s is None else now_unix_s
+        with self._lock:
+            armed, landed, ground = self._armed, self._landed_state, self._last_on_ground_s
+
+        def fresh(sample: tuple[float, Any] | None) -> Any:
+            if sample is None or not 0.0 <= now_s - sample[0] <= self._link_timeout_s:
+                return None
+            return sample[1]
+
+        return FlightPhase(fresh(armed), fresh(landed), ground)
+
     def latest_imu(self) -> ImuSample | None:
         with self._lock:
             return self._imu
@@ -574,6 +616,7 @@ class VehicleStateTracker:
 _HANDLERS: Final[dict[str, Callable[[VehicleStateTracker, Any, int], bool]]] = {
     "HEARTBEAT": VehicleStateTracker._on_heartbeat,
     "SYSTEM_TIME": VehicleStateTracker._on_system_time,
+    "TIMESYNC": VehicleStateTracker._on_timesync,
     "ATTITUDE": VehicleStateTracker._on_attitude,
     "ALTITUDE": VehicleStateTracker._on_altitude,
     "GLOBAL_POSITION_INT": VehicleStateTracker._on_global_position_int,
@@ -581,6 +624,7 @@ _HANDLERS: Final[dict[str, Callable[[VehicleStateTracker, Any, int], bool]]] = {
     "VFR_HUD": VehicleStateTracker._on_vfr_hud,
     "HOME_POSITION": VehicleStateTracker._on_home_position,
     "GPS_GLOBAL_ORIGIN": VehicleStateTracker._on_gps_global_origin,
+    "EXTENDED_SYS_STATE": VehicleStateTracker._on_extended_sys_state,
     "HIGHRES_IMU": VehicleStateTracker._on_highres_imu,
     "SCALED_IMU": VehicleStateTracker._on_scaled_imu,
     "SCALED_IMU2": VehicleStateTracker._on_scaled_imu,

@@ -1,0 +1,114 @@
+"""The autopilot's boot time on the daemon's clock (``clock.AutopilotClock``): TIMESYNC round trips,
+bounded by receive times; never the autopilot's own Unix time (issue 26: SITL's SYSTEM_TIME ran 2.0 s
+behind the host and every frame was refused as stale)."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from gps_denied_onboard.clock import (
+    TIMESYNC_JUMP_SAMPLES,
+    AutopilotClock,
+    TimeSource,
+    TimesyncSample,
+)
+
+T0_USEC = 1_717_000_000_000_000
+#: True daemon-minus-boot offset in these tests, us.
+OFFSET_USEC = T0_USEC - 100_000_000
+
+
+def _answer(
+    clock: AutopilotClock, sent_usec: int, up_usec: int, down_usec: int, offset_usec: float = OFFSET_USEC
+) -> bool:
+    """A round trip: the request spends ``up_usec`` to the autopilot, the answer ``down_usec`` back."""
+    tc1_usec = int(sent_usec + up_usec - offset_usec)
+    ts1_ns = clock.request(sent_usec)
+    return clock.answer(tc1_usec * 1000, ts1_ns, sent_usec + up_usec + down_usec)
+
+
+def test_autopilot_clock_timesync_recovers_the_offset_within_the_shortest_round_trip() -> None:
+    """Asymmetric, jittery round trips: the low-RTT samples give the offset within half their RTT."""
+    clock = AutopilotClock()
+    assert clock.source is TimeSource.NONE and clock.offset_usec(T0_USEC) is None
+    rng = random.Random(3)
+    for k in range(30):
+        up = 1_000 + rng.randint(0, 40_000)
+        down = 1_000 + rng.randint(0, 40_000)
+        assert _answer(clock, T0_USEC + k * 1_000_000, up, down)
+    assert clock.source is TimeSource.TIMESYNC
+    rtt = clock.rtt_usec
+    assert rtt is not None and rtt < 20_000
+    offset = clock.offset_usec(T0_USEC + 30_000_000)
+    assert offset == pytest.approx(OFFSET_USEC, abs=rtt / 2 + 1)
+
+
+def test_autopilot_clock_follows_drift() -> None:
+    """An autopilot clock 1000 ppm slow (SITL under load): the fit follows it, the mapping stays within
+    a millisecond 60 s on, where a constant offset would be 60 ms off."""
+    clock = AutopilotClock()
+    drift = 1e-3
+    for k in range(60):
+        sent = T0_USEC + k * 1_000_000
+        _answer(clock, sent, 2_000, 2_000, offset_usec=OFFSET_USEC + drift * (sent - T0_USEC))
+    now = T0_USEC + 60_000_000
+    assert clock.drift_ppm == pytest.approx(1000.0, rel=0.05)
+    assert clock.offset_usec(now) == pytest.approx(OFFSET_USEC + drift * 60_000_000, abs=1_000)
+
+
+def test_autopilot_clock_ignores_answers_it_did_not_ask_for() -> None:
+    """An answer whose ts1 is not one of our pending requests (another node's, or a replay) is not used."""
+    clock = AutopilotClock()
+    assert not clock.answer(5_000_000_000, T0_USEC * 1000, T0_USEC + 2_000)
+    assert clock.source is TimeSource.NONE
+
+
+def test_autopilot_clock_receive_bound_without_timesync() -> None:
+    """No TIMESYNC answer: the smallest (receive - boot) is the mapping (the least delayed message)."""
+    clock = AutopilotClock()
+    boot = 100_000_000
+    for k, latency in enumerate((9_000, 3_000, 15_000, 4_000)):
+        clock.note_stamp(boot + k * 20_000, T0_USEC + k * 20_000 + latency)
+    assert clock.source is TimeSource.RECEIVE_TIME
+    assert clock.offset_usec(T0_USEC) == pytest.approx(T0_USEC - boot + 3_000)
+
+
+def test_autopilot_clock_bound_by_receive_times() -> None:
+    """A TIMESYNC fit that would map a message after its own arrival is held at the receive bound."""
+    clock = AutopilotClock()
+    for k in range(5):  # answers 60 ms slow on the way back: the midpoint is 30 ms late
+        _answer(clock, T0_USEC + k * 1_000_000, 0, 60_000, offset_usec=OFFSET_USEC)
+    assert clock.offset_usec(T0_USEC + 5_000_000) == pytest.approx(OFFSET_USEC + 30_000, abs=1)
+    boot = T0_USEC + 5_000_000 - OFFSET_USEC
+    clock.note_stamp(int(boot), T0_USEC + 5_000_000 + 1_000)  # a message that arrived in 1 ms
+    assert clock.offset_usec(T0_USEC + 5_000_000) == pytest.approx(OFFSET_USEC + 1_000, abs=1)
+
+
+def test_autopilot_clock_restarts_on_reboot_and_on_a_clock_jump() -> None:
+    """Boot time going back (a reboot) drops the mapping; answers that keep excluding the current
+    mapping (the autopilot's clock stood still) replace it after a few samples."""
+    clock = AutopilotClock()
+    for k in range(5):
+        _answer(clock, T0_USEC + k * 1_000_000, 1_000, 1_000)
+    assert clock.note_stamp(1_000, T0_USEC + 6_000_000)  # boot time 1 ms: rebooted
+    assert clock.resets == 1
+    assert clock.source is TimeSource.RECEIVE_TIME
+    clock2 = AutopilotClock()
+    for k in range(5):
+        _answer(clock2, T0_USEC + k * 1_000_000, 1_000, 1_000)
+    jumped = OFFSET_USEC + 2_000_000  # the autopilot's clock fell 2 s behind
+    for k in range(TIMESYNC_JUMP_SAMPLES):
+        _answer(clock2, T0_USEC + (10 + k) * 1_000_000, 1_000, 1_000, offset_usec=jumped)
+    assert clock2.resets == 1
+    assert clock2.offset_usec(T0_USEC + 13_000_000) == pytest.approx(jumped, abs=1_000)
+
+
+def test_autopilot_clock_drops_implausible_samples() -> None:
+    """A negative or over-long round trip, or tc1 of 0, is not a sample."""
+    clock = AutopilotClock()
+    assert not clock.note_timesync(TimesyncSample(T0_USEC, T0_USEC - 1, 5))
+    assert not clock.note_timesync(TimesyncSample(T0_USEC, T0_USEC + 900_000, 5))
+    assert not clock.note_timesync(TimesyncSample(T0_USEC, T0_USEC + 1_000, 0))
+    assert clock.source is TimeSource.NONE
