@@ -12,8 +12,8 @@ What it speaks (MAVLink 2, ardupilotmega dialect, system 1 component 1, over UDP
 - out: HEARTBEAT, SYSTEM_TIME, ATTITUDE, HIGHRES_IMU, GLOBAL_POSITION_INT, HOME_POSITION, GPS_RAW_INT
   (primary GPS), GPS2_RAW, EKF_STATUS_REPORT, MISSION_CURRENT, SIMSTATE (the truth, as ArduPilot SITL
   sends it), STATUSTEXT, COMMAND_ACK, PARAM_VALUE, the mission protocol's replies;
-- in: GPS_INPUT, PARAM_SET / PARAM_REQUEST_READ / PARAM_REQUEST_LIST, COMMAND_LONG (arm/disarm,
-  takeoff, DO_SET_MODE, reboot, SET_MESSAGE_INTERVAL and REQUEST_MESSAGE acknowledged), SET_MODE,
+- in: GPS_INPUT, TIMESYNC (answered), PARAM_SET / PARAM_REQUEST_READ / PARAM_REQUEST_LIST, COMMAND_LONG
+  (arm/disarm, takeoff, DO_SET_MODE, reboot, SET_MESSAGE_INTERVAL and REQUEST_MESSAGE acknowledged), SET_MODE,
   SET_POSITION_TARGET_GLOBAL_INT (GUIDED), MISSION_COUNT / MISSION_ITEM_INT / MISSION_REQUEST_LIST /
   MISSION_REQUEST_INT (upload and download).
 
@@ -47,8 +47,24 @@ The rules applied, each from a measured fact (the function or class named holds 
   the true motion since), so the vehicle flies on the position it is told and the truth differs from
   it by the daemon's error.
 
+- clocks: TIMESYNC is answered with the boot time the request arrived (GCS_Common.cpp
+  ``handle_timesync``); SYSTEM_TIME's Unix time runs ``system_time_offset_s`` off the host's (measured:
+  2.0 s behind, SITL's clock stands still while it waits for a client on SERIAL0, at start and after a
+  reboot);
+- GLOBAL_POSITION_INT's lat/lon/alt are 0 until the EKF has an origin (measured: alt 0 before it,
+  ``relative_alt`` from the barometer all along);
+- the EKF takes a GPS_INPUT as measured ``GPSn_DELAY_MS`` (0.2 s when 0) before it arrived
+  (``ardupilot_rules.gps_lag_s``), so its position runs ahead of the input by the speed times that lag
+  minus the input's own (measured: EKF3 p95 8.4 m against GPS_INPUT p95 3.6-4.8 m with the default);
+- "GPS Glitch or Compass error" while the filtered speed accuracy of the source in use fails EKF3's
+  test (``ardupilot_rules.SpeedAccuracyGlitch``), "Glitch cleared" after;
+- ``ARMING_CHECK`` or, with ``arming_skipchk``, upstream 4.7's ``ARMING_SKIPCHK`` (PR #31568: a mask of
+  the checks skipped, bit 3 = GPS lock).
+
 The physics is deliberately simple, and not ArduPilot's: a point mass whose horizontal velocity
-follows a commanded velocity (towards the target, at most ``WPNAV_SPEED``, with ``WPNAV_ACCEL``); climb
+follows a commanded velocity (towards the target, at most ``WPNAV_SPEED``, with ``WPNAV_ACCEL``), through
+a tilt that follows the commanded acceleration with a first-order lag (``TILT_TAU_S``, ArduCopter's
+``ATC_INPUT_TC`` default 0.15 s), so roll and pitch lead and lag the motion as a copter's do; climb
 at ``WPNAV_SPEED_UP``, descent at ``WPNAV_SPEED_DN`` (LAND: ``LAND_SPEED_HIGH`` or ``WPNAV_SPEED_DN``
 above 10 m, ``LAND_SPEED`` below); roll and pitch from the horizontal acceleration; yaw towards the
 target at 90 deg/s; no wind, no drag, flat ground at home's height. The height estimate is the truth
@@ -83,7 +99,9 @@ from gps_denied_onboard.sitl.ardupilot_rules import (
     GpsHealthMonitor,
     GpsLossStage,
     GpsTypeParams,
+    SpeedAccuracyGlitch,
     gps_input_rejection,
+    gps_lag_s,
     gps_loss_stage,
     prearm_gps_failures,
 )
@@ -106,6 +124,14 @@ POSITION_MODES: Final[frozenset[int]] = frozenset({MODE_AUTO, MODE_GUIDED, MODE_
 #: Measured start-up after the first GPS_INPUT: "EKF origin set at 10 s; EKF3 IMU0 is using GPS at 28 s".
 EKF_ORIGIN_DELAY_S: Final[float] = 10.0
 EKF_USING_GPS_DELAY_S: Final[float] = 28.0
+#: Measured on SITL 4.7.0-dev: SYSTEM_TIME's Unix time 2.0 s behind the host (its clock stood still while
+#: it waited for a client on SERIAL0).
+SYSTEM_TIME_OFFSET_S: Final[float] = -2.0
+#: Time constant of the tilt (and so the acceleration) following the commanded acceleration, s
+#: (ArduCopter ATC_INPUT_TC default).
+TILT_TAU_S: Final[float] = 0.15
+#: Truth kept for the GPS lag, s.
+TRUTH_HISTORY_S: Final[float] = 2.0
 #: Measured: "GPS 1: detected MAV" 0.1 s after the first GPS_INPUT.
 GPS_DETECTED_DELAY_S: Final[float] = 0.1
 #: EKF_STATUS_REPORT flags.
@@ -131,6 +157,8 @@ DEFAULT_PARAMS: Final[dict[str, float]] = {
     "SIM_GPS1_ENABLE": 1.0,  # the simulated GNSS of GPS1 on/off (this version's name)
     "FS_EKF_ACTION": 1.0,  # 1 = LAND
     "ARMING_CHECK": 1.0,  # 1 = all; otherwise a bitmask, bit 3 (8) = GPS lock
+    "GPS1_DELAY_MS": 0.0,  # 0 = the backend's lag (0.2 s for MAVLink); reboot-required
+    "GPS2_DELAY_MS": 0.0,
     "WPNAV_SPEED": 1000.0,  # cm/s
     "WPNAV_SPEED_UP": 250.0,  # cm/s
     "WPNAV_SPEED_DN": 150.0,  # cm/s
@@ -209,6 +237,9 @@ class EmulatorOptions:
     params: dict[str, float] = field(default_factory=dict)
     ekf_origin_delay_s: float = EKF_ORIGIN_DELAY_S
     ekf_using_gps_delay_s: float = EKF_USING_GPS_DELAY_S
+    system_time_offset_s: float = SYSTEM_TIME_OFFSET_S
+    #: Upstream 4.7's ARMING_SKIPCHK instead of ARMING_CHECK.
+    arming_skipchk: bool = False
     events_path: Path | None = None
     quiet: bool = False
 
@@ -220,6 +251,9 @@ class ArduPilotEmulator:
         self.opts = opts
         self.origin = LocalTangentPlane(opts.home_lat_deg, opts.home_lon_deg, opts.home_alt_amsl_m)
         self.params: dict[str, float] = {**DEFAULT_PARAMS, **opts.params}
+        if opts.arming_skipchk:
+            del self.params["ARMING_CHECK"]
+            self.params["ARMING_SKIPCHK"] = 0.0  # a mask of the checks skipped: none
         self.events: list[dict[str, Any]] = []
         self._mav = apm.MAVLink(self, srcSystem=1, srcComponent=1)
         self._mav.robust_parsing = True
@@ -261,9 +295,14 @@ class ArduPilotEmulator:
         self.mav_gps = {
             i: MavGpsInstance(i) for i, t in self.gps_types.in_effect.items() if t == GPS_TYPE_MAV
         }
+        #: GPSn_DELAY_MS are reboot-required too: the lag in effect, per instance, s.
+        self.gps_lag_s = {i: gps_lag_s(self.params[f"GPS{i + 1}_DELAY_MS"]) for i in (0, 1)}
+        self.sacc_glitch = SpeedAccuracyGlitch()
+        self.truth_history: list[tuple[float, float, float]] = []  # (now_s, north_m, east_m)
         self.pos_ned = np.zeros(3)  # truth, NED at home (down = -height)
         self.vel_ned = np.zeros(3)
         self.accel_ned = np.zeros(3)
+        self.tilt_accel_ne = np.zeros(2)  # horizontal acceleration the current tilt gives, m/s^2
         self.yaw_rad = math.radians(self.opts.home_heading_deg)
         self.roll_rad = self.pitch_rad = 0.0
         self.est_err_ne = np.zeros(2)  # EKF horizontal position minus truth
@@ -299,7 +338,12 @@ class ArduPilotEmulator:
             print(json.dumps(ev), flush=True)
 
     def _text(self, severity: int, text: str) -> None:
-        self._mav.statustext_send(severity, text.encode()[:50])
+        """STATUSTEXT to every channel, as ArduPilot sends it, also while answering one."""
+        out, self._out = self._out, None
+        try:
+            self._mav.statustext_send(severity, text.encode()[:50])
+        finally:
+            self._out = out
         self._event("statustext", text=text)
 
     # --- GPS ------------------------------------------------------------------------------------
@@ -334,10 +378,26 @@ class ArduPilotEmulator:
                 0, :2
             ]
         )  # type: ignore[assignment]
-        inst.true_ne_at_fix_m = (float(self.pos_ned[0]), float(self.pos_ned[1]))
+        # the EKF takes it as measured the lag before it arrived: the truth then is its reference
+        inst.true_ne_at_fix_m = self._truth_ne_at(now - self.gps_lag_s[inst.index])
         inst.alt_amsl_m = float(msg.alt)
+        has_sacc = not int(msg.ignore_flags) & apm.GPS_INPUT_IGNORE_FLAG_SPEED_ACCURACY
+        if self.primary == inst.index and has_sacc:
+            was = self.sacc_glitch.glitching
+            if self.sacc_glitch.update(now, float(msg.speed_accuracy)) != was:
+                self._text(2, "GPS Glitch or Compass error" if not was else "Glitch cleared")
+                self._event("gps_glitch", glitching=not was, speed_accuracy_peak=self.sacc_glitch.peak_m_s)
         if inst.detected_s is None:
             inst.detected_s = now
+
+    def _truth_ne_at(self, t_s: float) -> tuple[float, float]:
+        """The true north/east at boot time ``t_s`` (the nearest kept sample at or before it)."""
+        best = (float(self.pos_ned[0]), float(self.pos_ned[1]))
+        for t, n, e in reversed(self.truth_history):
+            best = (n, e)
+            if t <= t_s:
+                break
+        return best
 
     def _check_health(self, inst: MavGpsInstance) -> None:
         healthy = inst.health.healthy or inst.health.messages < 2
@@ -447,9 +507,13 @@ class ArduPilotEmulator:
 
     def prearm_failures(self, now: float) -> list[str]:
         """What stops arming (the texts ArduPilot sends)."""
-        checks = int(self.params["ARMING_CHECK"])
+        if "ARMING_SKIPCHK" in self.params:
+            gps_checked = not int(self.params["ARMING_SKIPCHK"]) & 8
+        else:
+            checks = int(self.params["ARMING_CHECK"])
+            gps_checked = checks == 1 or bool(checks & 8)
         fails: list[str] = []
-        if checks == 1 or checks & 8:
+        if gps_checked:
             fails = prearm_gps_failures(
                 self.gps_types.in_effect, [i for i, g in self.mav_gps.items() if g.has_3d_fix(now)]
             )
@@ -545,6 +609,11 @@ class ArduPilotEmulator:
             len(names),
             names.index(name),
         )
+
+    def _on_timesync(self, msg: Any, now: float) -> None:
+        """A request (``tc1`` 0) is answered with the boot time it arrived, ``ts1`` echoed."""
+        if int(msg.tc1) == 0:
+            self._mav.timesync_send(int(now * 1e9), int(msg.ts1))
 
     def _on_param_set(self, msg: Any) -> None:
         name = _param_id(msg.param_id)
@@ -721,10 +790,15 @@ class ArduPilotEmulator:
                 self._advance_mission()
         acc_max = max(p["WPNAV_ACCEL"] / 100.0, 0.5)
         dv = want_v - self.vel_ned
-        dv_h = dv[:2]
-        n = float(np.hypot(*dv_h))
-        if n > acc_max * dt:
-            dv_h = dv_h / n * acc_max * dt
+        # the commanded acceleration: close the velocity error in two tilt time constants (a damping of
+        # 0.7 with the tilt's lag), at most WPNAV_ACCEL; the tilt, and with it the acceleration, follows
+        # it with a first-order lag
+        cmd_h = dv[:2] / max(2.0 * TILT_TAU_S, dt)
+        n = float(np.hypot(*cmd_h))
+        if n > acc_max:
+            cmd_h = cmd_h / n * acc_max
+        self.tilt_accel_ne = self.tilt_accel_ne + (cmd_h - self.tilt_accel_ne) * min(1.0, dt / TILT_TAU_S)
+        dv_h = self.tilt_accel_ne * dt
         dv_z = float(np.clip(dv[2], -2.5 * dt, 2.5 * dt))
         self.accel_ned = np.array([dv_h[0], dv_h[1], dv_z]) / dt
         self.vel_ned = self.vel_ned + self.accel_ned * dt
@@ -734,6 +808,10 @@ class ArduPilotEmulator:
             self.vel_ned[2] = min(self.vel_ned[2], 0.0)
             self.vel_ned[:2] = 0.0
             self.accel_ned[:] = 0.0
+            self.tilt_accel_ne[:] = 0.0
+        self.truth_history.append((now, float(self.pos_ned[0]), float(self.pos_ned[1])))
+        while self.truth_history and self.truth_history[0][0] < now - TRUTH_HISTORY_S:
+            self.truth_history.pop(0)
         # roll/pitch from the horizontal acceleration, in the body frame
         cy, sy = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
         a_fwd = cy * self.accel_ned[0] + sy * self.accel_ned[1]
@@ -793,7 +871,7 @@ class ArduPilotEmulator:
 
     def _send_position(self) -> None:
         est = self._est_ned()
-        lat, lon, alt = self._geodetic(est)
+        lat, lon, alt = self._geodetic(est) if self.origin_set else (0.0, 0.0, 0.0)
         v = self.vel_ned
         self._mav.global_position_int_send(
             self._boot_ms(),
@@ -866,7 +944,9 @@ class ArduPilotEmulator:
             self.mode,
             mavutil.mavlink.MAV_STATE_ACTIVE if self.armed else mavutil.mavlink.MAV_STATE_STANDBY,
         )
-        self._mav.system_time_send(int(time.time() * 1e6), self._boot_ms())
+        self._mav.system_time_send(
+            int((time.time() + self.opts.system_time_offset_s) * 1e6), self._boot_ms()
+        )
         if self.mission:
             self._mav.mission_current_send(self.mission_current)
 
@@ -987,6 +1067,7 @@ def _h(fn: Callable[..., None], with_now: bool = False) -> Callable[[ArduPilotEm
 
 ArduPilotEmulator._handlers = {
     "GPS_INPUT": _h(ArduPilotEmulator._on_gps_input, True),
+    "TIMESYNC": _h(ArduPilotEmulator._on_timesync, True),
     "COMMAND_LONG": _h(ArduPilotEmulator._on_command_long, True),
     "SET_MODE": lambda self, msg, now: self._ack(
         mavutil.mavlink.MAV_CMD_DO_SET_MODE,
@@ -1050,6 +1131,15 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     )
     ap.add_argument("--ekf-origin-delay-s", type=float, default=EKF_ORIGIN_DELAY_S)
     ap.add_argument("--ekf-using-gps-delay-s", type=float, default=EKF_USING_GPS_DELAY_S)
+    ap.add_argument(
+        "--system-time-offset-s",
+        type=float,
+        default=SYSTEM_TIME_OFFSET_S,
+        help="SYSTEM_TIME's Unix time minus the host's, s (measured on SITL: -2.0)",
+    )
+    ap.add_argument(
+        "--arming-skipchk", action="store_true", help="upstream 4.7's ARMING_SKIPCHK instead of ARMING_CHECK"
+    )
     ap.add_argument("--events", type=Path, default=None, help="write the events (JSON) here on exit")
     ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     ap.add_argument("--quiet", action="store_true")
@@ -1062,7 +1152,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         params = {}
         for p in args.param:
             name, _, value = p.partition("=")
-            if name not in DEFAULT_PARAMS:
+            if name not in DEFAULT_PARAMS and name != "ARMING_SKIPCHK":
                 raise ValueError(
                     f"--param {p!r}: unknown parameter; known: {', '.join(sorted(DEFAULT_PARAMS))}"
                 )
@@ -1080,6 +1170,8 @@ def run_from_args(args: argparse.Namespace) -> int:
             params=params,
             ekf_origin_delay_s=args.ekf_origin_delay_s,
             ekf_using_gps_delay_s=args.ekf_using_gps_delay_s,
+            system_time_offset_s=args.system_time_offset_s,
+            arming_skipchk=args.arming_skipchk,
             events_path=args.events,
             quiet=args.quiet,
         )

@@ -16,6 +16,10 @@ The rules, each a pure function or a small class below:
   intervals > 245 ms;
 - loss of the stream (:func:`gps_loss_stage`): NO_FIX after 4 s, EKF position lost after 7 s,
   "EKF Failsafe: changed to LAND Mode" after 7.8 s, and LAND stays after the stream resumes;
+- speed accuracy (:class:`SpeedAccuracyGlitch`): EKF3 calls the GPS glitching ("GPS Glitch or Compass
+  error") while its filtered, peak-held ``speed_accuracy`` is above 1.5 m/s, until it is below 1.0 m/s;
+- lag (:func:`gps_lag_s`): the EKF takes a GPS_INPUT as measured ``GPSn_DELAY_MS`` before it arrived,
+  0.2 s when that parameter is 0;
 - :func:`evaluate_gps_stream` replays a whole received stream through all of them.
 
 Choices where the measurements leave room (the measured facts win over the source where they differ):
@@ -46,6 +50,49 @@ GPS_TYPE_MAV: Final[int] = 14
 GPS_MAX_RECEIVERS: Final[int] = 2
 #: Lowest GPS_INPUT ``fix_type`` that is used (GPS_FIX_TYPE_3D_FIX).
 MIN_ACCEPTED_FIX_TYPE: Final[int] = 3
+
+# --- speed accuracy and lag ----------------------------------------------------------------------------
+#: EKF3 ``calcGpsGoodForFlight`` (AP_NavEKF3_VehicleStatus.cpp): first-stage low-pass coefficient per GPS
+#: sample, peak-hold decay time constant (s), and the hysteresis thresholds (m/s).
+SACC_ALPHA: Final[float] = 0.2
+SACC_PEAK_TAU_S: Final[float] = 10.0
+SACC_FAIL_M_S: Final[float] = 1.5
+SACC_PASS_M_S: Final[float] = 1.0
+#: ``GPS_Backend::get_lag`` (GPS_Backend.h): the lag a backend without its own (the MAVLink one) reports
+#: when ``GPSn_DELAY_MS`` is 0 (AP_GPS.cpp ``get_lag``: a user value > 0 always wins), s.
+DEFAULT_GPS_LAG_S: Final[float] = 0.2
+
+
+def gps_lag_s(delay_ms_param: float) -> float:
+    """How long before its arrival the EKF takes a GPS_INPUT to have been measured (EKF3
+    ``readGpsData``: ``time_ms = last_message_time_ms - lag``), s."""
+    return delay_ms_param / 1000.0 if delay_ms_param > 0 else DEFAULT_GPS_LAG_S
+
+
+class SpeedAccuracyGlitch:
+    """EKF3's speed-accuracy test, one update per GPS sample: ``lpf = 0.2 sAcc + 0.8 lpf`` (clamped to
+    [0, 10]), ``peak = max(lpf, (1 - dt/10) peak)``; failing above 1.5, passing again below 1.0. While it
+    fails, the AHRS reports GPS_GLITCHING and ArduCopter says "GPS Glitch or Compass error"
+    (events.cpp ``gpsglitch_check``)."""
+
+    def __init__(self) -> None:
+        self.lpf_m_s = 0.0
+        self.peak_m_s = 0.0
+        self.glitching = False
+        self._last_s: float | None = None
+
+    def update(self, t_s: float, speed_accuracy_m_s: float) -> bool:
+        dt = 0.0 if self._last_s is None else max(0.0, t_s - self._last_s)
+        self._last_s = t_s
+        alpha2 = min(max(dt / SACC_PEAK_TAU_S, 0.0), 1.0)
+        self.lpf_m_s = min(max(SACC_ALPHA * speed_accuracy_m_s + (1 - SACC_ALPHA) * self.lpf_m_s, 0.0), 10.0)
+        self.peak_m_s = max(self.lpf_m_s, (1.0 - alpha2) * self.peak_m_s)
+        if self.peak_m_s > SACC_FAIL_M_S:
+            self.glitching = True
+        elif self.peak_m_s < SACC_PASS_M_S:
+            self.glitching = False
+        return self.glitching
+
 
 # --- health -------------------------------------------------------------------------------------------
 #: The filtered mean interval must stay below this for the GPS to be healthy, ms.
@@ -450,7 +497,11 @@ def _health_spans(accepted_s: Sequence[float], end_s: float) -> tuple[list[tuple
 
 
 def evaluate_gps_stream(
-    times_s: Sequence[float], accepted: Sequence[bool], *, end_s: float | None = None
+    times_s: Sequence[float],
+    accepted: Sequence[bool],
+    *,
+    end_s: float | None = None,
+    relied_on_until_s: float | None = None,
 ) -> GpsStreamVerdict:
     """Replay one GPS instance's received GPS_INPUT stream through every rule of this double.
 
@@ -458,7 +509,9 @@ def evaluate_gps_stream(
     :class:`GpsHealthMonitor` on which times ArduPilot uses). ``accepted``: per message, whether
     :func:`gps_input_accepted` holds; a message that is not accepted counts as absent for every rule.
     ``end_s``: when the observation ended (e.g. the end of the flight), so that a silence after the
-    last message is judged too; defaults to the last message's time.
+    last message is judged too; defaults to the last message's time. ``relied_on_until_s``: when another
+    position source took over for good (the GNSS back on with ``GPS_AUTO_SWITCH``: GPS 1 primary again,
+    measured), after which a silence of this stream trips nothing: the EKF is not using it.
 
     Outages are counted from the first accepted message on (before it the GPS never had a fix, which
     the pre-arm checks catch, :func:`prearm_gps_failures`). Raises ValueError on mismatched lengths,
@@ -481,6 +534,8 @@ def evaluate_gps_stream(
 
     accepted_s = [float(t) for t, ok in zip(times_s, accepted, strict=True) if ok]
     spans, healthy_at_end = _health_spans(accepted_s, end)
+    if relied_on_until_s is not None:
+        spans = [(a, b) for a, b in spans if a < relied_on_until_s]
 
     thresholds_s = {
         GpsLossStage.NO_FIX: NO_FIX_TIMEOUT_MS / 1000.0,
@@ -491,11 +546,13 @@ def evaluate_gps_stream(
     nexts: list[float | None] = [*accepted_s[1:], None] if accepted_s else []
     for last, nxt in zip(accepted_s, nexts, strict=True):
         stage = gps_loss_stage((end if nxt is None else nxt) - last)
+        relied = relied_on_until_s if relied_on_until_s is not None else math.inf
         for s, threshold_s in thresholds_s.items():
-            if stage >= s:
+            if stage >= s and last + threshold_s < relied:
                 outages[s].append(GpsOutage(last_accepted_s=last, start_s=last + threshold_s, end_s=nxt))
-        if stage >= GpsLossStage.EKF_FAILSAFE_LAND and failsafe_s is None:
-            failsafe_s = last + EKF_FAILSAFE_TIMEOUT_MS / 1000.0
+        fs_s = last + EKF_FAILSAFE_TIMEOUT_MS / 1000.0
+        if stage >= GpsLossStage.EKF_FAILSAFE_LAND and failsafe_s is None and fs_s < relied:
+            failsafe_s = fs_s
 
     return GpsStreamVerdict(
         messages=len(times_s),

@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import numpy as np
 import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -38,6 +39,7 @@ class Client:
             f"udpout:127.0.0.1:{port}", source_system=1 if comp == 197 else 255, source_component=comp
         )
         self.msgs: list[Any] = []
+        self.speed_accuracy = 0.5
         self.conn.mav.heartbeat_send(6, 8, 0, 0, 0)
 
     def pump(self, seconds: float, until: Callable[[Any], bool] | None = None) -> Any:
@@ -68,7 +70,7 @@ class Client:
             0,
             0,
             0,
-            0.5,
+            self.speed_accuracy,
             0.5,
             0.5,
             10,
@@ -216,3 +218,117 @@ def test_broadcast_from_the_companion_reaches_the_other_channel(emulator: ArduPi
     comp.conn.mav.statustext_send(6, b"GDN: hello")
     m = gcs.pump(2.0, lambda m: m.get_type() == "STATUSTEXT" and m.get_srcComponent() == 197)
     assert m is not None and m.text == "GDN: hello"
+
+
+def _emulator(**opts: Any) -> tuple[ArduPilotEmulator, threading.Thread]:
+    emu = ArduPilotEmulator(
+        EmulatorOptions(
+            *HOME,
+            ports=(0, 0),
+            params=opts.pop("params", {"GPS2_TYPE": 14.0}),
+            ekf_origin_delay_s=opts.pop("ekf_origin_delay_s", 0.2),
+            ekf_using_gps_delay_s=0.5,
+            quiet=True,
+            **opts,
+        )
+    )
+    t = threading.Thread(target=emu.run, daemon=True)
+    t.start()
+    return emu, t
+
+
+def _stop(emu: ArduPilotEmulator, t: threading.Thread) -> None:
+    emu.stop()
+    t.join(3)
+    emu.close()
+
+
+def test_timesync_is_answered_with_boot_time_while_system_time_runs_behind(
+    emulator: ArduPilotEmulator,
+) -> None:
+    """TIMESYNC: tc1 is the emulator's boot time when the request arrived (GCS_Common.cpp
+    handle_timesync), ts1 echoed; SYSTEM_TIME's Unix time is 2.0 s behind the host (measured on SITL)."""
+    comp = Client(emulator.ports[1], 197)
+    sent = time.time()
+    comp.conn.mav.timesync_send(0, 123_456_789)
+    ans = comp.pump(2.0, lambda m: m.get_type() == "TIMESYNC" and m.ts1 == 123_456_789)
+    assert ans is not None
+    boot_s = sent - emulator.boot_unix_s
+    assert ans.tc1 / 1e9 == pytest.approx(boot_s, abs=0.1)
+    st = comp.pump(2.0, lambda m: m.get_type() == "SYSTEM_TIME")
+    assert st is not None
+    host_at_boot_ms = emulator.boot_unix_s + st.time_boot_ms / 1000.0
+    assert st.time_unix_usec / 1e6 - host_at_boot_ms == pytest.approx(-2.0, abs=0.1)
+
+
+def test_global_position_is_zero_until_the_ekf_has_an_origin() -> None:
+    """Before the EKF origin GLOBAL_POSITION_INT's lat/lon/alt are 0 (measured: alt 0; the driver read a
+    ground 520 m low from it), relative_alt is the barometer's; after it they are the position."""
+    emu, t = _emulator(ekf_origin_delay_s=2.0)
+    try:
+        gcs = Client(emu.ports[0], 190)
+        early = gcs.pump(1.0, lambda m: m.get_type() == "GLOBAL_POSITION_INT")
+        assert early is not None and (early.lat, early.lon, early.alt) == (0, 0, 0)
+        gcs.pump(2.5)
+        late = gcs.pump(1.0, lambda m: m.get_type() == "GLOBAL_POSITION_INT")
+        assert late is not None and late.alt == pytest.approx(HOME[2] * 1000, abs=50)
+    finally:
+        _stop(emu, t)
+
+
+def test_arming_skipchk_replaces_arming_check_upstream() -> None:
+    """Upstream 4.7 (PR #31568): ARMING_SKIPCHK (a mask of skipped checks) instead of ARMING_CHECK;
+    bit 3 skips the GPS check, so GPS 2 without a fix no longer blocks arming."""
+    emu, t = _emulator(arming_skipchk=True)
+    try:
+        assert "ARMING_CHECK" not in emu.params and emu.params["ARMING_SKIPCHK"] == 0
+        assert any("GPS 2: Bad fix" in f for f in emu.prearm_failures(emu.now_s()))
+        emu.params["ARMING_SKIPCHK"] = 8.0
+        assert not any("GPS" in f for f in emu.prearm_failures(emu.now_s()))
+    finally:
+        _stop(emu, t)
+
+
+def _speed_to(gcs: Client, emu: ArduPilotEmulator, north_m: float) -> None:
+    lat, lon, _ = emu._geodetic(emu.pos_ned + np.array([north_m, 0.0, 0.0]))
+    gcs.conn.mav.set_position_target_global_int_send(
+        0, 1, 1, mavutil.mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0b110111111000,
+        round(lat * 1e7), round(lon * 1e7), 20.0, 0, 0, 0, 0, 0, 0, 0, 0,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(("delay_ms", "lag_s"), [(0.0, 0.2), (10.0, 0.01)])
+def test_the_ekf_runs_ahead_of_gps_input_by_speed_times_gps_delay(delay_ms: float, lag_s: float) -> None:
+    """The EKF takes GPS_INPUT as measured GPS2_DELAY_MS (0.2 s when 0, GPS_Backend.h) before it arrived:
+    fed the true position, its estimate runs ahead by the speed times that lag."""
+    emu, t = _emulator(params={"GPS2_TYPE": 14.0, "GPS2_DELAY_MS": delay_ms})
+    try:
+        gcs, comp = Client(emu.ports[0], 190), Client(emu.ports[1], 197)
+        _fly_on_gps2(emu, comp, gcs)
+        _speed_to(gcs, emu, 400.0)
+        gcs.pump(6.0)
+        speed = float(math.hypot(*emu.vel_ned[:2]))
+        assert speed > 5.0
+        ahead = float(emu.est_err_ne @ (emu.vel_ned[:2] / speed))
+        assert ahead == pytest.approx(speed * lag_s, abs=0.35), (ahead, speed)
+        comp._stop.set()  # type: ignore[attr-defined]
+    finally:
+        _stop(emu, t)
+
+
+def test_speed_accuracy_above_the_ekf_threshold_is_a_gps_glitch() -> None:
+    """EKF3's filtered, peak-held speed accuracy above 1.5 m/s: "GPS Glitch or Compass error"; below
+    1.0 m/s again (the peak decays over 10 s): "Glitch cleared"."""
+    emu, t = _emulator()
+    try:
+        gcs, comp = Client(emu.ports[0], 190), Client(emu.ports[1], 197)
+        _fly_on_gps2(emu, comp, gcs)
+        comp.speed_accuracy = 2.5  # type: ignore[attr-defined]
+        hit = gcs.pump(5.0, lambda m: m.get_type() == "STATUSTEXT" and "GPS Glitch" in m.text)
+        assert hit is not None and hit.text == "GPS Glitch or Compass error"
+        comp.speed_accuracy = 0.3  # type: ignore[attr-defined]
+        cleared = gcs.pump(20.0, lambda m: m.get_type() == "STATUSTEXT" and "Glitch cleared" in m.text)
+        assert cleared is not None
+        comp._stop.set()  # type: ignore[attr-defined]
+    finally:
+        _stop(emu, t)

@@ -364,3 +364,38 @@ def test_stream_empty_has_no_verdict_items() -> None:
     """An empty stream gives an empty verdict rather than an error."""
     verdict = evaluate_gps_stream([], [])
     assert verdict.messages == 0 and verdict.interval_ms is None and not verdict.health_tripped
+
+
+
+def test_speed_accuracy_glitch_filter_peak_hold_and_hysteresis() -> None:
+    """EKF3 calcGpsGoodForFlight: one 2.5 m/s sample after 1.0 m/s is filtered below the 1.5 m/s limit,
+    a run of them fails it; the peak then decays over 10 s and passes again only below 1.0 m/s."""
+    from gps_denied_onboard.sitl.ardupilot_rules import SpeedAccuracyGlitch
+
+    g = SpeedAccuracyGlitch()
+    t = 0.0
+    for _ in range(30):
+        t += 0.1
+        assert not g.update(t, 1.0)
+    t += 0.1
+    assert not g.update(t, 2.5)  # lpf 0.2 x 2.5 + 0.8 x 1.0 = 1.3
+    for _ in range(3):
+        t += 0.1
+        g.update(t, 2.5)
+    assert g.glitching and g.peak_m_s > 1.5
+    t_fail = t
+    while g.glitching and t - t_fail < 30.0:
+        t += 0.1
+        g.update(t, 0.3)
+    assert 3.0 < t - t_fail < 10.0  # the 10 s peak hold, down to below 1.0 m/s
+
+
+def test_stream_silence_after_the_gnss_took_over_trips_nothing() -> None:
+    """GPS_INPUT stops 10 s after another source (the GNSS back on) took over: no NO_FIX, no failsafe;
+    the same silence while the stream was relied on predicts both."""
+    times = [i * 0.1 for i in range(100)]
+    ok = [True] * len(times)
+    relied = evaluate_gps_stream(times, ok, end_s=30.0)
+    assert relied.ekf_failsafe_land_s is not None and relied.no_fix
+    after = evaluate_gps_stream(times, ok, end_s=30.0, relied_on_until_s=5.0)
+    assert after.ekf_failsafe_land_s is None and not after.no_fix and not after.ekf_position_lost
