@@ -1,8 +1,11 @@
 """The simulated autopilot: plays ArduPilot's side of the MAVLink link over real UDP.
 
 Sends what a flight controller sends a companion computer (HEARTBEAT, SYSTEM_TIME, ATTITUDE, HIGHRES_IMU,
-ALTITUDE, VFR_HUD, HOME_POSITION) from the scenario's truth, and records everything the daemon sends back with
-its receive time, for scoring.
+ALTITUDE, VFR_HUD, HOME_POSITION) from the scenario's truth, answers TIMESYNC as ArduPilot does (``tc1``:
+its boot time when the request arrived, GCS_Common.cpp ``handle_timesync``), and records everything the
+daemon sends back with its receive time, for scoring. Its messages are stamped with its boot time, as
+ArduPilot's are (ALTITUDE's ``time_usec`` too); its Unix time (SYSTEM_TIME) is off the host's by
+``unix_offset_s``, as a real autopilot's is whenever nobody set it from GNSS.
 
 The receive time is the kernel's, taken when the datagram reached the socket (``SO_TIMESTAMPNS``), not
 when this process got round to reading it: a real autopilot has a processor of its own, while this one
@@ -76,7 +79,10 @@ class SimAutopilot:
     daemon_port: int
     system_id: int = 1
     boot_time_unix_s: float = field(default_factory=time.time)
+    #: The autopilot's Unix clock minus the host's, s (SYSTEM_TIME.time_unix_usec).
+    unix_offset_s: float = 0.0
     received: list[ReceivedMessage] = field(default_factory=list)
+    timesync_answered: int = 0
 
     def __post_init__(self) -> None:
         self._conn = mavutil.mavlink_connection(
@@ -120,7 +126,7 @@ class SimAutopilot:
         )
 
     def send_system_time(self, now_unix_s: float) -> None:
-        self.mav.system_time_send(int(now_unix_s * 1e6), self._boot_ms(now_unix_s))
+        self.mav.system_time_send(int((now_unix_s + self.unix_offset_s) * 1e6), self._boot_ms(now_unix_s))
 
     def send_attitude(
         self,
@@ -157,7 +163,7 @@ class SimAutopilot:
 
     def send_altitude(self, now_unix_s: float, alt_amsl_m: float, alt_rel_m: float, alt_agl_m: float) -> None:
         self.mav.altitude_send(
-            int(now_unix_s * 1e6),
+            max(0, int((now_unix_s - self.boot_time_unix_s) * 1e6)),
             alt_amsl_m,
             alt_amsl_m,
             alt_rel_m,
@@ -191,5 +197,9 @@ class SimAutopilot:
     def of_type(self, *types: str) -> list[ReceivedMessage]:
         return [m for m in self.received if m.type in types]
 
+                if msg.get_type() == "TIMESYNC" and int(msg.tc1) == 0:
+                    boot_ns = max(0, int((stamp - self.boot_time_unix_s) * 1e9))
+                    self.mav.timesync_send(boot_ns, int(msg.ts1))
+                    self.timesync_answered += 1
     def close(self) -> None:
         self._conn.close()

@@ -44,6 +44,7 @@ from gps_denied_onboard.sitl.runner import (
     _Flight,
     _free_udp_port,
     _sha_prefix,
+    spawn_daemon,
 )
 from gps_denied_onboard.sitl.scenario import ScenarioError, load_scenario
 
@@ -141,7 +142,7 @@ def _fly(
     west, south, east, north = bbox
     if not (south <= pose.lat_deg <= north and west <= pose.lon_deg <= east):
         raise SitlError(_home_refusal(pose.lat_deg, pose.lon_deg, bbox, opts.map_path or Path("?")))
-    ground_alt = (gp.alt - gp.relative_alt) / 1000.0
+    ground_alt = driver.ground_alt_amsl_m()
     say(
         f"autopilot at {url}: home {pose.lat_deg:.6f}, {pose.lon_deg:.6f}, ground {ground_alt:.1f} m AMSL, "
         f"truth from {relay.truth_source}"
@@ -177,9 +178,18 @@ def _fly(
 
     records = list(read_records(workdir / "fdr"))
     gps_types = {1: 14}  # GPS 2 = GPS_INPUT
-    report = score(frames, relay.received, truth_at_unix, records, end_unix_s=end_unix_s, gps_types=gps_types)
-    # the stretch where the vehicle flew on the daemon alone: GNSS off .. GNSS back on
     times = {e["kind"]: e["t_unix_s"] for e in mission.get("log", [])}
+    # with the GNSS back on (GPS_AUTO_SWITCH = 1) GPS 1 is primary again: GPS 2's silences trip nothing
+    report = score(
+        frames,
+        relay.received,
+        truth_at_unix,
+        records,
+        end_unix_s=end_unix_s,
+        gps_types=gps_types,
+        relied_on_until_unix_s=times.get("gnss_on"),
+    )
+    # the stretch where the vehicle flew on the daemon alone: GNSS off .. GNSS back on
     if "gnss_off" in times:
         lo, hi = times["gnss_off"], times.get("gnss_on", end_unix_s)
         off = score(
@@ -292,9 +302,7 @@ async def _run_flight(
         mission.update(driver.fly())
 
     with log_path.open("wb") as log_file:
-        proc = subprocess.Popen(
-            cmd, stdout=log_file, stderr=log_file, env={**os.environ, "PYTHONUNBUFFERED": "1"}
-        )
+        proc = spawn_daemon(cmd, log_file, {**os.environ, "PYTHONUNBUFFERED": "1"})
         cam_task = asyncio.create_task(camera())
         exit_code: int | None = None
         stop_s: float | None = None

@@ -30,6 +30,7 @@ from typing import Any
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
+from gps_denied_onboard.clock import AutopilotClock
 from gps_denied_onboard.constants import MAV_COMPONENT_ID
 from gps_denied_onboard.sitl.autopilot import ReceivedMessage
 
@@ -54,6 +55,16 @@ STREAM_RATES_HZ: dict[int, float] = {
 }
 #: ARMING_CHECK: every check (bits 1..18) but bit 3, "GPS lock".
 ARMING_CHECK_ALL_BUT_GPS = (1 << 19) - 2 - 8
+#: ARMING_SKIPCHK (upstream 4.7, PR #31568, which replaced ARMING_CHECK): a mask of the checks skipped.
+ARMING_SKIPCHK_GPS = 8
+#: GPS2_DELAY_MS for GPS_INPUT: the daemon propagates each estimate to its send time, so the lag the EKF
+#: must allow for is the link's (ms on a serial or loopback link). 0 would mean the MAVLink backend's
+#: default of 200 ms (GPS_Backend.h ``get_lag``), with which EKF3 put the position a speed x 0.2 s ahead.
+GPS_INPUT_DELAY_MS = 10
+#: Reboot-required parameters the mission needs (GPS2_TYPE = 14: GPS 2 is GPS_INPUT).
+BOOT_PARAMS: dict[str, float] = {"GPS2_TYPE": 14, "GPS2_DELAY_MS": GPS_INPUT_DELAY_MS}
+#: The relay's TIMESYNC requests, s.
+TIMESYNC_INTERVAL_S = 1.0
 #: This driver's MAVLink identity: a ground station.
 GCS_SYSTEM_ID = 255
 GCS_COMPONENT_ID = 190
@@ -101,7 +112,8 @@ class AutopilotRelay:
         self._write_lock = threading.Lock()
         self._stop = threading.Event()
         self._att: Any = None
-        self._boot_offset_s: float | None = None
+        #: The autopilot's boot time on this host's clock (the frames are stamped on it).
+        self.clock = AutopilotClock()
         self._events: list[tuple[float, Any]] = []
         self._thread = threading.Thread(target=self._run, name="autopilot_relay", daemon=True)
         self._thread.start()
@@ -148,16 +160,21 @@ class AutopilotRelay:
             self._note(msg, mtype, now)
 
     def _sample_time(self, now: float) -> float:
-        """When a SIMSTATE/SIM_STATE sample was taken (they carry no time): the boot time of the ATTITUDE
-        just before it, mapped to Unix time with SYSTEM_TIME (the autopilot's clock; SITL at speedup 1).
-        The receive time would carry every stall of this process into the truth's timeline."""
-        if self._att is None or self._boot_offset_s is None:
+        """When a SIMSTATE/SIM_STATE sample was taken (they carry no time), on this host's clock: the boot
+        time of the ATTITUDE just before it, mapped with the relay's TIMESYNC (``clock.AutopilotClock``).
+        The receive time would carry every stall of this process into the truth's timeline; the
+        autopilot's own Unix time (SYSTEM_TIME) is not this host's (SITL's ran 2.0 s behind)."""
+        offset = self.clock.offset_usec(now * 1e6)
+        if self._att is None or offset is None:
             return now
-        return min(now, self._att.time_boot_ms / 1000.0 + self._boot_offset_s)
+        return min(now, self._att.time_boot_ms / 1000.0 + offset / 1e6)
 
     def _note(self, msg: Any, mtype: str, now: float) -> None:
-        if mtype == "SYSTEM_TIME" and msg.time_unix_usec > 0:
-            self._boot_offset_s = msg.time_unix_usec / 1e6 - msg.time_boot_ms / 1000.0
+        boot_ms = getattr(msg, "time_boot_ms", None)
+        if boot_ms is not None and boot_ms > 0:
+            self.clock.note_stamp(int(boot_ms) * 1000, int(now * 1e6))
+        if mtype == "TIMESYNC" and int(msg.tc1) != 0:
+            self.clock.answer(int(msg.tc1), int(msg.ts1), int(now * 1e6))
         if mtype in ("SIMSTATE", "SIM_STATE"):
             now = self._sample_time(now)
             if self.truth and now <= self.truth[-1].t_unix_s:
@@ -222,7 +239,11 @@ class AutopilotRelay:
                     mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
                 )
             )
-            self._stop.wait(1.0)
+            self.send(self._timesync_request)
+            self._stop.wait(TIMESYNC_INTERVAL_S)
+
+    def _timesync_request(self, mav: Any) -> None:
+        mav.timesync_send(0, self.clock.request(int(time.time() * 1e6)))
 
     # --- the driver's side ----------------------------------------------------------------------
     def send(self, fn: Callable[[Any], None]) -> int:
@@ -388,19 +409,25 @@ class MissionDriver:
         if self.link.wait(lambda m: True, ["HEARTBEAT"], timeout_s) is None:
             raise MissionError(f"no HEARTBEAT from the autopilot at {self.link.url} in {timeout_s:.0f} s")
         self._event("autopilot_heartbeat", system=self.link.ap_system)
-        gps2 = self.get_param("GPS2_TYPE")
-        if gps2 is None:
-            raise MissionError("the autopilot has no GPS2_TYPE parameter (ArduPilot 4.5+ is needed)")
+        stale = self._boot_params_to_set()
         rebooted = False
-        if int(gps2) != 14:
+        if stale:
             # reboot-required (measured for GPSn_TYPE): set, then reboot, before anything relies on it
-            self.set_param("GPS2_TYPE", 14)
-            self._event("reboot", why="GPS2_TYPE is reboot-required")
+            for name in stale:
+                self.set_param(name, BOOT_PARAMS[name])
+            self._event("reboot", why=f"{', '.join(stale)} reboot-required")
             self.command(mavutil.mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
             time.sleep(2.0)
             if self.link.wait(lambda m: True, ["HEARTBEAT"], timeout_s) is None:
                 raise MissionError("the autopilot did not come back after the reboot")
             rebooted = True
+            # a SITL started with --wipe wipes them again on the reboot: read them back
+            still = self._boot_params_to_set()
+            if still:
+                raise MissionError(
+                    f"{', '.join(still)} did not survive the reboot (a SITL started with --wipe/-w wipes "
+                    "its parameters on every boot: start it without, or set them with --defaults)"
+                )
         # what the daemon and the scorer need, at rates a real ArduPilot does not stream by default
         for msg_id, hz in STREAM_RATES_HZ.items():
             self.command(mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz, timeout_s=1.0)
@@ -415,6 +442,47 @@ class MissionDriver:
         ):
             self.set_param(name, value)
         return rebooted
+
+    def _boot_params_to_set(self) -> list[str]:
+        """The reboot-required parameters whose stored value is not what the mission needs."""
+        stale = []
+        for name, value in BOOT_PARAMS.items():
+            have = self.get_param(name)
+            if have is None:
+                raise MissionError(f"the autopilot has no {name} parameter (ArduPilot 4.5+ is needed)")
+            if round(have) != round(value):
+                stale.append(name)
+        return stale
+
+    def ground_alt_amsl_m(self, timeout_s: float = 60.0) -> float:
+        """The ground's height at home, AMSL, m, once the EKF has an origin: HOME_POSITION's altitude,
+        checked against GLOBAL_POSITION_INT (alt - relative_alt). Before the origin exists
+        GLOBAL_POSITION_INT's alt is 0 (measured), which read as a ground 520 m low."""
+        deadline = time.time() + timeout_s
+        while time.time() < deadline:
+            home = self.link.last("HOME_POSITION")
+            gp = self.link.last("GLOBAL_POSITION_INT")
+            if home is not None and gp is not None and (gp.lat, gp.lon, gp.alt) != (0, 0, 0):
+                home_alt = home.altitude / 1000.0
+                gp_ground = (gp.alt - gp.relative_alt) / 1000.0
+                if abs(home_alt - gp_ground) > 5.0:
+                    raise MissionError(
+                        "the autopilot's ground altitude disagrees with itself: HOME_POSITION "
+                        f"{home_alt:.1f} m, GLOBAL_POSITION_INT alt - relative_alt {gp_ground:.1f} m AMSL"
+                    )
+                self._event("ground_alt", home_m=home_alt, global_position_m=gp_ground)
+                return home_alt
+            if home is None:
+                self.command(
+                    mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE,
+                    mavutil.mavlink.MAVLINK_MSG_ID_HOME_POSITION,
+                    timeout_s=1.0,
+                )
+            time.sleep(0.5)
+        raise MissionError(
+            f"no EKF origin in {timeout_s:.0f} s (HOME_POSITION and a GLOBAL_POSITION_INT with a position): "
+            f"the ground altitude is unknown; last texts: {self._texts()}"
+        )
 
     def wait_ready(self, timeout_s: float = 120.0) -> None:
         """EKF position ok and GPS 2 (the daemon's GPS_INPUT) with a 3D fix."""
@@ -499,25 +567,38 @@ class MissionDriver:
         only (ARMING_CHECK without bit 3, "GPS lock") and restored at once; the GNSS is switched off
         later only once GPS 2 has a 3D fix in the air (:meth:`fly`)."""
         deadline = time.time() + timeout_s
-        skipped = False
+        skipped: tuple[str, float] | None = None  # the parameter changed and its value before
         while time.time() < deadline:
             n_texts = len(self.link.statustext)
             res = self.command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
             if res == mavutil.mavlink.MAV_RESULT_ACCEPTED:
                 self._event("armed", gps2_prearm_skipped=skipped)
-                if skipped:
-                    self.set_param("ARMING_CHECK", 1)
+                if skipped is not None:
+                    self.set_param(*skipped)  # restored at once
                 return
             time.sleep(0.5)
             texts = [t for _, t in self.link.statustext[n_texts:]]
             gps1 = self.link.last("GPS_RAW_INT")
             only_gps2 = texts and all("GPS 2" in t for t in texts if "PreArm" in t or "Arm:" in t)
-            if only_gps2 and not skipped and gps1 is not None and int(gps1.fix_type) >= 3:
-                self.set_param("ARMING_CHECK", ARMING_CHECK_ALL_BUT_GPS)
-                skipped = True
+            if only_gps2 and skipped is None and gps1 is not None and int(gps1.fix_type) >= 3:
+                skipped = self._skip_gps_arming_check()
                 continue
             time.sleep(1.5)
         raise MissionError(f"the autopilot refused to arm for {timeout_s:.0f} s: {self._texts()}")
+
+    def _skip_gps_arming_check(self) -> tuple[str, float]:
+        """Skip the GPS pre-arm check through whichever parameter this ArduPilot has: ARMING_SKIPCHK
+        (upstream 4.7, a mask of the checks skipped) or ARMING_CHECK (a mask of the checks done).
+        Returns the parameter and the value to restore."""
+        skip = self.get_param("ARMING_SKIPCHK")
+        if skip is not None:
+            self.set_param("ARMING_SKIPCHK", int(skip) | ARMING_SKIPCHK_GPS)
+            return "ARMING_SKIPCHK", skip
+        check = self.get_param("ARMING_CHECK")
+        if check is None:
+            raise MissionError("the autopilot has neither ARMING_SKIPCHK nor ARMING_CHECK")
+        self.set_param("ARMING_CHECK", ARMING_CHECK_ALL_BUT_GPS)
+        return "ARMING_CHECK", check
 
     def fly(self, *, gnss_off: bool = True, timeout_s: float = 600.0) -> dict[str, Any]:
         """The whole mission after :meth:`prepare` and :meth:`wait_ready`. Returns the timeline."""

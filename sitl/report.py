@@ -68,11 +68,14 @@ def score(
     *,
     end_unix_s: float | None = None,
     gps_types: Mapping[int, int] | None = None,
+    relied_on_until_unix_s: float | None = None,
 ) -> dict[str, Any]:
     """Build the report dict. ``truth_at_unix(t)`` -> (lat_deg, lon_deg) of the truth at Unix time t;
     ``fdr_records``: the daemon's flight data recorder (provenance and per-frame timing);
     ``end_unix_s``: end of the flight, for judging silence after the last message; ``gps_types``: the
-    autopilot's GPSn_TYPE by instance the stream is judged with (default STREAM_GPS_TYPES)."""
+    autopilot's GPSn_TYPE by instance the stream is judged with (default STREAM_GPS_TYPES);
+    ``relied_on_until_unix_s``: when the autopilot's own GNSS took over again (its silences after that
+    trip nothing)."""
     gps = sorted((m for m in received if m.type == "GPS_INPUT"), key=lambda m: m.recv_time_unix_s)
     prov_by_time = {
         int(r["time_unix_usec"]): str(r.get("provenance"))
@@ -150,6 +153,7 @@ def score(
         [t - t_ref for t in gps_recv],
         [gps_input_accepted(m.fields, STREAM_GPS_TYPES if gps_types is None else gps_types) for m in gps],
         end_s=None if end_unix_s is None or not gps else max(end_unix_s - t_ref, gps_recv[-1] - t_ref),
+        relied_on_until_s=None if relied_on_until_unix_s is None else relied_on_until_unix_s - t_ref,
     )
     fix_ages = [
         (float(r["t_unix_s"]) - int(r["exposure_time_unix_usec"]) / 1e6) * 1000.0

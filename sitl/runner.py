@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import ctypes
 import dataclasses
 import hashlib
 import itertools
@@ -60,6 +61,8 @@ DEFAULT_CONFIG = REPO_ROOT / "config" / "sitl.yaml"
 DAEMON_READY_TIMEOUT_S = 90.0
 DAEMON_STOP_TIMEOUT_S = 10.0
 ATTITUDE_HZ = 50.0
+#: prctl option: the signal a child gets when its parent dies (linux/prctl.h).
+_PR_SET_PDEATHSIG = 1
 #: How often the daemon's resident memory is sampled, s.
 RSS_SAMPLE_S = 5.0
 #: RSS growth is measured from this far into the flight (start-up and caches warm first), s.
@@ -108,6 +111,21 @@ class SitlOptions:
 
 
 def _free_udp_port() -> int:
+def _die_with_parent() -> None:
+    """In the child before exec: SIGTERM when the process that started it dies (Linux
+    ``PR_SET_PDEATHSIG``), so a runner killed outright leaves no daemon behind."""
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+
+
+def spawn_daemon(cmd: list[str], log_file: Any, env: dict[str, str]) -> subprocess.Popen[bytes]:
+    """The daemon under test as a child process that dies with this one (SIGTERM, SIGKILL or a crash
+    of the runner alike)."""
+    preexec = _die_with_parent if sys.platform == "linux" else None
+    return subprocess.Popen(cmd, stdout=log_file, stderr=log_file, env=env, preexec_fn=preexec)
+
+
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
@@ -423,12 +441,12 @@ class _Flight:
         server = FrameServer()
         cam_port = await server.start()
         mav_port = _free_udp_port()
-        ap = SimAutopilot(daemon_port=mav_port)
+        ap = SimAutopilot(daemon_port=mav_port, unix_offset_s=self.scenario.autopilot_unix_offset_s)
         log_path = self.workdir / "daemon.log"
         stop = asyncio.Event()
         cmd = self._daemon_cmd(mav_port, cam_port)
         with log_path.open("wb") as log_file:
-            procs = [subprocess.Popen(cmd, stdout=log_file, stderr=log_file, env=self._daemon_env())]
+            procs = [spawn_daemon(cmd, log_file, self._daemon_env())]
             proc = procs[0]
             restarter: asyncio.Task[None] | None = None
             try:

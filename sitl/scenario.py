@@ -41,6 +41,11 @@ number is expected.
 ``start_delay_s`` (number >= 0, default 2.0)
     The aircraft holds (hovers, zero velocity, heading along the first leg) at the first waypoint for
     this long before flying the path; frames are streamed during the hold.
+``autopilot_unix_offset_s`` (number, default 0.0)
+    The autopilot's own Unix clock (SYSTEM_TIME) minus true time, s: without GNSS an autopilot's Unix
+    time is whatever somebody set (ArduPilot SITL's ran 2.0 s behind its host). The daemon must not use it.
+``camera_stamp_offset_s`` (number in [-1, 1], default 0.0)
+    Every frame is stamped this much after its true exposure, s (a camera that stamps late, > 0).
 ``camera`` (mapping)
     Ideal pinhole nav camera (no distortion, centred principal point), nadir mount, image top = nose.
     ``width_px`` (int >= 16, default 640), ``height_px`` (int >= 16, default 480),
@@ -601,6 +606,8 @@ class Scenario:
     start_delay_s: float = 2.0
     camera: CameraSpec = field(default_factory=CameraSpec)
     attitude_wobble: WobbleSpec = field(default_factory=WobbleSpec)
+    autopilot_unix_offset_s: float = 0.0
+    camera_stamp_offset_s: float = 0.0
     photometric: PhotometricParams = field(default_factory=PhotometricParams)
     map_gaps: tuple[MapGap, ...] = ()
     map_edits: tuple[MapEdit, ...] = ()
@@ -639,7 +646,8 @@ class Scenario:
     def stamp_offset_s(self, t_s: float) -> float:
         """Seconds to add to the stamp of the frame exposed at ``t_s`` (0 for a truthful stamp)."""
         period = 1.0 / self.frame_rate_hz
-        return sum(f.ahead_s for f in self.timestamp_faults if f.at_s <= t_s < f.at_s + period)
+        one_off = sum(f.ahead_s for f in self.timestamp_faults if f.at_s <= t_s < f.at_s + period)
+        return self.camera_stamp_offset_s + one_off
 
     def gap_at(self, t_s: float) -> GapKind | None:
         """The map-gap degradation for a frame exposed at ``t_s``, or None."""
@@ -1101,6 +1109,8 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     wob = root.block("attitude_wobble")
     wobble = WobbleSpec(
         wob.number("roll_amp_deg", 0.0, ge=0.0, lt=45.0),
+    ap_unix_offset = root.number("autopilot_unix_offset_s", 0.0)
+    cam_offset = root.number("camera_stamp_offset_s", 0.0, ge=-1.0, le=1.0)
         wob.number("pitch_amp_deg", 0.0, ge=0.0, lt=45.0),
         wob.number("period_s", 7.0, gt=0.0),
     )
@@ -1151,6 +1161,8 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         source=source,
     )
     scenario.footprint_radius_m()  # rejects a camera + wobble that would see the horizon
+        autopilot_unix_offset_s=ap_unix_offset,
+        camera_stamp_offset_s=cam_offset,
     return scenario
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -219,10 +220,17 @@ def _cmd_cache_features(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _raise_interrupt(_signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def _cmd_sitl_run(args: argparse.Namespace) -> int:
     from gps_denied_onboard.sitl.runner import SitlError, run_sitl_cli
 
     configure_logging("warning", json=False)
+    # SIGTERM unwinds like Ctrl-C, so the flight's cleanup stops the daemon it started (which also gets
+    # SIGTERM from the kernel should this process die outright: runner.spawn_daemon)
+    signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
         if getattr(args, "autopilot", None):
             from gps_denied_onboard.sitl.autopilot_flight import run_autopilot_cli
