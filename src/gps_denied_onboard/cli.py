@@ -201,7 +201,7 @@ def _cmd_cache_features(args: argparse.Namespace) -> int:
     if not isinstance(matcher, LearnedPairMatcher):
         _err(
             f"matcher.strategy {config.matcher.strategy!r} has no precomputable tile features; "
-            "expected a learned strategy (disk_lightglue, aliked_lightglue, xfeat)"
+            "expected a learned strategy (disk_lightglue, aliked_lightglue, xfeat, xfeat_mnn)"
         )
         return EXIT_CONFIG
     try:
@@ -390,7 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
     feats.add_argument(
         "--strategy",
         default=None,
-        choices=("auto", "disk_lightglue", "aliked_lightglue", "xfeat"),
+        choices=("auto", "disk_lightglue", "aliked_lightglue", "xfeat", "xfeat_mnn"),
         help="learned strategy (default: the profile's matcher.strategy)",
     )
     feats.add_argument("--force", action="store_true", help="rebuild even when the set is up to date")

@@ -32,7 +32,7 @@ from gps_denied_onboard.components.c6_tiles.types import TileId
 EXIT_OK: Final[int] = 0
 EXIT_NO_MATCH: Final[int] = 1
 EXIT_BAD_INPUT: Final[int] = 2
-STRATEGIES: Final[tuple[str, ...]] = ("classical", "disk_lightglue", "aliked_lightglue", "xfeat")
+STRATEGIES: Final[tuple[str, ...]] = ("classical", "disk_lightglue", "aliked_lightglue", "xfeat", "xfeat_mnn")
 #: Horizontal field of view given to IMAGE_A's calibration; unused without attitude (no rectification).
 _NOMINAL_HFOV_DEG: Final[float] = 70.0
 

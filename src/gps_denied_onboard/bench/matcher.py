@@ -41,7 +41,7 @@ from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, Rer
 from gps_denied_onboard.components.c3_matcher.base import CandidateLoopMatcher
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
-from gps_denied_onboard.components.c3_matcher.registry import available_strategies, create_matcher
+from gps_denied_onboard.components.c3_matcher.registry import available_strategies, create_matcher, takes
 from gps_denied_onboard.components.c6_tiles.types import TileId, TilePixelsHandle
 from gps_denied_onboard.config import MatcherConfig
 from gps_denied_onboard.geo import haversine_m
@@ -68,6 +68,7 @@ LEARNED: Final[dict[str, tuple[str, str, int | None]]] = {
     "disk_lightglue": ("disk", "disk_weights_path", 128),
     "aliked_lightglue": ("aliked", "aliked_weights_path", None),  # 64 (t16) or 128 (n16/n32)
     "xfeat": ("xfeat", "xfeat_weights_path", 64),
+    "xfeat_mnn": ("xfeat", "xfeat_weights_path", None),  # mutual NN: no LightGlue
 }
 
 #: Model keys accepted in ``model_paths`` (``lightglue`` = the LightGlue matcher for every learned one).
@@ -440,6 +441,7 @@ def _build_strategies(
             continue
         fields: dict[str, Any] = {"strategy": name, "chip_size_px": chip_size_px, **config_overrides}
         lightglue = None
+        uses_lightglue = name in LEARNED and takes(name, "lightglue_runtime")
         if name in LEARNED:
             key, field_name, _dim = LEARNED[name]
             if key not in models:
@@ -447,15 +449,15 @@ def _build_strategies(
                 continue
             fields[field_name] = str(models[key])
             matcher_model = models.get(f"{key}_lightglue", models.get("lightglue"))
-            if matcher_model is not None:
+            if matcher_model is not None and uses_lightglue:
                 fields["lightglue_weights_path"] = str(matcher_model)
         config = MatcherConfig(**fields)
         ransac = RansacFilter("usac_magsac", config.ransac_confidence, config.ransac_max_iters)
         rss_before = _rss_mb()
         try:
-            if name in LEARNED:
-                if runtime is None:
-                    runtime = OnnxInferenceRuntime(intra_op_threads=intra_op_threads, providers=providers)
+            if name in LEARNED and runtime is None:
+                runtime = OnnxInferenceRuntime(intra_op_threads=intra_op_threads, providers=providers)
+            if uses_lightglue:
                 lightglue = LightGlueRuntime(
                     runtime, config.lightglue_weights_path, descriptor_dim=LEARNED[name][2]
                 )

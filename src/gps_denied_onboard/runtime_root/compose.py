@@ -279,7 +279,12 @@ def _matcher_deps(
         lightglue = LightGlueRuntime(
             runtime, config.matcher.lightglue_weights_path, mnn_min_similarity=mnn, descriptor_dim=dim
         )
-    deps.update(inference_runtime=runtime, lightglue_runtime=lightglue)
+    deps.update(inference_runtime=runtime)
+    if config.matcher.strategy in matcher_registry.available_strategies() and not matcher_registry.takes(
+        config.matcher.strategy, "lightglue_runtime"
+    ):
+        return deps  # it matches by its own rule (xfeat_mnn): no LightGlue model is loaded
+    deps.update(lightglue_runtime=lightglue)
     return deps
 
 
@@ -298,11 +303,16 @@ def _family_paths(
 
     A family export (extractor + its LightGlue) wins; for ``aliked_lightglue`` a lone ALIKED extractor
     (``gdnav models export --weights-dir``) is the fallback, matched by mutual nearest neighbour."""
-    family = next(f for f, s in FAMILY_STRATEGY.items() if s == strategy)
+    "xfeat_mnn": "xfeat_weights_path",
+    family = next(f for f, s in FAMILY_STRATEGY.items() if s == _EXTRACTOR_OF.get(strategy, strategy))
+#: Strategies that run another strategy's extractor without its LightGlue: they take that family's
+#: extractor from the model directory and use that strategy's precomputed tile features.
+_EXTRACTOR_OF = {"xfeat_mnn": "xfeat"}
     found = family_models(entries, family)
     root = Path(str(m.model_dir))
     if found is not None:
-        return str(root / found[0].file), str(root / found[1].file)
+        matcher_file = None if strategy in _EXTRACTOR_OF else str(root / found[1].file)
+        return str(root / found[0].file), matcher_file
     if strategy == "aliked_lightglue":
         lone = [
             e for e in entries if e.source.name in ("aliked-t16", "aliked-n16") and "role" not in e.params
@@ -432,7 +442,8 @@ def open_tile_features(
         return None
     path = getattr(m, field)
     try:
-        identity = ExtractorIdentity.of(m.strategy, path, m) if path is not None else None
+        label = _EXTRACTOR_OF.get(m.strategy, m.strategy)
+        identity = ExtractorIdentity.of(label, path, m) if path is not None else None
     except OSError:
         identity = None  # the strategy's factory refuses the missing model file, naming it
     if identity is None:

@@ -1,8 +1,8 @@
 """C3 strategy registry: config ``matcher.strategy`` name -> factory (the composition root's only way
 to build a matcher).
 
-Built-in: ``classical``, ``disk_lightglue`` and ``aliked_lightglue``. Others (``xfeat``) join through
-``register_strategy``. ``create_matcher`` passes each factory only the dependencies its signature
+Built-in: ``classical``, ``disk_lightglue``, ``aliked_lightglue``, ``xfeat`` and ``xfeat_mnn``; others
+join through ``register_strategy``. ``create_matcher`` passes each factory only the dependencies its signature
 names, so the composition root can hand every strategy the same superset of shared helpers.
 """
 
@@ -14,7 +14,13 @@ from typing import Any
 
 import structlog
 
-from gps_denied_onboard.components.c3_matcher import aliked_lightglue, classical, disk_lightglue, xfeat
+from gps_denied_onboard.components.c3_matcher import (
+    aliked_lightglue,
+    classical,
+    disk_lightglue,
+    xfeat,
+    xfeat_mnn,
+)
 from gps_denied_onboard.components.c3_matcher.errors import StrategyNotLinkedError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.constants import LogEvent
@@ -28,6 +34,7 @@ _STRATEGY_REGISTRY: dict[str, MatcherFactory] = {
     disk_lightglue.LABEL: disk_lightglue.create,
     xfeat.LABEL: xfeat.create,
     aliked_lightglue.LABEL: aliked_lightglue.create,
+    xfeat_mnn.LABEL: xfeat_mnn.create,
 }
 
 
@@ -46,17 +53,30 @@ def available_strategies() -> tuple[str, ...]:
     return tuple(sorted(_STRATEGY_REGISTRY))
 
 
+def _factory(name: str) -> MatcherFactory:
+    factory = _STRATEGY_REGISTRY.get(name)
+    if factory is None:
+        raise StrategyNotLinkedError(
+            f"C3 matcher strategy {name!r} is not linked; available: {', '.join(available_strategies())}"
+        )
+    return factory
+
+
+def takes(name: str, dependency: str) -> bool:
+    """Whether strategy ``name``'s factory takes ``dependency`` (e.g. ``lightglue_runtime``), so the
+    composition root builds only what the chosen strategy uses. StrategyNotLinkedError for an unknown
+    name."""
+    factory = _factory(name)
+    return dependency in inspect.signature(factory).parameters
+
+
 def create_matcher(name: str, **deps: Any) -> CrossDomainMatcher:
     """Build the strategy ``name`` from ``deps`` (``config`` = the ``MatcherConfig``, shared helpers).
 
     Raises ``StrategyNotLinkedError`` (listing the valid names) for an unknown name and ``TypeError``
     when a dependency the factory requires is missing. Logs ``c3.matcher.ready`` once built.
     """
-    factory = _STRATEGY_REGISTRY.get(name)
-    if factory is None:
-        raise StrategyNotLinkedError(
-            f"C3 matcher strategy {name!r} is not linked; available: {', '.join(available_strategies())}"
-        )
+    factory = _factory(name)
     params = inspect.signature(factory).parameters
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
         accepted = deps
@@ -82,7 +102,8 @@ def create_matcher(name: str, **deps: Any) -> CrossDomainMatcher:
         strategy=name,
         min_inliers_threshold=getattr(config, "min_inliers_threshold", None),
         residual_warn_threshold_px=getattr(config, "residual_warn_threshold_px", None),
-        # "lightglue" (a matcher model) or "mutual_nn" (no matcher model given): what matches the features.
-        pair_matcher=getattr(deps.get("lightglue_runtime"), "mode", None),
+        # "lightglue" (a matcher model) or "mutual_nn" (no matcher model given): what matches the features
+        # (None: the strategy takes no LightGlue helper and matches by its own rule).
+        pair_matcher=getattr(accepted.get("lightglue_runtime"), "mode", None),
     )
     return matcher

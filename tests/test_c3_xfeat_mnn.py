@@ -1,0 +1,226 @@
+"""C3 ``xfeat_mnn``: XFeat through the real ONNX Runtime, matched by mutual nearest neighbours.
+
+The contract tests run the real XFeat export (``registry_models_fixture``) on real NAIP imagery (a 2009
+map cache, a rotated 2020 frame); the matching rule is also checked on its own against a brute-force
+definition of "mutual".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+pytest.importorskip("onnx")
+
+from conftest import REPO_ROOT, shared_path
+from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
+from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
+from gps_denied_onboard.components.c3_matcher import CrossDomainMatcher, RollingHealthWindow, registry
+from gps_denied_onboard.components.c3_matcher.features import Features
+from gps_denied_onboard.components.c3_matcher.xfeat_mnn import XFeatMnnMatcher, create, match_mutual_nn
+from gps_denied_onboard.components.c4_pose.integrity import MatchEvidence
+from gps_denied_onboard.components.c6_tiles.store import TileStore
+from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
+from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
+from gps_denied_onboard.components.c10_cache_build import build_cache
+from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest
+from gps_denied_onboard.components.c10_cache_build.tile_features import build_tile_features
+from gps_denied_onboard.config import Config, MatcherConfig, load_config
+from gps_denied_onboard.constants import FdrKind
+from gps_denied_onboard.helpers.ransac_filter import RansacFilter
+from gps_denied_onboard.runtime_root.compose import _matcher_deps, open_tile_features
+from registry_models_fixture import registry_models  # noqa: F401 - session fixture
+from test_c3_matcher_contract import FakeFdrClient
+from test_tile_features import CountingRuntime
+
+NAIP = ("data", "naip_timeseries", "naip")
+NAIP_2009 = "m_4709963_se_14_1_20090818.tif"
+NAIP_2020 = "m_4709963_se_14_1_20200831.tif"
+
+
+def _brute_force_mutual(d0: np.ndarray, d1: np.ndarray) -> set[tuple[int, int]]:
+    """Pairs (i, j) where j is i's most similar descriptor and i is j's, by the definition."""
+    a = d0 / np.linalg.norm(d0, axis=1, keepdims=True)
+    b = d1 / np.linalg.norm(d1, axis=1, keepdims=True)
+    sim = a @ b.T
+    return {
+        (i, j)
+        for i in range(sim.shape[0])
+        for j in [int(np.argmax(sim[i]))]
+        if int(np.argmax(sim[:, j])) == i
+    }
+
+
+def _features(rng: np.random.Generator, n: int, image_size: tuple[int, int]) -> Features:
+    kp = rng.uniform(0, image_size[0], (n, 2)).astype(np.float32)
+    return Features(kp, rng.normal(size=(n, 64)).astype(np.float32), image_size)
+
+
+def _model_paths(model_dir: Path) -> tuple[Path, Path]:
+    from gps_denied_onboard.models.learned_export import family_models
+    from gps_denied_onboard.models.manifest import verify_model_dir
+
+    extractor, lighterglue = family_models(verify_model_dir(model_dir), "xfeat")  # type: ignore[misc]
+    return model_dir / extractor.file, model_dir / lighterglue.file
+
+
+def _runtime() -> CountingRuntime:
+    return CountingRuntime(OnnxInferenceRuntime(intra_op_threads=2, providers=["CPUExecutionProvider"]))
+
+
+def _daemon_config(cache: Path, matcher: MatcherConfig) -> Config:
+    base = load_config(REPO_ROOT / "config" / "sitl.yaml", ())
+    return dataclasses.replace(base, cache=dataclasses.replace(base.cache, dir=str(cache)), matcher=matcher)
+
+
+# --- the matching rule --------------------------------------------------------------------------------------
+def test_mnn_matches_are_exactly_the_mutual_nearest_neighbours() -> None:
+    """Every returned pair is mutual, every mutual pair is returned, each index at most once, and the
+    correspondences are the two keypoints, with no confidence column."""
+    rng = np.random.default_rng(3)
+    query, tile = _features(rng, 300, (640, 480)), _features(rng, 500, (512, 512))
+    # Half the tile's descriptors are noisy copies of query descriptors: many mutual pairs, not all.
+    tile.descriptors[:150] = query.descriptors[:150] + rng.normal(scale=0.3, size=(150, 64))
+    corr = match_mutual_nn(query, tile)
+    assert corr.dtype == np.float32 and corr.ndim == 2 and corr.shape[1] == 4
+    qi = [int(np.flatnonzero((query.keypoints_px == row[:2]).all(axis=1))[0]) for row in corr]
+    ti = [int(np.flatnonzero((tile.keypoints_px == row[2:]).all(axis=1))[0]) for row in corr]
+    expected = _brute_force_mutual(query.descriptors, tile.descriptors)
+    assert set(zip(qi, ti, strict=True)) == expected
+    assert len(set(qi)) == len(qi) and len(set(ti)) == len(ti)
+    assert len(expected) >= 140
+
+
+def test_mnn_no_features_gives_no_matches() -> None:
+    """An image with no keypoints on either side gives an empty (0, 4) set, not an error."""
+    rng = np.random.default_rng(0)
+    empty = Features(np.empty((0, 2), np.float32), np.empty((0, 64), np.float32), (64, 64))
+    for a, b in ((empty, _features(rng, 10, (64, 64))), (_features(rng, 10, (64, 64)), empty)):
+        assert match_mutual_nn(a, b).shape == (0, 4)
+
+
+# --- registry and composition root --------------------------------------------------------------------------
+def test_xfeat_mnn_is_registered_and_takes_no_lightglue() -> None:
+    """``xfeat_mnn`` is in the registry; its factory takes no LightGlue helper, so the composition root
+    builds none (no LightGlue model is loaded), while ``xfeat`` still gets one."""
+    assert "xfeat_mnn" in registry.available_strategies()
+    assert not registry.takes("xfeat_mnn", "lightglue_runtime")
+    assert registry.takes("xfeat", "lightglue_runtime")
+    base = load_config(REPO_ROOT / "config" / "sitl.yaml", ())
+    pre = {"c7_inference": object()}
+    for strategy, has_lightglue in (("xfeat_mnn", False), ("xfeat", True)):
+        config = dataclasses.replace(
+            base, matcher=dataclasses.replace(base.matcher, strategy=strategy, lightglue_weights_path=None)
+        )
+        deps = _matcher_deps(config, pre, RansacFilter(), FakeFdrClient(), RollingHealthWindow(25))  # type: ignore[arg-type]
+        assert ("lightglue_runtime" in deps) is has_lightglue
+        assert deps["inference_runtime"] is pre["c7_inference"]
+
+
+def test_xfeat_mnn_missing_weights_path_refused() -> None:
+    """No ``matcher.xfeat_weights_path`` -> EngineLoadError naming the key; no runtime -> ValueError."""
+    rt = OnnxInferenceRuntime(intra_op_threads=1, providers=["CPUExecutionProvider"])
+    config = MatcherConfig(strategy="xfeat_mnn")
+    with pytest.raises(EngineLoadError, match=r"matcher\.xfeat_weights_path"):
+        create(config, RansacFilter(), rt, RollingHealthWindow(25))
+    with pytest.raises(ValueError, match="inference_runtime"):
+        create(config, RansacFilter(), None, RollingHealthWindow(25))  # type: ignore[arg-type]
+
+
+# --- the real export on real imagery ------------------------------------------------------------------------
+def test_real_xfeat_mnn_matches_a_2020_frame_to_its_2009_chip_with_shared_tile_features(
+    registry_models: Callable[[str], Path],  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    """Real XFeat export, real ORT, 2009 NAIP cache, a rotated 2020 frame: the true chip wins with inliers
+    on the true homography and no confidences; the ``xfeat`` tile-feature set serves ``xfeat_mnn`` (the
+    composition root opens it for this strategy), giving exactly the live result with one extraction."""
+    extractor, _lighterglue = _model_paths(registry_models("xfeat"))
+    cache = tmp_path / "c2009"
+    build_cache(shared_path(*NAIP, NAIP_2009), cache, progress=False)
+    frames = tmp_path / "c2020"
+    build_cache(shared_path(*NAIP, NAIP_2020), frames, progress=False, zoom=CacheManifest.load(cache).zoom)
+    config = MatcherConfig(strategy="xfeat_mnn", xfeat_weights_path=str(extractor), min_inliers_threshold=25)
+
+    def build(tile_features: object = None) -> tuple[XFeatMnnMatcher, CountingRuntime]:
+        rt = _runtime()
+        m = registry.create_matcher(
+            "xfeat_mnn",
+            config=config,
+            ransac_filter=RansacFilter(),
+            inference_runtime=rt,
+            health_window=RollingHealthWindow(25),
+            fdr_client=None,
+            tile_features=tile_features,
+        )
+        assert isinstance(m, XFeatMnnMatcher) and isinstance(m, CrossDomainMatcher)
+        return m, rt
+
+    live, live_rt = build()
+    assert live.extractor_identity.strategy == "xfeat"
+    build_tile_features(cache, live, progress=False)
+    store = TileStore.open(cache)
+    fdr = FakeFdrClient()
+    feats = open_tile_features(_daemon_config(cache, config), store, fdr)  # type: ignore[arg-type]
+    assert feats is not None and fdr.of(FdrKind.TILE_FEATURES)[0]["used"] is True
+    pre, pre_rt = build(feats)
+
+    # A 2020 frame, rotated 8 deg and scaled 1.05, centred on tile 10's chip (same Web-Mercator grid).
+    src = TileStore.open(frames)
+    tile = store.tile_ids[10]
+    chip = store.chip(tile, config.chip_size_px)
+    cx = chip.origin_px[0] - store.manifest.tile_range.x0 * store.tile_size_px + 256.0
+    cy = chip.origin_px[1] - store.manifest.tile_range.y0 * store.tile_size_px + 256.0
+    fw, fh, theta, s = 480, 360, math.radians(8.0), 1.05
+    c, si = math.cos(theta), math.sin(theta)
+    frame_to_mosaic = (
+        np.array([[1, 0, cx], [0, 1, cy], [0, 0, 1]])
+        @ np.array([[s * c, -s * si, 0], [s * si, s * c, 0], [0, 0, 1]])
+        @ np.array([[1, 0, -fw / 2], [0, 1, -fh / 2], [0, 0, 1]])
+    )
+    image = cv2.warpPerspective(
+        np.asarray(src.mosaic), frame_to_mosaic, (fw, fh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    )
+    frame = NavCameraFrame(uuid.uuid4(), 0, 0, image, None, None, time.monotonic_ns())
+    near = [t for t, _ in store.tiles_near(tile.lat_deg, tile.lon_deg, 1e5, k=3)]
+    rerank = RerankResult(
+        frame.frame_id, [RerankCandidate(t, store.chip(t, config.chip_size_px), -1, 0.0) for t in near], 0
+    )
+    calib = CameraCalibration.from_hfov(fw, fh, 70.0)
+    t0 = time.perf_counter()
+    result = pre.match(frame, rerank, calib)
+    pre_ms = (time.perf_counter() - t0) * 1e3
+    result_live = live.match(frame, rerank, calib)
+    best = result.best
+    print(f"xfeat_mnn NAIP 2020 -> 2009: {best.inlier_count} inliers, {pre_ms:.0f} ms with tile features")
+
+    assert result.matcher_label == "xfeat_mnn"
+    assert best.tile_id == tile and best.inlier_count >= 25
+    assert best.inlier_scores is None
+    assert MatchEvidence.of_candidate(best, (fw, fh)).mean_confidence is None
+    # The inliers lie on the true frame -> chip mapping (chip px = mosaic px - the chip's origin).
+    origin = np.array(
+        [
+            chip.origin_px[0] - store.manifest.tile_range.x0 * store.tile_size_px,
+            chip.origin_px[1] - store.manifest.tile_range.y0 * store.tile_size_px,
+        ]
+    )
+    q = best.inlier_correspondences[:, :2].astype(np.float64)
+    mapped = (frame_to_mosaic @ np.column_stack([q, np.ones(len(q))]).T).T[:, :2] - origin
+    err = np.linalg.norm(mapped - best.inlier_correspondences[:, 2:], axis=1)
+    assert np.median(err) < 2.0
+    # Shared tile features: the same result as live, and only the query was extracted.
+    assert [(c.tile_id, c.inlier_count) for c in result.per_candidate] == [
+        (c.tile_id, c.inlier_count) for c in result_live.per_candidate
+    ]
+    np.testing.assert_array_equal(best.inlier_correspondences, result_live.best.inlier_correspondences)
+    assert pre_rt.extractor_calls == 1
+    assert live_rt.extractor_calls == len(store) + 1 + len(near)  # build + query + N
