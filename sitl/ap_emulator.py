@@ -1,74 +1,27 @@
 """An ArduPilot copter EMULATOR for CI: a test double of the autopilot's MAVLink side, not the autopilot.
 
 No ArduPilot binary ships with this project (and none is downloaded). CI flies the daemon against this
-double instead; ``gdnav sitl run --autopilot URL`` flies it against a real ArduPilot SITL the same way
-(README, "Fly it with ArduPilot SITL"). Nothing here is ArduPilot code, and no report may present what
-this module does as what ArduPilot does: it reproduces the facts measured on a real copter SITL
-4.7.0-dev (../shared/DESIGN.md, "What a real ArduPilot does with GPS_INPUT"; issue 10), through the rules
-in :mod:`gps_denied_onboard.sitl.ardupilot_rules`, which are reused here, never restated.
+double; ``gdnav sitl run --autopilot URL`` flies it against a real ArduPilot SITL the same way
+(docs/ardupilot.md, "ArduCopter SITL"). Nothing here is ArduPilot code, and no report may present what
+it does as what ArduPilot does: it reproduces facts measured on copter SITL 4.7.0-dev through the rules
+of :mod:`gps_denied_onboard.sitl.ardupilot_rules`, reused here, never restated.
 
-What it speaks (MAVLink 2, ardupilotmega dialect, system 1 component 1, over UDP on loopback):
+Input: MAVLink 2 (ardupilotmega, system 1 component 1, UDP on loopback) on each ``--port``, one channel
+each (like SERIAL0, SERIAL1), answering the last address that sent it a datagram: GPS_INPUT, TIMESYNC,
+PARAM_*, COMMAND_LONG, SET_MODE, SET_POSITION_TARGET_GLOBAL_INT, the mission protocol.
+Output: HEARTBEAT, SYSTEM_TIME, ATTITUDE, HIGHRES_IMU, GLOBAL_POSITION_INT, HOME_POSITION, GPS_RAW_INT,
+GPS2_RAW, EKF_STATUS_REPORT, MISSION_CURRENT, SIMSTATE (the truth), STATUSTEXT, acks and replies;
+broadcast messages are forwarded between channels, as ArduPilot does between its serial ports.
 
-- out: HEARTBEAT, SYSTEM_TIME, ATTITUDE, HIGHRES_IMU, GLOBAL_POSITION_INT, HOME_POSITION, GPS_RAW_INT
-  (primary GPS), GPS2_RAW, EKF_STATUS_REPORT, MISSION_CURRENT, SIMSTATE (the truth, as ArduPilot SITL
-  sends it), STATUSTEXT, COMMAND_ACK, PARAM_VALUE, the mission protocol's replies;
-- in: GPS_INPUT, TIMESYNC (answered), PARAM_SET / PARAM_REQUEST_READ / PARAM_REQUEST_LIST, COMMAND_LONG
-  (arm/disarm, takeoff, DO_SET_MODE, reboot, SET_MESSAGE_INTERVAL and REQUEST_MESSAGE acknowledged), SET_MODE,
-  SET_POSITION_TARGET_GLOBAL_INT (GUIDED), MISSION_COUNT / MISSION_ITEM_INT / MISSION_REQUEST_LIST /
-  MISSION_REQUEST_INT (upload and download).
+Rules, each from a measured fact: GPSn_TYPE=14 at boot, fix_type >= 3, time_week > 0; the 215/245 ms
+health rule; "PreArm: GPS n: Bad fix"; NO_FIX 4 s, EKF position lost 7 s, LAND at 7.8 s (latched); EKF
+origin 10 s and "using GPS" 28 s after the first 3D fix (shortened in CI); ``SIM_GPS1_ENABLE``;
+``GPS_AUTO_SWITCH``; the fused position follows GPS_INPUT completely, bias included, lagged by
+``GPSn_DELAY_MS``; the speed-accuracy glitch; TIMESYNC answered in boot time, SYSTEM_TIME off by
+``system_time_offset_s``; ``ARMING_CHECK`` / ``ARMING_SKIPCHK``. The physics is a point mass with a
+lagged tilt, speed and acceleration limits, flat ground, no wind.
 
-Every ``--port`` is one MAVLink channel (like ArduPilot SITL's SERIAL0, SERIAL1...): the channel answers
-the last address that sent it a datagram. Broadcast messages that arrive on one channel are forwarded
-to the others (MAVLink routing: "broadcast messages are forwarded to all channels that have not seen
-the message", mavlink.io/en/guide/routing.html; ArduPilot does this between its serial ports), so a
-ground station on one channel sees the companion computer's STATUSTEXT and NAMED_VALUE from another.
-
-The rules applied, each from a measured fact (the function or class named holds the fact):
-
-- GPS_INPUT is used only by an instance whose ``GPSn_TYPE`` is 14 *at boot* (``gps_id`` selects it),
-  with ``fix_type`` >= 3 and ``time_week`` > 0 (``gps_input_rejection``); ``GPSn_TYPE`` is
-  reboot-required: a PARAM_SET changes what PARAM_VALUE says and nothing else until
-  MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN (``GpsTypeParams``);
-- "GPS n: detected MAV" on an instance's first accepted GPS_INPUT (measured 0.1 s after it);
-- health: the 215/245 ms rule (``GpsHealthMonitor``), "PreArm: GPS n: not healthy" while tripped;
-- "PreArm: GPS n: Bad fix" while a MAVLink instance has no 3D fix (``prearm_gps_failures``);
-- NO_FIX 4 s after the last accepted GPS_INPUT; EKF position flags lost at 7 s; at 7.8 s "EKF Failsafe:
-  changed to LAND Mode", latched (``gps_loss_stage``), judged on the position source in use;
-- start-up: EKF origin 10 s and "EKF3 IMU0 is using GPS" 28 s after the first 3D fix (measured with
-  GPS_INPUT from boot; both are options, so a CI run may shorten them, and says so);
-- the simulated GNSS of GPS1 (a ``GPS1_TYPE`` other than 14) has a fix while ``SIM_GPS1_ENABLE`` = 1
-  (the parameter of this version; ``SIM_GPS_DISABLE`` does not exist, and PARAM_SET of an unknown name
-  is ignored, as ArduPilot does);
-- ``GPS_AUTO_SWITCH`` = 1 uses the best instance (a 3D fix, the current one kept on a tie), 0 uses GPS1;
-  the measured switch from the simulated GNSS to GPS2 = GPS_INPUT was seamless;
-- the fused position follows GPS_INPUT completely, bias included ("a 10 m bias ramped in at 0.5 m/s
-  moved the vehicle 10.0-10.2 m in truth, with no warning"): while a MAVLink instance is the position
-  source, the EKF's horizontal position is the last accepted GPS_INPUT's position (carried forward by
-  the true motion since), so the vehicle flies on the position it is told and the truth differs from
-  it by the daemon's error.
-
-- clocks: TIMESYNC is answered with the boot time the request arrived (GCS_Common.cpp
-  ``handle_timesync``); SYSTEM_TIME's Unix time runs ``system_time_offset_s`` off the host's (measured:
-  2.0 s behind, SITL's clock stands still while it waits for a client on SERIAL0, at start and after a
-  reboot);
-- GLOBAL_POSITION_INT's lat/lon/alt are 0 until the EKF has an origin (measured: alt 0 before it,
-  ``relative_alt`` from the barometer all along);
-- the EKF takes a GPS_INPUT as measured ``GPSn_DELAY_MS`` (0.2 s when 0) before it arrived
-  (``ardupilot_rules.gps_lag_s``), so its position runs ahead of the input by the speed times that lag
-  minus the input's own (measured: EKF3 p95 8.4 m against GPS_INPUT p95 3.6-4.8 m with the default);
-- "GPS Glitch or Compass error" while the filtered speed accuracy of the source in use fails EKF3's
-  test (``ardupilot_rules.SpeedAccuracyGlitch``), "Glitch cleared" after;
-- ``ARMING_CHECK`` or, with ``arming_skipchk``, upstream 4.7's ``ARMING_SKIPCHK`` (PR #31568: a mask of
-  the checks skipped, bit 3 = GPS lock).
-
-The physics is deliberately simple, and not ArduPilot's: a point mass whose horizontal velocity
-follows a commanded velocity (towards the target, at most ``WPNAV_SPEED``, with ``WPNAV_ACCEL``), through
-a tilt that follows the commanded acceleration with a first-order lag (``TILT_TAU_S``, ArduCopter's
-``ATC_INPUT_TC`` default 0.15 s), so roll and pitch lead and lag the motion as a copter's do; climb
-at ``WPNAV_SPEED_UP``, descent at ``WPNAV_SPEED_DN`` (LAND: ``LAND_SPEED_HIGH`` or ``WPNAV_SPEED_DN``
-above 10 m, ``LAND_SPEED`` below); roll and pitch from the horizontal acceleration; yaw towards the
-target at 90 deg/s; no wind, no drag, flat ground at home's height. The height estimate is the truth
-(barometer); only the horizontal position comes from GPS.
+Every rule and its source in full: docs/ardupilot.md, "The emulator and its rules in full".
 """
 
 from __future__ import annotations

@@ -1,36 +1,25 @@
 """What ArduPilot does with a GPS_INPUT stream: a TEST DOUBLE of measured behaviour, not the autopilot.
 
 No ArduPilot binary ships with this project, so the simulator judges the daemon's GPS_INPUT stream with
-these rules instead. They reproduce what copter SITL 4.7.0-dev did on the project's machines
-(DESIGN.md, "What a real ArduPilot does with GPS_INPUT"), cross-checked against ArduPilot's public
-source. Nothing here is ArduPilot code, and no report may present a verdict from this module as the
-autopilot's: it is what this double predicts the autopilot would do.
+these rules. They reproduce what copter SITL 4.7.0-dev did on the project's machines (DESIGN.md, "What a
+real ArduPilot does with GPS_INPUT"), cross-checked against ArduPilot's public source. No report may
+present a verdict from this module as the autopilot's.
 
-The rules, each a pure function or a small class below:
+Input: GPS_INPUT messages with their receive times (and the parameters that select the instance).
+Output: each rule's verdict; :func:`evaluate_gps_stream` replays a whole received stream through all:
+- acceptance (:func:`gps_input_rejection`, :func:`gps_input_accepted`): ``gps_id`` selects the instance
+  whose ``GPSn_TYPE`` is 14, ``fix_type`` >= 3, ``time_week`` > 0; ``GPSn_TYPE`` is reboot-required
+  (:class:`GpsTypeParams`); no accepted GPS_INPUT fails pre-arm with "Bad fix" (:func:`prearm_gps_failures`);
+- health (:class:`GpsHealthMonitor`): filtered mean interval < 215 ms, fewer than 2 consecutive > 245 ms;
+- loss (:func:`gps_loss_stage`): NO_FIX after 4 s, EKF position lost after 7 s, failsafe to LAND after
+  7.8 s, and LAND stays;
+- speed accuracy (:class:`SpeedAccuracyGlitch`): "GPS Glitch" while the filtered, peak-held
+  ``speed_accuracy`` is above 1.5 m/s, until below 1.0 m/s;
+- lag (:func:`gps_lag_s`): ``GPSn_DELAY_MS`` before arrival, 0.2 s when 0.
+Each timeout fires at the earliest time of its measured window; a GPS_INPUT that is not accepted counts
+as absent for every rule; times are taken to the microsecond.
 
-- acceptance (:func:`gps_input_rejection`, :func:`gps_input_accepted`): ``gps_id`` selects the
-  instance whose ``GPSn_TYPE`` is 14, ``fix_type`` >= 3, ``time_week`` > 0;
-- ``GPSn_TYPE`` is reboot-required (:class:`GpsTypeParams`); a MAVLink GPS without an accepted
-  GPS_INPUT fails pre-arm with "Bad fix" (:func:`prearm_gps_failures`);
-- health (:class:`GpsHealthMonitor`): filtered mean interval < 215 ms and fewer than 2 consecutive
-  intervals > 245 ms;
-- loss of the stream (:func:`gps_loss_stage`): NO_FIX after 4 s, EKF position lost after 7 s,
-  "EKF Failsafe: changed to LAND Mode" after 7.8 s, and LAND stays after the stream resumes;
-- speed accuracy (:class:`SpeedAccuracyGlitch`): EKF3 calls the GPS glitching ("GPS Glitch or Compass
-  error") while its filtered, peak-held ``speed_accuracy`` is above 1.5 m/s, until it is below 1.0 m/s;
-- lag (:func:`gps_lag_s`): the EKF takes a GPS_INPUT as measured ``GPSn_DELAY_MS`` before it arrived,
-  0.2 s when that parameter is 0;
-- :func:`evaluate_gps_stream` replays a whole received stream through all of them.
-
-Choices where the measurements leave room (the measured facts win over the source where they differ):
-
-- every timeout fires at the *earliest* time of its measured window (NO_FIX 4.0-4.2 s -> 4.0 s, EKF
-  position 7.0-7.2 s -> 7.0 s, failsafe 7.8-8.0 s -> 7.8 s), so a stream this double passes did not
-  come near a measured trip;
-- a GPS_INPUT that is not accepted counts as absent for every rule, health included. ArduPilot's
-  driver still takes the timing of a routed message with ``fix_type`` < 3 (it then reports that
-  fix_type), but such a message carries no position the EKF uses, so for the vehicle it is absent;
-- times are taken to the microsecond, so a 245 ms interval reads as exactly 245 ms, not 245.0000001.
+Why those choices: docs/ardupilot.md, "The emulator and its rules in full".
 """
 
 from __future__ import annotations
