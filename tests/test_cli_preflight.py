@@ -331,3 +331,71 @@ def test_preflight_json_on_failure_still_lists_every_check(tmp_path: Path, small
     assert report["ok"] is False and report["exit_code"] == 3
     statuses = {c["name"]: c["status"] for c in report["checks"]}
     assert list(statuses) == list(CHECKS) and statuses["fdr"] == "fail"
+
+
+def _map_centre(cache: Path) -> tuple[float, float]:
+    west, south, east, north = json.loads((cache / "manifest.json").read_text())["bbox_lonlat"]
+    return (south + north) / 2.0, (west + east) / 2.0
+
+
+def test_preflight_start_point_off_the_map_exits_3(tmp_path: Path, small_cache: Path) -> None:
+    """A configured start point thousands of km off the map fails the start_point row (it passed)."""
+    proc = _preflight(tmp_path, small_cache, "init.lat_deg=10.0", "init.lon_deg=10.0")
+    row = _failure(proc, 3, "start_point")
+    assert "init.lat_deg/lon_deg" in row and "km off the map" in row
+
+
+def test_preflight_start_point_on_the_map_passes(tmp_path: Path, small_cache: Path) -> None:
+    """The map's centre as the start point passes; with no start point and --offline the row is skipped
+    (HOME_POSITION comes from the autopilot)."""
+    lat, lon = _map_centre(small_cache)
+    proc = _preflight(tmp_path, small_cache, f"init.lat_deg={lat}", f"init.lon_deg={lon}")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    row = _rows(proc.stdout)["start_point"]
+    assert row[0] == "PASS" and row[1].endswith(f"init.lat_deg/lon_deg {lat:.6f}, {lon:.6f}: on the map")
+    rows = _rows(_preflight(tmp_path, small_cache).stdout)
+    assert rows["start_point"][0] == "SKIP" and "HOME_POSITION" in rows["start_point"][1]
+
+
+def _fdr_segment(fdr: Path, *extra: bytes) -> None:
+    from gps_denied_onboard.components.c13_fdr import FlightDataRecorder
+
+    with FlightDataRecorder(fdr, max_bytes=1 << 20, segment_bytes=1 << 16) as rec:
+        rec.record("pipeline.frame", {"frame_seq": 1})
+    with sorted(fdr.glob("fdr-*.jsonl"))[-1].open("ab") as fh:
+        for line in extra:
+            fh.write(line)
+
+
+def test_preflight_fdr_with_a_corrupt_line_exits_3(tmp_path: Path, small_cache: Path) -> None:
+    """A deeply nested FDR line (it crashed `gdnav run` at every start, and preflight passed it) fails
+    the fdr row, naming the segment and line."""
+    fdr = tmp_path / "fdr"
+    _fdr_segment(fdr, b'{"t_unix_s":1.0,"kind":"x","v":' + b"[" * 50_000 + b"]" * 50_000 + b"}\n")
+    row = _failure(_preflight(tmp_path, small_cache, f"fdr.dir={fdr}"), 3, "fdr")
+    assert "never writes" in row and "nested too deeply" in row and ".jsonl:4" in row
+
+
+def test_preflight_fdr_with_a_torn_line_passes(tmp_path: Path, small_cache: Path) -> None:
+    """A line torn by a crash is what the recorder expects: the fdr row passes and counts it."""
+    fdr = tmp_path / "fdr"
+    _fdr_segment(fdr, b'{"t_unix_s":1.0,"kind":"mavlink.est\n')
+    proc = _preflight(tmp_path, small_cache, f"fdr.dir={fdr}")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    row = _rows(proc.stdout)["fdr"]
+    assert row[0] == "PASS" and "3 records in 1 segment(s) read, 1 torn line(s) skipped" in row[1]
+
+
+def test_preflight_fdr_segment_that_cannot_be_read_exits_3(tmp_path: Path, small_cache: Path) -> None:
+    """A segment the user cannot read (here: a directory under a segment's name) fails the fdr row."""
+    fdr = tmp_path / "fdr"
+    _fdr_segment(fdr)
+    (fdr / "fdr-20990101T000000.000Z-000001.jsonl").mkdir()
+    row = _failure(_preflight(tmp_path, small_cache, f"fdr.dir={fdr}"), 3, "fdr")
+    assert "fdr-20990101T000000.000Z-000001.jsonl" in row and "cannot be read" in row
+
+
+def test_preflight_misspelt_rerank_strategy_fails_the_config_row(tmp_path: Path, small_cache: Path) -> None:
+    """A rerank.strategy `run` refuses fails preflight's config row too (exit 3, as `run`)."""
+    row = _failure(_preflight(tmp_path, small_cache, "rerank.strategy=inlier"), 3, "config")
+    assert "rerank.strategy" in row and "'inlier'" in row

@@ -15,7 +15,9 @@ probe, so a pass means ``gdnav run`` gets past the same step:
   that every chip will be extracted live (a frame then costs N extractions more), under ``require`` fails;
 - ``calibration``: the calibration file (or the ``intrinsics`` block) gives a usable camera model;
 - ``signing_key``: the MAVLink signing key file, when configured, is a private 32-byte key;
-- ``fdr``: the FDR directory is writable by this user and its file system has room for ``fdr.max_bytes``;
+- ``fdr``: the FDR directory is writable by this user, its file system has room for ``fdr.max_bytes``, and
+  every segment in it reads: a segment this user cannot read, or a line the recorder never writes (over
+  its size bound, nested past the parser, JSON that is no record), fails; torn lines from a crash pass;
 - ``mavlink_port``: a ``udpin:``/``udp:`` port no other socket holds, a serial device that opens, a
   ``tcp:`` endpoint that accepts a connection (online only);
 - ``camera`` and ``autopilot`` (online only; ``--offline`` skips them): the camera delivers one frame of
@@ -72,6 +74,7 @@ CHECKS: Final[tuple[str, ...]] = (
     "mavlink_port",
     "camera",
     "autopilot",
+    "start_point",
 )
 #: Checks that need the camera and the autopilot to be there; ``--offline`` skips them.
 ONLINE_CHECKS: Final[frozenset[str]] = frozenset({"camera", "autopilot"})
@@ -151,6 +154,13 @@ def _mib(n_bytes: float) -> str:
 
 
 # --- offline checks -------------------------------------------------------------------------------------
+
+
+def _check_names(config: Config) -> str:
+    from gps_denied_onboard.runtime_root.compose import _check_strategy_names
+
+    _check_strategy_names(config)  # as compose_root refuses them
+    return f"valid (profile {config.profile})"
 
 
 def _check_cache(config: Config, opened: dict[str, Any]) -> str:
@@ -288,6 +298,7 @@ def _check_fdr(config: Config) -> str:
                 f"{d} does not exist and cannot be created in {parent}: {exc.strerror}"
             ) from exc
         where, writable = parent, f"{d} can be created"
+    read = _read_fdr(d) if d.is_dir() else "nothing recorded yet"
     # The recorder keeps every segment under max_bytes, its own earlier ones included: they count as room.
     recorded = sum(p.stat().st_size for p in list_segments(d))
     needed = max(0, config.fdr.max_bytes - recorded)
@@ -298,7 +309,55 @@ def _check_fdr(config: Config) -> str:
             f"{_mib(free)} free on the file system of {where}, {_mib(needed)} needed ({budget}): "
             f"{_mib(needed - free)} missing"
         )
-    return f"{writable}; {_mib(free)} free >= {_mib(needed)} needed ({budget})"
+    return f"{writable}; {read}; {_mib(free)} free >= {_mib(needed)} needed ({budget})"
+
+
+def _read_fdr(d: Path) -> str:
+    """Read every segment as the readers do (``c13_fdr.reader.scan``): fails on what the daemon's
+    start-up read would have to skip for a reason other than a torn write."""
+    from gps_denied_onboard.components.c13_fdr.reader import scan
+
+    found = scan(d)
+    if found.unreadable_segments:
+        more = len(found.unreadable_segments) - 1
+        raise CheckFailed(
+            f"{found.unreadable_segments[0]}: segment cannot be read"
+            + (f" (and {more} more)" if more else "")
+        )
+    if found.corrupt_lines:
+        raise CheckFailed(
+            f"{found.corrupt_lines} line(s) the recorder never writes, first {found.first_corrupt}: "
+            "damaged or tampered; move the segment away"
+        )
+    torn = f", {found.torn_lines} torn line(s) skipped" if found.torn_lines else ""
+    return f"{found.records} records in {found.segments} segment(s) read{torn}"
+
+
+def _check_start_point(config: Config, opened: dict[str, Any], *, offline: bool) -> str:
+    from gps_denied_onboard.geo import haversine_m
+
+    init = config.init
+    if init.lat_deg is not None and init.lon_deg is not None:
+        lat, lon, what = init.lat_deg, init.lon_deg, "init.lat_deg/lon_deg"
+    elif not init.use_home_position:
+        raise _Skipped("none configured (init.use_home_position: false): the search starts on the whole map")
+    elif opened.get("home") is None:
+        why = "skipped with --offline" if offline else "not received during the autopilot check"
+        raise _Skipped(f"HOME_POSITION is the start point: {why}")
+    else:
+        lat, lon, what = opened["home"][0], opened["home"][1], "HOME_POSITION"
+    west, south, east, north = _opened_tiles(opened).bbox_lonlat
+    near_lat, near_lon = min(max(lat, south), north), min(max(lon, west), east)
+    off_m = float(haversine_m(lat, lon, near_lat, near_lon))
+    where = f"{what} {lat:.6f}, {lon:.6f}"
+    extent = f"the map covers W {west:.5f} S {south:.5f} E {east:.5f} N {north:.5f}"
+    if off_m > init.sigma_m:
+        raise CheckFailed(
+            f"{where} is {off_m / 1000.0:.1f} km off the map ({extent}; init.sigma_m {init.sigma_m:g} m)"
+        )
+    if off_m > 0.0:
+        return f"{where}: {off_m:.0f} m off the map's edge, within init.sigma_m ({init.sigma_m:g} m)"
+    return f"{where}: on the map"
 
 
 def _check_mavlink_port(config: Config, *, offline: bool, timeout_s: float) -> str:
@@ -362,7 +421,7 @@ async def _check_camera(config: Config, timeout_s: float) -> str:
     return f"{w}x{h} px frame decoded after {waited:.2f} s"
 
 
-def _check_autopilot(config: Config, timeout_s: float) -> str:
+def _check_autopilot(config: Config, timeout_s: float, opened: dict[str, Any] | None = None) -> str:
     from gps_denied_onboard.components.c8_mavlink import MavlinkLink, TimeSource
     from gps_denied_onboard.runtime_root.compose import make_tracker
 
@@ -388,6 +447,8 @@ def _check_autopilot(config: Config, timeout_s: float) -> str:
             time.sleep(_POLL_INTERVAL_S)
     finally:
         link.close()
+    if opened is not None:
+        opened["home"] = tracker.home()  # for the start_point check: None when none came
     who = f"system {config.mavlink.autopilot_system_id}"
     if heartbeat_s is None:
         raise CheckFailed(f"no HEARTBEAT from {who} within {timeout_s:g} s")
@@ -402,7 +463,9 @@ def _check_autopilot(config: Config, timeout_s: float) -> str:
     return f"HEARTBEAT from {who} after {heartbeat_s:.2f} s, TIMESYNC answered after {time_s:.2f} s{rtt_txt}"
 
 
-async def _online(config: Config, timeout_s: float) -> tuple[CheckResult, CheckResult]:
+async def _online(
+    config: Config, timeout_s: float, opened: dict[str, Any] | None = None
+) -> tuple[CheckResult, CheckResult]:
     """The camera and the autopilot checks, side by side (each waits up to ``timeout_s``)."""
 
     async def camera() -> CheckResult:
@@ -414,7 +477,7 @@ async def _online(config: Config, timeout_s: float) -> tuple[CheckResult, CheckR
         return CheckResult("camera", Status.PASS, config.camera.source, detail, time.monotonic() - t0)
 
     autopilot = asyncio.to_thread(
-        _run_check, "autopilot", config.mavlink.url, lambda: _check_autopilot(config, timeout_s)
+        _run_check, "autopilot", config.mavlink.url, lambda: _check_autopilot(config, timeout_s, opened)
     )
     cam, ap = await asyncio.gather(camera(), autopilot)
     return cam, ap
@@ -427,7 +490,7 @@ def run_checks(config: Config, checked_config: str, *, offline: bool, timeout_s:
     """Every check after ``config`` (already loaded), in ``CHECKS`` order."""
     opened: dict[str, Any] = {}  # the cache and the resolved matcher, once, for the checks that use them
     results = [
-        CheckResult("config", Status.PASS, checked_config, f"valid (profile {config.profile})"),
+        _run_check("config", checked_config, lambda: _check_names(config)),
         _run_check("cache", config.cache.dir, lambda: _check_cache(config, opened)),
         _run_check(
             "models", f"matcher.strategy {config.matcher.strategy}", lambda: _check_models(config, opened)
@@ -461,7 +524,15 @@ def run_checks(config: Config, checked_config: str, *, offline: bool, timeout_s:
             CheckResult("autopilot", Status.SKIP, config.mavlink.url, "skipped (--offline)"),
         ]
     else:
-        results += asyncio.run(_online(config, timeout_s))
+        results += asyncio.run(_online(config, timeout_s, opened))
+    checked = (
+        "init.lat_deg/lon_deg"
+        if config.init.lat_deg is not None and config.init.lon_deg is not None
+        else "HOME_POSITION"
+    )
+    results.append(
+        _run_check("start_point", checked, lambda: _check_start_point(config, opened, offline=offline))
+    )
     return results
 
 
