@@ -269,6 +269,11 @@ def _matcher_deps(
     runtime = pre.get("c7_inference") or OnnxInferenceRuntime(
         intra_op_threads=config.daemon.onnx_intra_op_threads
     )
+    deps.update(inference_runtime=runtime)
+    if config.matcher.strategy in matcher_registry.available_strategies() and not matcher_registry.takes(
+        config.matcher.strategy, "lightglue_runtime"
+    ):
+        return deps  # it matches by its own rule (xfeat_mnn): no LightGlue model is loaded
     lightglue = pre.get("c3_lightglue_runtime")
     if lightglue is None:
         # Without a LightGlue model the helper matches by mutual nearest neighbour (logged by the helper).
@@ -279,11 +284,6 @@ def _matcher_deps(
         lightglue = LightGlueRuntime(
             runtime, config.matcher.lightglue_weights_path, mnn_min_similarity=mnn, descriptor_dim=dim
         )
-    deps.update(inference_runtime=runtime)
-    if config.matcher.strategy in matcher_registry.available_strategies() and not matcher_registry.takes(
-        config.matcher.strategy, "lightglue_runtime"
-    ):
-        return deps  # it matches by its own rule (xfeat_mnn): no LightGlue model is loaded
     deps.update(lightglue_runtime=lightglue)
     return deps
 
@@ -293,7 +293,11 @@ _EXTRACTOR_FIELD = {
     "disk_lightglue": "disk_weights_path",
     "aliked_lightglue": "aliked_weights_path",
     "xfeat": "xfeat_weights_path",
+    "xfeat_mnn": "xfeat_weights_path",
 }
+#: Strategies that run another strategy's extractor without its LightGlue: they take that family's
+#: extractor from the model directory and use that strategy's precomputed tile features.
+_EXTRACTOR_OF = {"xfeat_mnn": "xfeat"}
 
 
 def _family_paths(
@@ -303,11 +307,7 @@ def _family_paths(
 
     A family export (extractor + its LightGlue) wins; for ``aliked_lightglue`` a lone ALIKED extractor
     (``gdnav models export --weights-dir``) is the fallback, matched by mutual nearest neighbour."""
-    "xfeat_mnn": "xfeat_weights_path",
     family = next(f for f, s in FAMILY_STRATEGY.items() if s == _EXTRACTOR_OF.get(strategy, strategy))
-#: Strategies that run another strategy's extractor without its LightGlue: they take that family's
-#: extractor from the model directory and use that strategy's precomputed tile features.
-_EXTRACTOR_OF = {"xfeat_mnn": "xfeat"}
     found = family_models(entries, family)
     root = Path(str(m.model_dir))
     if found is not None:
@@ -506,6 +506,7 @@ def make_tracker(config: Config, clock: DaemonClock | None = None) -> VehicleSta
         altitude_max_age_s=config.mavlink.altitude_max_age_s,
         link_timeout_s=config.mavlink.link_timeout_s,
         clock=(clock or DaemonClock()).now_unix_s,
+        autopilot_clock=AutopilotClock(),
     )
 
 
@@ -525,7 +526,6 @@ def open_camera_source(config: Config) -> FrameSource:
 
 def _time_axis(
     config: Config,
-        autopilot_clock=AutopilotClock(),
     ltp: LocalTangentPlane,
     journal: Any | None,
     *,
