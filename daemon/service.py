@@ -11,7 +11,8 @@ Tasks:
 - ``estimate_output``: the estimate propagated to the send time, at ``mavlink.estimate_rate_hz`` on
   absolute deadlines, whatever the frames do (ArduPilot needs >= 5 Hz with little jitter);
 - ``mavlink_rx`` (drains the link whenever its socket is readable), ``mavlink_tx`` (own HEARTBEAT),
-  ``status`` (status log, ground-station values, systemd watchdog).
+  ``status`` (status log, ground-station values, systemd watchdog), ``resume_state`` (the last 3D estimate
+  to its state file, about once a second, off the loop: F8).
 Leaving ``run`` cancels and awaits every task; only CancelledError is swallowed. A failing task is
 logged with its name and stops the daemon (systemd restarts it: F8).
 """
@@ -33,12 +34,18 @@ from gps_denied_onboard.camera.sources import CapturedFrame
 from gps_denied_onboard.camera.stream import FrameStreamError
 from gps_denied_onboard.camera.types import NavCameraFrame
 from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeVerdict
-from gps_denied_onboard.components.c5_estimator.prior import InitialPrior, PriorSource, choose_prior
+from gps_denied_onboard.components.c5_estimator.prior import (
+    InitialPrior,
+    PriorSource,
+    ResumeState,
+    choose_prior,
+    in_the_air,
+)
 from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxisStats
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c8_mavlink.messages import fix_type_for
 from gps_denied_onboard.components.c13_fdr import FdrHealth
-from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
+from gps_denied_onboard.constants import RESUME_STATE_INTERVAL_S, FdrKind, LogEvent, Provenance
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.worker import WorkerThread
@@ -101,6 +108,10 @@ class NavDaemon:
         #: F8: when the autopilot was first / last asked for its estimate after a restart (daemon clock, s).
         self._asked_autopilot_first_s: float | None = None
         self._asked_autopilot_last_s: float | None = None
+        #: F8: when the autopilot was last asked for its landed state (daemon clock, s).
+        self._asked_phase_s: float | None = None
+        #: F8: the last estimate sent as a 3D fix and its provenance, for the resume state file.
+        self._last_3d: tuple[ResumeState, str] | None = None
         #: Worker threads still inside a frame when the daemon stopped (see ``run``).
         self.abandoned_threads: list[str] = []
         #: Tasks that ignored their cancellation within the stop grace (the caller must not wait on them).
@@ -128,6 +139,8 @@ class NavDaemon:
             "mavlink_tx": self._mavlink_tx(),
             "status": self._status(),
         }
+        if self._root.resume_state is not None:
+            bodies["resume_state"] = self._keep_resume_state()
         tasks = {name: asyncio.create_task(body, name=name) for name, body in bodies.items()}
         stopper = asyncio.create_task(stop.wait(), name="stop")
         self._notifier.ready(f"matcher={self._cfg.matcher.strategy} tiles={len(self._root.tile_store)}")
@@ -228,20 +241,29 @@ class NavDaemon:
 
     def _prior(self, exposure_time_unix_usec: int) -> InitialPrior | None:
         """The start-up prior (F8 rules in ``c5_estimator.prior``); None while the autopilot has not
-        told enough yet to decide (no HOME_POSITION or altitude, and no previous run to resume)."""
+        told enough yet to decide (not known to be on the ground or in the air, or no HOME_POSITION, and no
+        previous run to resume)."""
         if self._axis.is_initialised:
             return None
         tracker = self._root.tracker
         home = tracker.home() if self._cfg.init.use_home_position else None
         alt_agl_m = tracker.alt_agl_at(exposure_time_unix_usec)
+        now_s = self._clock.now_unix_s()
+        phase = tracker.flight_phase(now_s)
+        air = in_the_air(self._cfg.init, alt_agl_m, phase)
+        if self._asked_phase_s is None or now_s - self._asked_phase_s >= 1.0:
+            # ArduPilot streams EXTENDED_SYS_STATE only where its stream rates say so: ask, at 1 Hz, until
+            # the estimator has started.
+            self._root.link.request_flight_phase()
+            self._asked_phase_s = now_s
         tiles = self._root.tile_store
         _west, _south, east, north = tiles.bbox_lonlat
         centre_lon, centre_lat = tiles.center_lonlat
         radius_m = float(haversine_m(centre_lat, centre_lon, north, east))
         autopilot = None
-        if self._root.previous_run.last_record_unix_s is not None and self._cfg.init.autopilot_wait_s > 0:
-            # A restart, perhaps in flight: ask the autopilot for its estimate, and wait a little for it.
-            now_s = self._clock.now_unix_s()
+        restarted = self._root.previous_run.last_record_unix_s is not None
+        if (restarted or air) and self._cfg.init.autopilot_wait_s > 0:
+            # A restart or a start in flight: ask the autopilot for its estimate, and wait a little for it.
             autopilot = tracker.autopilot_position(now_s)
             if autopilot is None:
                 if self._asked_autopilot_first_s is None:
@@ -260,9 +282,10 @@ class NavDaemon:
             map_centre_lat_lon=(centre_lat, centre_lon),
             map_radius_m=radius_m,
             autopilot=autopilot,
+            phase=phase,
         )
-        if prior.source == PriorSource.MAP_EXTENT and self._root.previous_run.last_record_unix_s is None:
-            return None  # a cold start without a start point yet: wait for HOME_POSITION, do not guess
+        if prior.source == PriorSource.MAP_EXTENT and not restarted and not air:
+            return None  # a cold start not known to be in the air: wait for HOME_POSITION and the ground
         return prior
 
     def _announce_prior(self, prior: InitialPrior) -> None:
@@ -493,12 +516,16 @@ class NavDaemon:
             )
             self._root.link.notify_provenance(old, new, f"GDN: {new.value}: {reason}" if reason else None)
         horiz = state.horiz_sigma_m if math.isfinite(state.lat_deg) else None
+        fix_type = fix_type_for(new, horiz if horiz is not None else math.inf)
+        if fix_type == 3 and horiz is not None:
+            resume = ResumeState(state.lat_deg, state.lon_deg, horiz, state.time_unix_usec)
+            self._last_3d = (resume, new.value)
         self._root.fdr.record(
             FdrKind.ESTIMATE_SENT,
             {
                 "time_unix_usec": state.time_unix_usec,
                 "provenance": new.value,
-                "fix_type": fix_type_for(new, horiz if horiz is not None else math.inf),
+                "fix_type": fix_type,
                 "lat_deg": state.lat_deg if horiz is not None else None,
                 "lon_deg": state.lon_deg if horiz is not None else None,
                 "horiz_sigma_m": horiz,
@@ -506,6 +533,23 @@ class NavDaemon:
                 "sent": sent,
             },
         )
+
+    async def _keep_resume_state(self) -> None:
+        """The last 3D estimate sent, to the resume state file about once a second (F8): atomic and
+        fsynced, so on the ``resume_state`` worker thread, never on the loop."""
+        store = self._root.resume_state
+        if store is None:
+            raise RuntimeError("resume_state task started without a state file")
+        written: tuple[ResumeState, str] | None = None
+        while True:
+            await asyncio.sleep(RESUME_STATE_INTERVAL_S)
+            latest = self._last_3d
+            if latest is None or latest is written:
+                continue
+            await asyncio.to_thread(
+                store.write, latest[0], provenance=latest[1], written_unix_s=self._clock.now_unix_s()
+            )
+            written = latest
 
     async def _mavlink_rx(self) -> None:
         loop = asyncio.get_running_loop()

@@ -116,14 +116,19 @@ class SimAutopilot:
     def _boot_ms(self, now_unix_s: float) -> int:
         return max(0, int((now_unix_s - self.boot_time_unix_s) * 1000))
 
-    def send_heartbeat(self) -> None:
+    def send_heartbeat(self, *, armed: bool = True) -> None:
+        armed_flag = mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0
         self.mav.heartbeat_send(
             mavutil.mavlink.MAV_TYPE_QUADROTOR,
             mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-            mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED,
+            mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | armed_flag,
             4,
-            mavutil.mavlink.MAV_STATE_ACTIVE,
+            mavutil.mavlink.MAV_STATE_ACTIVE if armed else mavutil.mavlink.MAV_STATE_STANDBY,
         )
+
+    def send_extended_sys_state(self, landed_state: int) -> None:
+        """EXTENDED_SYS_STATE: no VTOL, ``landed_state`` (MAV_LANDED_STATE)."""
+        self.mav.extended_sys_state_send(mavutil.mavlink.MAV_VTOL_STATE_UNDEFINED, landed_state)
 
     def send_system_time(self, now_unix_s: float) -> None:
         self.mav.system_time_send(int((now_unix_s + self.unix_offset_s) * 1e6), self._boot_ms(now_unix_s))
@@ -192,14 +197,14 @@ class SimAutopilot:
                     continue
                 n += 1
                 self.received.append(ReceivedMessage(stamp, msg.get_type(), msg.to_dict()))
+                if msg.get_type() == "TIMESYNC" and int(msg.tc1) == 0:
+                    boot_ns = max(0, int((stamp - self.boot_time_unix_s) * 1e9))
+                    self.mav.timesync_send(boot_ns, int(msg.ts1))
+                    self.timesync_answered += 1
         return n
 
     def of_type(self, *types: str) -> list[ReceivedMessage]:
         return [m for m in self.received if m.type in types]
 
-                if msg.get_type() == "TIMESYNC" and int(msg.tc1) == 0:
-                    boot_ns = max(0, int((stamp - self.boot_time_unix_s) * 1e9))
-                    self.mav.timesync_send(boot_ns, int(msg.ts1))
-                    self.timesync_answered += 1
     def close(self) -> None:
         self._conn.close()

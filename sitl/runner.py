@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pymavlink import mavutil
 
 from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.components.c13_fdr import read_records
@@ -60,9 +61,9 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO_ROOT / "config" / "sitl.yaml"
 DAEMON_READY_TIMEOUT_S = 90.0
 DAEMON_STOP_TIMEOUT_S = 10.0
-ATTITUDE_HZ = 50.0
 #: prctl option: the signal a child gets when its parent dies (linux/prctl.h).
 _PR_SET_PDEATHSIG = 1
+ATTITUDE_HZ = 50.0
 #: How often the daemon's resident memory is sampled, s.
 RSS_SAMPLE_S = 5.0
 #: RSS growth is measured from this far into the flight (start-up and caches warm first), s.
@@ -110,7 +111,6 @@ class SitlOptions:
     cache_root: Path | None = None
 
 
-def _free_udp_port() -> int:
 def _die_with_parent() -> None:
     """In the child before exec: SIGTERM when the process that started it dies (Linux
     ``PR_SET_PDEATHSIG``), so a runner killed outright leaves no daemon behind."""
@@ -126,6 +126,7 @@ def spawn_daemon(cmd: list[str], log_file: Any, env: dict[str, str]) -> subproce
     return subprocess.Popen(cmd, stdout=log_file, stderr=log_file, env=env, preexec_fn=preexec)
 
 
+def _free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
@@ -258,15 +259,23 @@ class _Flight:
                 ap.send_attitude(now, truth.roll_rad + d_roll, truth.pitch_rad + d_pitch, truth.yaw_rad)
             ap.send_highres_imu(now, self._specific_force_body(t_s, truth))
         if full:
-            alt_rel = truth.alt_agl_m  # home is on the flat ground
-            ap.send_altitude(now, truth.alt_amsl_m, alt_rel, truth.alt_agl_m)
-            speed = float(np.hypot(truth.vel_ned_m_s[0], truth.vel_ned_m_s[1]))
-            ap.send_vfr_hud(
-                speed,
-                float(np.degrees(truth.yaw_rad)) % 360.0,
-                truth.alt_amsl_m,
-                -float(truth.vel_ned_m_s[2]),
-            )
+            if flying:
+                alt_rel = truth.alt_agl_m  # home is on the flat ground
+                ap.send_altitude(now, truth.alt_amsl_m, alt_rel, truth.alt_agl_m)
+                speed = float(np.hypot(truth.vel_ned_m_s[0], truth.vel_ned_m_s[1]))
+                ap.send_vfr_hud(
+                    speed,
+                    float(np.degrees(truth.yaw_rad)) % 360.0,
+                    truth.alt_amsl_m,
+                    -float(truth.vel_ned_m_s[2]),
+                )
+            else:  # before the flight the vehicle stands at home (where the flight starts), disarmed
+                ground = truth.alt_amsl_m - truth.alt_agl_m
+                ap.send_altitude(now, ground, 0.0, 0.0)
+                ap.send_vfr_hud(0.0, float(np.degrees(truth.yaw_rad)) % 360.0, ground, 0.0)
+            m = mavutil.mavlink
+            landed = m.MAV_LANDED_STATE_IN_AIR if flying else m.MAV_LANDED_STATE_ON_GROUND
+            ap.send_extended_sys_state(landed)
 
     async def _telemetry(self, ap: SimAutopilot, stop: asyncio.Event) -> None:
         home = self.traj.truth_at(0.0)
@@ -280,7 +289,7 @@ class _Flight:
                 full = k % int(ATTITUDE_HZ / ALTITUDE_HZ) == 0
                 self._send_telemetry(ap, now, full=full)
                 if k % int(ATTITUDE_HZ) == 0:
-                    ap.send_heartbeat()
+                    ap.send_heartbeat(armed=bool(self.t0_unix_s))
                     ap.send_system_time(now)
                 if k % int(2 * ATTITUDE_HZ) == 0:
                     ap.send_home(home.lat_deg, home.lon_deg, self.ground_alt_amsl_m)
@@ -433,7 +442,9 @@ class _Flight:
             t_kill = time.time()
             old.kill()
             await asyncio.get_running_loop().run_in_executor(None, old.wait)
-            procs.append(subprocess.Popen(cmd, stdout=log_file, stderr=log_file, env=self._daemon_env()))
+            if at_s in self.scenario.daemon_restarts_wipe_fdr:  # a restart with no FDR at all
+                shutil.rmtree(self.workdir / "fdr", ignore_errors=True)
+            procs.append(spawn_daemon(cmd, log_file, self._daemon_env()))
             self.restarts.append({"killed_unix_s": t_kill, "restarted_unix_s": time.time()})
             self._say(f"daemon killed (SIGKILL) at {at_s:.1f} s and restarted: pid {procs[-1].pid}")
 

@@ -86,8 +86,10 @@ number is expected.
     Time windows in which the nav image is degraded (``sitl.photometric.degrade_for_gap``):
     ``{from_s: number >= 0, to_s: number > from_s, kind: featureless | blackout}``.
 ``daemon_restarts`` (list, default [])
-    ``{at_s: number > 0}``: the daemon is killed with SIGKILL at ``at_s`` and started again at once with
-    the same command, as systemd's ``Restart=`` does (F8 restart recovery).
+    ``{at_s: number > 0, wipe_fdr: bool = false}``: the daemon is killed with SIGKILL at ``at_s`` and started
+    again at once with the same command, as systemd's ``Restart=`` does (F8 restart recovery). With
+    ``wipe_fdr`` its FDR directory (and the resume state file in it) is deleted in between: a restart
+    with no FDR at all.
 ``faults`` (list, default [])
     Faults the soak injects, each ``{kind, ...}``. Windows ``{from_s, to_s}``: ``camera_stall`` (no frames;
     with ``reconnect: true`` the camera connection is dropped at its start and the daemon must reconnect),
@@ -604,10 +606,10 @@ class Scenario:
     turn_rate_deg_s: float = 15.0
     ground_alt_amsl_m: float | None = None
     start_delay_s: float = 2.0
-    camera: CameraSpec = field(default_factory=CameraSpec)
-    attitude_wobble: WobbleSpec = field(default_factory=WobbleSpec)
     autopilot_unix_offset_s: float = 0.0
     camera_stamp_offset_s: float = 0.0
+    camera: CameraSpec = field(default_factory=CameraSpec)
+    attitude_wobble: WobbleSpec = field(default_factory=WobbleSpec)
     photometric: PhotometricParams = field(default_factory=PhotometricParams)
     map_gaps: tuple[MapGap, ...] = ()
     map_edits: tuple[MapEdit, ...] = ()
@@ -616,6 +618,8 @@ class Scenario:
     faults: tuple[Fault, ...] = ()
     #: Flight times at which the daemon is killed (SIGKILL) and restarted, s.
     daemon_restarts_s: tuple[float, ...] = ()
+    #: The restarts (by time) before which the FDR directory is deleted.
+    daemon_restarts_wipe_fdr: frozenset[float] = frozenset()
     #: File the scenario was read from (None when built from a mapping).
     source: str | None = field(default=None, compare=False)
 
@@ -1053,15 +1057,23 @@ def _read_faults(value: object, source: str | None) -> tuple[Fault, ...]:
     return tuple(faults)
 
 
-def _read_restarts(value: object, source: str | None) -> tuple[float, ...]:
+def _read_restarts(value: object, source: str | None) -> tuple[tuple[float, ...], frozenset[float]]:
+    """(restart times, sorted; the times of those with ``wipe_fdr``)."""
     if not isinstance(value, list):
         raise ScenarioError("daemon_restarts", f"expected a list, got {_type_name(value)}", source=source)
     times = []
+    wipes = set()
     for i, raw in enumerate(value):
         b = _Block(raw, f"daemon_restarts[{i}]", source)
-        times.append(b.number("at_s", gt=0.0))
+        at_s = b.number("at_s", gt=0.0)
+        wipe = b.get("wipe_fdr", False)
+        if not isinstance(wipe, bool):
+            raise b.error("wipe_fdr", f"expected true or false, got {wipe!r}")
+        times.append(at_s)
+        if wipe:
+            wipes.add(at_s)
         b.finish()
-    return tuple(sorted(times))
+    return tuple(sorted(times)), frozenset(wipes)
 
 
 def _read_gaps(value: object, source: str | None) -> tuple[MapGap, ...]:
@@ -1097,6 +1109,8 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     turn = root.number("turn_rate_deg_s", 15.0, gt=0.0)
     ground = root.number("ground_alt_amsl_m", None, nullable=True)
     delay = root.number("start_delay_s", 2.0, ge=0.0)
+    ap_unix_offset = root.number("autopilot_unix_offset_s", 0.0)
+    cam_offset = root.number("camera_stamp_offset_s", 0.0, ge=-1.0, le=1.0)
 
     cam = root.block("camera")
     camera = CameraSpec(
@@ -1109,8 +1123,6 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     wob = root.block("attitude_wobble")
     wobble = WobbleSpec(
         wob.number("roll_amp_deg", 0.0, ge=0.0, lt=45.0),
-    ap_unix_offset = root.number("autopilot_unix_offset_s", 0.0)
-    cam_offset = root.number("camera_stamp_offset_s", 0.0, ge=-1.0, le=1.0)
         wob.number("pitch_amp_deg", 0.0, ge=0.0, lt=45.0),
         wob.number("period_s", 7.0, gt=0.0),
     )
@@ -1133,7 +1145,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     edits = _read_map_edits(root.get("map_edits", []), source)
     drops = _read_link_drops(root.get("link_drops", []), source)
     stamp_faults = _read_timestamp_faults(root.get("timestamp_faults", []), source)
-    restarts = _read_restarts(root.get("daemon_restarts", []), source)
+    restarts, restart_wipes = _read_restarts(root.get("daemon_restarts", []), source)
     faults = _read_faults(root.get("faults", []), source)
     root.finish()
     scenario = Scenario(
@@ -1149,6 +1161,8 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         turn_rate_deg_s=turn,
         ground_alt_amsl_m=ground,
         start_delay_s=delay,
+        autopilot_unix_offset_s=ap_unix_offset,
+        camera_stamp_offset_s=cam_offset,
         camera=camera,
         attitude_wobble=wobble,
         photometric=photometric,
@@ -1157,12 +1171,11 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         link_drops=drops,
         timestamp_faults=stamp_faults,
         daemon_restarts_s=restarts,
+        daemon_restarts_wipe_fdr=restart_wipes,
         faults=faults,
         source=source,
     )
     scenario.footprint_radius_m()  # rejects a camera + wobble that would see the horizon
-        autopilot_unix_offset_s=ap_unix_offset,
-        camera_stamp_offset_s=cam_offset,
     return scenario
 
 

@@ -16,9 +16,11 @@ from gps_denied_onboard.components.c5_estimator.prior import (
     ResumeState,
     choose_prior,
     read_previous_run,
+    with_resume_state,
 )
+from gps_denied_onboard.components.c5_estimator.resume_state import ResumeStateFile, read_resume_state
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
-from gps_denied_onboard.components.c8_mavlink.vehicle_state import AutopilotPosition
+from gps_denied_onboard.components.c8_mavlink.vehicle_state import AutopilotPosition, FlightPhase
 from gps_denied_onboard.components.c13_fdr import FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import InitConfig
 from gps_denied_onboard.geo import haversine_m
@@ -54,16 +56,16 @@ def test_prior_restarted_in_flight_never_claims_home_with_its_small_sigma() -> N
     )
     assert prior.source == PriorSource.MAP_EXTENT
     assert prior.sigma_m == 900.0
-    assert "restarted in flight" in prior.why and "old" in prior.why
+    assert "in the air after a restart" in prior.why and "old" in prior.why
 
 
 def test_prior_cold_start_and_ground_restart_use_home() -> None:
-    """Cold start (no previous run): home, assumed before take-off. After a restart on the ground
-    (<= 10 m above home) home is right again."""
+    """Cold start on the ground (<= 10 m above home): home with init.sigma_m. After a restart on the
+    ground home is right again."""
     cold = choose_prior(
-        now_unix_usec=NOW, init=InitConfig(), previous=NO_RUN, home=HOME, alt_agl_m=120.0, **MAP
+        now_unix_usec=NOW, init=InitConfig(), previous=NO_RUN, home=HOME, alt_agl_m=0.3, **MAP
     )
-    assert cold.source == PriorSource.HOME and cold.sigma_m == 50.0 and "cold start" in cold.why
+    assert cold.source == PriorSource.HOME and cold.sigma_m == 50.0 and cold.why == "on the ground"
     previous = PreviousRun(None, NOW / 1e6 - 5.0)
     ground = choose_prior(
         now_unix_usec=NOW, init=InitConfig(), previous=previous, home=HOME, alt_agl_m=0.5, **MAP
@@ -76,13 +78,110 @@ def test_prior_cold_start_and_ground_restart_use_home() -> None:
 
 
 def test_prior_configured_position_follows_the_same_rules_as_home() -> None:
-    """A configured start position wins over home, but only on a cold start or on the ground."""
+    """A configured start position wins over home, but only on the ground: in the air, with or without
+    a previous run, it is ignored."""
     init = InitConfig(lat_deg=46.9, lon_deg=7.9, sigma_m=20.0)
-    cold = choose_prior(now_unix_usec=NOW, init=init, previous=NO_RUN, home=HOME, alt_agl_m=80.0, **MAP)
+    cold = choose_prior(now_unix_usec=NOW, init=init, previous=NO_RUN, home=HOME, alt_agl_m=1.0, **MAP)
     assert (cold.source, cold.lat_deg, cold.sigma_m) == (PriorSource.CONFIG, 46.9, 20.0)
-    restarted = PreviousRun(None, NOW / 1e6 - 1.0)
-    air = choose_prior(now_unix_usec=NOW, init=init, previous=restarted, home=HOME, alt_agl_m=80.0, **MAP)
-    assert air.source == PriorSource.MAP_EXTENT and "config ignored" in air.why
+    for previous in (NO_RUN, PreviousRun(None, NOW / 1e6 - 1.0)):
+        air = choose_prior(now_unix_usec=NOW, init=init, previous=previous, home=HOME, alt_agl_m=80.0, **MAP)
+        assert air.source == PriorSource.MAP_EXTENT and "config ignored: in the air" in air.why
+
+
+def _phase(
+    armed: bool | None = None, landed: int | None = None, ground_ago_s: float | None = None
+) -> FlightPhase:
+    ground = None if ground_ago_s is None else NOW / 1e6 - ground_ago_s
+    return FlightPhase(armed, landed, ground)
+
+
+@pytest.mark.parametrize(
+    ("alt_agl_m", "phase"),
+    [
+        (120.0, None),  # 120 m above home, nothing else known
+        (None, _phase(True, DIALECT.MAV_LANDED_STATE_IN_AIR)),  # no height, but landed_state says flying
+        (3.0, _phase(True, DIALECT.MAV_LANDED_STATE_IN_AIR)),  # low, but flying
+        (120.0, _phase(False, DIALECT.MAV_LANDED_STATE_ON_GROUND)),  # a flying height wins over the rest
+    ],
+)
+def test_prior_in_the_air_with_no_record_covers_the_map_never_home(
+    alt_agl_m: float | None, phase: FlightPhase | None
+) -> None:
+    """Issue 27 defect: a start in the air with no record (full FDR disk, past the resume window) used
+    home with init.sigma_m as a "cold start". In the air with nothing to resume: the whole map."""
+    for previous in (NO_RUN, PreviousRun(_resume(600.0).last_3d, NOW / 1e6 - 600.0)):
+        prior = choose_prior(
+            now_unix_usec=NOW,
+            init=InitConfig(sigma_m=30.0),
+            previous=previous,
+            home=HOME,
+            alt_agl_m=alt_agl_m,
+            phase=phase,
+            **MAP,  # type: ignore[arg-type]
+        )
+        assert prior.source == PriorSource.MAP_EXTENT, prior
+        assert prior.sigma_m == 900.0 and "home_position ignored: in the air" in prior.why
+
+
+def test_prior_on_the_ground_by_landed_state_or_disarmed_uses_home() -> None:
+    """Height unknown: landed_state ON_GROUND, or a disarmed vehicle, is on the ground: home as before."""
+    for phase in (_phase(True, DIALECT.MAV_LANDED_STATE_ON_GROUND), _phase(False, None)):
+        prior = choose_prior(
+            now_unix_usec=NOW,
+            init=InitConfig(),
+            previous=NO_RUN,
+            home=HOME,
+            alt_agl_m=None,
+            phase=phase,
+            **MAP,
+        )
+        assert prior.source == PriorSource.HOME and prior.sigma_m == 50.0, prior
+    armed_only = choose_prior(
+        now_unix_usec=NOW,
+        init=InitConfig(),
+        previous=NO_RUN,
+        home=HOME,
+        alt_agl_m=None,
+        phase=_phase(True),
+        **MAP,
+    )
+    assert armed_only.source == PriorSource.MAP_EXTENT  # armed says nothing of flying: not known
+    assert "not known to be on the ground" in armed_only.why
+
+
+def test_prior_in_the_air_after_this_run_saw_the_ground_grows_home_sigma_at_top_speed() -> None:
+    """Seen on the ground by this run 4 s before its first frame: home, sigma hypot(30, 25 m/s x 4 s)."""
+    prior = choose_prior(
+        now_unix_usec=NOW,
+        init=InitConfig(sigma_m=30.0),
+        previous=NO_RUN,
+        home=HOME,
+        alt_agl_m=120.0,
+        phase=_phase(True, DIALECT.MAV_LANDED_STATE_IN_AIR, ground_ago_s=4.0),
+        **MAP,  # type: ignore[arg-type]
+    )
+    assert prior.source == PriorSource.HOME
+    assert prior.sigma_m == pytest.approx(math.hypot(30.0, 100.0))
+
+
+def test_prior_resumes_from_the_state_file_when_the_fdr_has_nothing(tmp_path: Path) -> None:
+    """The FDR recorded nothing (full disk): the resume state file's last 3D estimate is resumed from."""
+    store = ResumeStateFile(tmp_path / "resume_state.json")
+    t = NOW - 3_000_000
+    assert store.write(
+        ResumeState(47.002, 8.003, 4.0, t), provenance="satellite_anchored", written_unix_s=t / 1e6
+    )
+    state = read_resume_state(store.path, NOW / 1e6)
+    previous = with_resume_state(read_previous_run(read_records_newest_first(tmp_path / "fdr")), state)
+    assert previous == PreviousRun(ResumeState(47.002, 8.003, 4.0, t), t / 1e6)
+    prior = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(), previous=previous, home=HOME, alt_agl_m=120.0, **MAP
+    )
+    assert prior.source == PriorSource.RESUMED
+    assert prior.sigma_m == pytest.approx(math.hypot(4.0, 75.0))
+    older = PreviousRun(ResumeState(1.0, 1.0, 1.0, t - 10), t / 1e6)
+    assert with_resume_state(older, state).last_3d == state  # the newer of the two wins
+    assert with_resume_state(previous, None) == previous
 
 
 def test_previous_run_is_read_newest_first_from_a_real_recorder(tmp_path: Path) -> None:
@@ -198,6 +297,6 @@ def test_prior_restart_with_nothing_of_its_own_searches_the_map_from_the_autopil
 
 
 def test_prior_cold_start_does_not_use_the_autopilot_estimate() -> None:
-    """No previous run: the start-up rules are unchanged (home), the autopilot's estimate unused."""
+    """No previous run, on the ground: home, the autopilot's estimate unused."""
     prior = _after_restart(NO_RUN, _autopilot(47.3, 8.3), alt_agl_m=0.0)
     assert prior.source == PriorSource.HOME

@@ -181,15 +181,18 @@ class InitConfig:
     sigma_m: PosFloat = 50.0
     #: Use the autopilot's HOME_POSITION as the initial prior when no lat/lon is configured.
     use_home_position: Bool = True
-    #: Restart (F8): resume from the previous run's last 3D estimate (in the FDR) when it is at most
-    #: this old; a previous run recorded within it also means "restarted in flight", s.
+    #: Restart (F8): resume from the previous run's last 3D estimate (in the FDR or the resume state file)
+    #: when it is at most this old; a previous run recorded within it also means "restarted in flight", s.
     resume_max_age_s: PosFloat = 120.0
+    #: The resume state file: the last 3D estimate sent, rewritten atomically about once a second apart
+    #: from the FDR's low-disk policy; null = resume_state.json in fdr.dir.
+    resume_state_path: Str | None = None
     #: The vehicle's top ground speed: a resumed estimate's sigma grows by this times its age, m/s.
     max_speed_m_s: PosFloat = 25.0
-    #: At or below this height above home the vehicle is on the ground (where the configured position
-    #: and HOME_POSITION are valid priors even after a restart), m.
+    #: At or below this height above home, with no landed_state saying it flies, the vehicle is on the
+    #: ground: the only place where the configured position and HOME_POSITION are priors, m.
     on_ground_max_alt_agl_m: PosFloat = 10.0
-    #: After a restart in flight, ask the autopilot for its estimate (GLOBAL_POSITION_INT and
+    #: After a restart or a start in flight, ask the autopilot for its estimate (GLOBAL_POSITION_INT and
     #: EKF_STATUS_REPORT, MAV_CMD_REQUEST_MESSAGE) and wait at most this long for it before starting
     #: without it; 0 = do not ask, s.
     autopilot_wait_s: Annotated[float, Strict(), Field(ge=0, le=2)] = 1.0

@@ -19,6 +19,10 @@ STATUSTEXT_MIN_INTERVAL_S: Final[float] = 1.0
 GPS_INPUT_GPS_ID: Final[int] = 0
 #: SET_GPS_GLOBAL_ORIGIN is repeated at this interval until the autopilot reports GPS_GLOBAL_ORIGIN, s.
 SET_GPS_GLOBAL_ORIGIN_INTERVAL_S: Final[float] = 10.0
+#: F8 resume state file (``c5_estimator.resume_state``): its name in ``fdr.dir`` when
+#: ``init.resume_state_path`` is null, and how often it is rewritten at most, s.
+RESUME_STATE_FILENAME: Final[str] = "resume_state.json"
+RESUME_STATE_INTERVAL_S: Final[float] = 1.0
 
 #: Where a command's unexpected exception (a bug) keeps its traceback: the file this environment variable
 #: names, else DEBUG_LOG_FILENAME in $LOGS_DIRECTORY (systemd's LogsDirectory=), else in
@@ -131,6 +135,8 @@ class LogEvent:
     ESTIMATOR_INITIALISED: Final = "c5.estimator.initialised"
     #: Where the estimator started (F8: resumed, start point, or the whole map) and why.
     ESTIMATOR_PRIOR: Final = "c5.estimator.prior"
+    RESUME_STATE_REFUSED: Final = "c5.resume_state.refused"
+    RESUME_STATE_WRITE_FAILED: Final = "c5.resume_state.write_failed"
     ESTIMATOR_COVARIANCE_INFLATED: Final = "c5.estimator.covariance_inflated"
     ESTIMATOR_TIME_BACKWARDS: Final = "c5.estimator.time_backwards"
     ESTIMATOR_VO_REJECTED: Final = "c5.estimator.vo_rejected"

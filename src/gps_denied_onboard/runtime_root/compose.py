@@ -41,7 +41,12 @@ from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c5_estimator.journal import RecordingJournal
-from gps_denied_onboard.components.c5_estimator.prior import PreviousRun, read_previous_run
+from gps_denied_onboard.components.c5_estimator.prior import PreviousRun, read_previous_run, with_resume_state
+from gps_denied_onboard.components.c5_estimator.resume_state import (
+    ResumeStateFile,
+    default_path,
+    read_resume_state,
+)
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
 from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
@@ -90,6 +95,8 @@ class RuntimeRoot:
     previous_run: PreviousRun
     #: The daemon's one clock (monotonic, anchored to Unix time at start): every "now" comes from it.
     clock: DaemonClock = field(default_factory=DaemonClock)
+    #: F8: where the daemon keeps its last 3D estimate apart from the FDR (``c5_estimator.resume_state``).
+    resume_state: ResumeStateFile | None = None
 
     def close(self) -> None:
         self.link.close()
@@ -613,8 +620,16 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     center_lon, center_lat = tiles.center_lonlat
     ltp = LocalTangentPlane(center_lat, center_lon, config.terrain.ground_alt_amsl_m)
 
-    # F8: what the previous run left, read before this run records anything.
-    previous_run = read_previous_run(read_records_newest_first(config.fdr.dir))
+    # F8: what the previous run left, read before this run records anything: the FDR and the resume
+    # state file, which keeps the last 3D estimate when the FDR could not (a full disk).
+    fdr_dir = Path(config.fdr.dir)
+    if fdr_dir.exists() and not fdr_dir.is_dir():
+        raise StartupError("fdr.dir", f"{fdr_dir} is not a directory (expected the recorder's directory)")
+    state_path = config.init.resume_state_path or default_path(fdr_dir)
+    previous_run = with_resume_state(
+        read_previous_run(read_records_newest_first(fdr_dir)),
+        read_resume_state(state_path, clock.now_unix_s()),
+    )
     fdr = pre.get("fdr") or FlightDataRecorder(
         Path(config.fdr.dir),
         max_bytes=config.fdr.max_bytes,
@@ -651,6 +666,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
         time_axis,
         previous_run,
         clock,
+        ResumeStateFile(state_path),
     )
 
 

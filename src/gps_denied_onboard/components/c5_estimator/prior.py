@@ -4,19 +4,18 @@ A restarted daemon must never claim an accuracy it cannot back. Measured on the 
 250 m from home and restarted by systemd, it started at HOME_POSITION with the configured 30 m sigma and
 told the autopilot "3D fix, 30 m" while it was 252 m off. The rules, in order (:func:`choose_prior`):
 
-1. **Resume** from the last estimate the previous run sent as a 3D fix (read from the flight data
-   recorder) when it is at most ``init.resume_max_age_s`` old: its position, with a sigma grown by
-   ``init.max_speed_m_s`` times the time since (the vehicle can be anywhere it could have flown).
-2. **Configured position or HOME_POSITION** on a cold start (no record of a previous run within
-   ``init.resume_max_age_s``: the daemon is started at boot, before take-off) or while the vehicle is on
-   the ground (height above home at most ``init.on_ground_max_alt_agl_m``). After a restart in the air
-   they say nothing about where the vehicle is now.
-After a restart in flight the autopilot's own estimate (GLOBAL_POSITION_INT, with EKF_STATUS_REPORT
-saying its absolute horizontal position is good) is asked for and used, never believed alone: in GNSS-
-denied flight it is this daemon's earlier output dead-reckoned by the autopilot, with no accuracy
-attached. It confirms a resumed estimate when it lies within 3 sigma of it; when it does not, one of the
-two is wrong and nothing says which, so the sigma grows to cover both. With nothing of the daemon's own
-to resume from, the search for a fix starts from it (rule 3).
+1. **Resume** from the last estimate the previous run sent as a 3D fix (the newer of the flight data
+   recorder's and the resume state file's, ``resume_state``) when it is at most ``init.resume_max_age_s``
+   old: its position, with a sigma grown by ``init.max_speed_m_s`` times the time since.
+2. **Configured position or HOME_POSITION** only while the autopilot says the vehicle is on the ground
+   (``flight_phase``: landed_state ON_GROUND, disarmed, or at most ``init.on_ground_max_alt_agl_m`` above
+   home, and nothing saying it flies), or in the air when this run saw it on the ground, with the sigma
+   grown at top speed since then. In the air they say nothing about where the vehicle is now.
+After a restart or a start in the air the autopilot's own estimate (GLOBAL_POSITION_INT, with
+EKF_STATUS_REPORT saying its absolute horizontal position is good) is asked for and used, never believed
+alone: in GNSS-denied flight it is this daemon's earlier output dead-reckoned by the autopilot. It confirms
+a resumed estimate within 3 sigma of it, else the sigma grows to cover both; with nothing of the
+daemon's own, the search for a fix starts from it (rule 3).
 
 3. **Nothing trustworthy**: the whole map. The prior is the cache's centre with a sigma that covers
    the cache, so the output is not a fix (fix_type 1, or 0 above ``estimator.max_output_sigma_m``) and
@@ -34,13 +33,18 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
-from gps_denied_onboard.components.c8_mavlink.vehicle_state import AutopilotPosition
+from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
+from gps_denied_onboard.components.c8_mavlink.vehicle_state import AutopilotPosition, FlightPhase
 from gps_denied_onboard.config import InitConfig
 from gps_denied_onboard.constants import FdrKind
 from gps_denied_onboard.geo import haversine_m
 
 #: GPS_FIX_TYPE_3D: only estimates sent as a 3D fix are resumed from.
 _FIX_3D: Final[int] = 3
+#: MAV_LANDED_STATE values that mean the vehicle is flying.
+_FLYING: Final[frozenset[int]] = frozenset(
+    {DIALECT.MAV_LANDED_STATE_IN_AIR, DIALECT.MAV_LANDED_STATE_TAKEOFF, DIALECT.MAV_LANDED_STATE_LANDING}
+)
 
 
 class PriorSource:
@@ -105,6 +109,33 @@ def read_previous_run(records_newest_first: Iterable[Mapping[str, Any]]) -> Prev
     return PreviousRun(None, last_record)
 
 
+def with_resume_state(previous: PreviousRun, state: ResumeState | None) -> PreviousRun:
+    """``previous`` (the FDR's view) with the resume state file's estimate where that one is newer: the
+    recorder may have dropped what the state file kept (a full disk)."""
+    if state is None:
+        return previous
+    last_3d = previous.last_3d
+    if last_3d is None or state.time_unix_usec > last_3d.time_unix_usec:
+        last_3d = state
+    t_s = state.time_unix_usec / 1e6
+    last = previous.last_record_unix_s
+    return PreviousRun(last_3d, t_s if last is None else max(last, t_s))
+
+
+def in_the_air(init: InitConfig, alt_agl_m: float | None, phase: FlightPhase | None) -> bool | None:
+    """True when anything the autopilot says means flying (landed_state IN_AIR/TAKEOFF/LANDING, or
+    higher than ``init.on_ground_max_alt_agl_m`` above home); False when something says on the ground
+    (landed_state ON_GROUND, disarmed, or that low) and nothing says flying; None when nothing is known."""
+    landed = phase.landed_state if phase is not None else None
+    armed = phase.armed if phase is not None else None
+    low = None if alt_agl_m is None else alt_agl_m <= init.on_ground_max_alt_agl_m
+    if landed in _FLYING or low is False:
+        return True
+    if landed == DIALECT.MAV_LANDED_STATE_ON_GROUND or armed is False or low:
+        return False
+    return None
+
+
 def choose_prior(
     *,
     now_unix_usec: int,
@@ -115,6 +146,7 @@ def choose_prior(
     map_centre_lat_lon: tuple[float, float],
     map_radius_m: float,
     autopilot: AutopilotPosition | None = None,
+    phase: FlightPhase | None = None,
 ) -> InitialPrior:
     """The start-up prior by the rules in the module docstring.
 
@@ -123,7 +155,8 @@ def choose_prior(
     HOME_POSITION (lat, lon, alt) or None. ``alt_agl_m``: the autopilot's height above home now, or None
     when unknown. ``map_centre_lat_lon``/``map_radius_m``: the cache's extent. ``autopilot``: the
     autopilot's own estimate; used after a restart in flight only, and only when its EKF says its
-    absolute horizontal position is good.
+    absolute horizontal position is good. ``phase``: the autopilot's armed and landed states
+    (``in_the_air``) and when this run last saw the vehicle on the ground.
     """
     now_s = now_unix_usec / 1e6
     notes: list[str] = []
@@ -152,23 +185,31 @@ def choose_prior(
         previous.last_record_unix_s is not None
         and 0.0 <= now_s - previous.last_record_unix_s <= init.resume_max_age_s
     )
-    on_ground = alt_agl_m is not None and alt_agl_m <= init.on_ground_max_alt_agl_m
+    air = in_the_air(init, alt_agl_m, phase)
     start_point: tuple[float, float, str] | None = None
     if init.lat_deg is not None and init.lon_deg is not None:
         start_point = (init.lat_deg, init.lon_deg, PriorSource.CONFIG)
     elif init.use_home_position and home is not None:
         start_point = (home[0], home[1], PriorSource.HOME)
     if start_point is not None:
-        if on_ground:
-            return InitialPrior(start_point[0], start_point[1], init.sigma_m, start_point[2], "on the ground")
-        if not restarted:
-            return InitialPrior(
-                start_point[0], start_point[1], init.sigma_m, start_point[2], "cold start (before take-off)"
-            )
-        notes.append(f"{start_point[2]} ignored: restarted in flight")
+        lat0, lon0, source = start_point
+        if air is False:
+            return InitialPrior(lat0, lon0, init.sigma_m, source, "on the ground")
+        ground_s = phase.last_on_ground_unix_s if phase is not None else None
+        if air and ground_s is not None and now_s >= ground_s:
+            since_s = now_s - ground_s
+            sigma = math.hypot(init.sigma_m, init.max_speed_m_s * since_s)
+            why = f"in the air, on the ground {since_s:.1f} s ago: sigma grown at {init.max_speed_m_s:g} m/s"
+            return InitialPrior(lat0, lon0, sigma, source, why)
+        if air:
+            notes.append(f"{source} ignored: in the air" + (" after a restart" if restarted else ""))
+        else:
+            notes.append(f"{source} ignored: not known to be on the ground")
+    elif air:
+        notes.append("in the air, no start point")
     lat, lon = map_centre_lat_lon
     why = "; ".join(notes) or "no previous estimate, no start point"
-    ap = _usable(autopilot) if restarted else None
+    ap = _usable(autopilot) if restarted or air else None
     if ap is not None:
         # Centred on the autopilot's estimate, still covering the whole map from there.
         d = float(haversine_m(lat, lon, ap.lat_deg, ap.lon_deg))
