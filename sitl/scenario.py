@@ -4,118 +4,19 @@ A scenario says where and how the simulated aircraft flies and what its nav came
 resolves it over the map it was given (``Scenario.resolve``) into a ``Trajectory`` whose ``truth_at(t_s)``
 is the ground truth that frames are rendered from and that the daemon's output is scored against.
 
-Scenario YAML schema
---------------------
-Every key below is the whole vocabulary: an unknown key, a wrong type (a string where a number is
-expected, a bool where an integer is expected) or an out-of-range value is a ``ScenarioError`` naming the
-key path (``waypoints.points[2][2].alt_agl_m``) and what was expected. Integers are accepted where a
-number is expected.
+Input: a YAML mapping (or a bundled scenario's name). Output: a frozen ``Scenario``, or a ``ScenarioError``
+naming the key path (``waypoints.points[2][2].alt_agl_m``) and what was expected: an unknown key, a wrong
+type (a string for a number, a bool for an integer) or an out-of-range value is refused; integers are
+accepted where a number is expected.
 
-``name`` (str, required)
-    Scenario name (reports, log lines).
-``description`` (str, default "")
-    Free text.
-``duration_s`` (number > 0 or null, default null)
-    Length of the run, s. null = ``start_delay_s`` + the time to fly the path once. When longer than that,
-    the aircraft holds (hovers) at the last waypoint for the rest of the run.
-``frame_rate_hz`` (number > 0, default 3.0)
-    Nav-camera frame rate; frames are exposed at ``t_s = k / frame_rate_hz``, k = 0, 1, ...
-``speed_m_s`` (number > 0, default 12.0)
-    Ground speed along the path, m/s (constant; no wind).
-``accel_m_s2`` (number > 0, default 2.5)
-    Largest horizontal acceleration, m/s^2: the aircraft speeds up from the hold and slows down to the
-    last waypoint at this rate (a trapezoidal speed profile; triangular when the path is too short).
-``alt_agl_m`` (number > 0, required)
-    Height above the (flat) ground, m; the default for every waypoint.
-``climb_rate_m_s`` (number > 0, default 2.0)
-    Largest vertical speed, m/s: an altitude change is a ramp at this rate that starts when the aircraft
-    passes the previous waypoint (the middle of its turn).
-``turn_rate_deg_s`` (number > 0, default 15.0)
-    Turn rate at the waypoints, deg/s: each corner is flown as a circular arc of radius
-    ``speed / turn_rate`` (tighter when the legs are too short for it), so the heading (= track direction,
-    no wind, no crab) is continuous. No bank is modelled: roll and pitch come from ``attitude_wobble`` only.
-``ground_alt_amsl_m`` (number or null, default null)
-    Height of the flat ground above mean sea level, m. null = the value the runner passes to
-    ``Scenario.resolve`` (the daemon's ``terrain.ground_alt_amsl_m``), so truth and daemon agree; set it
-    to simulate a terrain-height error.
-``start_delay_s`` (number >= 0, default 2.0)
-    The aircraft holds (hovers, zero velocity, heading along the first leg) at the first waypoint for
-    this long before flying the path; frames are streamed during the hold.
-``autopilot_unix_offset_s`` (number, default 0.0)
-    The autopilot's own Unix clock (SYSTEM_TIME) minus true time, s: without GNSS an autopilot's Unix
-    time is whatever somebody set (ArduPilot SITL's ran 2.0 s behind its host). The daemon must not use it.
-``camera_stamp_offset_s`` (number in [-1, 1], default 0.0)
-    Every frame is stamped this much after its true exposure, s (a camera that stamps late, > 0).
-``camera`` (mapping)
-    Ideal pinhole nav camera (no distortion, centred principal point), nadir mount, image top = nose.
-    ``width_px`` (int >= 16, default 640), ``height_px`` (int >= 16, default 480),
-    ``hfov_deg`` (number in (1, 179), default 70.0).
-``attitude_wobble`` (mapping)
-    Deterministic roll/pitch oscillation: roll = ``roll_amp_deg`` sin(2 pi t / ``period_s``),
-    pitch = ``pitch_amp_deg`` sin(2 pi t / (1.618 ``period_s``) + 0.7). Keys ``roll_amp_deg``,
-    ``pitch_amp_deg`` (numbers in [0, 45), default 0) and ``period_s`` (number > 0, default 7.0).
-``photometric`` (mapping)
-    Per-frame camera photometry (see ``sitl.photometric.PhotometricParams``): ``gain_range`` and
-    ``gamma_range`` ([lo, hi], 0 < lo <= hi, default [1, 1]), ``colour_shift_dn`` (>= 0, default 0),
-    ``noise_sigma_dn`` (>= 0, default 0), ``blur_prob`` (in [0, 1], default 0), ``blur_sigma_px``
-    (>= 0, default 0), ``seed`` (int >= 0, default 0).
-``waypoints`` (mapping, required)
-    ``frame``: ``map_relative`` or ``wgs84`` (required).
-    ``points``: at least two points. A point is ``[a, b]`` or ``[a, b, {alt_agl_m: H}]`` (the mapping
-    overrides the altitude for the leg that ends at that point; the first point's altitude is the start
-    altitude). For ``map_relative``, (a, b) = (u, v) in [0, 1]: u = 0 at the west edge of the usable box,
-    1 at its east edge; v = 0 south, 1 north. For ``wgs84``, (a, b) = (lat_deg, lon_deg), and every
-    point must lie on the map. Consecutive points must differ.
-    ``margin_m`` (``map_relative`` only; number >= 0 or ``auto``, default ``auto``): the usable box is the
-    map's lon/lat box shrunk by this on every side, so that the camera footprint stays on the map.
-    ``auto`` = the footprint radius at the highest waypoint altitude with the largest wobble tilt
-    (``Scenario.footprint_radius_m``) + 5 m.
-``map_edits`` (list, default [])
-    Changes made to the daemon's MAP (the cache is built from the edited copy) while the nav frames are
-    still rendered from the unedited world, laid out along the flight path so they work over any map:
-    ``{kind: featureless, path_from: f0, path_to: f1}`` flattens the map in a corridor over the path
-    between fractions f0 < f1 of its length (a map gap: the matcher finds no inliers there, visual
-    odometry still works); ``{kind: lookalike, path_from, path_to, offset_m: [north, east]}`` moves the
-    corridor's content by the offset and flattens the true place (a wrong-tile trap: the only match is
-    wrong by ``offset_m``). ``half_width_m`` (> 0, default: the camera footprint radius + 10 m) sets
-    the corridor's half width.
-``link_drops`` (list, default [])
-    ``{from_s, to_s}``: the autopilot link is cut in ``[from_s, to_s)``: the simulated autopilot sends
-    nothing and everything the daemon sends is lost.
-``map_gaps`` (list, default [])
-    Time windows in which the nav image is degraded (``sitl.photometric.degrade_for_gap``):
-    ``{from_s: number >= 0, to_s: number > from_s, kind: featureless | blackout}``.
-``daemon_restarts`` (list, default [])
-    ``{at_s: number > 0, wipe_fdr: bool = false}``: the daemon is killed with SIGKILL at ``at_s`` and started
-    again at once with the same command, as systemd's ``Restart=`` does (F8 restart recovery). With
-    ``wipe_fdr`` its FDR directory (and the resume state file in it) is deleted in between: a restart
-    with no FDR at all.
-``faults`` (list, default [])
-    Faults the soak injects, each ``{kind, ...}``. Windows ``{from_s, to_s}``: ``camera_stall`` (no frames;
-    with ``reconnect: true`` the camera connection is dropped at its start and the daemon must reconnect),
-    ``attitude_nan`` (ATTITUDE with NaN angles), ``attitude_absent`` (no ATTITUDE, no HIGHRES_IMU),
-    ``mavlink_flood`` (random bytes and truncated packets to the daemon's MAVLink port at ``rate_hz``,
-    default 500), ``attitude_offset`` ``{from_s, to_s, roll_deg, pitch_deg}`` (the autopilot's ATTITUDE
-    roll and pitch off by that much on top of their usual error, while the camera sees the true attitude:
-    an AHRS gone wrong, or a camera mount knocked out of its calibration). Instants ``{at_s}``, sent
-    before the frame exposed at or after ``at_s``:
-    ``corrupt_frame`` (a valid header with a destroyed JPEG), ``bomb_frame`` (a small PNG that claims
-    20000x20000), ``wrong_size_frame`` (a 100x100 image).
-    Faults of the companion computer the daemon runs on (``sitl.host_faults``): ``clock_jump`` ``{at_s,
-    step_s}`` (an instant, at a whole second: its wall clock steps by ``step_s`` != 0 seconds, as NTP or
-    ``date -s`` would: the daemon process sees the step through libfaketime (its monotonic clock is
-    untouched) and the camera, on the same computer, stamps with the stepped clock; the autopilot's clock
-    does not step); ``ort_fault`` ``{at_s, count}`` (an instant: the next ``count`` ONNX Runtime runs,
-    default 3, are refused by ONNX Runtime itself through the C7 test hook; only a learned matcher runs
-    ONNX Runtime: with another the report lists the count as ``not_consumed``);
-    ``tile_corrupt`` ``{from_s, to_s}`` (a window: the map cell under the aircraft's position 3 s later is
-    overwritten with noise in the daemon's cache file, in place, and its bytes put back at ``to_s``; the
-    run uses its own copy of the cache); ``fdr_full`` ``{from_s, to_s}`` (a window: the file system of the
-    flight data recorder, a tmpfs the runner mounts for the run, is filled to its last byte).
-``timestamp_faults`` (list, default [])
-    ``{at_s: number >= 0, ahead_s: number != 0}``: the first frame exposed at or after ``at_s`` is stamped
-    ``ahead_s`` seconds off its true exposure (positive: from the future; negative: late or out of order).
-    The image is the true one; only the stamp lies (a camera clock fault).
+The vocabulary: the flight (``duration_s``, ``frame_rate_hz``, ``speed_m_s``, ``accel_m_s2``,
+``alt_agl_m``, ``climb_rate_m_s``, ``turn_rate_deg_s``, ``ground_alt_amsl_m``, ``start_delay_s``,
+``waypoints`` in ``map_relative`` or ``wgs84`` frames), the clocks (``autopilot_unix_offset_s``,
+``camera_stamp_offset_s``), the camera (``camera``, ``attitude_wobble``, ``photometric``), and what goes
+wrong (``map_edits``, ``link_drops``, ``map_gaps``, ``daemon_restarts``, ``faults``, including the host
+faults of ``sitl.host_faults``, and ``timestamp_faults``).
+
+Every key, its type, default and meaning: docs/sitl.md, "The scenario schema in full".
 """
 
 from __future__ import annotations
