@@ -1,35 +1,17 @@
 """``gdnav preflight --config FILE``: everything that can be checked before flight, as a pass/fail table.
 
-One row per check, in ``CHECKS`` order, each saying what it checked and what it measured. The checks
-call the composition root's own functions (``runtime_root.compose``) and the MAVLink link's own port
-probe, so a pass means ``gdnav run`` gets past the same step:
+Input: the profile, ``--set`` overrides, ``--offline``, ``--timeout``. Output: one row per check, in
+``CHECKS`` order, each saying what it checked and what it measured (or ``--json``); exit 0 when no check
+fails (a skipped check is not a failure), 2 when the configuration is refused, 3 when any other check
+fails, with one ``gdnav:`` line on stderr naming the first failure. Nothing is sent to the autopilot and
+nothing is recorded in the FDR.
 
-- ``config``: the profile and the ``--set`` overrides validate (``load_config``);
-- ``cache``: the map cache opens and its manifest hashes verify, as at start-up (tile count, seconds);
-- ``models``: a learned matcher's model directory verifies against its manifest and its ONNX Runtime
-  sessions are created; a weights-free matcher needs none;
-- ``vpr``: the C2 strategy opens over the cache as at start-up (an index built for another strategy or
-  model, or none, fails and says to run ``gdnav cache vpr``);
-- ``tile_features``: the learned matcher's precomputed tile features (``gdnav cache features``) open and
-  verify against its extractor; absent or refused under ``matcher.tile_features: auto`` passes and says
-  that every chip will be extracted live (a frame then costs N extractions more), under ``require`` fails;
-- ``calibration``: the calibration file (or the ``intrinsics`` block) gives a usable camera model;
-- ``signing_key``: the MAVLink signing key file, when configured, is a private 32-byte key;
-- ``fdr``: the FDR directory is writable by this user, its file system has room for ``fdr.max_bytes``, and
-  every segment in it reads: a segment this user cannot read, or a line the recorder never writes (over
-  its size bound, nested past the parser, JSON that is no record), fails; torn lines from a crash pass;
-- ``mavlink_port``: a ``udpin:``/``udp:`` port no other socket holds, a serial device that opens, a
-  ``tcp:`` endpoint that accepts a connection (online only);
-- ``camera`` and ``autopilot`` (online only; ``--offline`` skips them): the camera delivers one frame of
-  the calibrated size that decodes, and the autopilot's HEARTBEAT arrives and it answers TIMESYNC, each
-  within ``--timeout``;
-- ``start_point``: the configured start point (``init.lat_deg``/``lon_deg``), or else HOME_POSITION when
-  the autopilot check received it, lies on the map (the cache's mapped area, give or take
-  ``init.sigma_m``); without one the search starts on the whole map and the check is skipped.
+Rule: the checks call the composition root's own functions (``runtime_root.compose``) and the MAVLink
+link's own port probe, so a pass means ``gdnav run`` gets past the same step: ``config``, ``cache``,
+``models``, ``vpr``, ``tile_features``, ``calibration``, ``signing_key``, ``fdr``, ``mavlink_port``,
+``camera`` and ``autopilot`` (online only), ``start_point``.
 
-Exit 0 when no check fails (a skipped check is not a failure), 2 when the configuration is refused, 3 when
-any other check fails; the table is printed either way and one ``gdnav:`` line on stderr names the first
-failure. Nothing is sent to the autopilot and nothing is recorded in the FDR.
+What each check does: docs/companion.md, "Preflight checks".
 """
 
 from __future__ import annotations
