@@ -126,7 +126,7 @@ def _read_image(path: Path, scale: float) -> Callable[[], np.ndarray]:
         if img is None or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3, 4)):
             raise ReplayInputError(f"{path}: not an image OpenCV can read")
         if img.dtype == np.uint16:
-            img = (img >> 8).astype(np.uint8)
+            img = np.right_shift(img, 8).astype(np.uint8)
         elif img.dtype != np.uint8:
             raise ReplayInputError(f"{path}: {img.dtype} pixels; expected 8- or 16-bit")
         if img.ndim == 3 and img.shape[2] == 1:
