@@ -239,3 +239,88 @@ def test_unit_passes_systemd_analyze_verify(tmp_path: Path) -> None:
     )
     ours = [ln for ln in (proc.stdout + proc.stderr).splitlines() if UNIT_PATH.name in ln]
     assert proc.returncode == 0 and not ours, proc.stdout + proc.stderr
+
+
+#: The largest resident set measured for one daemon-like process (docs/benchmarks.md: DISK, classical and a
+#: precomputed twin in one process, 2.6-2.9 GB); the unit's MemoryMax= must leave it a margin.
+MEASURED_PEAK_RSS_BYTES = 2.9e9
+#: `systemd-analyze security`'s exposure (0-10) at or below which it says "OK" or better.
+SECURITY_OK_EXPOSURE = 4.9
+
+
+def _bytes(size: str) -> float:
+    """A systemd size such as `4G`, `512M` or a plain number of bytes (1024-based suffixes)."""
+    m = re.fullmatch(r"(\d+(?:\.\d+)?)([KMGT]?)", size)
+    assert m, f"unsupported size {size!r}"
+    return float(m.group(1)) * 1024.0 ** " KMGT".index(m.group(2) or " ")
+
+
+def test_unit_filters_system_calls_and_socket_families() -> None:
+    """A system-call allow list (@system-service, minus @privileged; a refused call fails with EPERM
+    rather than killing the daemon in flight), native ABI only, and only the socket families it uses."""
+    assert _words("Service", "SystemCallFilter") == ["@system-service", "~@privileged"]
+    assert _one("Service", "SystemCallErrorNumber") == "EPERM"
+    assert _one("Service", "SystemCallArchitectures") == "native"
+    assert set(_words("Service", "RestrictAddressFamilies")) == {"AF_UNIX", "AF_INET", "AF_INET6"}
+
+
+def test_unit_caps_memory_with_a_margin_over_the_measured_peak() -> None:
+    """MemoryMax= is set, at least 25 % above the largest measured resident set."""
+    assert _bytes(_one("Service", "MemoryMax")) >= 1.25 * MEASURED_PEAK_RSS_BYTES
+
+
+def test_unit_protects_the_kernel_and_drops_every_capability() -> None:
+    """Kernel tunables, modules, logs, cgroups and the host name are out of reach; no capability, no
+    real-time class, no namespaces, no SUID files; files it creates are not world-readable."""
+    for key in (
+        "ProtectKernelTunables",
+        "ProtectKernelModules",
+        "ProtectKernelLogs",
+        "ProtectControlGroups",
+        "ProtectHostname",
+        "PrivateMounts",
+        "LockPersonality",
+        "RestrictRealtime",
+        "RestrictSUIDSGID",
+        "RestrictNamespaces",
+        "RemoveIPC",
+    ):
+        assert _one("Service", key).lower() in _TRUE, key
+    assert _one("Service", "CapabilityBoundingSet") == ""
+    assert _one("Service", "AmbientCapabilities") == ""
+    assert _one("Service", "ProtectProc") == "invisible"
+    assert _one("Service", "UMask") == "0027"
+
+
+def test_unit_keeps_the_serial_link_and_the_camera_reachable() -> None:
+    """No device allow-list is switched on, not even implicitly: ProtectClock= implies DeviceAllow=char-rtc,
+    which would shut out /dev/ttyTHS1 and /dev/video0 (the airborne profile's); PrivateDevices= hides them
+    and PrivateUsers= unmaps the groups that grant them."""
+    assert PROFILE.mavlink.url.startswith("/dev/") and PROFILE.camera.source.startswith("v4l2:/dev/")
+    for key in ("ProtectClock", "PrivateDevices", "PrivateUsers", "DeviceAllow", "DevicePolicy"):
+        assert key not in UNIT["Service"], f"{key}= would cut the daemon off its devices"
+
+
+def test_unit_gives_the_debug_log_a_writable_directory() -> None:
+    """LogsDirectory= makes /var/log/gdnav writable under ProtectSystem=strict and sets LOGS_DIRECTORY,
+    where a command's unexpected exception keeps its traceback (logging_setup.debug_log_path)."""
+    assert _one("Service", "LogsDirectory") == "gdnav"
+
+
+def test_unit_systemd_analyze_security_is_ok(tmp_path: Path) -> None:
+    """`systemd-analyze security --offline=yes` rates the unit "OK" or better (it said 8.5 EXPOSED)."""
+    analyze = shutil.which("systemd-analyze")
+    if analyze is None:
+        pytest.skip("systemd-analyze is not installed")
+    unit = tmp_path / UNIT_PATH.name
+    unit.write_text(UNIT_TEXT)
+    proc = subprocess.run(
+        [analyze, "security", "--offline=yes", "--no-pager", str(unit)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    m = re.search(r"Overall exposure level for \S+: (\d+\.\d) (\w+)", proc.stdout)
+    assert m, proc.stdout + proc.stderr
+    assert float(m.group(1)) <= SECURITY_OK_EXPOSURE and m.group(2) in ("OK", "SAFE", "PERFECT"), m.group(0)
