@@ -25,7 +25,12 @@ from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
 from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
 from gps_denied_onboard.components.c3_matcher import CrossDomainMatcher, RollingHealthWindow, registry
 from gps_denied_onboard.components.c3_matcher.features import Features
-from gps_denied_onboard.components.c3_matcher.xfeat_mnn import XFeatMnnMatcher, create, match_mutual_nn
+from gps_denied_onboard.components.c3_matcher.xfeat_mnn import (
+    XFEAT_MNN_MIN_SIMILARITY,
+    XFeatMnnMatcher,
+    create,
+    match_mutual_nn,
+)
 from gps_denied_onboard.components.c4_pose.integrity import MatchEvidence
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
@@ -82,21 +87,34 @@ def _daemon_config(cache: Path, matcher: MatcherConfig) -> Config:
 
 
 # --- the matching rule --------------------------------------------------------------------------------------
+def _pairs(query: Features, tile: Features, corr: np.ndarray) -> list[tuple[int, int]]:
+    """(query index, tile index) of each correspondence, found back from its keypoints."""
+    qi = [int(np.flatnonzero((query.keypoints_px == row[:2]).all(axis=1))[0]) for row in corr]
+    ti = [int(np.flatnonzero((tile.keypoints_px == row[2:]).all(axis=1))[0]) for row in corr]
+    return list(zip(qi, ti, strict=True))
+
+
 def test_mnn_matches_are_exactly_the_mutual_nearest_neighbours() -> None:
-    """Every returned pair is mutual, every mutual pair is returned, each index at most once, and the
-    correspondences are the two keypoints, with no confidence column."""
+    """Without a floor every returned pair is mutual, every mutual pair is returned, each index at most
+    once, and the correspondences are the two keypoints, with no confidence column. With the default
+    floor, the mutual pairs whose cosine reaches it."""
     rng = np.random.default_rng(3)
     query, tile = _features(rng, 300, (640, 480)), _features(rng, 500, (512, 512))
     # Half the tile's descriptors are noisy copies of query descriptors: many mutual pairs, not all.
     tile.descriptors[:150] = query.descriptors[:150] + rng.normal(scale=0.3, size=(150, 64))
-    corr = match_mutual_nn(query, tile)
+    corr = match_mutual_nn(query, tile, min_similarity=-1.0)
     assert corr.dtype == np.float32 and corr.ndim == 2 and corr.shape[1] == 4
-    qi = [int(np.flatnonzero((query.keypoints_px == row[:2]).all(axis=1))[0]) for row in corr]
-    ti = [int(np.flatnonzero((tile.keypoints_px == row[2:]).all(axis=1))[0]) for row in corr]
+    pairs = _pairs(query, tile, corr)
     expected = _brute_force_mutual(query.descriptors, tile.descriptors)
-    assert set(zip(qi, ti, strict=True)) == expected
-    assert len(set(qi)) == len(qi) and len(set(ti)) == len(ti)
-    assert len(expected) >= 140
+    assert set(pairs) == expected and len(pairs) == len(expected)
+    assert len({i for i, _ in pairs}) == len(pairs) and len({j for _, j in pairs}) == len(pairs)
+    assert len(expected) > 150  # the copies and some chance pairs of random descriptors
+
+    a = query.descriptors / np.linalg.norm(query.descriptors, axis=1, keepdims=True)
+    b = tile.descriptors / np.linalg.norm(tile.descriptors, axis=1, keepdims=True)
+    floored = set(_pairs(query, tile, match_mutual_nn(query, tile)))
+    assert floored == {(i, j) for i, j in expected if a[i] @ b[j] >= XFEAT_MNN_MIN_SIMILARITY}
+    assert 140 <= len(floored) < len(expected)
 
 
 def test_mnn_no_features_gives_no_matches() -> None:

@@ -3,8 +3,8 @@
 The same XFeat extractor as ``xfeat`` (model, preprocessing, keypoints, and so its precomputed tile
 features: ``features_label`` is ``xfeat``), but no LightGlue model: a pair's matches are its mutual
 nearest neighbours on L2-normalised descriptors, one (Nq, 64) x (64, Nt) matrix product and an argmax
-each way (``helpers.lightglue_runtime.mutual_nearest_neighbours``), with no similarity floor
-(``XFEAT_MNN_MIN_SIMILARITY``); RANSAC drops the wrong ones.
+each way (``helpers.lightglue_runtime.mutual_nearest_neighbours``); pairs with a cosine below
+``XFEAT_MNN_MIN_SIMILARITY`` are dropped, RANSAC drops the other wrong ones.
 
 Inputs: a nav frame and the re-ranked chips; outputs: RANSAC inliers per candidate, with no per-match
 confidence (``inlier_scores`` None: a cosine is not a calibrated confidence, so the integrity rule's
@@ -32,9 +32,10 @@ from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 
 LABEL: Final[str] = "xfeat_mnn"
 
-#: Cosine below which a mutual pair is dropped; -1 = none (every mutual pair goes to RANSAC). No floor
-#: was measured to help yet, and cross-date XFeat pairs of the same ground sit well below 0.75.
-XFEAT_MNN_MIN_SIMILARITY: Final[float] = -1.0
+#: Cosine below which a mutual pair is dropped. Measured on 60 NAIP cross-date frames (docs/benchmarks.md,
+#: C3 matcher, xfeat_mnn): 0.7 solved 58 with 2 wrong, no floor 55 with 3; 0.5-0.6 change nothing, 0.8
+#: loses a third of the frames, and Lowe's ratio test (0.8-0.95) loses most of them.
+XFEAT_MNN_MIN_SIMILARITY: Final[float] = 0.7
 
 
 def match_mutual_nn(
