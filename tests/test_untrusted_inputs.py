@@ -256,6 +256,16 @@ def test_cli_replay_unreadable_frame_image_exits_3(tmp_path: Path) -> None:
 # --- the commands' top level ------------------------------------------------------------------------
 
 
+@pytest.fixture()
+def info_log() -> None:
+    """The log at info on stderr, as most commands set it (earlier tests may have left it at debug, where
+    the traceback is also logged as a record)."""
+    from gps_denied_onboard.logging_setup import configure_logging
+
+    configure_logging("info")
+
+
+@pytest.mark.usefixtures("info_log")
 def test_cli_unexpected_exception_is_one_line_exit_1_and_a_kept_traceback(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -282,6 +292,7 @@ def test_cli_unexpected_exception_is_one_line_exit_1_and_a_kept_traceback(
     assert log.read_text().count("Traceback") == 2
 
 
+@pytest.mark.usefixtures("info_log")
 def test_cli_unexpected_exception_with_an_unwritable_debug_log_still_one_line(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

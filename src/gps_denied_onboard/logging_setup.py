@@ -17,7 +17,13 @@ from gps_denied_onboard.constants import DEBUG_LOG_ENV, DEBUG_LOG_FILENAME, DEBU
 _LEVELS = {"debug": logging.DEBUG, "info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}
 
 
+#: Whether ``configure_logging`` ran in this process (the log then goes to stderr at a chosen level).
+_configured = False
+
+
 def configure_logging(level: str = "info", *, json: bool = True) -> None:
+    global _configured
+    _configured = True
     processors: list[structlog.types.Processor] = [
         structlog.contextvars.merge_contextvars,
         structlog.processors.add_log_level,
@@ -50,7 +56,7 @@ def log_unexpected(command: str, exc: BaseException) -> str:
     """Keep the traceback of ``exc``, which ended ``command`` unmapped (a bug): logged at debug level and
     appended to the debug log file. Returns where it went, for the one line on stderr."""
     text = "".join(traceback.format_exception(exc))
-    if structlog.is_configured():  # unconfigured, structlog would print every level on stdout
+    if _configured:  # structlog left as it comes would print every level on stdout
         structlog.get_logger("gdnav").debug(LogEvent.CLI_UNEXPECTED_ERROR, command=command, traceback=text)
     path = debug_log_path()
     stamp = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
