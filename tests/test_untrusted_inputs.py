@@ -319,3 +319,20 @@ def test_replay_nested_truth_json_is_refused(tmp_path: Path) -> None:
     truth.write_text('{"per_frame": ' + "[" * 50_000 + "]" * 50_000 + "}")
     with pytest.raises(ReplayInputError, match=r"truth\.json"):
         load_truth(truth)
+
+
+def test_daemon_starts_over_an_fdr_with_a_nested_line(tmp_path: Path) -> None:
+    """`gdnav run` as a real process gets to ready over an FDR holding the nested line (it crashed with
+    RecursionError at every start, five times, then the unit stayed failed)."""
+    from daemon_harness import build_small_cache, start_daemon, wait_for
+
+    cache = build_small_cache(tmp_path / "map")[1]
+    fdr = _fdr_with(tmp_path, NESTED_LINE)
+    daemon = start_daemon(tmp_path, cache)
+    assert daemon.fdr_dir == fdr
+    try:
+        assert wait_for(lambda: "daemon.ready" in daemon.log_text() or daemon.proc.poll() is not None, 60.0)
+        assert "daemon.ready" in daemon.log_text(), daemon.log_text()[-3000:]
+    finally:
+        code = daemon.stop()
+    assert code == 0 and "Traceback" not in daemon.log_text(), daemon.log_text()[-3000:]
