@@ -27,12 +27,13 @@ import time
 import uuid
 from dataclasses import dataclass, field
 
+import numpy as np
 import structlog
 from pymavlink import mavutil
 
 from gps_denied_onboard.camera.sources import CapturedFrame
 from gps_denied_onboard.camera.stream import FrameStreamError
-from gps_denied_onboard.camera.types import NavCameraFrame
+from gps_denied_onboard.camera.types import FrameTiming, NavCameraFrame
 from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeVerdict
 from gps_denied_onboard.components.c5_estimator.prior import (
     InitialPrior,
@@ -58,6 +59,11 @@ log = structlog.get_logger(__name__)
 #: Seconds allowed for cancelled tasks when stopping (then ``daemon.frame_stop_grace_s`` for the frames
 #: in flight; 2 s budget in all).
 _STOP_GRACE_S = 0.5
+#: A frame waits for the autopilot's attitude to reach this far past its exposure (its attitude is then
+#: interpolated, never extrapolated, and the rate around it known), s, but never longer than
+#: ATTITUDE_WAIT_MAX_S.
+ATTITUDE_RATE_HALF_SPAN_S = 0.02
+ATTITUDE_WAIT_MAX_S = 0.3
 
 
 @dataclass
@@ -76,6 +82,8 @@ class DaemonCounters:
     last_latency_ms: float | None = None
     #: Steps of the host's wall clock against the daemon's clock (detected and recorded, not followed).
     clock_steps: int = 0
+    #: Times the autopilot's ground altitude was found to disagree with the daemon's.
+    ground_alt_disagreements: int = 0
     #: Solved fixes the integrity rule refused, by reason (``IntegrityReason``), and those the consistency
     #: monitor did not fuse (``unverified``).
     fixes_refused_integrity: dict[str, int] = field(default_factory=dict)
@@ -96,6 +104,8 @@ class NavDaemon:
         self._track_thread = WorkerThread("track")
         self._fix_thread = WorkerThread("fix")
         self._provenance = Provenance.NO_ESTIMATE
+        #: The autopilot's ground altitude disagrees with the daemon's (``_check_ground_alt``).
+        self._ground_alt_off = False
         self._last_state: EstimatorState | None = None
         self._last_fix: FixOutcome | None = None
         self._last_fix_reason: str | None = None
@@ -217,11 +227,13 @@ class NavDaemon:
                 )
                 continue
             # Vehicle state is sampled on the loop (single owner); the worker threads get values only.
+            await self._await_attitude(t_us)
             attitude = tracker.attitude_at(t_us)
             alt_agl_m = tracker.alt_agl_at(t_us)
+            timing = self._frame_timing(t_us, admission.stamp_offset_s)
             prior = self._prior(t_us)
             result = await self._track_thread.submit(
-                self._track, captured, t_us, received_ns, attitude, alt_agl_m, prior
+                self._track, captured, t_us, received_ns, attitude, alt_agl_m, prior, timing
             )
             if result is None:
                 continue
@@ -327,6 +339,58 @@ class NavDaemon:
             self.counters.frame_errors += 1
         self._root.fdr.record(FdrKind.FRAME_ERROR, {"frame_seq": seq, "stage": stage, "error": error})
 
+    async def _await_attitude(self, t_us: int) -> None:
+        """Wait (at most ``ATTITUDE_WAIT_MAX_S``) until the autopilot's attitude covers the exposure and a
+        little after it: a camera that stamps late, or a slow link, would otherwise pair the frame with
+        an attitude extrapolated and held from before it (like with like, and the rate needs both sides)."""
+        tracker = self._root.tracker
+        need_usec = t_us + round(ATTITUDE_RATE_HALF_SPAN_S * 1e6)
+        deadline = time.monotonic() + ATTITUDE_WAIT_MAX_S
+        while time.monotonic() < deadline:
+            latest = tracker.latest_attitude_unix_usec()
+            if latest is None or latest >= need_usec:
+                return
+            await asyncio.sleep(0.01)
+
+    def _frame_timing(self, t_us: int, stamp_offset_s: float) -> FrameTiming | None:
+        """How well the frame's exposure time is known: the camera's doubt and the autopilot clock's,
+        with the rate world-down moved in the camera then (None without the attitude)."""
+        tracker = self._root.tracker
+        camera = self._axis.camera_offset
+        span = np.array([-ATTITUDE_RATE_HALF_SPAN_S, ATTITUDE_RATE_HALF_SPAN_S])
+        curve = tracker.down_cam_curve(t_us, span) if camera is not None else None
+        if camera is None or curve is None:
+            return None
+        rate = (curve[1] - curve[0]) / (2 * ATTITUDE_RATE_HALF_SPAN_S)
+        ap_sigma_s = tracker.autopilot_clock.sigma_s
+        sigma_s = math.hypot(camera.sigma_s, ap_sigma_s if ap_sigma_s is not None else 0.0)
+        return FrameTiming((float(rate[0]), float(rate[1])), stamp_offset_s, sigma_s)
+
+    def _check_camera_stamps(self) -> None:
+        """Feed the camera-lateness fit the attitude that has arrived for its queued tilts; a change of
+        the correction is logged, recorded and told to the ground station."""
+        camera = self._axis.camera_offset
+        tracker = self._root.tracker
+        latest = tracker.latest_attitude_unix_usec()
+        if camera is None or latest is None or not camera.complete(tracker.down_cam_curve, latest):
+            return
+        fit = camera.fit
+        fields = {
+            "applied_s": round(camera.applied_s, 4),
+            "sigma_s": round(camera.sigma_s, 4),
+            "fit_s": round(fit.offset_s, 4) if fit is not None else None,
+            "fit_se_s": round(fit.se_s, 4) if fit is not None else None,
+            "samples": fit.samples if fit is not None else 0,
+            "out_of_bounds": camera.out_of_bounds,
+        }
+        log.warning(LogEvent.CAMERA_STAMP_OFFSET, **fields)
+        self._root.fdr.record(FdrKind.CAMERA_STAMP_OFFSET, fields)
+        bound = " (beyond camera.max_stamp_offset_s)" if camera.out_of_bounds else ""
+        self._root.link.send_statustext(
+            mavutil.mavlink.MAV_SEVERITY_WARNING,
+            f"GDN: camera stamps {camera.applied_s * 1000:+.0f} ms late{bound}",
+        )
+
     def _track(
         self,
         captured: CapturedFrame,
@@ -335,6 +399,7 @@ class NavDaemon:
         attitude,
         alt_agl_m,  # type: ignore[no-untyped-def]
         prior: InitialPrior | None,
+        timing: FrameTiming | None = None,
     ) -> tuple[NavCameraFrame, TrackOutcome] | None:
         """Runs on the track thread. A per-frame error is recorded and the daemon keeps flying."""
         try:
@@ -358,6 +423,7 @@ class NavDaemon:
             attitude,
             alt_agl_m,
             received_ns,
+            timing,
         )
         try:
             outcome = self._root.pipeline.track(frame, prior)
@@ -625,8 +691,27 @@ class NavDaemon:
                 "mavlink_reconnects": link.reconnects,
                 "fdr_state": fdr.state.value,
                 "tiles_corrupt": self._root.tile_store.corrupt_cells,
+                **self._timing_status(),
             },
         )
+
+    def _timing_status(self) -> dict[str, object]:
+        """The clocks' state for ``daemon.status``: the autopilot clock mapping and the camera lateness."""
+        ap_clock = self._root.tracker.autopilot_clock
+        rtt = ap_clock.rtt_usec
+        camera = self._axis.camera_offset
+        fit = camera.fit if camera is not None else None
+        return {
+            "autopilot_time_source": ap_clock.source.value,
+            "autopilot_timesync_rtt_ms": round(rtt / 1000, 2) if rtt is not None else None,
+            "autopilot_clock_resets": ap_clock.resets,
+            "camera_stamp_offset_s": round(camera.applied_s, 4) if camera is not None else None,
+            "camera_stamp_sigma_s": round(camera.sigma_s, 4) if camera is not None else None,
+            "camera_stamp_fit_s": round(fit.offset_s, 4) if fit is not None else None,
+            "camera_stamp_fit_se_s": round(fit.se_s, 4) if fit is not None else None,
+            "camera_stamp_out_of_bounds": camera.out_of_bounds if camera is not None else None,
+            "ground_alt_disagrees": self._ground_alt_off,
+        }
 
     def _check_clock(self) -> None:
         """A step of the host's wall clock: logged, recorded, counted and told to the ground station. The
@@ -653,6 +738,38 @@ class NavDaemon:
             mavutil.mavlink.MAV_SEVERITY_WARNING, f"GDN: host clock stepped {step.step_s:+.1f} s, ignored"
         )
 
+    def _check_ground_alt(self) -> None:
+        """The autopilot's ground altitude against ``terrain.ground_alt_amsl_m``: beyond
+        ``terrain.max_ground_alt_disagreement_m`` GPS_INPUT's altitude is flagged as ignored, and the
+        change is logged, recorded, counted and told to the ground station (both ways)."""
+        ap_ground = self._root.tracker.ground_alt_amsl_m()
+        if ap_ground is None:
+            return
+        terrain = self._cfg.terrain
+        diff_m = terrain.ground_alt_amsl_m - ap_ground
+        off = abs(diff_m) > terrain.max_ground_alt_disagreement_m
+        if off == self._ground_alt_off:
+            return
+        self._ground_alt_off = off
+        fields = {
+            "disagrees": off,
+            "daemon_ground_alt_amsl_m": terrain.ground_alt_amsl_m,
+            "autopilot_ground_alt_amsl_m": round(ap_ground, 2),
+            "difference_m": round(diff_m, 2),
+        }
+        self._root.link.distrust_altitude("ground altitude disagrees with the autopilot's" if off else None)
+        if off:
+            self.counters.ground_alt_disagreements += 1
+            log.error(LogEvent.GROUND_ALT_DISAGREEMENT, **fields)
+            text = f"GDN: ground alt {diff_m:+.0f} m vs AP, alt not sent"
+        else:
+            log.info(LogEvent.GROUND_ALT_DISAGREEMENT, **fields)
+            text = "GDN: ground alt agrees with AP again"
+        self._root.fdr.record(FdrKind.GROUND_ALT_CHECK, fields)
+        self._root.link.send_statustext(
+            mavutil.mavlink.MAV_SEVERITY_ERROR if off else mavutil.mavlink.MAV_SEVERITY_INFO, text
+        )
+
     async def _status(self) -> None:
         period = 1.0 / self._cfg.daemon.status_hz
         nv_period = 1.0 / self._cfg.mavlink.named_value_hz
@@ -662,6 +779,8 @@ class NavDaemon:
         while True:
             self._notifier.watchdog()
             self._check_clock()
+            self._check_ground_alt()
+            self._check_camera_stamps()
             now = time.monotonic()
             if now - last_nv >= nv_period:
                 last_nv = now

@@ -266,12 +266,12 @@ async def _run_flight(
             calib, pose.lat_deg, pose.lon_deg, agl, Attitude(pose.roll_rad, pose.pitch_rad, pose.yaw_rad)
         )
         img = photometric.apply(img, index)
-        now = pose.t_unix_s
-        stamp_us = round(now * 1e6)
+        now = pose.t_unix_s  # the exposure, on this host's clock (the camera's)
+        stamp_us = round((now + scenario.camera_stamp_offset_s) * 1e6)  # a camera that stamps late
         ref = t0[0] if t0 else now
         return (
             encode_frame(img, seq=index, exposure_time_unix_usec=stamp_us),
-            SentFrame(index, stamp_us, now - ref, pose.lat_deg, pose.lon_deg, agl),
+            SentFrame(index, round(now * 1e6), now - ref, pose.lat_deg, pose.lon_deg, agl),
         )
 
     async def camera() -> None:

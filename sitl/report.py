@@ -34,7 +34,11 @@ import numpy as np
 
 from gps_denied_onboard.constants import FdrKind
 from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
-from gps_denied_onboard.sitl.ardupilot_rules import evaluate_gps_stream, gps_input_accepted
+from gps_denied_onboard.sitl.ardupilot_rules import (
+    SpeedAccuracyGlitch,
+    evaluate_gps_stream,
+    gps_input_accepted,
+)
 from gps_denied_onboard.sitl.autopilot import ReceivedMessage
 
 AVAILABILITY_WINDOW_S = 1.0
@@ -155,6 +159,17 @@ def score(
         end_s=None if end_unix_s is None or not gps else max(end_unix_s - t_ref, gps_recv[-1] - t_ref),
         relied_on_until_s=None if relied_on_until_unix_s is None else relied_on_until_unix_s - t_ref,
     )
+    # EKF3's speed-accuracy test over the 3D messages, as the autopilot would run it
+    sacc = [float(m.fields["speed_accuracy"]) for m in fixes]
+    glitch = SpeedAccuracyGlitch()
+    glitch_spans: list[list[float]] = []
+    for m, sa in zip(fixes, sacc, strict=True):
+        t = m.recv_time_unix_s - t_ref
+        was = glitch.glitching
+        if glitch.update(t, sa) and not was:
+            glitch_spans.append([round(t, 3), round(t, 3)])
+        elif was and glitch_spans:
+            glitch_spans[-1][1] = round(t, 3)
     fix_ages = [
         (float(r["t_unix_s"]) - int(r["exposure_time_unix_usec"]) / 1e6) * 1000.0
         for r in _of_kind(fdr_records, FdrKind.FIX)
@@ -182,6 +197,9 @@ def score(
         "fix_age_ms": {"p50": _pct(fix_ages, 50), "p95": _pct(fix_ages, 95), "n": len(fix_ages)},
         "provenance_counts": dict(sorted(prov_counts.items())),
         "gps_input_received": len(gps),
+        "speed_accuracy_m_s": {"p50": _pct(sacc, 50), "p95": _pct(sacc, 95), "max": max(sacc, default=None)},
+        #: When EKF3's speed-accuracy test would call the GPS glitching, s on the stream's clock.
+        "glitch_spans_s": glitch_spans,
         "stream": stream.to_dict(),
         #: Unix time of the stream's 0 s (its first GPS_INPUT), to place its spans on the flight clock.
         "stream_t0_unix_s": t_ref,

@@ -291,8 +291,8 @@ class _Flight:
                 if k % int(ATTITUDE_HZ) == 0:
                     ap.send_heartbeat(armed=bool(self.t0_unix_s))
                     ap.send_system_time(now)
-                if k % int(2 * ATTITUDE_HZ) == 0:
-                    ap.send_home(home.lat_deg, home.lon_deg, self.ground_alt_amsl_m)
+                if k % int(2 * ATTITUDE_HZ) == 0:  # the true ground: what the autopilot measured at home
+                    ap.send_home(home.lat_deg, home.lon_deg, home.alt_amsl_m - home.alt_agl_m)
                 ap.poll()
             k += 1
             next_t += 1.0 / ATTITUDE_HZ
@@ -791,6 +791,14 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
         f"GPS_INPUT     {report['gps_input_received']} msgs, interval mean {f(iv.get('mean_ms'), 'ms')} "
         f"p99 {f(iv.get('p99_ms'), 'ms')} max {f(iv.get('max_ms'), 'ms')}; ArduPilot health tripped: "
         f"{stream['health']['tripped']}, failsafe: {stream.get('ekf_failsafe_land_s')}",
+        *(
+            [
+                f"speed acc     p50 {f(sa.get('p50'), 'm/s')}  p95 {f(sa.get('p95'), 'm/s')}; "
+                f"EKF3 glitch spans {report.get('glitch_spans_s', [])}"
+            ]
+            if (sa := report.get("speed_accuracy_m_s") or {})
+            else []
+        ),
         fixes,
         *([f"              {refused}"] if (refused := refused_fixes_line(analysis)) else []),
         f"provenance    {report['provenance_counts']}",

@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import random
 
+import numpy as np
 import pytest
 
 from gps_denied_onboard.clock import (
     TIMESYNC_JUMP_SAMPLES,
     AutopilotClock,
+    CameraStampOffset,
     TimeSource,
     TimesyncSample,
 )
@@ -112,3 +114,67 @@ def test_autopilot_clock_drops_implausible_samples() -> None:
     assert not clock.note_timesync(TimesyncSample(T0_USEC, T0_USEC + 900_000, 5))
     assert not clock.note_timesync(TimesyncSample(T0_USEC, T0_USEC + 1_000, 0))
     assert clock.source is TimeSource.NONE
+
+
+# -- the camera's stamps -------------------------------------------------------------------------------
+
+
+def _camera_samples(
+    cam: CameraStampOffset, late_s: float, n: int, *, rng: random.Random, amp_rad: float = 0.15
+) -> int:
+    """``n`` frames, 1 s apart, of a camera stamping ``late_s`` late, each admitted with the correction
+    applied then: world-down swings in the camera as a copter's tilt does at manoeuvres (``amp_rad`` at
+    1-2 rad/s) and the image sees it at the true exposure, plus a bias and 0.1 deg of noise. The
+    attitude's world-down reaches the fit through ``complete``. Returns how often the correction
+    changed."""
+    bias = np.array([0.004, -0.003])
+    motions: dict[int, tuple[float, float, float]] = {}  # stamp us -> (w, phase x, phase y)
+
+    def down(t_s: np.ndarray | float, w: float, px: float, py: float) -> np.ndarray:
+        return np.stack([amp_rad * np.sin(w * t_s + px), amp_rad * np.sin(w * t_s + py)], axis=-1)
+
+    def curve(stamp_usec: int, offsets_s: np.ndarray) -> np.ndarray:
+        return down(offsets_s, *motions[stamp_usec])  # time 0 = the stamp
+
+    changes = 0
+    for k in range(n):
+        stamp_usec = T0_USEC + k * 1_000_000
+        motions[stamp_usec] = (rng.uniform(1.0, 2.0), rng.uniform(0.0, 6.3), rng.uniform(0.0, 6.3))
+        applied = cam.applied_s
+        noise = np.array([rng.gauss(0, 0.0017), rng.gauss(0, 0.0017)])
+        # image: world-down at the true exposure; autopilot: at the admitted one (stamp - applied)
+        tilt = down(-late_s, *motions[stamp_usec]) - down(-applied, *motions[stamp_usec]) + bias + noise
+        cam.note((float(tilt[0]), float(tilt[1])), stamp_usec - round(applied * 1e6), applied)
+        changes += cam.complete(curve, stamp_usec + 50_000)
+    return changes
+
+
+def test_camera_stamp_offset_is_measured_and_applied_once_sure() -> None:
+    """A camera stamping 0.2 s late: the fit finds it within a few ms from tilts during manoeuvres and
+    the correction moves to it; the frames' timing doubt drops from the prior to the fit's error."""
+    cam = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
+    assert cam.applied_s == 0.0 and cam.sigma_s == 0.1
+    changes = _camera_samples(cam, 0.2, 60, rng=random.Random(1))
+    assert 1 <= changes <= 3
+    assert cam.applied_s == pytest.approx(0.2, abs=0.01)
+    assert cam.sigma_s < 0.02
+    fit = cam.fit
+    assert fit is not None and fit.bias_cam_rad == pytest.approx((0.004, -0.003), abs=0.001)
+    assert _camera_samples(cam, 0.2, 60, rng=random.Random(2)) == 0  # it does not chase noise
+    assert not cam.out_of_bounds
+
+
+def test_camera_stamp_offset_needs_motion_to_say_anything() -> None:
+    """Level flight (world-down barely moves in the camera): the lateness cannot be seen, nothing is
+    applied and the frames keep the prior doubt."""
+    cam = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
+    assert _camera_samples(cam, 0.2, 100, rng=random.Random(3), amp_rad=0.005) == 0
+    assert cam.applied_s == 0.0 and cam.sigma_s == 0.1
+
+
+def test_camera_stamp_offset_beyond_the_bound_is_reported_and_clamped() -> None:
+    """A lateness beyond ``max_offset_s`` is corrected only up to it, said, and the rest stays doubt."""
+    cam = CameraStampOffset(max_offset_s=0.1, prior_sigma_s=0.1)
+    _camera_samples(cam, 0.3, 80, rng=random.Random(4))
+    assert cam.applied_s == pytest.approx(0.1)
+    assert cam.out_of_bounds

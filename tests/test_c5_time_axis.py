@@ -102,6 +102,42 @@ def test_time_axis_admits_small_clock_skew_ahead() -> None:
     assert axis.admit_frame(T0 + 100_000).admitted
 
 
+def test_time_axis_subtracts_the_cameras_measured_lateness() -> None:
+    """Once the camera's lateness is measured (``clock.CameraStampOffset``), every admitted frame's
+    exposure is its stamp less it, and the admission says how much was taken off."""
+    import random
+
+    from gps_denied_onboard.clock import CameraStampOffset
+
+    camera = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
+    est = NavEstimator(EstimatorConfig(), LTP)
+    axis = TimeAxis(
+        est,
+        max_delay_s=5.0,
+        max_frame_age_s=1.0,
+        max_future_s=0.25,
+        clock_unix_usec=_Clock(T0),
+        camera_offset=camera,
+    )
+    assert axis.admit_frame(T0 - 500_000).exposure_time_unix_usec == T0 - 500_000
+    rng = random.Random(0)
+    phases: dict[int, float] = {}
+
+    def down(t_s: np.ndarray | float, ph: float) -> np.ndarray:
+        return np.stack([0.2 * np.sin(1.5 * t_s + ph), 0.2 * np.cos(1.5 * t_s + ph)], axis=-1)
+
+    for k in range(40):  # a camera 150 ms late, seen in tilts while world-down swings in the camera
+        stamp = T0 - 30_000_000 + k * 500_000
+        phases[stamp] = rng.uniform(0.0, 6.3)
+        applied = camera.applied_s
+        tilt = down(-0.15, phases[stamp]) - down(-applied, phases[stamp])
+        camera.note((float(tilt[0]), float(tilt[1])), stamp - round(applied * 1e6), applied)
+        camera.complete(lambda t, offs: down(offs, phases[t]), stamp + 100_000)
+    late = axis.admit_frame(T0 - 100_000)
+    assert late.admitted and late.stamp_offset_s == pytest.approx(0.15, abs=0.005)
+    assert late.exposure_time_unix_usec == T0 - 100_000 - round(late.stamp_offset_s * 1e6)
+
+
 def test_time_axis_refuses_out_of_order_and_repeated_frames() -> None:
     """A frame not after the previous admitted one is refused (VO needs dt > 0)."""
     axis = _axis(_Clock(T0))

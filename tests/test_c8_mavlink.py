@@ -939,3 +939,60 @@ def test_named_values_carry_fdr_health_code() -> None:
         decoded = [rx.decode(bytearray(m.pack(tx))) for m in msgs]
         fdr = [m for m in decoded if m.get_type() == "NAMED_VALUE_INT" and m.name == NV_FDR_HEALTH]
         assert len(fdr) == 1 and fdr[0].value == code and fdr[0].time_boot_ms == 5
+
+
+def test_tracker_down_curve_in_the_camera_from_the_attitude() -> None:
+    """World-down in the camera around an instant: pitching up at 10 deg/s moves it along the camera's
+    y axis (image down = body backward) by 0.175 rad/s, rolling along its x axis; no attitude: None."""
+    recv_s = T0_UNIX_USEC / 1e6
+    offsets = np.array([-0.1, 0.0, 0.1])
+    for roll_rate, pitch_rate, axis in ((0.0, 10.0, 1), (10.0, 0.0, 0)):
+        tr = _tracker()
+        for k in range(16):  # 50 Hz for 300 ms
+            t_ms = BOOT0_MS + 20 * k
+            roll, pitch = math.radians(roll_rate * 0.02 * k), math.radians(pitch_rate * 0.02 * k)
+            tr.handle(
+                _decoded(lambda mav, t=t_ms, r=roll, p=pitch: mav.attitude_encode(t, r, p, 0.3, 0, 0, 0)),
+                recv_s + 0.02 * k,
+            )
+        curve = tr.down_cam_curve(T0_UNIX_USEC + 150_000, offsets)
+        assert curve is not None and curve.shape == (3, 2)
+        rate = (curve[2] - curve[0]) / 0.2
+        assert abs(rate[axis]) == pytest.approx(math.radians(10.0), rel=0.02), rate
+        assert abs(rate[1 - axis]) < 1e-3, rate
+    assert _tracker().down_cam_curve(T0_UNIX_USEC, offsets) is None
+
+
+def test_tracker_ground_altitude_waits_for_the_ekf_origin() -> None:
+    """Before the EKF has an origin ArduPilot's GLOBAL_POSITION_INT carries no position and alt 0: the
+    ground is HOME_POSITION's altitude then, and alt - relative_alt once it carries one."""
+    tr = _tracker()
+    recv_s = T0_UNIX_USEC / 1e6
+    assert tr.ground_alt_amsl_m() is None
+    lat, lon = 504501234, 305234567
+    no_origin = _decoded(lambda mav: mav.global_position_int_encode(BOOT0_MS, 0, 0, 0, 80_000, 0, 0, 0, 0))
+    tr.handle(no_origin, recv_s)
+    assert tr.ground_alt_amsl_m() is None  # alt 0 before the origin is no ground at -80 m
+    q = [1.0, 0.0, 0.0, 0.0]
+    home = _decoded(lambda mav: mav.home_position_encode(lat, lon, 520_000, 0, 0, 0, q, 0, 0, 0))
+    tr.handle(home, recv_s)
+    assert tr.ground_alt_amsl_m() == pytest.approx(520.0)
+    origin = _decoded(
+        lambda mav: mav.global_position_int_encode(BOOT0_MS, lat, lon, 601_000, 80_000, 0, 0, 0, 0)
+    )
+    tr.handle(origin, recv_s)
+    assert tr.ground_alt_amsl_m() == pytest.approx(521.0)
+
+
+def test_gps_input_without_a_trusted_altitude_flags_it_ignored() -> None:
+    """``alt_trusted=False`` (the ground altitude disagrees with the autopilot's): the altitude, VDOP and
+    vertical accuracy are flagged as ignored and sent as 0; the horizontal fix is unchanged."""
+    mav = D.MAVLink(None)
+    ok = m.gps_input(mav, _state(), time_unix_usec=T0_UNIX_USEC)
+    off = m.gps_input(mav, _state(), time_unix_usec=T0_UNIX_USEC, alt_trusted=False)
+    alt_flags = (
+        D.GPS_INPUT_IGNORE_FLAG_ALT | D.GPS_INPUT_IGNORE_FLAG_VDOP | D.GPS_INPUT_IGNORE_FLAG_VERTICAL_ACCURACY
+    )
+    assert ok.ignore_flags & alt_flags == 0 and ok.alt == pytest.approx(250.0)
+    assert off.ignore_flags & alt_flags == alt_flags and off.alt == 0.0 and off.vert_accuracy == 0.0
+    assert (off.lat, off.lon, off.fix_type) == (ok.lat, ok.lon, ok.fix_type)

@@ -35,10 +35,19 @@ The autopilot's clock
 (offset and drift, continuously re-synced), bounded by the receive times of its timestamped messages;
 the receive-time bound alone when the autopilot does not answer TIMESYNC. The autopilot's own Unix time
 (SYSTEM_TIME) is never the link: without GNSS it is whatever somebody set.
+
+The camera's stamps
+-------------------
+``CameraStampOffset`` estimates how late the camera stamps its exposures, from the tilts the images
+show against the autopilot's: a stamp late by ``tau`` makes the image-minus-autopilot tilt follow
+``-tau`` times the rate at which world-down moves in the camera, which a copter's manoeuvres make large.
+The time axis subtracts the estimate once it is sure of it, within ``camera.max_stamp_offset_s``; until
+then, and by its standard error after, every frame carries how well its exposure time is known.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import deque
@@ -216,6 +225,8 @@ RECEIVE_BOUND_BUCKET_S: Final[float] = 1.0
 RECEIVE_BOUND_WINDOW_S: Final[float] = 6.0
 #: Requests whose answers are still awaited (older ones are forgotten).
 TIMESYNC_PENDING: Final[int] = 16
+#: The doubt of a mapping on receive times alone: the link's smallest latency, which it leaves in, s.
+RECEIVE_BOUND_SIGMA_S: Final[float] = 0.01
 #: Boot time going back by more than this is a reboot of the autopilot, s.
 AUTOPILOT_REBOOT_BACK_S: Final[float] = 1.0
 
@@ -388,6 +399,15 @@ class AutopilotClock:
             return min((s.rtt_usec for s in self._samples), default=None)
 
     @property
+    def sigma_s(self) -> float | None:
+        """1-sigma of the mapping, s: half the shortest round trip with TIMESYNC, ``RECEIVE_BOUND_SIGMA_S``
+        on receive times alone, None before either."""
+        with self._lock:
+            if self._fit is not None and self._samples:
+                return min(s.rtt_usec for s in self._samples) / 2e6
+            return RECEIVE_BOUND_SIGMA_S if self._rx_min else None
+
+    @property
     def drift_ppm(self) -> float | None:
         with self._lock:
             return None if self._fit is None else self._fit[2] * 1e6
@@ -407,3 +427,206 @@ class AutopilotClock:
 def _offset_at(fit: tuple[float, float, float], now_usec: float) -> float:
     t_ref, offset, drift = fit
     return offset + drift * (now_usec - t_ref)
+
+
+# -- the camera's stamps ---------------------------------------------------------------------------------
+
+#: Tilt samples kept for the camera stamp fit, and tilts waiting for the autopilot's attitude.
+CAMERA_OFFSET_SAMPLES: Final[int] = 300
+CAMERA_OFFSET_PENDING: Final[int] = 64
+#: The autopilot's world-down is sampled this often around each exposure for the fit, s, and this far
+#: after it (an early camera: what can be seen without waiting long for the autopilot's attitude), s.
+CAMERA_CURVE_STEP_S: Final[float] = 0.01
+CAMERA_CURVE_AHEAD_S: Final[float] = 0.04
+#: A sample whose world-down moves slower than this says little about timing (it still pins the bias).
+CAMERA_OFFSET_MIN_RATE_RAD_S: Final[float] = 0.035  # 2 deg/s
+#: The fit is used once it has this many informative samples and its standard error is below the bound.
+CAMERA_OFFSET_MIN_SAMPLES: Final[int] = 8
+CAMERA_OFFSET_MAX_SE_S: Final[float] = 0.02
+#: Candidate latenesses tried, s apart.
+CAMERA_OFFSET_GRID_S: Final[float] = 0.005
+#: The applied correction moves only when the fit differs from it by more than this many standard errors
+#: (and at least CAMERA_OFFSET_MIN_STEP_S), so that it does not chase noise.
+CAMERA_OFFSET_STEP_SE: Final[float] = 2.0
+#: The fit's standard error is taken as at least this, s: neighbouring tilts share their errors, which
+#: the scatter alone does not show (measured: fits moving by 20-40 ms between runs of samples).
+CAMERA_OFFSET_SE_FLOOR_S: Final[float] = 0.01
+CAMERA_OFFSET_MIN_STEP_S: Final[float] = 0.005
+
+
+@dataclass(frozen=True)
+class CameraOffsetFit:
+    """The fit of the camera's stamp lateness: ``offset_s`` (+: stamps later than the exposure), its
+    standard error, the tilt bias on the camera's x and y axes it was fitted with (rad), and how many
+    samples (with a useful rate) it rests on."""
+
+    offset_s: float
+    se_s: float
+    bias_cam_rad: tuple[float, float]
+    samples: int
+    informative: int
+
+
+class CameraStampOffset:
+    """Online estimate of how late the camera stamps its frames (module docstring); thread-safe.
+
+    ``note`` queues one image-minus-autopilot tilt (a fix's, or VO's ground tilt) with its frame's
+    admitted exposure and the correction it was admitted with; ``complete`` (called as the autopilot's
+    attitude arrives) fetches world-down in the camera around each queued frame's *stamp* through
+    ``curve(time_unix_usec, offsets_s)``, so no frame waits for it. A lateness ``tau`` predicts the tilt
+    ``down(stamp - tau) - down(stamp - applied)`` plus a bias; the fit is the ``tau`` (on a grid) whose
+    prediction leaves the least scatter. ``applied_s`` is the correction the time axis subtracts from
+    new stamps; ``sigma_s`` how well a corrected exposure time is known: ``prior_sigma_s`` until the fit
+    is sure, then its standard error (floored). ``out_of_bounds``: the fit is sure and beyond
+    ``max_offset_s``, which the correction then stays at, the frames carrying the rest as doubt.
+    """
+
+    def __init__(self, *, max_offset_s: float, prior_sigma_s: float) -> None:
+        if max_offset_s < 0 or prior_sigma_s <= 0:
+            raise ValueError(
+                f"max_offset_s must be >= 0 and prior_sigma_s > 0, got {max_offset_s}, {prior_sigma_s}"
+            )
+        self._max_s = float(max_offset_s)
+        self._prior_sigma_s = float(prior_sigma_s)
+        n_past = math.ceil((self._max_s + CAMERA_CURVE_AHEAD_S) / CAMERA_CURVE_STEP_S)
+        n_ahead = round(CAMERA_CURVE_AHEAD_S / CAMERA_CURVE_STEP_S)
+        #: Where world-down is sampled, relative to a frame's stamp, s.
+        self.curve_offsets_s: np.ndarray = np.arange(-n_past, n_ahead + 1) * CAMERA_CURVE_STEP_S
+        self._lock = threading.Lock()
+        self._pending: deque[tuple[np.ndarray, int, float]] = deque(maxlen=CAMERA_OFFSET_PENDING)
+        self._samples: deque[tuple[np.ndarray, np.ndarray, float, bool]] = deque(maxlen=CAMERA_OFFSET_SAMPLES)
+        self._applied_s = 0.0
+        self._sigma_s = self._prior_sigma_s
+        self._fit: CameraOffsetFit | None = None
+        self._out_of_bounds = False
+        self._changes = 0
+
+    def note(self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, applied_s: float) -> None:
+        """Queue one tilt of the frame admitted at ``exposure_unix_usec`` with ``applied_s`` taken off."""
+        tilt = np.asarray(tilt_off_cam_rad, dtype=np.float64)
+        if np.all(np.isfinite(tilt)) and math.isfinite(applied_s):
+            with self._lock:
+                self._pending.append((tilt, int(exposure_unix_usec), float(applied_s)))
+
+    def due_before_unix_usec(self) -> int | None:
+        """The attitude must reach this time (the oldest queued stamp plus the curve's reach) for
+        ``complete`` to take the oldest queued tilt; None when nothing is queued."""
+        with self._lock:
+            if not self._pending:
+                return None
+            _, t, applied = self._pending[0]
+            return t + round((applied + CAMERA_CURVE_AHEAD_S) * 1e6)
+
+    def complete(self, curve: Callable[[int, np.ndarray], np.ndarray | None], latest_unix_usec: int) -> bool:
+        """Take every queued tilt whose curve the attitude up to ``latest_unix_usec`` covers (a tilt whose
+        curve ``curve`` cannot give is dropped). True when the applied correction changed."""
+        taken: list[tuple[np.ndarray, int, float]] = []  # (tilt, stamp us, applied s)
+        with self._lock:
+            while self._pending:
+                tilt, t_usec, applied = self._pending[0]
+                stamp_usec = t_usec + round(applied * 1e6)
+                if stamp_usec + CAMERA_CURVE_AHEAD_S * 1e6 > latest_unix_usec:
+                    break
+                self._pending.popleft()
+                taken.append((tilt, stamp_usec, applied))
+        samples = []
+        for tilt, stamp_usec, applied in taken:
+            c = curve(stamp_usec, self.curve_offsets_s)
+            if c is not None and c.shape == (self.curve_offsets_s.size, 2) and np.all(np.isfinite(c)):
+                samples.append((tilt, np.asarray(c, dtype=np.float64), applied))
+        if not samples:
+            return False
+        with self._lock:
+            for tilt, c, applied in samples:
+                self._samples.append((tilt, c, applied, self._informative(c, applied)))
+            return self._refit_locked()
+
+    def _informative(self, curve: np.ndarray, applied_s: float) -> bool:
+        """Whether world-down moved fast enough around the admitted exposure to show a timing error."""
+        k = int(np.rint((-applied_s - self.curve_offsets_s[0]) / CAMERA_CURVE_STEP_S))
+        k = min(max(k, 1), self.curve_offsets_s.size - 2)
+        rate = np.hypot(*(curve[k + 1] - curve[k - 1])) / (2 * CAMERA_CURVE_STEP_S)
+        return bool(rate >= CAMERA_OFFSET_MIN_RATE_RAD_S)
+
+    def _refit_locked(self) -> bool:
+        fit = self._fit_locked()
+        self._fit = fit
+        sure = fit is not None and fit.informative >= CAMERA_OFFSET_MIN_SAMPLES
+        if fit is None or not sure or fit.se_s > CAMERA_OFFSET_MAX_SE_S:
+            return False
+        target = min(max(fit.offset_s, -CAMERA_CURVE_AHEAD_S), self._max_s)
+        self._out_of_bounds = fit.offset_s > self._max_s + CAMERA_OFFSET_GRID_S / 2
+        se = max(fit.se_s, CAMERA_OFFSET_SE_FLOOR_S)
+        self._sigma_s = math.hypot(se, abs(fit.offset_s - target))
+        if abs(target - self._applied_s) <= max(CAMERA_OFFSET_STEP_SE * se, CAMERA_OFFSET_MIN_STEP_S):
+            return False
+        self._applied_s = target
+        self._changes += 1
+        return True
+
+    def _fit_locked(self) -> CameraOffsetFit | None:
+        samples = list(self._samples)
+        informative = sum(1 for *_, inf in samples if inf)
+        if len(samples) < 3 or informative < 2:
+            return None
+        tilts = np.stack([t for t, *_ in samples])  # (n, 2)
+        curves = np.stack([c for _, c, *_ in samples])  # (n, m, 2), on each frame's stamp
+        applied = np.array([a for _, _, a, _ in samples])
+        offs = self.curve_offsets_s
+
+        def down_at(lateness_s: np.ndarray) -> np.ndarray:
+            """Each sample's world-down at its stamp minus ``lateness_s`` (one per sample), (n, 2)."""
+            pos = np.clip((-lateness_s - offs[0]) / CAMERA_CURVE_STEP_S, 0.0, offs.size - 1.0)
+            lo = np.minimum(np.floor(pos).astype(int), offs.size - 2)
+            frac = (pos - lo)[:, None]
+            rows = np.arange(len(samples))
+            return np.asarray(curves[rows, lo] * (1 - frac) + curves[rows, lo + 1] * frac)
+
+        seen_by_ap = down_at(applied)  # what the autopilot's attitude said at the admitted exposure
+        # a little past the bound too, so that a lateness beyond it shows as one
+        taus = np.arange(
+            -CAMERA_CURVE_AHEAD_S, self._max_s + CAMERA_CURVE_AHEAD_S + 1e-9, CAMERA_OFFSET_GRID_S
+        )
+        costs = np.empty(taus.size)
+        biases = np.zeros((taus.size, 2))
+        for k, tau in enumerate(taus):
+            e = tilts - (down_at(np.full(len(samples), tau)) - seen_by_ap)
+            biases[k] = e.mean(axis=0)
+            costs[k] = float(np.mean(np.sum((e - biases[k]) ** 2, axis=1)))
+        k = int(np.argmin(costs))
+        n = len(samples)
+        se = math.inf
+        if 0 < k < taus.size - 1:
+            curvature = (costs[k - 1] + costs[k + 1] - 2 * costs[k]) / CAMERA_OFFSET_GRID_S**2
+            if curvature > 0:
+                se = math.sqrt(2.0 * costs[k] / max(2 * n - 3, 1) / curvature)
+        elif k == taus.size - 1 and costs[k] < costs[k - 1] < costs[k - 2]:
+            # still falling at the grid's end: at least this late, once enough motion says so
+            if informative >= 3 * CAMERA_OFFSET_MIN_SAMPLES:
+                se = CAMERA_OFFSET_MAX_SE_S
+        return CameraOffsetFit(float(taus[k]), se, (float(biases[k][0]), float(biases[k][1])), n, informative)
+
+    @property
+    def applied_s(self) -> float:
+        with self._lock:
+            return self._applied_s
+
+    @property
+    def sigma_s(self) -> float:
+        with self._lock:
+            return self._sigma_s
+
+    @property
+    def fit(self) -> CameraOffsetFit | None:
+        with self._lock:
+            return self._fit
+
+    @property
+    def out_of_bounds(self) -> bool:
+        with self._lock:
+            return self._out_of_bounds
+
+    @property
+    def changes(self) -> int:
+        with self._lock:
+            return self._changes

@@ -104,6 +104,13 @@ class CameraConfig:
     #: (VO, pose, tilt checks; not the IMU). Measure it with `gdnav fdr boresight`.
     mount_roll_deg: Annotated[float, Strict(), Field(ge=-10, le=10)] = 0.0
     mount_pitch_deg: Annotated[float, Strict(), Field(ge=-10, le=10)] = 0.0
+    #: How well a frame's stamp gives its exposure time (1 sigma, s) until the daemon has measured the
+    #: camera's lateness (clock.CameraStampOffset): the tilt and position doubt a timing error carries at
+    #: the vehicle's attitude rate and speed. A camera that stamps on receipt is typically 30-150 ms late.
+    stamp_sigma_s: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.1
+    #: The largest lateness of the stamps the daemon corrects, s (earliness: up to 0.04 s); a measured
+    #: one beyond it is reported (``camera.stamp_offset``, out_of_bounds) and corrected only up to it.
+    max_stamp_offset_s: Annotated[float, Strict(), Field(ge=0, le=1)] = 0.3
 
 
 OutputKind = Literal["gps_input", "global_position_sensor", "vision_position_estimate"]
@@ -166,6 +173,10 @@ class TerrainConfig:
 
     #: Flat-ground model: ground height above mean sea level, metres.
     ground_alt_amsl_m: Float = 0.0
+    #: The autopilot's ground altitude at home (its EKF's, once it has an origin) may differ from
+    #: ``ground_alt_amsl_m`` by this much, m; beyond it the daemon says so and stops giving GPS_INPUT an
+    #: altitude (a 520 m error was measured from a driver that read it before the origin existed).
+    max_ground_alt_disagreement_m: PosFloat = 15.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -108,6 +108,10 @@ class LogEvent:
     CAMERA_DISCONNECTED: Final = "camera.disconnected"
     CAMERA_FRAME_DROPPED: Final = "camera.frame_dropped"
     CAMERA_BAD_FRAME: Final = "camera.bad_frame"
+    #: The camera's stamp lateness the time axis subtracts changed (clock.CameraStampOffset).
+    CAMERA_STAMP_OFFSET: Final = "camera.stamp_offset"
+    #: The autopilot's ground altitude at home disagrees with ``terrain.ground_alt_amsl_m`` (or agrees again).
+    GROUND_ALT_DISAGREEMENT: Final = "daemon.ground_alt_disagreement"
     PIPELINE_FRAME: Final = "pipeline.frame"
     PIPELINE_FIX: Final = "pipeline.fix"
     PIPELINE_FRAME_ERROR: Final = "pipeline.frame_error"
@@ -246,6 +250,10 @@ class FdrKind:
     FDR_CLOSED: Final = "fdr.closed"
     #: The host's wall clock stepped against the daemon's clock (detected, recorded, not followed).
     CLOCK_STEP: Final = "daemon.clock_step"
+    #: The camera's measured stamp lateness, each time the correction the time axis applies changes.
+    CAMERA_STAMP_OFFSET: Final = "camera.stamp_offset"
+    #: The autopilot's ground altitude started or stopped disagreeing with the daemon's.
+    GROUND_ALT_CHECK: Final = "daemon.ground_alt_check"
     #: A map tile failed its digest on read (corrupted after the cache was verified): masked, never used.
     TILE_CORRUPT: Final = "cache.tile_corrupt"
     #: At start: whether the learned matcher uses the cache's precomputed tile features, or why not.

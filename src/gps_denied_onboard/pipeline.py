@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import time
 import uuid
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Final
@@ -34,7 +34,7 @@ from typing import Final
 import numpy as np
 import structlog
 
-from gps_denied_onboard.camera.types import CameraCalibration, CameraMount, NavCameraFrame
+from gps_denied_onboard.camera.types import CameraCalibration, CameraMount, FrameTiming, NavCameraFrame
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 from gps_denied_onboard.components.c2_5_rerank.footprint import FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
@@ -43,7 +43,7 @@ from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion, VprStrat
 from gps_denied_onboard.components.c2_vpr.types import VprError
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
-from gps_denied_onboard.components.c3_matcher.types import MatchResult
+from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, MatchResult
 from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeCheck, AttitudeVerdict
 from gps_denied_onboard.components.c4_pose.consistency import ConsistencyVerdict, FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import (
@@ -52,6 +52,7 @@ from gps_denied_onboard.components.c4_pose.integrity import (
     IntegrityVerdict,
     MatchEvidence,
     with_regional_error,
+    with_timing_error,
 )
 from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
 from gps_denied_onboard.components.c5_estimator.journal import UNIT_FIX, UNIT_FIX_PRIOR, UNIT_TRACK
@@ -187,6 +188,7 @@ class NavigationPipeline:
         mount: CameraMount | None = None,
         footprint_chips: FootprintChips | None = None,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
+        attitude_sigma_deg: float | None = None,
     ) -> None:
         self._calib = calibration
         self._footprint_chips = footprint_chips
@@ -218,6 +220,13 @@ class NavigationPipeline:
         self._clock_ns = clock_ns
         #: F6 re-localisation (corpus-wide VPR) currently active; logged on transitions only.
         self._corpus_wide = False
+        #: A tilt is compared with the autopilot's only while the timing doubt makes less tilt error than
+        #: half the attitude's sigma (``pose.attitude_sigma_deg``): like with like (None: always).
+        self._timing_tilt_max_rad = (
+            math.radians(attitude_sigma_deg) / 2.0 if attitude_sigma_deg is not None else None
+        )
+        #: The newest frames' timing, for VO's ground tilt (it is on the previous frame's axes).
+        self._timing_of: OrderedDict[uuid.UUID, tuple[int, FrameTiming | None]] = OrderedDict()
 
     @property
     def time_axis(self) -> TimeAxis:
@@ -268,10 +277,26 @@ class NavigationPipeline:
 
     # -- camera-rate half ----------------------------------------------------------------------------
 
+    def _comparable(self, timing: FrameTiming | None) -> bool:
+        """Whether a tilt at this frame's timing says anything about the autopilot's attitude."""
+        limit = self._timing_tilt_max_rad
+        return limit is None or timing is None or timing.tilt_sigma_rad <= limit
+
+    def _note_camera_tilt(
+        self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, timing: FrameTiming | None
+    ) -> None:
+        """One image-minus-autopilot tilt for the camera's stamp lateness (``clock.CameraStampOffset``)."""
+        camera = self._axis.camera_offset
+        if camera is not None and timing is not None:
+            camera.note(tilt_off_cam_rad, exposure_unix_usec, timing.stamp_offset_s)
+
     def track(self, frame: NavCameraFrame, prior: InitialPrior | None) -> TrackOutcome:
         """VO on ``frame`` fused at its exposure time; initialises the estimator from ``prior`` on the
         first frame. The frame must already be admitted by the time axis (``admit_frame``)."""
         t = frame.exposure_time_unix_usec
+        self._timing_of[frame.frame_id] = (t, frame.timing)
+        while len(self._timing_of) > 8:
+            self._timing_of.popitem(last=False)
         timings: dict[str, float] = {}
         t0 = self._clock_ns()
         motion: VoMotion | None = None
@@ -291,6 +316,11 @@ class NavigationPipeline:
                 self._initialise(prior, frame)
                 unit["initialised"] = True
             tilt = motion.ground_tilt_off_cam_rad if motion is not None else None
+            if tilt is not None and motion is not None:
+                prev_t, prev_timing = self._timing_of.get(motion.prev_frame_id, (t, None))
+                self._note_camera_tilt(tilt, prev_t, prev_timing)
+                if not self._comparable(prev_timing):
+                    tilt = None  # the timing doubt alone could make this tilt: no evidence either way
             if self._ground_tilt is not None and tilt is not None and frame.alt_agl_m is not None:
                 ground_tilt = self._ground_tilt.note_tilt(t, tilt)
                 before = self._ground_tilt_verdict
@@ -401,6 +431,8 @@ class NavigationPipeline:
                 consistency = self._consistency.assess(fix, full_evidence=full_evidence)
                 # The regional error cancels between map fixes: added after both comparisons.
                 fix = with_regional_error(consistency.fix, verdict.regional_sigma_m if verdict else 0.0)
+                if frame.timing is not None:  # the exposure time's doubt, along the motion
+                    fix = with_timing_error(fix, self._axis.state_at(t).vel_ned_m_s, frame.timing.sigma_s)
                 if consistency.accepted:
                     decision = self._axis.fuse_fix(fix)
                     accepted = bool(decision.accepted)
@@ -445,6 +477,10 @@ class NavigationPipeline:
                 "fix_image_tilt_off_deg": (
                     round(math.degrees(fix.attitude_disagreement_rad), 3) if fix else None
                 ),
+                "fix_image_tilt_off_cam_deg": (
+                    [round(math.degrees(v), 4) for v in fix.image_tilt_off_cam_rad] if fix else None
+                ),
+                "timing": _timing_fields(frame.timing),
                 "attitude_check": attempt.attitude.fdr_fields() if attempt.attitude is not None else None,
                 "ground_tilt_check": ground_tilt.fdr_fields() if ground_tilt is not None else None,
                 "integrity": verdict.fdr_fields() if verdict is not None else None,
@@ -547,6 +583,13 @@ class NavigationPipeline:
             )
         t4 = self._clock_ns()
         timings["pose"] = (t4 - t3) / 1e6
+        self._note_camera_tilt(fix.image_tilt_off_cam_rad, frame.exposure_time_unix_usec, frame.timing)
+        if not self._comparable(frame.timing):
+            # The timing doubt at this attitude rate could make the tilt difference by itself: the check
+            # learns nothing from it, and the solver has already widened the tilt prior by it.
+            verdict = self._judge(frame, match, rerank_result, fix, prior_state)
+            timings["integrity"] = (self._clock_ns() - t4) / 1e6
+            return self._judged(frame, match, best, verdict, None)
         attitude = self._attitude.note(fix, self._footprint_m(fix))
         if attitude.refused is not None:
             log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, **attitude.fdr_fields())
@@ -555,6 +598,17 @@ class NavigationPipeline:
             )
         verdict = self._judge(frame, match, rerank_result, fix, prior_state)
         timings["integrity"] = (self._clock_ns() - t4) / 1e6
+        return self._judged(frame, match, best, verdict, attitude)
+
+    def _judged(
+        self,
+        frame: NavCameraFrame,
+        match: MatchResult,
+        best: CandidateMatchSet,
+        verdict: IntegrityVerdict,
+        attitude: AttitudeVerdict | None,
+    ) -> FixAttempt:
+        """The attempt the integrity rule's ``verdict`` makes of a solved fix."""
         if not verdict.accepted:
             log.warning(
                 LogEvent.FIX_INTEGRITY_REFUSED,
@@ -628,3 +682,14 @@ class NavigationPipeline:
             rivals=rivals,
             prior=prior_state,
         )
+
+
+def _timing_fields(timing: FrameTiming | None) -> dict[str, object] | None:
+    """A frame's timing for the FDR (``FrameTiming``): rates in deg/s, times in s."""
+    if timing is None:
+        return None
+    return {
+        "down_rate_cam_deg_s": [round(math.degrees(v), 3) for v in timing.down_rate_cam_rad_s],
+        "stamp_offset_s": round(timing.stamp_offset_s, 4),
+        "sigma_s": round(timing.sigma_s, 4),
+    }

@@ -179,6 +179,25 @@ class CameraMount:
 
 
 @dataclass(frozen=True)
+class FrameTiming:
+    """How well a frame's exposure time is known, and what an error in it costs.
+
+    ``down_rate_cam_rad_s``: how fast world-down moved in the camera at the exposure (the autopilot's
+    attitude), camera x and y, rad/s; ``stamp_offset_s``: the camera lateness subtracted from its stamp;
+    ``sigma_s``: 1-sigma of the exposure time after that (the camera's and the autopilot clock's doubt).
+    """
+
+    down_rate_cam_rad_s: tuple[float, float]
+    stamp_offset_s: float
+    sigma_s: float
+
+    @property
+    def tilt_sigma_rad(self) -> float:
+        """The tilt error the timing doubt makes at this rate, rad (1 sigma)."""
+        return math.hypot(*self.down_rate_cam_rad_s) * self.sigma_s
+
+
+@dataclass(frozen=True)
 class NavCameraFrame:
     """One nav-camera image and the vehicle state at its exposure.
 
@@ -194,6 +213,8 @@ class NavCameraFrame:
     attitude: Attitude | None
     alt_agl_m: float | None
     received_monotonic_ns: int
+    #: How well the exposure time is known (None in replays and tests that do not say).
+    timing: FrameTiming | None = None
     #: Aircraft-side annotations (e.g. the source's own sequence); never used for navigation.
     meta: dict[str, object] = field(default_factory=dict, compare=False)
 

@@ -13,7 +13,7 @@ import structlog
 
 from gps_denied_onboard.camera.sources import CameraSourceError, FrameSource, open_frame_source
 from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration, CameraMount
-from gps_denied_onboard.clock import AutopilotClock, DaemonClock
+from gps_denied_onboard.clock import AutopilotClock, CameraStampOffset, DaemonClock
 from gps_denied_onboard.components.c1_vio import HomographyVo
 from gps_denied_onboard.components.c2_5_rerank.footprint import FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
@@ -549,6 +549,9 @@ def _time_axis(
         clock=clock,
         clock_unix_usec=clock_unix_usec,
         journal=journal,
+        camera_offset=CameraStampOffset(
+            max_offset_s=config.camera.max_stamp_offset_s, prior_sigma_s=config.camera.stamp_sigma_s
+        ),
     )
 
 
@@ -599,6 +602,7 @@ def _pipeline(
             math.radians(config.camera.mount_roll_deg), math.radians(config.camera.mount_pitch_deg)
         ),
         footprint_chips=footprint_chips,
+        attitude_sigma_deg=config.pose.attitude_sigma_deg,
     )
 
 

@@ -151,6 +151,19 @@ def with_regional_error(fix: PoseFix, sigma_m: float) -> PoseFix:
     return dataclasses.replace(fix, cov_ned_m2=cov, shared_sigma_m=math.hypot(fix.shared_sigma_m, sigma_m))
 
 
+def with_timing_error(fix: PoseFix, vel_ne_m_s: np.ndarray, sigma_s: float) -> PoseFix:
+    """``fix`` stating the position error its exposure time's doubt makes: ``sigma_s`` (1 sigma) along
+    the velocity ``vel_ne_m_s``, in its covariance and in the error it shares with its neighbours (the
+    camera's lateness is the same for them)."""
+    v = np.asarray(vel_ne_m_s, dtype=np.float64)[:2]
+    if sigma_s <= 0.0 or not np.all(np.isfinite(v)):
+        return fix
+    cov = np.array(fix.cov_ned_m2, dtype=np.float64, copy=True)
+    cov[:2, :2] += np.outer(v, v) * sigma_s**2
+    along_m = float(np.hypot(*v)) * sigma_s
+    return dataclasses.replace(fix, cov_ned_m2=cov, shared_sigma_m=math.hypot(fix.shared_sigma_m, along_m))
+
+
 def _horiz_sigma_m(cov: np.ndarray) -> float:
     return float(np.sqrt(max(np.max(np.linalg.eigvalsh(np.asarray(cov)[:2, :2])), 0.0)))
 

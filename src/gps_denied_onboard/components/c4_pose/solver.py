@@ -211,7 +211,11 @@ class PoseSolver:
         # Correlated match errors: no more than max_independent_matches count as independent.
         dependence = math.sqrt(max(1.0, n_pts / cfg.max_independent_matches))
         sigma_px = _image_sigma_px(obs, rvec0, tvec0) * dependence
-        prior = _TiltPrior(frame.attitude.R_ned_cam()[2, :], math.radians(cfg.attitude_sigma_deg))
+        # the autopilot's tilt, as well as the timing doubt at this attitude rate lets it be known
+        timing_rad = frame.timing.tilt_sigma_rad if frame.timing is not None else 0.0
+        prior = _TiltPrior(
+            frame.attitude.R_ned_cam()[2, :], math.hypot(math.radians(cfg.attitude_sigma_deg), timing_rad)
+        )
         rvec, tvec = self._with_attitude_prior(obs, rvec0, tvec0, sigma_px, prior, frame)
         rot, _ = cv2.Rodrigues(rvec)
         if not np.all((obj @ rot.T + tvec.reshape(1, 3))[:, 2] > 0):

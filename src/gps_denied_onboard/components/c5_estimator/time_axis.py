@@ -16,8 +16,8 @@ Rule, three jobs:
    requested time without changing the filter; the steady MAVLink stream sends this.
 Whose clock: the daemon's (``DaemonClock``), never the wall clock. ``admit_frame`` maps a frame's
 wall-clock stamp into it (``DaemonClock.from_wall_usec``) and every later use of the frame uses the
-mapped time (``Admission.exposure_time_unix_usec``). Thread-safe: one lock for the VO worker, the fix
-worker and the output task.
+mapped time (``Admission.exposure_time_unix_usec``), less the camera's measured lateness
+(``clock.CameraStampOffset``). Thread-safe: one lock for the VO worker, the fix worker and the output task.
 
 Why: docs/design.md, "The time axis".
 """
@@ -37,7 +37,7 @@ from typing import Any, Final
 import numpy as np
 import structlog
 
-from gps_denied_onboard.clock import DaemonClock
+from gps_denied_onboard.clock import CameraStampOffset, DaemonClock
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator.ekf import EstimatorCheckpoint, FixReason, NavEstimator
@@ -70,6 +70,8 @@ class Admission:
     reason: Refusal | None
     ahead_s: float
     exposure_time_unix_usec: int
+    #: The camera's measured lateness subtracted from the stamp, s (``clock.CameraStampOffset``).
+    stamp_offset_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -120,6 +122,7 @@ class TimeAxis:
         clock: DaemonClock | None = None,
         clock_unix_usec: Callable[[], int] | None = None,
         journal: InputJournal | None = None,
+        camera_offset: CameraStampOffset | None = None,
     ) -> None:
         for name, value in (
             ("max_delay_s", max_delay_s),
@@ -137,6 +140,7 @@ class TimeAxis:
             self._clock = daemon_clock.now_unix_usec
             self._from_wall = daemon_clock.from_wall_usec
         self._journal = journal
+        self._camera_offset = camera_offset
         self._max_future_usec = round(max_future_s * 1e6)
         self._max_frame_age_usec = round(max_frame_age_s * 1e6)
         self._max_delay_usec = round(max_delay_s * 1e6)
@@ -152,12 +156,18 @@ class TimeAxis:
 
     # -- frames ---------------------------------------------------------------------------------------
 
+    @property
+    def camera_offset(self) -> CameraStampOffset | None:
+        """The camera's measured stamp lateness that ``admit_frame`` subtracts (fed by the pipeline)."""
+        return self._camera_offset
+
     def admit_frame(self, exposure_stamp_unix_usec: int) -> Admission:
         """Admit or refuse a frame by its exposure stamp (the host's wall clock at exposure; see the
         module docstring). An admitted frame's time becomes the bound for the next one; a refused one
         changes nothing but the counters."""
         with self._lock:
-            t = self._from_wall(int(exposure_stamp_unix_usec))
+            late_s = self._camera_offset.applied_s if self._camera_offset is not None else 0.0
+            t = self._from_wall(int(exposure_stamp_unix_usec)) - round(late_s * 1e6)
             now = self._clock()
             ahead_usec = t - now
             reason: Refusal | None = None
@@ -169,10 +179,10 @@ class TimeAxis:
                 reason = Refusal.OUT_OF_ORDER
             if reason is not None:
                 self._refuse("frame", reason, t, now)
-                return Admission(False, reason, ahead_usec / 1e6, t)
+                return Admission(False, reason, ahead_usec / 1e6, t, late_s)
             self._last_frame_usec = t
             self._frames_admitted += 1
-            return Admission(True, None, ahead_usec / 1e6, t)
+            return Admission(True, None, ahead_usec / 1e6, t, late_s)
 
     def _refuse(self, kind: str, reason: Refusal, t: int, now: int) -> None:
         self._refused[reason.value] += 1

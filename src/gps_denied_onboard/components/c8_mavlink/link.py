@@ -295,6 +295,8 @@ class MavlinkLink:
         self._last_vision_frame: LocalTangentPlane | None = None
         self._last_vision_state: EstimatorState | None = None
         self._last_timesync_s = -float("inf")
+        #: Why the altitude is not given to the autopilot (None: it is); ``distrust_altitude``.
+        self._alt_distrust: str | None = None
 
     # --- lifecycle ----------------------------------------------------------------------------------
     def open(self) -> None:
@@ -412,6 +414,10 @@ class MavlinkLink:
         self._maybe_send_origin(now)
         self._flush_pending_status(now)
         return count
+
+    def distrust_altitude(self, reason: str | None) -> None:
+        """Flag GPS_INPUT's altitude as ignored while ``reason`` (None: give it again)."""
+        self._alt_distrust = reason
 
     def _maybe_request_timesync(self, now: float) -> None:
         """Keep the autopilot's clock mapped: a TIMESYNC request while its link is alive."""
@@ -545,7 +551,11 @@ class MavlinkLink:
             if output == "gps_input":
                 sent += self._build_and_send(
                     lambda mav: messages.gps_input(
-                        mav, state, time_unix_usec=time_unix_usec, gps_id=self._config.gps_input_gps_id
+                        mav,
+                        state,
+                        time_unix_usec=time_unix_usec,
+                        gps_id=self._config.gps_input_gps_id,
+                        alt_trusted=self._alt_distrust is None,
                     )
                 )
             elif output == "global_position_sensor":

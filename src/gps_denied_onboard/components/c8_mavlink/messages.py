@@ -136,8 +136,11 @@ def gps_input(
     satellites_visible: int | None = None,
     gps_id: int = GPS_INPUT_GPS_ID,
     max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
+    alt_trusted: bool = True,
 ) -> MavlinkMessage:
     """GPS_INPUT (ArduPilot, GPS1_TYPE=14) for ``state`` stamped at ``time_unix_usec``.
+    ``alt_trusted`` False: the altitude fields are flagged as ignored (the daemon's ground altitude
+    disagrees with the autopilot's).
 
     ``fix_type``/``satellites_visible`` default to the policy (``fix_type_for``, ``SATELLITES_WITH_FIX``).
     ``time_unix_usec`` must be a Unix time (it also gives time_week/time_week_ms); a time before the
@@ -162,7 +165,7 @@ def gps_input(
     cov_v = np.asarray(state.cov_vel_ned_m2_s2, dtype=np.float64)
     alt = float(state.alt_amsl_m)
     vert_sigma = state.vert_sigma_m if _finite(state.cov_pos_ned_m2[2, 2]) else math.nan
-    if not _finite(alt, vert_sigma):
+    if not alt_trusted or not _finite(alt, vert_sigma):
         flags |= f.GPS_INPUT_IGNORE_FLAG_ALT | f.GPS_INPUT_IGNORE_FLAG_VDOP
         flags |= f.GPS_INPUT_IGNORE_FLAG_VERTICAL_ACCURACY
         alt, vert_sigma = 0.0, 0.0

@@ -264,6 +264,8 @@ class VehicleStateTracker:
         #: (receive time as boot usec, flags).
         self._position: tuple[int, float, float, float, float] | None = None
         self._ekf_flags: tuple[int, int] | None = None
+        #: GLOBAL_POSITION_INT's alt - relative_alt while it has a position: (boot usec, ground AMSL m).
+        self._ground_alt: tuple[int, float] | None = None
         #: Specific force, body FRD, m/s^2, keyed by boot time.
         self._accel_body = _Series()
         self._ap_clock = autopilot_clock if autopilot_clock is not None else AutopilotClock()
@@ -345,6 +347,7 @@ class VehicleStateTracker:
             self._gps_origin = None  # a rebooted autopilot has no origin until it reports one again
             self._position = None
             self._ekf_flags = None
+            self._ground_alt = None
         if last is None or boot_usec > last or boot_usec < last - OFFSET_RESET_S * 1e6:
             self._last_boot_usec = boot_usec
 
@@ -397,6 +400,8 @@ class VehicleStateTracker:
         # (0, 0) is what an autopilot without a position sends.
         if abs(lat_deg) <= 90.0 and abs(lon_deg) <= 180.0 and (lat_deg, lon_deg) != (0.0, 0.0):
             self._position = (t, lat_deg, lon_deg, int(msg.vx) / 100.0, int(msg.vy) / 100.0)
+            # the ground under home, AMSL: only once the EKF has an origin (before it, alt is 0)
+            self._ground_alt = (t, (int(msg.alt) - int(msg.relative_alt)) / 1000.0)
         return True
 
     def _on_ekf_status_report(self, msg: Any, recv_usec: int) -> bool:
@@ -478,6 +483,36 @@ class VehicleStateTracker:
                 wrap=(True, False, True),
             )
         return None if vals is None else Attitude(vals[0], vals[1], vals[2])
+
+    def latest_attitude_unix_usec(self) -> int | None:
+        """The newest ATTITUDE sample's time in the daemon's clock, or None."""
+        with self._lock:
+            offset = self._offset_usec()
+            if offset is None or not self._attitude.t_usec:
+                return None
+            return int(self._attitude.t_usec[-1] + offset)
+
+    def down_cam_curve(self, time_unix_usec: int, offsets_s: np.ndarray) -> np.ndarray | None:
+        """World-down in the camera (nadir mount, each instant's own axes) at ``time_unix_usec`` plus each
+        of ``offsets_s``, (len(offsets_s), 2) on the camera's x and y axes: what a timing error turns
+        into a tilt error. None when any of them is unknown."""
+        with self._lock:
+            offset = self._offset_usec()
+            if offset is None:
+                return None
+            out = np.empty((len(offsets_s), 2))
+            for k, dt_s in enumerate(offsets_s):
+                vals = _interp(
+                    self._attitude,
+                    int(time_unix_usec + dt_s * 1e6 - offset),
+                    max_age_usec=self._att_max_usec,
+                    extrap_usec=self._extrap_usec,
+                    wrap=(True, False, True),
+                )
+                if vals is None:
+                    return None
+                out[k] = Attitude(vals[0], vals[1], vals[2]).R_ned_cam()[2, :2]
+        return out
 
     def alt_agl_at(self, time_unix_usec: int) -> float | None:
         """Height above home (AGL over flat ground at home height), m, at a Unix time; None when stale."""
@@ -575,6 +610,15 @@ class VehicleStateTracker:
             return sample[1]
 
         return FlightPhase(fresh(armed), fresh(landed), ground)
+
+    def ground_alt_amsl_m(self) -> float | None:
+        """The autopilot's height of the ground at home above mean sea level, m: GLOBAL_POSITION_INT's
+        ``alt - relative_alt`` once it carries a position (its EKF has an origin), else HOME_POSITION's
+        altitude; None before either."""
+        with self._lock:
+            if self._ground_alt is not None:
+                return self._ground_alt[1]
+            return self._home[2] if self._home is not None else None
 
     def latest_imu(self) -> ImuSample | None:
         with self._lock:
