@@ -26,10 +26,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.camera.types import Attitude
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import ConfigError, load_config
+from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.mission import AutopilotRelay, MissionDriver, MissionError, MissionPlan
 from gps_denied_onboard.sitl.photometric import PhotometricModel
@@ -202,6 +205,18 @@ def _fly(
         )
         report["gnss_off"] = {k: v for k, v in off.items() if k not in ("per_frame", "statustext")}
         report["gnss_off"]["window_unix_s"] = [lo, hi]
+        # the autopilot's own position (its EKF fusing GPS_INPUT) against the truth, over the same stretch
+        ap_errors = [
+            float(haversine_m(*truth_at_unix(t), lat, lon))
+            for t, lat, lon in relay.autopilot_track
+            if lo <= t <= hi and relay.truth_at(t) is not None
+        ]
+        report["gnss_off"]["autopilot_position_error_m"] = {
+            "p50": float(np.percentile(ap_errors, 50)) if ap_errors else None,
+            "p95": float(np.percentile(ap_errors, 95)) if ap_errors else None,
+            "max": max(ap_errors, default=None),
+            "n": len(ap_errors),
+        }
     report["analysis"] = analyse(report, records, truth_at_unix)
     report.update(
         {

@@ -106,6 +106,8 @@ class AutopilotRelay:
             source_component=GCS_COMPONENT_ID,
         )
         self.truth: list[TruePose] = []
+        #: The autopilot's GLOBAL_POSITION_INT: (host time, lat_deg, lon_deg).
+        self.autopilot_track: list[tuple[float, float, float]] = []
         self.latest: dict[str, Any] = {}
         self.ap_system: int | None = None
         self._cond = threading.Condition()
@@ -188,6 +190,11 @@ class AutopilotRelay:
                 self.truth.append(pose)
         elif mtype == "ATTITUDE":
             self._att = msg
+        if mtype == "GLOBAL_POSITION_INT" and (msg.lat, msg.lon) != (0, 0):
+            # the autopilot's own estimate, on this host's clock, to score against the truth
+            offset = self.clock.offset_usec(now * 1e6)
+            t = msg.time_boot_ms / 1000.0 + offset / 1e6 if offset is not None else now
+            self.autopilot_track.append((min(t, now), msg.lat / 1e7, msg.lon / 1e7))
         elif mtype == "GLOBAL_POSITION_INT" and self.truth_source in (None, "GLOBAL_POSITION_INT"):
             if (
                 self._att is not None

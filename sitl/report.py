@@ -438,6 +438,8 @@ def analyse(
             reason: {
                 "n": len(errs),
                 "beyond_3sigma": sum(e_sigma > 3.0 for _, e_sigma in errs),
+                #: right fixes refused: within their own sigma of the truth
+                "within_1sigma": sum(e_sigma <= 1.0 for _, e_sigma in errs),
                 "max_error_sigma": round(max(e_sigma for _, e_sigma in errs), 3),
                 "p50_error_m": round(float(np.median([e for e, _ in errs])), 2),
             }
