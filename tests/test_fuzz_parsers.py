@@ -230,3 +230,33 @@ def test_fuzz_replay_truth(tmp_path_factory: pytest.TempPathFactory, data: bytes
     p.write_bytes(data)
     with contextlib.suppress(ReplayInputError):
         load_truth(p)
+
+
+_CSV_CELLS = st.sampled_from(
+    ["a.png", "47.0", "8.5", "100", "1", "1e999", "nan", "-inf", "", "x", '"', "9" * 400]
+)
+_CSV_ROWS = st.lists(st.lists(_CSV_CELLS, max_size=7).map(",".join), max_size=4)
+
+
+@FUZZ
+@given(
+    rows=_CSV_ROWS,
+    big=st.sampled_from(["", '"' + "x" * 140_000 + '"']),
+)
+def test_fuzz_replay_csv(tmp_path_factory: pytest.TempPathFactory, rows: list[str], big: str) -> None:
+    """The photo CSV and the truth CSV give frames and samples, or ReplayInputError."""
+    import cv2
+    import numpy as np
+
+    from gps_denied_onboard.replay.inputs import from_csv
+
+    d = tmp_path_factory.mktemp("csv")
+    (d / "img").mkdir()
+    cv2.imwrite(str(d / "img" / "a.png"), np.zeros((8, 8, 3), np.uint8))
+    pose, truth = d / "pose.csv", d / "truth.csv"
+    pose.write_text("\n".join(["file,lat,lon,alt_agl_m,time_unix_s,roll_deg,pitch_deg", *rows, big]))
+    truth.write_text("\n".join(["time_unix_s,lat,lon", *rows, big]))
+    with contextlib.suppress(ReplayInputError):
+        from_csv(d / "img", pose, ground_alt_amsl_m=None, prior_sigma_m=30.0)
+    with contextlib.suppress(ReplayInputError):
+        load_truth(truth)

@@ -83,6 +83,15 @@ def test_fdr_infinite_time_record_is_skipped_by_the_startup_read(tmp_path: Path)
     assert previous.last_3d is not None and previous.last_3d.lat_deg == 49.0
 
 
+def test_fdr_huge_integer_time_is_skipped_by_the_startup_read(tmp_path: Path) -> None:
+    """A newest record whose t_unix_s is an integer too large for a float (float() raised OverflowError;
+    found by the fuzz test) is passed over for the newest record with a finite time."""
+    bad = b'{"t_unix_s":' + b"9" * 400 + b',"kind":"pipeline.frame","seq":9}\n'
+    previous = read_previous_run(read_records_newest_first(_fdr_with(tmp_path, bad)))
+    assert previous.last_3d is not None and previous.last_record_unix_s is not None
+    assert previous.last_record_unix_s < 1e10
+
+
 def test_fdr_line_over_the_size_bound_is_refused_unparsed() -> None:
     """A line longer than MAX_RECORD_BYTES is not parsed (nor held whole by the readers)."""
     big = b'{"t_unix_s":1.0,"kind":"x","pad":"' + b"a" * MAX_RECORD_BYTES + b'"}\n'
@@ -336,3 +345,41 @@ def test_daemon_starts_over_an_fdr_with_a_nested_line(tmp_path: Path) -> None:
     finally:
         code = daemon.stop()
     assert code == 0 and "Traceback" not in daemon.log_text(), daemon.log_text()[-3000:]
+
+
+_BIG_FIELD = '"' + "x" * 200_000 + '"'
+
+
+@pytest.mark.parametrize(
+    ("pose_row", "truth_row", "expected"),
+    [
+        (f"{_BIG_FIELD},47,8,100,1", f"{_BIG_FIELD},47,8", "not readable as CSV"),
+        ("a.png,47,8,100,1e999", "1e999,47,8", "not a finite number"),
+        ("a.png,47,8,100,nan", "nan,47,8", "not a finite number"),
+    ],
+    ids=["field-over-the-csv-limit", "infinite-time", "nan-time"],
+)
+def test_replay_csv_inputs_refuse_what_crashed_them(
+    tmp_path: Path, pose_row: str, truth_row: str, expected: str
+) -> None:
+    """A CSV field over the csv module's limit (csv.Error) and a non-finite time (int() raised
+    OverflowError/ValueError) are ReplayInputErrors naming the file, in the photo CSV and the truth CSV."""
+    import cv2
+    import numpy as np
+
+    from gps_denied_onboard.cli_replay import load_truth
+    from gps_denied_onboard.replay.inputs import ReplayInputError, from_csv
+
+    images = tmp_path / "img"
+    images.mkdir()
+    cv2.imwrite(str(images / "a.png"), np.zeros((48, 64, 3), np.uint8))
+    table = tmp_path / "pose.csv"
+    table.write_text(f"file,lat,lon,alt_agl_m,time_unix_s\n{pose_row}\n")
+    with pytest.raises(ReplayInputError, match=expected) as refused:
+        from_csv(images, table, ground_alt_amsl_m=None, prior_sigma_m=30.0)
+    assert str(table) in str(refused.value)
+    truth = tmp_path / "truth.csv"
+    truth.write_text(f"time_unix_s,lat,lon\n{truth_row}\n")
+    with pytest.raises(ReplayInputError, match=expected) as refused:
+        load_truth(truth)
+    assert str(refused.value).count(str(truth)) == 1

@@ -59,14 +59,18 @@ def load_truth(path: Path) -> list[Any]:
                 f"{path}: not a SITL report (per_frame rows with true_lat_deg): {exc}"
             ) from exc
     else:
-        reader = csv.DictReader(text.splitlines())
-        header = reader.fieldnames or []
+        try:
+            reader = csv.DictReader(text.splitlines())
+            header = reader.fieldnames or []
+            records = list(reader)
+        except csv.Error as exc:  # e.g. a field over the csv module's limit
+            raise ReplayInputError(f"{path}: not readable as CSV: {exc}") from exc
         cols = {k: _column(header, k) for k in ("time", "lat", "lon")}
         if None in cols.values():
             raise ReplayInputError(
                 f"{path}: needs time_unix_s, lat and lon columns; header is {', '.join(header)}"
             )
-        for i, r in enumerate(reader, start=2):
+        for i, r in enumerate(records, start=2):
             try:
                 out.append(
                     TruthSample(
@@ -75,7 +79,9 @@ def load_truth(path: Path) -> list[Any]:
                         float(r[cols["lon"] or ""]),
                     )
                 )
-            except ValueError as exc:
+            except ReplayInputError:
+                raise  # names the row already
+            except (ValueError, TypeError) as exc:  # TypeError: a short row's missing cell is None
                 raise ReplayInputError(f"{path}:{i}: {exc}") from exc
     if not out:
         raise ReplayInputError(f"{path}: no truth samples")

@@ -292,9 +292,13 @@ def _column(header: Sequence[str], name: str) -> str | None:
 def _parse_time(raw: str, where: str) -> float:
     raw = raw.strip()
     try:
-        return float(raw)
+        t_s = float(raw)
     except ValueError:
         pass
+    else:
+        if not math.isfinite(t_s):
+            raise ReplayInputError(f"{where}: time {raw[:40]!r} is not a finite number of seconds")
+        return t_s
     try:
         t = _dt.datetime.fromisoformat(raw.replace("Z", "+00:00"))
     except ValueError as exc:
@@ -375,8 +379,12 @@ def from_csv(
         text = csv_path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise ReplayInputError(f"{csv_path}: cannot be read as UTF-8 text: {exc}") from exc
-    reader = csv.DictReader(text.splitlines())
-    header = reader.fieldnames or []
+    try:
+        reader = csv.DictReader(text.splitlines())
+        header = reader.fieldnames or []
+        records = list(reader)
+    except csv.Error as exc:  # e.g. a field over the csv module's limit
+        raise ReplayInputError(f"{csv_path}: not readable as CSV: {exc}") from exc
     cols = {k: _column(header, k) for k in CSV_COLUMNS}
     for need in ("file", "lat", "lon"):
         if cols[need] is None:
@@ -393,7 +401,7 @@ def from_csv(
     rows: list[tuple[float, ReplayFrame, TruthSample]] = []
     notes: list[str] = []
     exif_times = 0
-    for lineno, row in enumerate(reader, start=2):
+    for lineno, row in enumerate(records, start=2):
         where = f"{csv_path}:{lineno}"
 
         def num(key: str, *, row: Mapping[str, str] = row, where: str = where) -> float | None:
@@ -410,8 +418,12 @@ def from_csv(
 
         name = str(row.get(cols["file"] or "") or "").strip()
         path = images_dir / name
-        if not name or not path.is_file():
-            raise ReplayInputError(f"{where}: image {name!r} not found in {images_dir}")
+        try:
+            found = bool(name) and path.is_file()
+        except OSError:  # e.g. a name longer than the file system allows
+            found = False
+        if not found:
+            raise ReplayInputError(f"{where}: image {name[:80]!r} not found in {images_dir}")
         lat, lon = num("lat"), num("lon")
         if lat is None or lon is None or not (-90 <= lat <= 90 and -180 <= lon <= 180):
             raise ReplayInputError(f"{where}: latitude/longitude missing or out of range")
@@ -612,7 +624,7 @@ def from_tlog(
         if frame_times_csv is not None:
             try:
                 rows = list(csv.DictReader(frame_times_csv.read_text(encoding="utf-8-sig").splitlines()))
-            except (OSError, UnicodeDecodeError) as exc:
+            except (OSError, UnicodeDecodeError, csv.Error) as exc:
                 raise ReplayInputError(f"{frame_times_csv}: cannot be read: {exc}") from exc
             for i, row in enumerate(rows, start=2):
                 fcol, tcol = _column(list(row), "file"), _column(list(row), "time")

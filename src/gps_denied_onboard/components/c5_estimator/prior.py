@@ -28,6 +28,7 @@ daemon's own, the search for a fix starts from it (rule 3).
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -94,8 +95,10 @@ def read_previous_run(records_newest_first: Iterable[Mapping[str, Any]]) -> Prev
     """Scan FDR records newest first (``read_records_newest_first``) up to the last 3D estimate."""
     last_record: float | None = None
     for r in records_newest_first:
-        if last_record is None and isinstance(r.get("t_unix_s"), (int, float)):
-            last_record = float(r["t_unix_s"])
+        t = r.get("t_unix_s")
+        if last_record is None and isinstance(t, (int, float)) and not isinstance(t, bool):
+            with contextlib.suppress(OverflowError):  # an integer too large for a float
+                last_record = float(t) if math.isfinite(float(t)) else None
         if r.get("kind") != FdrKind.ESTIMATE_SENT or r.get("fix_type") != _FIX_3D:
             continue
         try:
