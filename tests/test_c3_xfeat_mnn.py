@@ -117,6 +117,19 @@ def test_mnn_matches_are_exactly_the_mutual_nearest_neighbours() -> None:
     assert 140 <= len(floored) < len(expected)
 
 
+def test_mnn_ties_go_to_the_lower_index_as_argmax_both_ways() -> None:
+    """Descriptors with many equal similarities: exactly the pairs of argmax both ways (first index wins)."""
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        query, tile = _features(rng, 40, (64, 64)), _features(rng, 30, (64, 64))
+        query.descriptors[:] = rng.integers(-1, 2, query.descriptors.shape)
+        tile.descriptors[:] = rng.integers(-1, 2, tile.descriptors.shape)
+        query.descriptors[:, 0] = tile.descriptors[:, 0] = 2  # no zero vector
+        query.descriptors[:, 3:] = tile.descriptors[:, 3:] = 0  # 3-D: ties are common
+        pairs = _pairs(query, tile, match_mutual_nn(query, tile, min_similarity=-1.0))
+        assert set(pairs) == _brute_force_mutual(query.descriptors, tile.descriptors)
+
+
 def test_mnn_no_features_gives_no_matches() -> None:
     """An image with no keypoints on either side gives an empty (0, 4) set, not an error."""
     rng = np.random.default_rng(0)

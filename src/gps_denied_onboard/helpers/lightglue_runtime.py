@@ -68,10 +68,16 @@ def mutual_nearest_neighbours(
     d1 = d1 / np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), np.float32(1e-12))
     sim = d0 @ d1.T
     nn01 = np.argmax(sim, axis=1)
-    nn10 = np.argmax(sim, axis=0)
     idx0 = np.arange(sim.shape[0])
     best = sim[idx0, nn01]
-    keep = (nn10[nn01] == idx0) & (best >= min_similarity)
+    # i is j's best when sim[i, j] is column j's maximum and no earlier row reaches it. Row-wise
+    # reductions only: numpy's argmax(axis=0) copies the matrix transposed (at 2048 x 2048 it costs
+    # more than the product itself). Columns whose maximum is reached twice are resolved one by one.
+    col_max = sim.max(axis=0)
+    mutual = best == col_max[nn01]
+    for j in np.flatnonzero((sim == col_max).sum(axis=0) > 1):
+        mutual &= (nn01 != j) | (idx0 == np.argmax(sim[:, j] == col_max[j]))
+    keep = mutual & (best >= min_similarity)
     matches = np.stack([idx0[keep], nn01[keep]], axis=1).astype(np.int64)
     return matches, best[keep].astype(np.float32)
 
