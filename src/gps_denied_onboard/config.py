@@ -257,8 +257,9 @@ class RerankConfig:
 class MatcherConfig:
     __pydantic_config__: ClassVar[ConfigDict] = _STRICT
 
-    #: C3 strategy: classical (weights-free), disk_lightglue, aliked_lightglue, xfeat, or auto (the first
-    #: family in model_dir that passed `gdnav models verify`, in the order disk_lightglue,
+    #: C3 strategy: classical (weights-free), disk_lightglue, aliked_lightglue, xfeat, xfeat_mnn (the XFeat
+    #: extractor matched by mutual nearest neighbour, no LightGlue: the fast one on a CPU), or auto (the
+    #: first family in model_dir that passed `gdnav models verify`, in the order disk_lightglue,
     #: aliked_lightglue, xfeat; else an ALIKED extractor alone with mutual NN; else classical; logged).
     strategy: Str = "classical"
     #: Model directory made by `gdnav models export` (its manifest is verified at start-up); a learned
