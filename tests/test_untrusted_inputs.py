@@ -383,3 +383,16 @@ def test_replay_csv_inputs_refuse_what_crashed_them(
     with pytest.raises(ReplayInputError, match=expected) as refused:
         load_truth(truth)
     assert str(refused.value).count(str(truth)) == 1
+
+
+@pytest.mark.parametrize("command", [("run",), ("config", "check")])
+def test_cli_oversized_calibration_file_exits_3(tmp_path: Path, command: tuple[str, ...]) -> None:
+    """A calibration file far larger than any calibration (OpenCV parsed all of it in memory) is refused
+    unread: exit 3 naming camera.calibration_file and the size bound."""
+    calib = tmp_path / "calib.yaml"
+    with calib.open("wb") as fh:
+        fh.write(b"%YAML:1.0\n---\ncomment: ")
+        fh.truncate(8 << 20)
+    proc = _gdnav(tmp_path, *command, *_sitl_args(tmp_path, f"camera.calibration_file={calib}"))
+    line = _one_line(proc, 3)
+    assert "camera.calibration_file" in line and "bytes" in line and str(calib) in line

@@ -16,12 +16,16 @@ import math
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Final
 
 import numpy as np
 
 #: Rotation taking camera-frame vectors to body-frame (FRD) vectors for the nadir mount.
 R_BODY_CAM: np.ndarray = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 R_BODY_CAM.setflags(write=False)
+
+#: The largest calibration file read (OpenCV's are a few hundred bytes), bytes.
+MAX_CALIBRATION_FILE_BYTES: Final[int] = 1 << 20
 
 
 class CalibrationError(ValueError):
@@ -73,6 +77,12 @@ class CameraCalibration:
         p = Path(path)
         if not p.is_file():
             raise CalibrationError("calibration file not found", path=str(p))
+        size = p.stat().st_size
+        if size > MAX_CALIBRATION_FILE_BYTES:  # OpenCV would parse all of it, in memory
+            raise CalibrationError(
+                f"{size} bytes, more than the {MAX_CALIBRATION_FILE_BYTES} a calibration file takes",
+                path=str(p),
+            )
         try:
             fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
             try:
