@@ -396,3 +396,21 @@ def test_cli_oversized_calibration_file_exits_3(tmp_path: Path, command: tuple[s
     proc = _gdnav(tmp_path, *command, *_sitl_args(tmp_path, f"camera.calibration_file={calib}"))
     line = _one_line(proc, 3)
     assert "camera.calibration_file" in line and "bytes" in line and str(calib) in line
+
+
+def test_model_and_vpr_metadata_nested_json_is_refused(tmp_path: Path) -> None:
+    """A nested model manifest.json, vpr_meta.json or verification.json (RecursionError before) is the
+    reader's own refusal, or for verification.json 'not verified'."""
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.vpr_index import VPR_META_NAME, read_vpr_meta
+    from gps_denied_onboard.models.manifest import MANIFEST_NAME, ModelDirError, read_manifest
+    from gps_denied_onboard.models.verification import VERIFICATION_NAME, read_verification
+
+    nested = b"[" * 50_000 + b"]" * 50_000
+    for name in (MANIFEST_NAME, VPR_META_NAME, VERIFICATION_NAME):
+        (tmp_path / name).write_bytes(nested)
+    with pytest.raises(ModelDirError, match="nested too deeply"):
+        read_manifest(tmp_path)
+    with pytest.raises(CacheBuildError, match="nested too deeply"):
+        read_vpr_meta(tmp_path)
+    assert read_verification(tmp_path) == {}

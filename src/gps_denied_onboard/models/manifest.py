@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from gps_denied_onboard.components.c7_inference.protocol import EngineSignature, TensorSpec
+from gps_denied_onboard.helpers import bounded_json
 from gps_denied_onboard.models.registry import ALL_WEIGHTS, sha256_file
 
 MANIFEST_NAME = "manifest.json"
@@ -102,7 +103,7 @@ def read_manifest(model_dir: str | Path) -> tuple[ModelEntry, ...]:
     """Parse ``<model_dir>/manifest.json``; ``ModelDirError`` if missing or malformed."""
     path = Path(model_dir) / MANIFEST_NAME
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = bounded_json.loads(path.read_bytes(), max_bytes=1 << 20, what="model manifest")
     except FileNotFoundError:
         raise ModelDirError("no model manifest; export or import the models first", path=str(path)) from None
     except (OSError, ValueError) as exc:  # ValueError: not UTF-8 (UnicodeDecodeError) or not JSON

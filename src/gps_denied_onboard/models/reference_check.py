@@ -36,6 +36,7 @@ from typing import Any, Final
 import cv2
 import numpy as np
 
+from gps_denied_onboard.helpers import bounded_json
 from gps_denied_onboard.helpers.lightglue_runtime import normalize_keypoints
 from gps_denied_onboard.models.learned_export import FAMILIES, family_models
 from gps_denied_onboard.models.manifest import ModelEntry, verify_model_dir
@@ -406,7 +407,7 @@ def record_verification(model_dir: Path, checks: Sequence[FamilyCheck]) -> Path:
     data: dict[str, Any] = {}
     if path.is_file():
         try:
-            data = json.loads(path.read_text(encoding="utf-8"))
+            data = bounded_json.loads(path.read_bytes(), max_bytes=1 << 20, what="verification")
         except (OSError, ValueError):
             data = {}
     families = data.get("families", {}) if isinstance(data, dict) else {}

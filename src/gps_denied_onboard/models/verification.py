@@ -7,10 +7,10 @@ was re-exported after its check counts as unverified.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Final
 
+from gps_denied_onboard.helpers import bounded_json
 from gps_denied_onboard.models.manifest import ModelEntry
 
 VERIFICATION_NAME: Final[str] = "verification.json"
@@ -19,7 +19,9 @@ VERIFICATION_NAME: Final[str] = "verification.json"
 def read_verification(model_dir: Path) -> dict[str, Any]:
     """``{family: record}`` from the directory's verification file; empty when absent or unreadable."""
     try:
-        data = json.loads((Path(model_dir) / VERIFICATION_NAME).read_text(encoding="utf-8"))
+        data = bounded_json.loads(
+            (Path(model_dir) / VERIFICATION_NAME).read_bytes(), max_bytes=1 << 20, what="verification"
+        )
     except (OSError, ValueError):
         return {}
     families = data.get("families") if isinstance(data, dict) else None

@@ -22,7 +22,6 @@ the same tile list, nothing is recomputed.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import sys
 import time
@@ -62,6 +61,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     write_json_atomic,
 )
 from gps_denied_onboard.constants import LogEvent
+from gps_denied_onboard.helpers import bounded_json
 
 _log = structlog.get_logger(__name__)
 
@@ -164,7 +164,7 @@ def read_vpr_meta(cache_dir: Path) -> dict[str, Any]:
     """The cache's ``vpr_meta.json`` (``CacheBuildError`` when absent or malformed)."""
     path = Path(cache_dir) / VPR_META_NAME
     try:
-        payload = json.loads(path.read_text(encoding="utf-8"))
+        payload = bounded_json.loads(path.read_bytes(), max_bytes=1 << 20, what="VPR metadata")
     except (OSError, ValueError) as exc:
         raise CacheBuildError(f"cannot read VPR metadata: {exc}", path=str(path)) from exc
     if not isinstance(payload, dict):

@@ -13,13 +13,13 @@ recorder field never stops a start the runtime root has already accepted. See do
 from __future__ import annotations
 
 import hashlib
-import json
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 from gps_denied_onboard.components.c10_cache_build.manifest import MANIFEST_NAME as CACHE_MANIFEST_NAME
 from gps_denied_onboard.components.c10_cache_build.manifest import sha256_file
+from gps_denied_onboard.helpers import bounded_json
 from gps_denied_onboard.models.manifest import MANIFEST_NAME as MODEL_MANIFEST_NAME
 from gps_denied_onboard.models.manifest import ModelDirError, read_manifest
 
@@ -63,7 +63,7 @@ def run_inputs(
     files: int | None = None
     if raw is not None:
         try:
-            artifacts = json.loads(raw).get("artifacts")
+            artifacts = bounded_json.loads(raw, max_bytes=1 << 20, what="cache manifest").get("artifacts")
             files = len(artifacts) if isinstance(artifacts, dict) else None
         except (ValueError, AttributeError) as exc:
             errors.append(f"cache manifest: {cache_manifest}: not a JSON object ({exc})")

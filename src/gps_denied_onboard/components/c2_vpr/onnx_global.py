@@ -13,7 +13,6 @@ the daemon refuses descriptors built with another model.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -39,6 +38,7 @@ from gps_denied_onboard.components.c7_inference.protocol import (
     TensorSpec,
 )
 from gps_denied_onboard.components.c10_cache_build.manifest import sha256_file
+from gps_denied_onboard.helpers import bounded_json
 
 IMAGENET_MEAN: tuple[float, float, float] = (0.485, 0.456, 0.406)
 IMAGENET_STD: tuple[float, float, float] = (0.229, 0.224, 0.225)
@@ -162,7 +162,8 @@ class OnnxGlobalVpr(IndexedVpr):
         )
         meta_path = cache_dir / VPR_META_NAME
         try:
-            chip_size_px = int(json.loads(meta_path.read_text(encoding="utf-8"))["chip_size_px"])
+            meta = bounded_json.loads(meta_path.read_bytes(), max_bytes=1 << 20, what="VPR metadata")
+            chip_size_px = int(meta["chip_size_px"])
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise IndexUnavailableError(f"cannot read VPR metadata: {exc!r}", path=str(meta_path)) from exc
         index = DescriptorIndex.load(

@@ -44,6 +44,7 @@ from gps_denied_onboard.components.c6_tiles.descriptor_index import (
     l2_normalise,
 )
 from gps_denied_onboard.components.c6_tiles.store import TileStore
+from gps_denied_onboard.helpers import bounded_json
 
 LABEL: Final[str] = "vlad"
 #: Cache artifact holding the vocabulary, PCA and parameters (npz, no pickle).
@@ -166,7 +167,8 @@ class VladVocabulary:
         p = Path(path)
         try:
             with np.load(p, allow_pickle=False) as data:
-                params = VladParams(**json.loads(str(data["params"])))
+                stored = bounded_json.loads(str(data["params"]), max_bytes=1 << 16, what="VLAD params")
+                params = VladParams(**stored)
                 centroids = np.asarray(data["centroids"], dtype=np.float32)
                 pca_mean = np.asarray(data["pca_mean"], dtype=np.float32)
                 pca_proj = np.asarray(data["pca_proj"], dtype=np.float32)
