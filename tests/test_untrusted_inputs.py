@@ -414,3 +414,21 @@ def test_model_and_vpr_metadata_nested_json_is_refused(tmp_path: Path) -> None:
     with pytest.raises(CacheBuildError, match="nested too deeply"):
         read_vpr_meta(tmp_path)
     assert read_verification(tmp_path) == {}
+
+
+def test_fdr_startup_read_holds_only_the_end_of_a_huge_segment(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The start-up read takes a segment from its end, at most NEWEST_FIRST_MAX_BYTES (it read the whole
+    file into memory): the newest 3D estimate is still found, and the line cut at the window's start is
+    not taken for a record."""
+    from gps_denied_onboard.components.c13_fdr import recorder
+
+    d = _fdr_with(tmp_path)
+    seg = sorted(d.glob("fdr-*.jsonl"))[-1]
+    lines = seg.read_bytes().splitlines(keepends=True)
+    window = len(lines[-2]) + len(lines[-1]) + 10  # the last estimate, fdr.closed, and a cut line
+    monkeypatch.setattr(recorder, "NEWEST_FIRST_MAX_BYTES", window)
+    previous = read_previous_run(read_records_newest_first(d))
+    assert previous.last_3d is not None and previous.last_3d.lat_deg == 49.0
+    assert len(list(read_records_newest_first(d))) == 2

@@ -57,6 +57,8 @@ _MAX_DEPTH: Final[int] = 32
 #: The longest record line written or read, bytes (the largest, the config record, is a few kB): a longer
 #: one is dropped and counted by the recorder, and skipped as unreadable by the readers.
 MAX_RECORD_BYTES: Final[int] = 4 << 20
+#: ``read_records_newest_first`` reads at most this much of each segment, from its end, bytes.
+NEWEST_FIRST_MAX_BYTES: Final[int] = 256 << 20
 #: How much of the newest existing segment's end is scanned for torn lines when a recorder opens.
 RECOVERY_TAIL_BYTES: Final[int] = 1 << 16
 #: Frame image files in ``<dir>/images``: img-<start>-<n>-<frame seq>.jpg.
@@ -218,10 +220,18 @@ def read_records_newest_first(directory: str | Path) -> Iterator[dict[str, Any]]
     the caller stops early, so only the newest segment is usually read); torn lines are skipped."""
     for seg in reversed(list_segments(directory)):
         try:
-            data = seg.read_bytes()
+            with seg.open("rb") as fh:
+                # A segment is at most fdr.segment_bytes plus one record; a file far larger than any (not
+                # the recorder's) is read from its last NEWEST_FIRST_MAX_BYTES only.
+                start = max(0, fh.seek(0, os.SEEK_END) - NEWEST_FIRST_MAX_BYTES)
+                fh.seek(start)
+                data = fh.read()
         except OSError:
             continue
-        for raw in reversed(data.splitlines()):
+        lines = data.splitlines()
+        if start > 0:
+            lines = lines[1:]  # began mid-line
+        for raw in reversed(lines):
             rec = parse_line(raw)
             if rec is not None:
                 yield rec
