@@ -457,7 +457,7 @@ def _build_strategies(
         try:
             if name in LEARNED and runtime is None:
                 runtime = OnnxInferenceRuntime(intra_op_threads=intra_op_threads, providers=providers)
-            if uses_lightglue:
+            if uses_lightglue and runtime is not None:
                 lightglue = LightGlueRuntime(
                     runtime, config.lightglue_weights_path, descriptor_dim=LEARNED[name][2]
                 )
