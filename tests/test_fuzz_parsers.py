@@ -17,11 +17,12 @@ from hypothesis import strategies as st
 
 from gps_denied_onboard.camera.stream import FrameStreamError, _parse_header
 from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration
+from gps_denied_onboard.cli_fdr import boresight, format_boresight, format_summary, summarise
 from gps_denied_onboard.cli_replay import load_truth
 from gps_denied_onboard.components.c5_estimator.prior import read_previous_run
 from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest, CacheManifestError
 from gps_denied_onboard.components.c13_fdr import read_records_newest_first
-from gps_denied_onboard.components.c13_fdr.reader import FdrReader, scan
+from gps_denied_onboard.components.c13_fdr.reader import FdrReader, FdrReadError, scan
 from gps_denied_onboard.components.c13_fdr.recorder import parse_line
 from gps_denied_onboard.config import ConfigError, load_config
 from gps_denied_onboard.replay.inputs import ReplayInputError
@@ -110,6 +111,12 @@ def test_fuzz_fdr_readers(tmp_path_factory: pytest.TempPathFactory, lines: list[
         list(accessor())
     found = scan(d)
     assert found.records + found.torn_lines + found.corrupt_lines <= len(lines)
+    with contextlib.suppress(FdrReadError):  # no record at all
+        summary = summarise(reader)
+        format_summary(summary)
+        json.dumps(summary, allow_nan=True)
+    with contextlib.suppress(FdrReadError):
+        format_boresight(boresight(d, None, 1.0))
 
 
 _GOOD_MANIFEST: dict[str, Any] = {

@@ -432,3 +432,12 @@ def test_fdr_startup_read_holds_only_the_end_of_a_huge_segment(
     previous = read_previous_run(read_records_newest_first(d))
     assert previous.last_3d is not None and previous.last_3d.lat_deg == 49.0
     assert len(list(read_records_newest_first(d))) == 2
+
+
+def test_cli_fdr_summary_with_a_time_past_the_calendar_exits_0(tmp_path: Path) -> None:
+    """A record at t_unix_s 1e300 (finite, but past what datetime holds: ValueError, found by the fuzz
+    test) is summarised with its time as '?'."""
+    d = _fdr_with(tmp_path, b'{"t_unix_s":1e300,"kind":"fdr.opened","seq":1}\n')
+    proc = _gdnav(tmp_path, "fdr", "summary", str(d), "--json")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads(proc.stdout)["runs"][-1]["start_utc"] == "?"

@@ -51,7 +51,10 @@ PROVENANCE_COLORS: Final[dict[str, str]] = {
 def _utc(t_unix_s: float) -> str:
     if not math.isfinite(t_unix_s):
         return "?"
-    return _dt.datetime.fromtimestamp(t_unix_s, tz=_dt.timezone.utc).isoformat(timespec="milliseconds")
+    try:
+        return _dt.datetime.fromtimestamp(t_unix_s, tz=_dt.timezone.utc).isoformat(timespec="milliseconds")
+    except (ValueError, OverflowError, OSError):  # a time past what datetime holds (a damaged record)
+        return "?"
 
 
 def summarise(reader: FdrReader) -> dict[str, Any]:
