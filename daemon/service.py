@@ -364,7 +364,8 @@ class NavDaemon:
         rate = (curve[1] - curve[0]) / (2 * ATTITUDE_RATE_HALF_SPAN_S)
         ap_sigma_s = tracker.autopilot_clock.sigma_s
         sigma_s = math.hypot(camera.sigma_s, ap_sigma_s if ap_sigma_s is not None else 0.0)
-        return FrameTiming((float(rate[0]), float(rate[1])), stamp_offset_s, sigma_s)
+        ahrs = tracker.ahrs_doubt_rad(t_us)
+        return FrameTiming((float(rate[0]), float(rate[1])), stamp_offset_s, sigma_s, ahrs or 0.0)
 
     def _check_camera_stamps(self) -> None:
         """Feed the camera-lateness fit the attitude that has arrived for its queued tilts; a change of

@@ -18,8 +18,9 @@ health rule; "PreArm: GPS n: Bad fix"; NO_FIX 4 s, EKF position lost 7 s, LAND a
 origin 10 s and "using GPS" 28 s after the first 3D fix (shortened in CI); ``SIM_GPS1_ENABLE``;
 ``GPS_AUTO_SWITCH``; the fused position follows GPS_INPUT completely, bias included, lagged by
 ``GPSn_DELAY_MS``; the speed-accuracy glitch; TIMESYNC answered in boot time, SYSTEM_TIME off by
-``system_time_offset_s``; ``ARMING_CHECK`` / ``ARMING_SKIPCHK``. The physics is a point mass with a
-lagged tilt, speed and acceleration limits, flat ground, no wind.
+``system_time_offset_s``; ``ARMING_CHECK`` / ``ARMING_SKIPCHK``; ATTITUDE is the AHRS's estimate, off
+the truth (SIMSTATE) by a tenth of each swing of the tilt, coming back over 6 s. The physics is a point
+mass with a lagged tilt, speed and acceleration limits, flat ground, no wind.
 
 Every rule and its source in full: docs/ardupilot.md, "The emulator and its rules in full".
 """
@@ -83,6 +84,12 @@ SYSTEM_TIME_OFFSET_S: Final[float] = -2.0
 #: Time constant of the tilt (and so the acceleration) following the commanded acceleration, s
 #: (ArduCopter ATC_INPUT_TC default).
 TILT_TAU_S: Final[float] = 0.15
+#: The reported attitude's error (ATTITUDE minus SIMSTATE): each change of the true roll and pitch adds
+#: AHRS_GAIN of it, and it decays with AHRS_DECAY_S. Measured on ArduPilot copter SITL 4.7.0-dev flying
+#: autopilot_square on GPS_INPUT: 2.5-3.4 deg while roll and pitch swung through 30-50 deg, decaying over
+#: 5-10 s once level.
+AHRS_GAIN: Final[float] = 0.1
+AHRS_DECAY_S: Final[float] = 6.0
 #: Truth kept for the GPS lag, s.
 TRUTH_HISTORY_S: Final[float] = 2.0
 #: Measured: "GPS 1: detected MAV" 0.1 s after the first GPS_INPUT.
@@ -258,6 +265,7 @@ class ArduPilotEmulator:
         self.tilt_accel_ne = np.zeros(2)  # horizontal acceleration the current tilt gives, m/s^2
         self.yaw_rad = math.radians(self.opts.home_heading_deg)
         self.roll_rad = self.pitch_rad = 0.0
+        self.ahrs_err_rad = np.zeros(2)  # reported minus true roll and pitch (the AHRS's own error)
         self.est_err_ne = np.zeros(2)  # EKF horizontal position minus truth
         self.armed = False
         self.mode = MODE_STABILIZE
@@ -769,8 +777,12 @@ class ArduPilotEmulator:
         cy, sy = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
         a_fwd = cy * self.accel_ned[0] + sy * self.accel_ned[1]
         a_right = -sy * self.accel_ned[0] + cy * self.accel_ned[1]
+        prev = np.array([self.roll_rad, self.pitch_rad])
         self.pitch_rad = -math.atan2(a_fwd, GRAVITY_M_S2)
         self.roll_rad = math.atan2(a_right, GRAVITY_M_S2)
+        # the AHRS's error: driven by the tilt's changes, decaying once they stop (AHRS_GAIN)
+        swing = np.array([self.roll_rad, self.pitch_rad]) - prev
+        self.ahrs_err_rad = self.ahrs_err_rad * (1.0 - min(1.0, dt / AHRS_DECAY_S)) + AHRS_GAIN * swing
         # landing complete: disarm after 1 s on the ground (ArduCopter's land detector, simplified)
         if self.armed and self.landing and self.pos_ned[2] >= -1e-3:
             if self.landed_since_s is None:
@@ -798,7 +810,13 @@ class ArduPilotEmulator:
 
     def _send_fast(self) -> None:
         self._mav.attitude_send(
-            self._boot_ms(), self.roll_rad, self.pitch_rad, _wrap_pi(self.yaw_rad), 0, 0, 0
+            self._boot_ms(),
+            self.roll_rad + float(self.ahrs_err_rad[0]),
+            self.pitch_rad + float(self.ahrs_err_rad[1]),
+            _wrap_pi(self.yaw_rad),
+            0,
+            0,
+            0,
         )
         from gps_denied_onboard.camera.types import Attitude
 

@@ -996,3 +996,25 @@ def test_gps_input_without_a_trusted_altitude_flags_it_ignored() -> None:
     assert ok.ignore_flags & alt_flags == 0 and ok.alt == pytest.approx(250.0)
     assert off.ignore_flags & alt_flags == alt_flags and off.alt == 0.0 and off.vert_accuracy == 0.0
     assert (off.lat, off.lon, off.fix_type) == (ok.lat, ok.lon, ok.fix_type)
+
+
+def test_tracker_ahrs_doubt_grows_with_the_autopilots_manoeuvres() -> None:
+    """Level flight: no doubt of the autopilot's tilt beyond its own; after roll and pitch swung by 20
+    and 10 deg within the window, a tenth of the swing (the AHRS error measured on ArduPilot SITL);
+    no samples: None."""
+    recv_s = T0_UNIX_USEC / 1e6
+    tr = _tracker()
+    for k in range(50):  # 1 s level at 50 Hz
+        t_ms = BOOT0_MS + 20 * k
+        level = _decoded(lambda mav, t=t_ms: mav.attitude_encode(t, 0.0, 0.0, 0.3, 0, 0, 0))
+        tr.handle(level, recv_s + 0.02 * k)
+    assert tr.ahrs_doubt_rad(T0_UNIX_USEC + 980_000) == pytest.approx(0.0)
+    roll, pitch = math.radians(20.0), math.radians(-10.0)
+    for k in range(50, 60):
+        t_ms = BOOT0_MS + 20 * k
+        tr.handle(
+            _decoded(lambda mav, t=t_ms: mav.attitude_encode(t, roll, pitch, 0.3, 0, 0, 0)), recv_s + 0.02 * k
+        )
+    doubt = tr.ahrs_doubt_rad(T0_UNIX_USEC + 1_180_000)
+    assert doubt == pytest.approx(0.1 * math.hypot(roll, pitch), rel=1e-6)
+    assert _tracker().ahrs_doubt_rad(T0_UNIX_USEC) is None

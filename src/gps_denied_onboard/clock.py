@@ -600,10 +600,12 @@ class CameraStampOffset:
             curvature = (costs[k - 1] + costs[k + 1] - 2 * costs[k]) / CAMERA_OFFSET_GRID_S**2
             if curvature > 0:
                 se = math.sqrt(2.0 * costs[k] / max(2 * n - 3, 1) / curvature)
-        elif k == taus.size - 1 and costs[k] < costs[k - 1] < costs[k - 2]:
-            # still falling at the grid's end: at least this late, once enough motion says so
-            if informative >= 3 * CAMERA_OFFSET_MIN_SAMPLES:
-                se = CAMERA_OFFSET_MAX_SE_S
+        elif (
+            k == taus.size - 1
+            and costs[k] < costs[k - 1] < costs[k - 2]
+            and informative >= 3 * CAMERA_OFFSET_MIN_SAMPLES
+        ):
+            se = CAMERA_OFFSET_MAX_SE_S  # still falling at the grid's end: at least this late
         return CameraOffsetFit(float(taus[k]), se, (float(biases[k][0]), float(biases[k][1])), n, informative)
 
     @property

@@ -220,8 +220,9 @@ class NavigationPipeline:
         self._clock_ns = clock_ns
         #: F6 re-localisation (corpus-wide VPR) currently active; logged on transitions only.
         self._corpus_wide = False
-        #: A tilt is compared with the autopilot's only while the timing doubt makes less tilt error than
-        #: half the attitude's sigma (``pose.attitude_sigma_deg``): like with like (None: always).
+        #: A tilt is compared with the autopilot's only while the frame's own doubt of that tilt (timing,
+        #: the autopilot's recent manoeuvres) is under half the attitude's sigma
+        #: (``pose.attitude_sigma_deg``): like with like (None: always).
         self._timing_tilt_max_rad = (
             math.radians(attitude_sigma_deg) / 2.0 if attitude_sigma_deg is not None else None
         )
@@ -280,7 +281,7 @@ class NavigationPipeline:
     def _comparable(self, timing: FrameTiming | None) -> bool:
         """Whether a tilt at this frame's timing says anything about the autopilot's attitude."""
         limit = self._timing_tilt_max_rad
-        return limit is None or timing is None or timing.tilt_sigma_rad <= limit
+        return limit is None or timing is None or timing.attitude_sigma_rad <= limit
 
     def _note_camera_tilt(
         self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, timing: FrameTiming | None
@@ -340,6 +341,7 @@ class NavigationPipeline:
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
                 if motion is not None:
+                    motion = _with_attitude_doubt(motion, frame)
                     decision = self._axis.fuse_vo(motion, t)
                     if decision.accepted:
                         fused = motion
@@ -693,3 +695,19 @@ def _timing_fields(timing: FrameTiming | None) -> dict[str, object] | None:
         "stamp_offset_s": round(timing.stamp_offset_s, 4),
         "sigma_s": round(timing.sigma_s, 4),
     }
+
+
+#: How fast the autopilot's attitude error changes, as a share of its size per second: it built up and
+#: decayed over 2-10 s on ArduPilot SITL (``VehicleStateTracker.ahrs_doubt_rad``), so take 2 s.
+AHRS_ERROR_CHANGE_TIME_S: Final[float] = 2.0
+
+
+def _with_attitude_doubt(motion: VoMotion, frame: NavCameraFrame) -> VoMotion:
+    """``motion`` stating the displacement error a drifting autopilot attitude makes: VO de-rotates the
+    frames with it, so a tilt error that changed by ``d`` between them moves the ground by height x d."""
+    timing = frame.timing
+    if timing is None or timing.ahrs_sigma_rad <= 0.0 or frame.alt_agl_m is None:
+        return motion
+    change_rad = timing.ahrs_sigma_rad * min(1.0, motion.dt_s / AHRS_ERROR_CHANGE_TIME_S)
+    extra_m = frame.alt_agl_m * change_rad
+    return replace(motion, cov_ne_m2=np.asarray(motion.cov_ne_m2) + np.eye(2) * extra_m**2)

@@ -194,17 +194,25 @@ class FrameTiming:
 
     ``down_rate_cam_rad_s``: how fast world-down moved in the camera at the exposure (the autopilot's
     attitude), camera x and y, rad/s; ``stamp_offset_s``: the camera lateness subtracted from its stamp;
-    ``sigma_s``: 1-sigma of the exposure time after that (the camera's and the autopilot clock's doubt).
+    ``sigma_s``: 1-sigma of the exposure time after that (the camera's and the autopilot clock's doubt);
+    ``ahrs_sigma_rad``: how far the autopilot's roll and pitch may stray after its recent manoeuvres
+    (``VehicleStateTracker.ahrs_doubt_rad``), 1 sigma.
     """
 
     down_rate_cam_rad_s: tuple[float, float]
     stamp_offset_s: float
     sigma_s: float
+    ahrs_sigma_rad: float = 0.0
 
     @property
     def tilt_sigma_rad(self) -> float:
         """The tilt error the timing doubt makes at this rate, rad (1 sigma)."""
         return math.hypot(*self.down_rate_cam_rad_s) * self.sigma_s
+
+    @property
+    def attitude_sigma_rad(self) -> float:
+        """Everything this frame adds to the doubt of the autopilot's tilt, rad (1 sigma)."""
+        return math.hypot(self.tilt_sigma_rad, self.ahrs_sigma_rad)
 
 
 @dataclass(frozen=True)

@@ -211,8 +211,9 @@ class PoseSolver:
         # Correlated match errors: no more than max_independent_matches count as independent.
         dependence = math.sqrt(max(1.0, n_pts / cfg.max_independent_matches))
         sigma_px = _image_sigma_px(obs, rvec0, tvec0) * dependence
-        # the autopilot's tilt, as well as the timing doubt at this attitude rate lets it be known
-        timing_rad = frame.timing.tilt_sigma_rad if frame.timing is not None else 0.0
+        # the autopilot's tilt, as well as the timing doubt at this attitude rate and its own recent
+        # manoeuvres let it be known
+        timing_rad = frame.timing.attitude_sigma_rad if frame.timing is not None else 0.0
         prior = _TiltPrior(
             frame.attitude.R_ned_cam()[2, :], math.hypot(math.radians(cfg.attitude_sigma_deg), timing_rad)
         )
