@@ -267,3 +267,42 @@ def test_fuzz_replay_csv(tmp_path_factory: pytest.TempPathFactory, rows: list[st
         from_csv(d / "img", pose, ground_alt_amsl_m=None, prior_sigma_m=30.0)
     with contextlib.suppress(ReplayInputError):
         load_truth(truth)
+
+
+_REPLAY_KINDS = st.sampled_from(
+    [
+        "fdr.opened",
+        "daemon.config",
+        "estimator.prior",
+        "pipeline.frame",
+        "pipeline.frame_image",
+        "estimator.input",
+    ]
+)
+_REPLAY_KEYS = st.sampled_from(
+    [
+        "frame_seq", "attitude_rad", "exposure_time_unix_usec", "alt_agl_m", "file", "config", "lat_deg",
+        "lon_deg", "sigma_m", "horiz_sigma_m", "unit", "n", "time_unix_usec", "seq", "t_unix_s",
+    ]
+)
+_REPLAY_RECORDS = st.tuples(_REPLAY_KINDS, st.dictionaries(_REPLAY_KEYS, JSON_VALUES, max_size=6)).map(
+    lambda kv: {**kv[1], "kind": kv[0]}
+)
+
+
+@FUZZ
+@given(records=st.lists(_REPLAY_RECORDS, max_size=8))
+def test_fuzz_replay_fdr(tmp_path_factory: pytest.TempPathFactory, records: list[dict[str, Any]]) -> None:
+    """`replay --fdr`'s reader gives a replay input or ReplayInputError, whatever the records hold."""
+    from gps_denied_onboard.replay.inputs import from_fdr
+
+    d = tmp_path_factory.mktemp("fdr")
+    (d / "images").mkdir()
+    (d / "images" / "x.png").write_bytes(b"not a png")
+    first = {"kind": "pipeline.frame", "attitude_rad": [0, 0, 0], "exposure_time_unix_usec": 1}
+    first["frame_seq"] = 0  # a frame with its image: the reader goes past its first refusals
+    image = {"kind": "pipeline.frame_image", "exposure_time_unix_usec": 1, "file": "images/x.png"}
+    lines = [_dumps(r) for r in [first, image, *records]]
+    (d / "fdr-20260101T000000.000Z-000001.jsonl").write_bytes(b"\n".join(lines))
+    with contextlib.suppress(ReplayInputError):
+        from_fdr(d)

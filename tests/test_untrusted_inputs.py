@@ -441,3 +441,15 @@ def test_cli_fdr_summary_with_a_time_past_the_calendar_exits_0(tmp_path: Path) -
     proc = _gdnav(tmp_path, "fdr", "summary", str(d), "--json")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert json.loads(proc.stdout)["runs"][-1]["start_utc"] == "?"
+
+
+def test_replay_fdr_with_a_malformed_frame_image_record_is_refused(tmp_path: Path) -> None:
+    """A pipeline.frame_image record without its exposure time (KeyError before) refuses the FDR by
+    name."""
+    from gps_denied_onboard.replay.inputs import ReplayInputError, from_fdr
+
+    frame = b'{"t_unix_s":1717000001.0,"kind":"pipeline.frame","seq":8,"attitude_rad":[0,0,0]}\n'
+    image = b'{"t_unix_s":1717000001.1,"kind":"pipeline.frame_image","seq":9,"file":"images/x.png"}\n'
+    d = _fdr_with(tmp_path, frame, image)
+    with pytest.raises(ReplayInputError, match="not what the daemon writes"):
+        from_fdr(d)

@@ -157,7 +157,18 @@ _FDR_KINDS: Final = (
 
 
 def from_fdr(path: Path, *, run: int | None = None) -> ReplayInput:
-    """One run of the FDR at ``path`` (default: the last run that tracked frames)."""
+    """One run of the FDR at ``path`` (default: the last run that tracked frames). A record whose fields
+    are not what the daemon writes (damage, or another program's file) is a ``ReplayInputError``."""
+    try:
+        return _from_fdr(path, run=run)
+    except ReplayInputError:
+        raise
+    except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
+        what = " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+        raise ReplayInputError(f"{path}: a record is not what the daemon writes ({what})") from exc
+
+
+def _from_fdr(path: Path, *, run: int | None) -> ReplayInput:
     from gps_denied_onboard.components.c13_fdr.reader import FdrReader, FdrReadError, split_runs
 
     reader = FdrReader(path)
