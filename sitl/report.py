@@ -160,10 +160,12 @@ def score(
         relied_on_until_s=None if relied_on_until_unix_s is None else relied_on_until_unix_s - t_ref,
     )
     # EKF3's speed-accuracy test over the 3D messages, as the autopilot would run it
-    sacc = [float(m.fields["speed_accuracy"]) for m in fixes]
+    # (a replay's messages may carry no speed accuracy: then there is nothing to judge)
+    with_sacc = [m for m in fixes if m.fields.get("speed_accuracy") is not None]
+    sacc = [float(m.fields["speed_accuracy"]) for m in with_sacc]
     glitch = SpeedAccuracyGlitch()
     glitch_spans: list[list[float]] = []
-    for m, sa in zip(fixes, sacc, strict=True):
+    for m, sa in zip(with_sacc, sacc, strict=True):
         t = m.recv_time_unix_s - t_ref
         was = glitch.glitching
         if glitch.update(t, sa) and not was:

@@ -23,6 +23,7 @@ Each half is synchronous and single-threaded by contract (INV-1); the daemon run
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import uuid
@@ -378,6 +379,7 @@ class NavigationPipeline:
                     else None
                 ),
                 "alt_agl_m": frame.alt_agl_m,
+                "timing": dataclasses.asdict(frame.timing) if frame.timing is not None else None,
                 "timings_ms": timings,
             },
         )

@@ -89,6 +89,7 @@ def _nav_frame(f: ReplayFrame) -> NavCameraFrame:
         f.attitude,
         f.alt_agl_m,
         0,
+        f.timing,
     )
 
 

@@ -30,7 +30,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from gps_denied_onboard.camera.types import Attitude, CameraCalibration
+from gps_denied_onboard.camera.types import Attitude, CameraCalibration, FrameTiming
 from gps_denied_onboard.components.c5_estimator.prior import InitialPrior
 from gps_denied_onboard.constants import FdrKind
 
@@ -69,6 +69,8 @@ class ReplayFrame:
     alt_agl_m: float | None
     load: Callable[[], np.ndarray] = field(repr=False, compare=False)
     name: str = ""
+    #: How well its exposure time was known, as the daemon had it (None from logs without it).
+    timing: FrameTiming | None = None
 
 
 @dataclass(frozen=True)
@@ -221,6 +223,7 @@ def _from_fdr(path: Path, *, run: int | None) -> ReplayInput:
                 float(r["alt_agl_m"]) if r.get("alt_agl_m") is not None else None,
                 _read_image(fdr_dir / str(img["file"]), 1.0),
                 str(img["file"]),
+                _frame_timing(r.get("timing")),
             )
         )
     if not frames:
@@ -740,3 +743,20 @@ def _video_frames(
         return load
 
     return [(start_unix_s + i / fps, f"{video.name}#{i}", loader(i)) for i in range(count)]
+
+
+def _frame_timing(fields: object) -> FrameTiming | None:
+    """A ``pipeline.frame`` record's ``timing`` (``FrameTiming`` as the daemon had it), or None when the
+    record has none or it is malformed."""
+    if not isinstance(fields, dict):
+        return None
+    try:
+        rate = fields["down_rate_cam_rad_s"]
+        return FrameTiming(
+            (float(rate[0]), float(rate[1])),
+            float(fields["stamp_offset_s"]),
+            float(fields["sigma_s"]),
+            float(fields.get("ahrs_sigma_rad", 0.0)),
+        )
+    except (KeyError, TypeError, ValueError, IndexError):
+        return None
