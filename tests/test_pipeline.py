@@ -12,7 +12,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pytest
 
-from gps_denied_onboard.camera.types import Attitude, CameraCalibration, CameraMount, NavCameraFrame
+from gps_denied_onboard.camera.types import (
+    Attitude,
+    CameraCalibration,
+    CameraMount,
+    FrameTiming,
+    NavCameraFrame,
+)
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
@@ -130,6 +136,7 @@ def _pipeline(
         attitude_check=AttitudeCheck(PoseConfig()),
         ground_tilt_check=AttitudeCheck(PoseConfig(), samples=24, max_age_s=10.0, ground_correlated=False),
         mount=mount,
+        attitude_sigma_deg=PoseConfig().attitude_sigma_deg,
     )
 
 
@@ -284,6 +291,33 @@ def test_pipeline_refuses_an_ambiguous_fix_and_records_the_evidence(
         assert out.no_fix_reason == "integrity:ambiguous_candidates"
         assert record["integrity"]["reason"] == "ambiguous_candidates" and out.integrity is not None
         assert p.time_axis.state_at(T0).last_fix_age_s == float("inf")
+
+
+@pytest.mark.parametrize(
+    ("timing", "refused"),
+    [
+        (FrameTiming((0.0, 0.0), 0.0, 0.01, math.radians(3.0)), False),  # just after a manoeuvre
+        (FrameTiming((math.radians(40.0), 0.0), 0.0, 0.1, 0.0), False),  # pitching over, timing unsure
+        (FrameTiming((0.0, 0.0), 0.0, 0.01, 0.0), True),  # steady: the check judges
+    ],
+)
+def test_pipeline_compares_tilts_only_when_the_frame_can_tell(timing: FrameTiming, refused: bool) -> None:
+    """Every fix's image-only tilt is 3 deg from the autopilot's. While the frame's own doubt of the
+    autopilot's tilt (its AHRS after a manoeuvre, timing at a fast pitch-over) is beyond half the
+    attitude's sigma, the tilt is no evidence: the right fixes are fused (issue 26: a real copter's
+    AHRS strayed 2.5-3.4 deg at the legs' ends and right fixes were refused until the EKF failed safe).
+    In steady flight the same 3 deg is proven off as before."""
+    fdr = _Fdr()
+    p = _two_tile_pipeline(fdr, _HoverVo(), _PosePerTile(tilt_off_rad=math.radians(3.0)))
+    outs = []
+    for k in range(6):
+        frame = replace(_frame(k, T0 - (5 - k) * 333_333), timing=timing)
+        p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None)
+        outs.append(p.localise(frame))
+    reasons = {o.no_fix_reason for o in outs[MIN_FIXES - 1 :]}
+    assert reasons == ({"attitude_off"} if refused else {None}), [o.no_fix_reason for o in outs]
+    records = [r for kind, r in fdr.records if kind == "pipeline.fix"]
+    assert records[-1]["timing"]["sigma_s"] == pytest.approx(timing.sigma_s)
 
 
 def test_pipeline_refuses_fixes_while_the_autopilot_tilt_is_off_and_widens_what_was_fused() -> None:
