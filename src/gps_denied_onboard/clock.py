@@ -1,48 +1,23 @@
-"""The daemon's clock: monotonic time, anchored to Unix time once, at start.
+"""The daemon's clocks: its own (monotonic, anchored to Unix time once, at start), the autopilot's mapped
+onto it, and the camera's lateness.
 
-Why not the wall clock: ``CLOCK_REALTIME`` steps. NTP/chrony step it when the offset is large, an
-operator sets the date, a companion computer without an RTC jumps from 1970 to the GPS time it was
-given. A backwards step of a wall-clock "now" makes every later frame look out of order and every fix
-too late until the clock catches up (a long outage); a forward step makes the filter's clock leap
-(a 10 Hz stream stamped seconds apart). The daemon's "now" is therefore ``CLOCK_MONOTONIC`` plus an
-offset fixed at start (``anchor``): it reads Unix time for the first instant of the run and never
-follows the wall clock afterwards. Every component that needs "now" gets this one object from the
-composition root: the C5 time axis, the MAVLink link (GPS_INPUT ``time_usec``/``time_week``), the
-vehicle-state tracker (receive times, link liveness), the flight data recorder, the daemon's ages and
-latencies.
+``DaemonClock``: every "now" of the daemon (time axis, link, tracker, FDR, ages) comes from this one
+object, built by the composition root. It never follows the host's wall clock, which NTP, ``date -s`` or
+a first GPS time can step; a camera stamp (the host's wall clock at exposure) is mapped with the wall
+clock's offset of its own epoch (``from_wall_usec``), so stamps and offset move together. Steps are
+detected (``check_step``), logged, recorded and counted; they change nothing else.
 
-What a camera stamp is measured against
----------------------------------------
-A frame's ``exposure_time_unix_usec`` (network stream, OpenCV sources) is **this host's wall clock at
-exposure** (the camera process and the daemon share the companion computer's clock; the OpenCV sources
-stamp with it in-process). ``from_wall_usec`` maps such a stamp into the daemon's clock with the wall
-clock's offset read *now*: a step of the host clock moves the stamps and the offset together, so it
-cancels, and so does NTP slewing.
-A camera on another host whose clock steps on its own is not cancelled: its frames are refused as
-future or stale and counted (the daemon cannot tell a remote clock that stepped back from frames that
-arrive late; synchronise that clock, or stamp on this host).
+``AutopilotClock``: the autopilot's boot time on the daemon's clock, from MAVLink TIMESYNC round trips
+(offset and drift over the low-round-trip answers of the last minute), bounded by the receive times of
+its timestamped messages; the receive-time bound alone without answers. The autopilot's own Unix time
+(SYSTEM_TIME) is never used: without GNSS it is whatever somebody set.
 
-Around a step, a frame exposed before it but read after it (a backlog in the stream) is mapped with the
-offset of its own epoch: the clock keeps the offsets of the last ``EPOCH_HISTORY_S`` and picks the one
-that gives the frame a plausible age (``from_wall_usec``).
+``CameraStampOffset``: how late the camera stamps, fitted from image-minus-autopilot tilts against
+world-down's motion in the camera around each stamp; the time axis subtracts it once sure, within
+``camera.max_stamp_offset_s``, and until then every frame carries ``camera.stamp_sigma_s`` of doubt.
 
-Steps are detected (``check_step``), logged, recorded in the flight data recorder and counted by the
-daemon; they change nothing else.
-
-The autopilot's clock
----------------------
-``AutopilotClock`` maps the autopilot's boot time onto the daemon's clock: MAVLink TIMESYNC round trips
-(offset and drift, continuously re-synced), bounded by the receive times of its timestamped messages;
-the receive-time bound alone when the autopilot does not answer TIMESYNC. The autopilot's own Unix time
-(SYSTEM_TIME) is never the link: without GNSS it is whatever somebody set.
-
-The camera's stamps
--------------------
-``CameraStampOffset`` estimates how late the camera stamps its exposures, from the tilts the images
-show against the autopilot's: a stamp late by ``tau`` makes the image-minus-autopilot tilt follow
-``-tau`` times the rate at which world-down moves in the camera, which a copter's manoeuvres make large.
-The time axis subtracts the estimate once it is sure of it, within ``camera.max_stamp_offset_s``; until
-then, and by its standard error after, every frame carries how well its exposure time is known.
+Why each, and what it cannot see: docs/design.md, "The time axis" and "The camera's clock and the
+autopilot's".
 """
 
 from __future__ import annotations

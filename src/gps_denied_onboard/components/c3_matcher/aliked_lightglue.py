@@ -1,30 +1,17 @@
 """ALIKED + LightGlue strategy (seed: secondary learned matcher), label ``aliked_lightglue``.
 
 ALIKED runs through the C7 ``InferenceRuntime`` as an ONNX extractor in the LightGlue-ONNX layout
-(exported by ``gdnav models export`` from the pinned official weights); matching goes through the
-shared ``LightGlueRuntime`` (a LightGlue-ONNX matcher model when ``lightglue_weights_path`` is set, else
-its weights-free mutual-nearest-neighbour fallback); RANSAC, ranking, health, FDR and logs are the shared
-loop in ``base.CandidateLoopMatcher``, and tile features come from its ``TileFeatureCache`` (steady
-state: one extraction per frame + N matches).
+(exported by ``gdnav models export``); matching goes through the shared ``LightGlueRuntime`` (the
+LightGlue-ONNX matcher when ``lightglue_weights_path`` is set, else mutual nearest neighbours at
+``ALIKED_MNN_MIN_SIMILARITY``); RANSAC, ranking, health, FDR and logs are the shared candidate loop, tile
+features come from its cache.
 
-Input size: the exported model normally has a fixed input ``(1, 3, H, W)`` (read from the loaded model);
-every image is resized to fit inside it keeping its aspect ratio and zero-padded at the bottom/right
-(letterbox), and keypoints are mapped back to the original image's pixels. A model with dynamic H/W
-gets images resized to ``input_long_side_px`` and padded to multiples of 32. ALIKED is not rotation
-invariant: the query is rectified north-up at the map GSD by the base class when attitude and altitude
-are known (``rectify_query``), which is what lets it match the north-up map.
-
-Scale: every image is fitted on its own. A 640x480 frame and a 512 px chip then meet at 0.8 vs 0.75 in a
-512x384 model. Resizing the query by the chips' factor instead was measured on the NAIP cross-date trials
-(5 m/px, 320x240 frames, 384 px chips) and did worse (28/30 vs 30/30): upsampling coarse imagery gives
-ALIKED more usable keypoints than an exact scale match does.
-
-Mutual-NN fallback: ALIKED descriptors of the same ground across dates have cosine ~0.5-0.8, so the
-helper's generic 0.75 floor keeps too few matches (3/30 NAIP trials vs 30/30 at 0.5): build the
-``LightGlueRuntime`` with ``mnn_min_similarity=ALIKED_MNN_MIN_SIMILARITY`` for this strategy.
-
-Failure phases: ``aliked_forward`` (a chip's forward pass) and ``lightglue_match`` (a pair's match) drop
-that candidate; ``aliked_forward_query`` (the nav frame's forward pass) fails the whole frame.
+Input: every image is letterboxed into the model's fixed ``(1, 3, H, W)`` (a dynamic model: resized to
+``input_long_side_px``, padded to multiples of 32), keypoints mapped back to the original pixels; the
+query is rectified north-up at the map GSD (ALIKED is not rotation invariant).
+Failure phases: ``aliked_forward`` and ``lightglue_match`` drop that candidate; ``aliked_forward_query``
+fails the frame. Why each choice (scale, the cosine floor), measured: docs/design.md,
+"`c3_matcher/aliked_lightglue.py`".
 """
 
 from __future__ import annotations

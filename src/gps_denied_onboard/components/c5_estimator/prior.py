@@ -1,29 +1,19 @@
 """C5 start-up prior: where the estimator may honestly start, after a cold start or a restart (F8).
 
-A restarted daemon must never claim an accuracy it cannot back. Measured on the previous main: killed
-250 m from home and restarted by systemd, it started at HOME_POSITION with the configured 30 m sigma and
-told the autopilot "3D fix, 30 m" while it was 252 m off. The rules, in order (:func:`choose_prior`):
+A restarted daemon must never claim an accuracy it cannot back. The rules, in order (:func:`choose_prior`):
 
-1. **Resume** from the last estimate the previous run sent as a 3D fix (the newer of the flight data
-   recorder's and the resume state file's, ``resume_state``) when it is at most ``init.resume_max_age_s``
-   old: its position, with a sigma grown by ``init.max_speed_m_s`` times the time since.
+1. **Resume** from the last estimate the previous run sent as a 3D fix (the newer of the FDR's and the
+   resume state file's) when at most ``init.resume_max_age_s`` old, its sigma grown by
+   ``init.max_speed_m_s`` times the time since.
 2. **Configured position or HOME_POSITION** only while the autopilot says the vehicle is on the ground
-   (``flight_phase``: landed_state ON_GROUND, disarmed, or at most ``init.on_ground_max_alt_agl_m`` above
-   home, and nothing saying it flies), or in the air when this run saw it on the ground, with the sigma
-   grown at top speed since then. In the air they say nothing about where the vehicle is now.
-After a restart or a start in the air the autopilot's own estimate (GLOBAL_POSITION_INT, with
-EKF_STATUS_REPORT saying its absolute horizontal position is good) is asked for and used, never believed
-alone: in GNSS-denied flight it is this daemon's earlier output dead-reckoned by the autopilot. It confirms
-a resumed estimate within 3 sigma of it, else the sigma grows to cover both; with nothing of the
-daemon's own, the search for a fix starts from it (rule 3).
+   (``flight_phase``), or in the air when this run saw it on the ground, the sigma grown at top speed since.
+3. **Nothing trustworthy**: the whole map (the cache's centre, a sigma covering it, so fix_type 0 or 1), and
+   a wide search until a fix re-anchors it.
 
-3. **Nothing trustworthy**: the whole map. The prior is the cache's centre with a sigma that covers
-   the cache, so the output is not a fix (fix_type 1, or 0 above ``estimator.max_output_sigma_m``) and
-   the fix path searches widely (corpus-wide with an appearance VPR strategy) until a fix re-anchors it.
-   Known edge: a cache smaller than 50 m in radius gives a sigma under the 3D-fix limit, which is honest
-   only while the vehicle is over the map. When the autopilot has a good estimate, the prior is centred
-   on it instead of the map's centre, with a sigma that still covers the whole map from there: the
-   output is no more a fix than before, but the fix path searches where the vehicle most likely is.
+After a restart or a start in the air, the autopilot's own estimate (GLOBAL_POSITION_INT with a good
+EKF_STATUS_REPORT) is asked for and used, never believed alone: it confirms a resumed estimate within 3
+sigma, else the sigma grows to cover both, and with nothing of the daemon's own it centres the map-wide
+search. The rules in full: docs/design.md, "`c5_estimator/prior.py`: the start-up prior".
 """
 
 from __future__ import annotations

@@ -1,35 +1,22 @@
 """C8 link: one pymavlink connection to the autopilot, driven by the daemon's event loop.
 
-- ``open()`` creates the connection (``udpin:``/``udpout:``/``udp:``/``tcp:``/serial device). pymavlink's
-  UDP sockets are non-blocking; a TCP connect is attempted once (pymavlink's own retry loop, which
-  sleeps, is disabled) and a failure only marks the link down and schedules a reconnect.
-- ``fileno()`` is for ``loop.add_reader``; it changes after a reconnect, so the daemon re-registers the
-  reader when it does. ``poll()`` drains what is pending without blocking and also drives reconnects
-  and the STATUSTEXT coalescing queue, so the daemon calls it from the reader callback *and* from a
-  timer (at least at the heartbeat rate).
-- Transport errors mark the link down and schedule a reconnect with capped exponential backoff and
-  jitter; ``c8.mavlink.link_lost`` is logged once per outage (transport error or heartbeat timeout).
-- Sends never block and never raise into the caller: errors are counted and logged (rate-limited).
-- Provenance STATUSTEXT: at most one per ``STATUSTEXT_MIN_INTERVAL_S``; a transition inside the interval
-  is held (the newest replaces an older pending one, with a count of the coalesced transitions in the
-  text) and sent by the first ``poll``/``send_heartbeat``/``notify_provenance`` after the interval, so
-  the ground always ends up seeing the latest state.
-- MAVLink 2 signing when ``signing_key_file`` is set: outgoing messages are signed; incoming unsigned or
-  wrongly signed messages are rejected (except RADIO_STATUS, which radios inject unsigned).
-- Listening links (``udpin:``/``udp:``/``tcpin:``, ``transport`` module) write only to where the
-  configured autopilot's valid HEARTBEAT (signed when signing is on) last came from, never to any other
-  sender, and send nothing before one.
-- VISION_POSITION_ESTIMATE is a local NED position, so it is only sent in a frame the autopilot shares.
-  With ``vision_position_estimate`` in ``outputs``, while the autopilot is alive and has not reported a
-  GPS_GLOBAL_ORIGIN, the link sends SET_GPS_GLOBAL_ORIGIN (the daemon's tangent-plane origin) and a
-  MAV_CMD_REQUEST_MESSAGE for GPS_GLOBAL_ORIGIN every ``SET_GPS_GLOBAL_ORIGIN_INTERVAL_S``. Positions go
-  out in the daemon's frame once the origin has been offered; once the autopilot reports its origin,
-  the offer stops (re-sending a different origin would at best be ignored and at worst move the
-  autopilot's frame in flight) and positions go out in the reported frame: the daemon's own when the
-  two origins agree within ``ORIGIN_MATCH_TOLERANCE_M``, else re-expressed at the autopilot's origin
-  through geodetic coordinates. Before the offer (link down, autopilot not seen) none is sent. After a
-  detected autopilot reboot the reported origin is forgotten and the offer starts again.
-  ``reset_counter`` rules: ``messages`` module docstring.
+Input: the configured URL (``udpin:``/``udpout:``/``udp:``/``tcp:``/``tcpin:``/serial), the tracker to feed,
+the estimates and status to send. Output: every decoded message to the tracker (each stamped at its own
+arrival), GPS_INPUT / GLOBAL_POSITION_SENSOR / VISION_POSITION_ESTIMATE, HEARTBEAT, NAMED_VALUE,
+STATUSTEXT, TIMESYNC requests (and answers to the autopilot's), SET_GPS_GLOBAL_ORIGIN.
+
+Rules:
+- ``poll()`` never blocks; it drains input, drives reconnects (capped exponential backoff with jitter,
+  ``c8.mavlink.link_lost`` once per outage), TIMESYNC and the STATUSTEXT queue; sends never raise.
+- Provenance STATUSTEXT: at most one per ``STATUSTEXT_MIN_INTERVAL_S``, the newest pending one kept.
+- Signing when ``signing_key_file`` is set: unsigned or wrongly signed input is refused (RADIO_STATUS
+  excepted).
+- Listening links write only to where the autopilot's valid HEARTBEAT last came from (``transport``).
+- VISION_POSITION_ESTIMATE goes out only in a frame the autopilot shares (its GPS_GLOBAL_ORIGIN, or ours
+  offered with SET_GPS_GLOBAL_ORIGIN until it reports one).
+- GPS_INPUT's altitude is flagged as ignored while the ground altitude disagrees (``distrust_altitude``).
+
+The rules in full: docs/design.md, "`c8_mavlink/link.py`: the link".
 """
 
 from __future__ import annotations
