@@ -1,6 +1,6 @@
 """Refusals as a real `gdnav` process sees them: exit 2 (configuration) or 3 (a refused file or
-resource), one plain line on stderr, never a traceback. `gdnav config check` (the unit's ExecStartPre)
-refuses the configuration-level ones with the same codes."""
+resource), one plain line on stderr, never a traceback. `gdnav config check` refuses the
+configuration-level ones with the same codes."""
 
 from __future__ import annotations
 

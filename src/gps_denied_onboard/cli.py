@@ -252,9 +252,9 @@ def _cmd_config_check(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.set or ())
     from gps_denied_onboard.runtime_root import preflight
 
-    # As the unit's ExecStartPre this runs as the service user: the calibration and the signing key file
-    # are refused here (exit 3) exactly as `gdnav run` would refuse them. The cache and models are not
-    # checked (hashing the cache takes seconds); `gdnav run` verifies them.
+    # Run as the service user (docs/companion.md), the calibration and the signing key file are refused here
+    # (exit 3) exactly as `gdnav run` refuses them. The cache and models are not checked (hashing the cache
+    # takes seconds); `gdnav run` verifies them.
     preflight(config)
     print(f"{args.config}: ok")
     return EXIT_OK

@@ -175,9 +175,8 @@ def _check_strategy_names(config: Config) -> None:
 
 def preflight(config: Config) -> None:
     """The start-up checks that are cheap and need no cache, model or network: the calibration file, the
-    signing key file, ``fdr.dir`` and the strategy names (``gdnav config check``, the unit's ExecStartPre,
-    runs them as the service user). Raises ``StartupError`` naming the key; ``compose_root`` runs the same
-    checks."""
+    signing key file, ``fdr.dir`` and the strategy names (``gdnav config check``). Raises ``StartupError``
+    naming the key; ``compose_root`` runs the same checks."""
     _calibration(config)
     _check_signing_key(config)
     _check_fdr_dir(config)
