@@ -1,5 +1,6 @@
 """Who hears the daemon: a listening link (udpin/tcpin) writes only to the autopilot's address, learned
-from its valid HEARTBEAT, whatever else sends to it. Real pymavlink and sockets on 127.0.0.1."""
+from its valid messages (then moved by its HEARTBEAT only), whatever else sends to it. Real pymavlink
+and sockets on 127.0.0.1."""
 
 from __future__ import annotations
 
@@ -166,24 +167,58 @@ def test_link_udpin_a_strangers_partial_packet_does_not_eat_the_autopilots_next_
             ap.close()
 
 
-def test_link_udpin_nothing_goes_out_before_the_autopilots_heartbeat(
+def test_link_udpin_nothing_goes_out_before_the_autopilot_is_heard(
     udp_link: tuple[MavlinkLink, int],
 ) -> None:
-    """An autopilot that has only sent ATTITUDE (no HEARTBEAT yet) is not written to: the address comes
-    from a HEARTBEAT only."""
+    """Nothing is written before the autopilot is heard; then, before its first HEARTBEAT, any valid
+    message of its own (ATTITUDE at 50 Hz: a restarted daemon need not wait up to 1 s for the 1 Hz
+    HEARTBEAT) gives its address. The same message from another system id, or from the autopilot's
+    system id but another component, gives nothing (issue 27, item 5)."""
     link, port = udp_link
     ap = _ap(port)
+    other_sys = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=2, source_component=1)
+    other_comp = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=2)
     try:
-        ap.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        _pump(link, lambda: False, timeout_s=0.2)
         _send_everything(link, 3)
         assert _count(ap, None, 0.2) == 0
-        ap.mav.send(_heartbeat(ap.mav))
-        assert _pump(link, lambda: link.tracker.autopilot_seen)
+        for stranger in (other_sys, other_comp):
+            stranger.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        _pump(link, lambda: False, timeout_s=0.2)
+        _send_everything(link, 3)
+        assert _count(other_sys, None, 0.2) == 0 and _count(other_comp, None, 0.1) == 0
+        ap.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        _pump(link, lambda: False, timeout_s=0.2)
+        assert not link.tracker.autopilot_seen  # no HEARTBEAT yet, but its address is known
         _send_everything(link, 3)
         assert _count(ap, "GPS_INPUT") == 3
+        assert _count(other_sys, None, 0.1) == 0 and _count(other_comp, None, 0.1) == 0
     finally:
-        ap.close()
+        for conn in (ap, other_sys, other_comp):
+            conn.close()
+
+
+def test_link_udpin_only_a_heartbeat_moves_a_known_autopilot_address(
+    udp_link: tuple[MavlinkLink, int],
+) -> None:
+    """Once the output follows the autopilot, a message other than HEARTBEAT with its ids from another
+    port moves nothing; its HEARTBEAT from there does."""
+    link, port = udp_link
+    old, new = _ap(port), _ap(port)
+    try:
+        old.mav.send(_heartbeat(old.mav))
+        assert _pump(link, lambda: link.tracker.autopilot_seen)
+        new.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        _pump(link, lambda: False, timeout_s=0.2)
+        _send_everything(link, 3)
+        assert _count(old, "GPS_INPUT") == 3
+        assert _count(new, None, 0.2) == 0
+        new.mav.send(_heartbeat(new.mav))
+        _pump(link, lambda: False, timeout_s=0.2)
+        _send_everything(link, 3)
+        assert _count(new, "GPS_INPUT") == 3
+    finally:
+        old.close()
+        new.close()
 
 
 def test_link_udpin_follows_the_autopilots_newest_address(udp_link: tuple[MavlinkLink, int]) -> None:
@@ -229,6 +264,34 @@ def test_link_udpin_signed_ignores_an_unsigned_autopilot_heartbeat(tmp_path: Pat
         _pump(link, lambda: False, timeout_s=0.2)
         _send_everything(link, 10)
         assert _count(ap, "GPS_INPUT") == 10
+        assert _count(spoof, None, 0.2) == 0
+    finally:
+        ap.close()
+        spoof.close()
+        link.close()
+
+
+def test_link_udpin_signed_ignores_unsigned_autopilot_messages_before_its_heartbeat(tmp_path: Path) -> None:
+    """With signing on, an unsigned ATTITUDE claiming the autopilot's ids gives no address; the signed
+    autopilot's ATTITUDE does, before any HEARTBEAT."""
+    key_path = tmp_path / "key"
+    key_path.write_text(KEY_HEX)
+    os.chmod(key_path, 0o600)
+    port = _free_port(socket.SOCK_DGRAM)
+    link = _link(f"udpin:127.0.0.1:{port}", signing_key_file=str(key_path))
+    ap, spoof = _ap(port), _ap(port)
+    try:
+        ap.setup_signing(bytes.fromhex(KEY_HEX), sign_outgoing=True)
+        spoof.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        _pump(link, lambda: False, timeout_s=0.2)
+        _send_everything(link, 3)
+        assert _count(spoof, None, 0.2) == 0
+        ap.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        _pump(link, lambda: False, timeout_s=0.2)
+        spoof.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        _pump(link, lambda: False, timeout_s=0.2)
+        _send_everything(link, 3)
+        assert _count(ap, "GPS_INPUT") == 3
         assert _count(spoof, None, 0.2) == 0
     finally:
         ap.close()

@@ -11,7 +11,9 @@ Rules:
 - Provenance STATUSTEXT: at most one per ``STATUSTEXT_MIN_INTERVAL_S``, the newest pending one kept.
 - Signing when ``signing_key_file`` is set: unsigned or wrongly signed input is refused (RADIO_STATUS
   excepted).
-- Listening links write only to where the autopilot's valid HEARTBEAT last came from (``transport``).
+- Listening links write only to the autopilot (``transport``): first where any of its valid messages came
+  from (a restarted daemon hears its 50 Hz ATTITUDE before its 1 Hz HEARTBEAT), then where its newest
+  HEARTBEAT came from; signed ones only when signing is on.
 - VISION_POSITION_ESTIMATE goes out only in a frame the autopilot shares (its GPS_GLOBAL_ORIGIN, or ours
   offered with SET_GPS_GLOBAL_ORIGIN until it reports one).
 - GPS_INPUT's altitude is flagged as ignored while the ground altitude disagrees (``distrust_altitude``).
@@ -388,7 +390,9 @@ class MavlinkLink:
                             continue
                         count += 1
                         recv_s = self._clock()  # each message at its own arrival: the clock's bound
-                        if self._tracker.handle(msg, recv_s) and msg.get_type() == "HEARTBEAT":
+                        if self._tracker.handle(msg, recv_s) and (
+                            msg.get_type() == "HEARTBEAT" or not getattr(conn, "autopilot_known", True)
+                        ):
                             self._follow_autopilot(conn, msg)
                         if msg.get_type() == "TIMESYNC":
                             self._answer_timesync(msg, recv_s)
@@ -425,12 +429,13 @@ class MavlinkLink:
         ts1 = int(msg.ts1)
         self._build_and_send(lambda mav: messages.timesync(mav, tc1_ns=int(recv_s * 1e9), ts1_ns=ts1))
 
-    def _follow_autopilot(self, conn: Any, heartbeat: Any) -> None:
-        """Send to where the autopilot's HEARTBEAT came from (a listening link; a signed one when signing
-        is on); logged and recorded when that moves."""
+    def _follow_autopilot(self, conn: Any, msg: Any) -> None:
+        """Send to where ``msg``, a message the tracker used from the configured autopilot, came from (a
+        listening link; a signed one when signing is on): its HEARTBEAT, or any message while no address
+        is known; logged and recorded when that moves."""
         if not isinstance(conn, (AutopilotUdpIn, AutopilotTcpIn)):
             return
-        if self._signing_key is not None and not heartbeat.get_signed():
+        if self._signing_key is not None and not msg.get_signed():
             return
         address = conn.follow_source()
         if address is not None:

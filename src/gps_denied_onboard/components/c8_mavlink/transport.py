@@ -8,8 +8,9 @@ Here:
   client with its own parser (signing state shared). ``source`` is where the message ``recv_msg``
   returned last came from.
 - Output: only to the autopilot's source. The link calls ``follow_source()`` after a message that was
-  the configured autopilot's valid HEARTBEAT (signed when signing is on); nothing is written before
-  one, and a newer one from elsewhere (a reboot, a new port, a new connection) moves the output.
+  the configured autopilot's valid HEARTBEAT (signed when signing is on), or any of its valid messages
+  while ``autopilot_known`` is False; nothing is written before one, and a newer HEARTBEAT from elsewhere
+  (a reboot, a new port, a new connection) moves the output.
 - Bounds: UDP keeps one address (``clients``); TCP keeps at most ``TCP_MAX_CLIENTS`` connections and
   closes one that has not sent the autopilot's HEARTBEAT within ``TCP_CLIENT_HELLO_TIMEOUT_S``.
 """
@@ -112,6 +113,11 @@ class AutopilotUdpIn(mavutil.mavudp):
         msg, self.source = self._inbox.popleft()
         return msg
 
+    @property
+    def autopilot_known(self) -> bool:
+        """True once the output follows an autopilot address."""
+        return self.autopilot_addr is not None
+
     def write(self, buf: bytes) -> None:
         addr = self.autopilot_addr
         if addr is None:
@@ -160,6 +166,11 @@ class AutopilotTcpIn(mavutil.mavtcpin):
     @property
     def client_count(self) -> int:
         return len(self._clients)
+
+    @property
+    def autopilot_known(self) -> bool:
+        """True while the output follows an autopilot connection."""
+        return self._autopilot is not None
 
     def recv(self, n: int | None = None) -> bytes:
         return b""  # every read goes through recv_msg (one parser per connection)
