@@ -8,21 +8,16 @@ definition of "mutual".
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
-import uuid
 from collections.abc import Callable
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
 pytest.importorskip("onnx")
 
 from conftest import REPO_ROOT, shared_path
-from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
-from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
 from gps_denied_onboard.components.c3_matcher import CrossDomainMatcher, RollingHealthWindow, registry
 from gps_denied_onboard.components.c3_matcher.features import Features
 from gps_denied_onboard.components.c3_matcher.xfeat_mnn import (
@@ -44,7 +39,7 @@ from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 from gps_denied_onboard.runtime_root.compose import _matcher_deps, open_tile_features
 from registry_models_fixture import registry_models  # noqa: F401 - session fixture
 from test_c3_matcher_contract import FakeFdrClient
-from test_tile_features import CountingRuntime
+from test_tile_features import CountingRuntime, rotated_frame_over_tile
 
 NAIP = ("data", "naip_timeseries", "naip")
 NAIP_2009 = "m_4709963_se_14_1_20090818.tif"
@@ -206,26 +201,9 @@ def test_real_xfeat_mnn_matches_a_2020_frame_to_its_2009_chip_with_shared_tile_f
 
     # A 2020 frame, rotated 8 deg and scaled 1.05, centred on tile 10's chip (same Web-Mercator grid).
     src = TileStore.open(frames)
+    frame, rerank, calib, frame_to_mosaic = rotated_frame_over_tile(store, src, config.chip_size_px)
     tile = store.tile_ids[10]
     chip = store.chip(tile, config.chip_size_px)
-    cx = chip.origin_px[0] - store.manifest.tile_range.x0 * store.tile_size_px + 256.0
-    cy = chip.origin_px[1] - store.manifest.tile_range.y0 * store.tile_size_px + 256.0
-    fw, fh, theta, s = 480, 360, math.radians(8.0), 1.05
-    c, si = math.cos(theta), math.sin(theta)
-    frame_to_mosaic = (
-        np.array([[1, 0, cx], [0, 1, cy], [0, 0, 1]])
-        @ np.array([[s * c, -s * si, 0], [s * si, s * c, 0], [0, 0, 1]])
-        @ np.array([[1, 0, -fw / 2], [0, 1, -fh / 2], [0, 0, 1]])
-    )
-    image = cv2.warpPerspective(
-        np.asarray(src.mosaic), frame_to_mosaic, (fw, fh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    )
-    frame = NavCameraFrame(uuid.uuid4(), 0, 0, image, None, None, time.monotonic_ns())
-    near = [t for t, _ in store.tiles_near(tile.lat_deg, tile.lon_deg, 1e5, k=3)]
-    rerank = RerankResult(
-        frame.frame_id, [RerankCandidate(t, store.chip(t, config.chip_size_px), -1, 0.0) for t in near], 0
-    )
-    calib = CameraCalibration.from_hfov(fw, fh, 70.0)
     t0 = time.perf_counter()
     result = pre.match(frame, rerank, calib)
     pre_ms = (time.perf_counter() - t0) * 1e3
@@ -236,7 +214,7 @@ def test_real_xfeat_mnn_matches_a_2020_frame_to_its_2009_chip_with_shared_tile_f
     assert result.matcher_label == "xfeat_mnn"
     assert best.tile_id == tile and best.inlier_count >= 25
     assert best.inlier_scores is None
-    assert MatchEvidence.of_candidate(best, (fw, fh)).mean_confidence is None
+    assert MatchEvidence.of_candidate(best, (calib.width_px, calib.height_px)).mean_confidence is None
     # The inliers lie on the true frame -> chip mapping (chip px = mosaic px - the chip's origin).
     origin = np.array(
         [
@@ -254,4 +232,4 @@ def test_real_xfeat_mnn_matches_a_2020_frame_to_its_2009_chip_with_shared_tile_f
     ]
     np.testing.assert_array_equal(best.inlier_correspondences, result_live.best.inlier_correspondences)
     assert pre_rt.extractor_calls == 1
-    assert live_rt.extractor_calls == len(store) + 1 + len(near)  # build + query + N
+    assert live_rt.extractor_calls == len(store) + 1 + len(rerank.candidates)  # build + query + N

@@ -411,29 +411,10 @@ def test_real_xfeat_precomputed_equals_live_on_a_2020_frame(
     assert feats is not None
     pre, pre_rt = _xfeat(config, tile_features=feats)
 
-    # A 2020 frame, rotated 8 deg and scaled 1.05, centred on tile 10's chip (same Web-Mercator grid).
     src = TileStore.open(frames)
     assert src.manifest.tile_range == store.manifest.tile_range
+    frame, rerank, calib, _h = rotated_frame_over_tile(store, src, config.chip_size_px)
     tile = store.tile_ids[10]
-    chip = store.chip(tile, config.chip_size_px)
-    cx = chip.origin_px[0] - store.manifest.tile_range.x0 * store.tile_size_px + 256.0
-    cy = chip.origin_px[1] - store.manifest.tile_range.y0 * store.tile_size_px + 256.0
-    fw, fh, theta, s = 480, 360, math.radians(8.0), 1.05
-    c, si = math.cos(theta), math.sin(theta)
-    h_true = (
-        np.array([[1, 0, cx], [0, 1, cy], [0, 0, 1]])
-        @ np.array([[s * c, -s * si, 0], [s * si, s * c, 0], [0, 0, 1]])
-        @ np.array([[1, 0, -fw / 2], [0, 1, -fh / 2], [0, 0, 1]])
-    )
-    image = cv2.warpPerspective(
-        np.asarray(src.mosaic), h_true, (fw, fh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    )
-    frame = NavCameraFrame(uuid.uuid4(), 0, 0, image, None, None, time.monotonic_ns())
-    near = [t for t, _ in store.tiles_near(tile.lat_deg, tile.lon_deg, 1e5, k=3)]
-    rerank = RerankResult(
-        frame.frame_id, [RerankCandidate(t, store.chip(t, config.chip_size_px), -1, 0.0) for t in near], 0
-    )
-    calib = CameraCalibration.from_hfov(fw, fh, 70.0)
     t0 = time.perf_counter()
     result_pre = pre.match(frame, rerank, calib)
     pre_ms = (time.perf_counter() - t0) * 1e3
@@ -447,7 +428,7 @@ def test_real_xfeat_precomputed_equals_live_on_a_2020_frame(
     assert result_pre.best.tile_id == tile and result_pre.best.inlier_count >= 25
     _same_result(result_pre, result_live)
     assert pre_rt.extractor_calls == 1
-    assert live_rt.extractor_calls == len(store) + 1 + len(near)  # build + query + N
+    assert live_rt.extractor_calls == len(store) + 1 + len(rerank.candidates)  # build + query + N
 
 
 def test_composition_root_wires_the_verified_set_into_the_matcher(
@@ -472,3 +453,31 @@ def test_composition_root_wires_the_verified_set_into_the_matcher(
         matcher = root.pipeline._matcher  # type: ignore[attr-defined]
         assert (matcher.tile_features is not None) is expect_used
         assert fdr.of(FdrKind.TILE_FEATURES)[0]["used"] is expect_used
+
+
+def rotated_frame_over_tile(
+    store: TileStore, src: TileStore, chip_size_px: int, index: int = 10
+) -> tuple[NavCameraFrame, RerankResult, CameraCalibration, np.ndarray]:
+    """A frame of ``src``'s imagery (another date on the same Web-Mercator grid), rotated 8 deg and scaled
+    1.05, centred on tile ``index``'s chip of ``store``; the three nearest tiles as candidates; its
+    calibration; and the frame -> mosaic homography (3, 3)."""
+    tile = store.tile_ids[index]
+    chip = store.chip(tile, chip_size_px)
+    cx = chip.origin_px[0] - store.manifest.tile_range.x0 * store.tile_size_px + 256.0
+    cy = chip.origin_px[1] - store.manifest.tile_range.y0 * store.tile_size_px + 256.0
+    fw, fh, theta, s = 480, 360, math.radians(8.0), 1.05
+    c, si = math.cos(theta), math.sin(theta)
+    frame_to_mosaic = (
+        np.array([[1, 0, cx], [0, 1, cy], [0, 0, 1]])
+        @ np.array([[s * c, -s * si, 0], [s * si, s * c, 0], [0, 0, 1]])
+        @ np.array([[1, 0, -fw / 2], [0, 1, -fh / 2], [0, 0, 1]])
+    )
+    image = cv2.warpPerspective(
+        np.asarray(src.mosaic), frame_to_mosaic, (fw, fh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    )
+    frame = NavCameraFrame(uuid.uuid4(), 0, 0, image, None, None, time.monotonic_ns())
+    near = [t for t, _ in store.tiles_near(tile.lat_deg, tile.lon_deg, 1e5, k=3)]
+    rerank = RerankResult(
+        frame.frame_id, [RerankCandidate(t, store.chip(t, chip_size_px), -1, 0.0) for t in near], 0
+    )
+    return frame, rerank, CameraCalibration.from_hfov(fw, fh, 70.0), frame_to_mosaic
