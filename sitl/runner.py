@@ -111,6 +111,16 @@ class SitlOptions:
     cache_root: Path | None = None
 
 
+def _send_from_a_fresh_port(packet: bytes, port: int) -> int:
+    """``packet`` to 127.0.0.1:``port`` from a new socket (a new source port), closed at once; 1 if sent."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.sendto(packet, ("127.0.0.1", port))
+        except OSError:
+            return 0
+        return 1
+
+
 def _die_with_parent() -> None:
     """In the child before exec: SIGTERM when the process that started it dies (Linux
     ``PR_SET_PDEATHSIG``), so a runner killed outright leaves no daemon behind."""
@@ -415,6 +425,27 @@ class _Flight:
                 await asyncio.sleep(0.01)
             self.faults_injected.append({"kind": FaultKind.MAVLINK_FLOOD.value, "datagrams": sent})
 
+    async def _source_flood(self, mav_port: int, stop: asyncio.Event) -> None:
+        """During ``source_flood`` windows: one well-formed, unsigned MAVLink 2 HEARTBEAT of a ground station
+        from each of ``rate_hz`` fresh source ports a second (a new socket each, closed at once), in 10 ms
+        batches: a stranger must neither become a recipient of the daemon's output nor slow it."""
+        floods = [f for f in self.scenario.faults if f.kind is FaultKind.SOURCE_FLOOD]
+        if not floods:
+            return
+        mav = mavutil.mavlink.MAVLink(None, srcSystem=200, srcComponent=190)
+        packet = bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
+        sent = 0
+        while not stop.is_set():
+            t_s = time.time() - self.t0_unix_s
+            fault = self.scenario.fault_at(FaultKind.SOURCE_FLOOD, t_s)
+            if fault is not None:
+                for _ in range(max(1, round(fault.rate_hz / 100.0))):
+                    sent += _send_from_a_fresh_port(packet, mav_port)
+            elif t_s > max(f.to_s for f in floods):
+                break
+            await asyncio.sleep(0.01)
+        self.faults_injected.append({"kind": FaultKind.SOURCE_FLOOD.value, "datagrams": sent})
+
     async def _sample_rss(self, procs: list[subprocess.Popen[bytes]], stop: asyncio.Event) -> None:
         """The daemon's resident memory every RSS_SAMPLE_S (Linux /proc; nothing elsewhere)."""
         while not stop.is_set():
@@ -488,6 +519,7 @@ class _Flight:
                     restarter = asyncio.create_task(self._restarter(cmd, log_file, procs), name="restarter")
                 side_tasks = [
                     asyncio.create_task(self._flood(mav_port, stop), name="sitl_flood"),
+                    asyncio.create_task(self._source_flood(mav_port, stop), name="sitl_source_flood"),
                     asyncio.create_task(self._sample_rss(procs, stop), name="sitl_rss"),
                     asyncio.create_task(self.host.run(self.t0_unix_s, stop), name="sitl_host_faults"),
                 ]

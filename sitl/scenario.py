@@ -147,6 +147,8 @@ class FaultKind(str, Enum):
     ATTITUDE_NAN = "attitude_nan"
     ATTITUDE_ABSENT = "attitude_absent"
     MAVLINK_FLOOD = "mavlink_flood"
+    #: One well-formed MAVLink datagram from each of many fresh source ports (``rate_hz`` of them).
+    SOURCE_FLOOD = "source_flood"
     CORRUPT_FRAME = "corrupt_frame"
     BOMB_FRAME = "bomb_frame"
     WRONG_SIZE_FRAME = "wrong_size_frame"
@@ -944,7 +946,8 @@ def _read_faults(value: object, source: str | None) -> tuple[Fault, ...]:
             reconnect = b.get("reconnect", False) if kind is FaultKind.CAMERA_STALL else False
             if not isinstance(reconnect, bool):
                 raise b.error("reconnect", f"expected true or false, got {reconnect!r}")
-            rate = b.number("rate_hz", 500.0, gt=0.0, le=5000.0) if kind is FaultKind.MAVLINK_FLOOD else 500.0
+            floods = (FaultKind.MAVLINK_FLOOD, FaultKind.SOURCE_FLOOD)
+            rate = b.number("rate_hz", 500.0, gt=0.0, le=5000.0) if kind in floods else 500.0
             offset = (0.0, 0.0)
             if kind is FaultKind.ATTITUDE_OFFSET:
                 offset = (
