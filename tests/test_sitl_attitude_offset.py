@@ -54,7 +54,10 @@ def test_no_fix_that_leans_on_the_wrong_attitude_is_fused(flight: dict) -> None:
     assert {r["no_fix_reason"] for r in during} <= {"attitude_jump", "attitude_off", "vo_attitude_off"}
     assert sum(r["attitude_check"]["off"] for r in during) >= len(during) - 4  # jumps until it is proven
     bias = max(abs(r["attitude_check"]["bias_deg"][0]) for r in during if r["attitude_check"]["off"])
-    assert 2.5 < bias < 3.5, bias  # the camera's x axis is the aircraft's right: roll
+    # the camera's x axis is the aircraft's right: roll; the largest window also carries the simulated
+    # autopilot's own 0.2 deg roll bias and its wander, and (since frames whose timing doubt at the
+    # wobble's peak rate could make the difference are no evidence) rests on fewer fixes
+    assert 2.5 < bias < 3.8, bias
 
 
 def test_what_leaves_the_daemon_stays_within_its_stated_accuracy(flight: dict) -> None:
