@@ -282,7 +282,12 @@ class NavigationPipeline:
     def _comparable(self, timing: FrameTiming | None) -> bool:
         """Whether a tilt at this frame's timing says anything about the autopilot's attitude."""
         limit = self._timing_tilt_max_rad
-        return limit is None or timing is None or timing.attitude_sigma_rad <= limit
+        if limit is None or timing is None:
+            return True
+        # a gentle swing's AHRS doubt is no reason to stop comparing: a fault that steps the reported
+        # attitude by a few degrees must not hide itself as a manoeuvre
+        ahrs_rad = max(0.0, timing.ahrs_sigma_rad - AHRS_DOUBT_FREE_RAD)
+        return math.hypot(timing.tilt_sigma_rad, ahrs_rad) <= limit
 
     def _note_camera_tilt(
         self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, timing: FrameTiming | None
@@ -699,6 +704,9 @@ def _timing_fields(timing: FrameTiming | None) -> dict[str, object] | None:
     }
 
 
+#: The AHRS doubt (``FrameTiming.ahrs_sigma_rad``) a gentle manoeuvre gives, up to a 10 deg swing, which
+#: still leaves a tilt comparable with the autopilot's: it states error, it does not stop the checks.
+AHRS_DOUBT_FREE_RAD: Final[float] = math.radians(1.0)
 #: How fast the autopilot's attitude error changes, as a share of its size per second: it built up and
 #: decayed over 2-10 s on ArduPilot SITL (``VehicleStateTracker.ahrs_doubt_rad``), so take 2 s.
 AHRS_ERROR_CHANGE_TIME_S: Final[float] = 2.0

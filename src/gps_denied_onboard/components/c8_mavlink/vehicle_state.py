@@ -50,13 +50,10 @@ BUFFER_LEN: Final[int] = 512
 #: Attitude is extrapolated past the newest sample (or before the oldest) by at most this, then held.
 EXTRAPOLATION_LIMIT_S: Final[float] = 0.05
 #: How far an autopilot's attitude estimate strays from the truth after it manoeuvres, per radian its
-#: roll and pitch swung over the last ``AHRS_SWING_WINDOW_S`` beyond ``AHRS_SWING_FREE_RAD`` (1 sigma).
-#: Measured on ArduPilot copter SITL 4.7.0-dev flying autopilot_square on GPS_INPUT: ATTITUDE minus
-#: SIMSTATE reached 2.5-3.4 deg while roll and pitch swung through 30-50 deg, and decayed over 5-10 s
-#: once level. A gentle swing adds nothing: the estimate tracks it, and a fault that steps the reported
-#: attitude by a few degrees must not hide itself as a manoeuvre.
+#: roll and pitch swung over the last ``AHRS_SWING_WINDOW_S`` (1 sigma). Measured on ArduPilot copter SITL
+#: 4.7.0-dev flying autopilot_square on GPS_INPUT: ATTITUDE minus SIMSTATE reached 2.5-3.4 deg while roll
+#: and pitch swung through 30-50 deg, and decayed over 5-10 s once level.
 AHRS_SIGMA_PER_SWING: Final[float] = 0.1
-AHRS_SWING_FREE_RAD: Final[float] = math.radians(10.0)
 AHRS_SWING_WINDOW_S: Final[float] = 8.0
 #: Boot time going back this much = reboot.
 OFFSET_RESET_S: Final[float] = 1.0
@@ -504,8 +501,7 @@ class VehicleStateTracker:
     def ahrs_doubt_rad(self, time_unix_usec: int) -> float | None:
         """How far the autopilot's roll and pitch may be from the truth at a time in the daemon's clock
         after its manoeuvres, rad (1 sigma): ``AHRS_SIGMA_PER_SWING`` times how far roll and pitch swung
-        over the ``AHRS_SWING_WINDOW_S`` before it, beyond ``AHRS_SWING_FREE_RAD``. None without
-        attitude samples there."""
+        over the ``AHRS_SWING_WINDOW_S`` before it. None without attitude samples there."""
         with self._lock:
             offset = self._offset_usec()
             ts = self._attitude.t_usec
@@ -518,8 +514,7 @@ class VehicleStateTracker:
                 return None
             vals = np.asarray(self._attitude.values[lo:hi], dtype=np.float64)[:, :2]
         swing = np.ptp(vals, axis=0)
-        beyond_rad = max(0.0, float(np.hypot(swing[0], swing[1])) - AHRS_SWING_FREE_RAD)
-        return AHRS_SIGMA_PER_SWING * beyond_rad
+        return float(AHRS_SIGMA_PER_SWING * np.hypot(swing[0], swing[1]))
 
     def down_cam_curve(self, time_unix_usec: int, offsets_s: np.ndarray) -> np.ndarray | None:
         """World-down in the camera (nadir mount, each instant's own axes) at ``time_unix_usec`` plus each
