@@ -348,7 +348,8 @@ class NavDaemon:
         deadline = time.monotonic() + ATTITUDE_WAIT_MAX_S
         while time.monotonic() < deadline:
             latest = tracker.latest_attitude_unix_usec()
-            if latest is None or latest >= need_usec:
+            # covered, or the stream has stopped (a link drop): waiting would only delay the frame
+            if latest is None or latest >= need_usec or latest < t_us - ATTITUDE_WAIT_MAX_S * 1e6:
                 return
             await asyncio.sleep(0.01)
 
