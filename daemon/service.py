@@ -283,8 +283,9 @@ class NavDaemon:
                 if self._asked_autopilot_last_s is None or now_s - self._asked_autopilot_last_s >= 0.25:
                     self._root.link.request_autopilot_estimate()
                     self._asked_autopilot_last_s = now_s
-                if now_s - self._asked_autopilot_first_s < self._cfg.init.autopilot_wait_s:
-                    return None
+                answered = tracker.estimate_answered_since(self._asked_autopilot_first_s)
+                if not answered and now_s - self._asked_autopilot_first_s < self._cfg.init.autopilot_wait_s:
+                    return None  # no answer yet (an autopilot that has no position says so: no wait)
         prior = choose_prior(
             now_unix_usec=exposure_time_unix_usec,
             init=self._cfg.init,

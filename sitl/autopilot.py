@@ -39,6 +39,8 @@ from pymavlink import mavutil
 
 from gps_denied_onboard.constants import MAV_COMPONENT_ID
 
+MAV_CMD_REQUEST_MESSAGE = mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE
+
 #: ``SO_TIMESTAMPNS`` (and ``SCM_TIMESTAMPNS``): the socket module's where it has one, else Linux's value.
 SO_TIMESTAMPNS: int | None = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform == "linux" else None)
 
@@ -83,12 +85,15 @@ class SimAutopilot:
     unix_offset_s: float = 0.0
     received: list[ReceivedMessage] = field(default_factory=list)
     timesync_answered: int = 0
+    #: REQUEST_MESSAGEs answered with the message asked for (``_answer_request``).
+    requests_answered: int = 0
 
     def __post_init__(self) -> None:
         self._conn = mavutil.mavlink_connection(
             f"udpout:127.0.0.1:{self.daemon_port}", source_system=self.system_id, source_component=1
         )
         self.mav = self._conn.mav
+        self._alt_rel_m = 0.0  # height above home last sent (ALTITUDE), m
         self.kernel_stamps = SO_TIMESTAMPNS is not None
         if SO_TIMESTAMPNS is not None:
             self._conn.port.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
@@ -167,6 +172,7 @@ class SimAutopilot:
         )
 
     def send_altitude(self, now_unix_s: float, alt_amsl_m: float, alt_rel_m: float, alt_agl_m: float) -> None:
+        self._alt_rel_m = alt_rel_m
         self.mav.altitude_send(
             max(0, int((now_unix_s - self.boot_time_unix_s) * 1e6)),
             alt_amsl_m,
@@ -201,7 +207,30 @@ class SimAutopilot:
                     boot_ns = max(0, int((stamp - self.boot_time_unix_s) * 1e9))
                     self.mav.timesync_send(boot_ns, int(msg.ts1))
                     self.timesync_answered += 1
+                elif msg.get_type() == "COMMAND_LONG" and int(msg.command) == MAV_CMD_REQUEST_MESSAGE:
+                    self._answer_request(msg, stamp)
         return n
+
+    def _answer_request(self, msg: Any, now_unix_s: float) -> None:
+        """MAV_CMD_REQUEST_MESSAGE as ArduPilot answers it (GCS_Common.cpp
+        ``handle_command_request_message``): the message now, if it is one it can send, and the ACK. This
+        double has no EKF of its own (``sitl.ap_emulator`` models one): its GLOBAL_POSITION_INT says
+        "no position" (lat/lon 0) with the height above home last sent, and its EKF_STATUS_REPORT flags
+        attitude only, as an ArduPilot without an absolute position answers. Others are refused
+        (MAV_RESULT_FAILED, as for a message ArduPilot cannot send)."""
+        wanted = int(msg.param1)
+        m = mavutil.mavlink
+        result = m.MAV_RESULT_ACCEPTED
+        if wanted == m.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
+            rel_mm = round(self._alt_rel_m * 1000)
+            self.mav.global_position_int_send(self._boot_ms(now_unix_s), 0, 0, rel_mm, rel_mm, 0, 0, 0, 0)
+        elif wanted == m.MAVLINK_MSG_ID_EKF_STATUS_REPORT:
+            self.mav.ekf_status_report_send(m.EKF_ATTITUDE, 0.0, 0.0, 0.0, 0.0, 0.0)
+        else:
+            result = m.MAV_RESULT_FAILED
+        self.mav.command_ack_send(MAV_CMD_REQUEST_MESSAGE, result)
+        if result == m.MAV_RESULT_ACCEPTED:
+            self.requests_answered += 1
 
     def of_type(self, *types: str) -> list[ReceivedMessage]:
         return [m for m in self.received if m.type in types]

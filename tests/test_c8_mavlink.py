@@ -291,6 +291,25 @@ def test_tracker_autopilot_position_with_its_ekf_flags_and_staleness() -> None:
     assert tr.autopilot_position(recv_s + 2.5) is None
 
 
+def test_tracker_knows_when_the_autopilot_answered_even_without_a_position() -> None:
+    """An autopilot without a position still answers (lat/lon 0, attitude-only flags): once both
+    GLOBAL_POSITION_INT and EKF_STATUS_REPORT arrived after the request, the restart's wait is over,
+    while ``autopilot_position`` stays None."""
+    tr = _tracker()
+    recv_s = T0_UNIX_USEC / 1e6
+    tr.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC, BOOT0_MS)), recv_s)
+    asked_s = recv_s + 1.0
+    no_pos = _decoded(lambda mav: mav.global_position_int_encode(BOOT0_MS, 0, 0, 0, 110_000, 0, 0, 0, 0))
+    tr.handle(no_pos, recv_s)  # before the request: not an answer to it
+    attitude_only = _decoded(lambda mav: mav.ekf_status_report_encode(D.EKF_ATTITUDE, 0, 0, 0, 0, 0))
+    tr.handle(attitude_only, asked_s + 0.05)
+    assert not tr.estimate_answered_since(asked_s)
+    tr.handle(no_pos, asked_s + 0.06)
+    assert tr.estimate_answered_since(asked_s)
+    assert not tr.estimate_answered_since(asked_s + 0.1)
+    assert tr.autopilot_position(asked_s + 0.1) is None
+
+
 def test_link_asks_the_autopilot_for_its_estimate_over_udp(udp_pair: tuple) -> None:
     """``request_autopilot_estimate``: two MAV_CMD_REQUEST_MESSAGE to the autopilot (sysid 1, comp 1),
     for GLOBAL_POSITION_INT and EKF_STATUS_REPORT, received by a real pymavlink endpoint."""

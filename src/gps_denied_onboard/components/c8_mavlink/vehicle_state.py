@@ -270,6 +270,9 @@ class VehicleStateTracker:
         #: (receive time as boot usec, flags).
         self._position: tuple[int, float, float, float, float] | None = None
         self._ekf_flags: tuple[int, int] | None = None
+        #: When GLOBAL_POSITION_INT and EKF_STATUS_REPORT last arrived, whatever they said (Unix s, receive
+        #: time): an autopilot without a position has still answered (``estimate_answered_since``).
+        self._answered_s: dict[str, float] = {}
         #: GLOBAL_POSITION_INT's alt - relative_alt while it has a position: (boot usec, ground AMSL m).
         self._ground_alt: tuple[int, float] | None = None
         #: Specific force, body FRD, m/s^2, keyed by boot time.
@@ -400,6 +403,7 @@ class VehicleStateTracker:
         return True
 
     def _on_global_position_int(self, msg: Any, recv_usec: int) -> bool:
+        self._answered_s["GLOBAL_POSITION_INT"] = recv_usec / 1e6
         t = self._timestamped(int(msg.time_boot_ms) * 1000, recv_usec)
         self._alt[AltitudeSource.GLOBAL_POSITION_INT].add(t, (int(msg.relative_alt) / 1000.0,))
         lat_deg, lon_deg = int(msg.lat) / 1e7, int(msg.lon) / 1e7
@@ -411,6 +415,7 @@ class VehicleStateTracker:
         return True
 
     def _on_ekf_status_report(self, msg: Any, recv_usec: int) -> bool:
+        self._answered_s["EKF_STATUS_REPORT"] = recv_usec / 1e6
         self._ekf_flags = (self._recv_as_boot(recv_usec), int(msg.flags))
         return True
 
@@ -620,6 +625,15 @@ class VehicleStateTracker:
             if self._ekf_flags is not None and abs(self._ekf_flags[0] - t_boot) <= POSITION_MAX_AGE_S * 1e6:
                 flags = self._ekf_flags[1]
         return AutopilotPosition(lat, lon, (vn, ve), t_unix, flags)
+
+    def estimate_answered_since(self, since_unix_s: float) -> bool:
+        """Both GLOBAL_POSITION_INT and EKF_STATUS_REPORT arrived at or after ``since_unix_s`` (receive
+        time), whatever they said: the autopilot has told what it has, a position or none (F8: the
+        restart's wait for the autopilot's estimate ends there)."""
+        with self._lock:
+            got = dict(self._answered_s)
+        wanted = ("GLOBAL_POSITION_INT", "EKF_STATUS_REPORT")
+        return all(got.get(m, -math.inf) >= since_unix_s for m in wanted)
 
     def flight_phase(self, now_unix_s: float | None = None) -> FlightPhase:
         """What the autopilot last said of arming and landing, each only while fresher than
