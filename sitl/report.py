@@ -455,3 +455,72 @@ def analyse(
         "nominal_p95_m": nominal_p95,
         "vio_segments": vio,
     }
+
+
+def _attempt_ms(record: Mapping[str, Any]) -> float:
+    """One fix attempt's own time (VPR, rerank, matcher, pose, integrity), ms, from its FDR record."""
+    timings = record.get("timings_ms") or {}
+    return float(sum(v for k, v in timings.items() if k != "estimator_fix" and isinstance(v, (int, float))))
+
+
+def _since(t_unix_s: float | None, origin_unix_s: float) -> float | None:
+    return None if t_unix_s is None else round(t_unix_s - origin_unix_s, 3)
+
+
+def restart_recovery(
+    restarts: Sequence[Mapping[str, float]],
+    received: Sequence[ReceivedMessage],
+    fdr_records: Sequence[Mapping[str, Any]] = (),
+) -> list[dict[str, Any]]:
+    """For each kill and restart (``killed_unix_s``, ``restarted_unix_s``: when the new process was
+    started), what the autopilot side heard and what the restarted daemon recorded, until the next kill:
+
+    - ``last_before_kill_s``, ``first_after_s``, ``first_3d_after_s``: GPS_INPUT (any fix type, fix_type
+      3) around the kill, s after the kill;
+    - ``first_after_start_s``, ``first_3d_after_start_s``: the same, s after the new process started;
+    - ``prior_source``, ``prior_sigma_m``: the start-up prior it chose (FDR ``estimator.prior``);
+    - ``first_anchored_after_start_s``: its first accepted absolute fix (FDR ``pipeline.fix``), s after
+      it started: re-acquisition; ``fix_attempts_to_anchor``: the attempts up to and including that one;
+      ``fix_attempts``: all of its attempts; ``fix_attempt_ms``: their own time (p50, max), up to the
+      anchoring one (all of them when none anchored).
+
+    The FDR fields are None when the FDR holds nothing of that run (a full disk)."""
+    gps = sorted((m.recv_time_unix_s, int(m.fields["fix_type"])) for m in received if m.type == "GPS_INPUT")
+    kills = [float(r["killed_unix_s"]) for r in restarts]
+    out = []
+    for i, r in enumerate(restarts):
+        kill, start = float(r["killed_unix_s"]), float(r["restarted_unix_s"])
+        until = kills[i + 1] if i + 1 < len(kills) else math.inf
+        before = [t for t, _ in gps if t <= kill]
+        after = [(t, ft) for t, ft in gps if kill < t <= until]
+
+        first = after[0][0] if after else None
+        first_3d = next((t for t, ft in after if ft >= 3), None)
+        run = sorted(
+            (x for x in fdr_records if start <= float(x.get("t_unix_s", -math.inf)) <= until),
+            key=lambda x: float(x["t_unix_s"]),
+        )
+        prior = next((x for x in run if x.get("kind") == FdrKind.PRIOR), None)
+        attempts = [x for x in run if x.get("kind") == FdrKind.FIX]
+        n_anchor = next((k + 1 for k, x in enumerate(attempts) if x.get("fix_accepted")), None)
+        upto = attempts[:n_anchor] if n_anchor is not None else attempts
+        cost = [_attempt_ms(x) for x in upto]
+        out.append(
+            {
+                **r,
+                "last_before_kill_s": _since(before[-1], kill) if before else None,
+                "first_after_s": _since(first, kill),
+                "first_3d_after_s": _since(first_3d, kill),
+                "first_after_start_s": _since(first, start),
+                "first_3d_after_start_s": _since(first_3d, start),
+                "prior_source": prior.get("source") if prior is not None else None,
+                "prior_sigma_m": prior.get("sigma_m") if prior is not None else None,
+                "first_anchored_after_start_s": (
+                    _since(float(attempts[n_anchor - 1]["t_unix_s"]), start) if n_anchor is not None else None
+                ),
+                "fix_attempts_to_anchor": n_anchor,
+                "fix_attempts": len(attempts) if run else None,
+                "fix_attempt_ms": {"p50": _pct(cost, 50), "max": max(cost, default=None)},
+            }
+        )
+    return out

@@ -47,7 +47,14 @@ from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.host_faults import HostFaultError, HostFaults
 from gps_denied_onboard.sitl.photometric import PhotometricModel, degrade_for_gap
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
-from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, refused_fixes_line, score
+from gps_denied_onboard.sitl.report import (
+    SentFrame,
+    analyse,
+    plot_report,
+    refused_fixes_line,
+    restart_recovery,
+    score,
+)
 from gps_denied_onboard.sitl.scenario import (
     Fault,
     FaultKind,
@@ -688,7 +695,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
             "daemon_overrides": list(opts.overrides),
             "matcher": _matcher_in_use(workdir / "daemon.log") or daemon_cfg.matcher.strategy,
             "daemon_exit_code": flight.daemon_exit_code,
-            "daemon_restarts": _restart_gaps(flight.restarts, ap.received),
+            "daemon_restarts": restart_recovery(flight.restarts, ap.received, records),
             "faults_injected": flight.faults_injected,
             "t0_unix_s": flight.t0_unix_s,
             "daemon_rss_mib": _rss_summary(flight.rss_mib),
@@ -708,26 +715,6 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     opts.report_path.write_text(json.dumps(report, indent=2))
     plot_report(report, opts.report_path.with_suffix(".png"), title=f"{scenario.name} on {map_path.name}")
     return report
-
-
-def _restart_gaps(restarts: list[dict[str, float]], received: list[Any]) -> list[dict[str, Any]]:
-    """For each kill/restart: when the autopilot side last heard a GPS_INPUT before the kill, and heard
-    one again (any fix type, and fix_type 3) after it, in seconds after the kill."""
-    gps = [(m.recv_time_unix_s, int(m.fields["fix_type"])) for m in received if m.type == "GPS_INPUT"]
-    out = []
-    for r in restarts:
-        kill = r["killed_unix_s"]
-        before = [t for t, _ in gps if t <= kill]
-        after = [(t, ft) for t, ft in gps if t > kill]
-        out.append(
-            {
-                **r,
-                "last_before_kill_s": round(before[-1] - kill, 3) if before else None,
-                "first_after_s": round(after[0][0] - kill, 3) if after else None,
-                "first_3d_after_s": next((round(t - kill, 3) for t, ft in after if ft >= 3), None),
-            }
-        )
-    return out
 
 
 def host_stall_counters(proc: Path = Path("/proc")) -> dict[str, float] | None:
