@@ -47,6 +47,7 @@ from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c8_mavlink.messages import fix_type_for
 from gps_denied_onboard.components.c13_fdr import FdrHealth
 from gps_denied_onboard.constants import RESUME_STATE_INTERVAL_S, FdrKind, LogEvent, Provenance
+from gps_denied_onboard.daemon.beacon import StartupBeacon
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.worker import WorkerThread
@@ -93,8 +94,12 @@ class DaemonCounters:
 
 
 class NavDaemon:
-    def __init__(self, root: RuntimeRoot, *, notifier: SdNotifier | None = None) -> None:
+    def __init__(
+        self, root: RuntimeRoot, *, notifier: SdNotifier | None = None, beacon: StartupBeacon | None = None
+    ) -> None:
+        """``beacon``: the start-up beacon on ``root.link`` (``gdnav run``), stopped when the tasks start."""
         self._root = root
+        self._beacon = beacon
         self._cfg = root.config
         self._axis = root.time_axis
         self._clock = root.clock
@@ -139,6 +144,8 @@ class NavDaemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
+        if self._beacon is not None:
+            self._beacon.stop()  # the link is the tasks' from here
         self._root.link.open()
         bodies = {
             "camera_ingest": self._camera_ingest(),

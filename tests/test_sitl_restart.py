@@ -58,17 +58,18 @@ def test_no_confident_lie_across_the_restart(flight: dict) -> None:
     assert flight["daemon_exit_code"] == 0
 
 
-#: Issue 27, item 5: after a kill -9, GPS_INPUT again within this long of the new process's start, and an
-#: honest 3D fix within this long, s. Measured on the 2-core machine: 1.3-1.9 s and 2.8-3.5 s; the bounds
-#: leave a loaded CI machine room while still keeping RestartSec= (1 s) plus the first GPS_INPUT inside
-#: ArduPilot's 4 s NO_FIX (asserted below). The issue's own target, 2 s from the kill, is not met yet.
-FIRST_GPS_INPUT_AFTER_START_MAX_S = 2.8
+#: Issue 27, item 5: after a kill -9, GPS_INPUT again within this long of the new process's start (the
+#: start-up beacon's, fix_type 0, before the fix path has loaded), and an honest 3D fix within this long,
+#: s. Bounds for a loaded 2-core CI machine; measured figures are in docs/benchmarks.md ("Restart in
+#: flight"). With the unit's RestartSec= (1 s) before them, the issue's targets are 2 s and 4 s.
+FIRST_GPS_INPUT_AFTER_START_MAX_S = 2.0
 FIRST_3D_AFTER_START_MAX_S = 4.5
 #: ArduPilot declares NO_FIX this long after the last GPS_INPUT, s.
 ARDUPILOT_NO_FIX_S = 4.0
 #: The daemon's start-up milestones in its log, in order.
 _MILESTONES = (
     "daemon.config",
+    "daemon.beacon_started",
     "daemon.ready",
     "c8.mavlink.autopilot_address",
     "c5.estimator.prior",
@@ -110,5 +111,7 @@ def test_back_on_the_air_within_the_no_fix_limit(flight: dict) -> None:
         f"{_restart_sec_s() + first_3d_s:.3f} s after the kill"
     )
     assert first_s <= FIRST_GPS_INPUT_AFTER_START_MAX_S, (restart, steps)
+    # The beacon speaks before the fix path has loaded, not after.
+    assert first_s < steps["daemon.ready"], (restart, steps)
     assert first_3d_s <= FIRST_3D_AFTER_START_MAX_S, (restart, steps)
     assert _restart_sec_s() + first_s < ARDUPILOT_NO_FIX_S, (restart, steps)

@@ -49,12 +49,26 @@ def _cmd_run(args: argparse.Namespace) -> int:
         LogEvent.DAEMON_CONFIG, source=str(args.config), version=__version__, config=config_to_dict(config)
     )
 
+    from gps_denied_onboard.clock import DaemonClock
     from gps_denied_onboard.components.c8_mavlink import MavlinkConfigError
-    from gps_denied_onboard.daemon.service import NavDaemon
-    from gps_denied_onboard.runtime_root import StartupError, compose_root
+    from gps_denied_onboard.daemon.beacon import StartupBeacon
+    from gps_denied_onboard.runtime_root.link_first import StartupError, open_link_first
 
+    # The link first, and the beacon on it while the rest loads (imports included): the autopilot hears
+    # the daemon (HEARTBEAT, GPS_INPUT without a fix) a second sooner after a restart (issue 27).
+    clock = DaemonClock()
     try:
-        root = compose_root(config)
+        link = open_link_first(config, clock)
+    except (StartupError, MavlinkConfigError) as exc:
+        log.error("daemon.startup_refused", what=getattr(exc, "what", "mavlink.url"), error=str(exc))
+        raise  # main() prints the one line and exits 3
+    beacon = StartupBeacon(link, config.mavlink, clock.now_unix_s)
+    beacon.start()
+    try:
+        from gps_denied_onboard.daemon.service import NavDaemon
+        from gps_denied_onboard.runtime_root import compose_root
+
+        root = compose_root(config, pre_constructed={"clock": clock, "link": link})
         from gps_denied_onboard.components.c13_fdr.provenance import run_inputs
         from gps_denied_onboard.runtime_root.compose import WEIGHTS_FREE_MATCHERS
 
@@ -74,14 +88,18 @@ def _cmd_run(args: argparse.Namespace) -> int:
         )
         root.fdr.record(FdrKind.CONFIG, {"version": __version__, "config": config_to_dict(config), **inputs})
         # The daemon opens its MAVLink link before READY: a UDP port another process holds is refused there.
-        daemon = NavDaemon(root)
+        daemon = NavDaemon(root, beacon=beacon)
         # Not asyncio.run: its teardown waits without bound for tasks that ignored their cancellation
         # (seen under load: a SIGTERM'd daemon still alive 10 s later, then SIGKILLed).
         loop = asyncio.new_event_loop()
         code = loop.run_until_complete(daemon.run())
-    except (StartupError, MavlinkConfigError) as exc:
-        log.error("daemon.startup_refused", what=getattr(exc, "what", "mavlink.url"), error=str(exc))
-        raise  # main() prints the one line and exits 3
+    except BaseException as exc:
+        beacon.stop()
+        link.close()
+        if isinstance(exc, (StartupError, MavlinkConfigError)):
+            what = getattr(exc, "what", "mavlink.url")
+            log.error("daemon.startup_refused", what=what, error=str(exc))
+        raise  # main() prints the one line and exits 3 for a refusal
     if daemon.abandoned_threads or daemon.stuck_tasks:
         # A worker is still inside a frame (e.g. in ONNX Runtime), or a task is stuck. Interpreter
         # teardown would unwind or destroy native code under it and abort the process (SIGABRT, seen once

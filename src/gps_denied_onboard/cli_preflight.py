@@ -244,7 +244,7 @@ def _check_calibration(config: Config) -> str:
 
 
 def _check_signing_key(config: Config) -> str:
-    from gps_denied_onboard.runtime_root.compose import _check_signing_key as check
+    from gps_denied_onboard.runtime_root.link_first import check_signing_key as check
 
     path = config.mavlink.signing_key_file
     if path is None:
@@ -405,7 +405,7 @@ async def _check_camera(config: Config, timeout_s: float) -> str:
 
 def _check_autopilot(config: Config, timeout_s: float, opened: dict[str, Any] | None = None) -> str:
     from gps_denied_onboard.components.c8_mavlink import MavlinkLink, TimeSource
-    from gps_denied_onboard.runtime_root.compose import make_tracker
+    from gps_denied_onboard.runtime_root.link_first import make_tracker
 
     # As the daemon opens it (URL, signing, port probe), but listening only: with just GPS_INPUT among
     # the outputs the link sends nothing unasked, whereas vision_position_estimate would offer the

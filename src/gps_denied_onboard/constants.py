@@ -97,6 +97,9 @@ class LogEvent:
 
     DAEMON_CONFIG: Final = "daemon.config"
     DAEMON_READY: Final = "daemon.ready"
+    #: The start-up beacon (``daemon.beacon``) began / handed the link to the daemon's tasks.
+    DAEMON_BEACON_STARTED: Final = "daemon.beacon_started"
+    DAEMON_BEACON_STOPPED: Final = "daemon.beacon_stopped"
     DAEMON_STOPPING: Final = "daemon.stopping"
     DAEMON_STOPPED: Final = "daemon.stopped"
     DAEMON_TASK_FAILED: Final = "daemon.task_failed"

@@ -13,7 +13,7 @@ import structlog
 
 from gps_denied_onboard.camera.sources import CameraSourceError, FrameSource, open_frame_source
 from gps_denied_onboard.camera.types import CalibrationError, CameraCalibration, CameraMount
-from gps_denied_onboard.clock import AutopilotClock, CameraStampOffset, DaemonClock
+from gps_denied_onboard.clock import CameraStampOffset, DaemonClock
 from gps_denied_onboard.components.c1_vio import HomographyVo
 from gps_denied_onboard.components.c2_5_rerank.footprint import FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.inlier_rerank import InlierRerank
@@ -55,7 +55,6 @@ from gps_denied_onboard.components.c8_mavlink import (
     MavlinkConfigError,
     MavlinkLink,
     VehicleStateTracker,
-    load_signing_key,
 )
 from gps_denied_onboard.components.c13_fdr import FdrClient, FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import Config, MatcherConfig
@@ -67,16 +66,9 @@ from gps_denied_onboard.models.learned_export import FAMILIES, FAMILY_STRATEGY, 
 from gps_denied_onboard.models.manifest import ModelDirError, ModelEntry, verify_model_dir
 from gps_denied_onboard.models.verification import family_verified
 from gps_denied_onboard.pipeline import NavigationPipeline
+from gps_denied_onboard.runtime_root.link_first import StartupError, check_signing_key, make_tracker
 
 log = structlog.get_logger(__name__)
-
-
-class StartupError(RuntimeError):
-    """The daemon cannot start: ``what`` names the broken thing (cache, model, calibration...)."""
-
-    def __init__(self, what: str, message: str) -> None:
-        super().__init__(f"cannot start: {what}: {message}")
-        self.what = what
 
 
 @dataclass
@@ -133,17 +125,6 @@ def _calibration(config: Config) -> CameraCalibration:
     )
 
 
-def _check_signing_key(config: Config) -> None:
-    """Refuse an unusable MAVLink signing key file here, with the other refused files; the link reads it
-    again when it opens."""
-    if config.mavlink.signing_key_file is None:
-        return
-    try:
-        load_signing_key(config.mavlink.signing_key_file)
-    except MavlinkConfigError as exc:
-        raise StartupError("mavlink.signing_key_file", str(exc)) from exc
-
-
 def _check_fdr_dir(config: Config) -> None:
     """Refuse an ``fdr.dir`` that exists and is not a directory, or that cannot be created because a path
     above it is a file: the recorder would record nothing and the next restart would be blind."""
@@ -178,7 +159,7 @@ def preflight(config: Config) -> None:
     signing key file, ``fdr.dir`` and the strategy names (``gdnav config check``). Raises ``StartupError``
     naming the key; ``compose_root`` runs the same checks."""
     _calibration(config)
-    _check_signing_key(config)
+    check_signing_key(config)
     _check_fdr_dir(config)
     _check_strategy_names(config)
 
@@ -504,18 +485,6 @@ def create_matcher(
     return matcher
 
 
-def make_tracker(config: Config, clock: DaemonClock | None = None) -> VehicleStateTracker:
-    """The autopilot-state tracker the MAVLink link feeds (on ``clock``; default: a new one)."""
-    return VehicleStateTracker(
-        autopilot_system_id=config.mavlink.autopilot_system_id,
-        attitude_max_age_s=config.mavlink.attitude_max_age_s,
-        altitude_max_age_s=config.mavlink.altitude_max_age_s,
-        link_timeout_s=config.mavlink.link_timeout_s,
-        clock=(clock or DaemonClock()).now_unix_s,
-        autopilot_clock=AutopilotClock(),
-    )
-
-
 def open_camera_source(config: Config) -> FrameSource:
     """The configured camera source (nothing is connected until its ``frames()`` is iterated). Raises
     ``StartupError("camera.source", ...)`` for a source string that cannot be used."""
@@ -610,13 +579,14 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
 
     ``pre_constructed`` lets a caller (tests, the SITL) hand in objects by slot name instead of having
     them built here: ``c7_inference``, ``c3_lightglue_runtime``, ``c282_ransac_filter``, ``fdr``,
-    ``clock`` (a ``DaemonClock``: the one "now" of the run, given to everything that needs one).
+    ``clock`` (a ``DaemonClock``: the one "now" of the run, given to everything that needs one),
+    ``link`` (the link ``link_first.open_link_first`` opened on that clock: given its FDR and frame here).
     """
     pre = dict(pre_constructed or {})
     clock: DaemonClock = pre.get("clock") or DaemonClock()
     config = resolve_matcher(config)
     calibration = _calibration(config)
-    _check_signing_key(config)
+    check_signing_key(config)
     _check_fdr_dir(config)
     _check_strategy_names(config)
     tiles = open_tile_store(config)
@@ -647,13 +617,21 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
 
     vpr = create_vpr(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
-    tracker = make_tracker(config, clock)
+    early_link: MavlinkLink | None = pre.get("link")
+    tracker = early_link.tracker if early_link is not None else make_tracker(config, clock)
     # Every unit of the time axis and the IMU answers inside it go to the FDR (``gdnav replay``).
     journal = RecordingJournal(tracker, lambda fields: fdr.record(FdrKind.ESTIMATOR_INPUT, fields))
     time_axis = _time_axis(config, ltp, journal, clock=clock)
     vo = HomographyVo(calibration)
     pipeline = _pipeline(config, calibration, ltp, vo, vpr, rerank, matcher, time_axis, fdr, tiles)
-    link = MavlinkLink(config.mavlink, tracker, fdr, clock.now_unix_s, ltp=ltp)
+    if early_link is not None:
+        link = early_link
+        try:
+            link.attach(fdr, ltp)
+        except MavlinkConfigError as exc:
+            raise StartupError("mavlink.outputs", str(exc)) from exc
+    else:
+        link = MavlinkLink(config.mavlink, tracker, fdr, clock.now_unix_s, ltp=ltp)
     camera = open_camera_source(config)
     return RuntimeRoot(
         config,

@@ -1,20 +1,45 @@
 """C5 estimator: fuses absolute fixes, visual odometry, altitude and the IMU on one time axis; labels the
-provenance."""
+provenance.
 
-from gps_denied_onboard.components.c5_estimator.ekf import (
-    DEFAULT_VO_RECENT_S,
-    EstimatorCheckpoint,
-    FixReason,
-    NavEstimator,
-)
-from gps_denied_onboard.components.c5_estimator.protocol import AccelerationSource
-from gps_denied_onboard.components.c5_estimator.time_axis import (
-    Admission,
-    Refusal,
-    TimeAxis,
-    TimeAxisStats,
-)
-from gps_denied_onboard.components.c5_estimator.types import EstimatorState, FixDecision
+The names below load on first use (PEP 562): the filter pulls in filterpy and SciPy (~0.6 s), and the
+MAVLink link, which needs only ``types``, must be able to start before them (``daemon.beacon``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from gps_denied_onboard.components.c5_estimator.ekf import (
+        DEFAULT_VO_RECENT_S,
+        EstimatorCheckpoint,
+        FixReason,
+        NavEstimator,
+    )
+    from gps_denied_onboard.components.c5_estimator.protocol import AccelerationSource
+    from gps_denied_onboard.components.c5_estimator.time_axis import (
+        Admission,
+        Refusal,
+        TimeAxis,
+        TimeAxisStats,
+    )
+    from gps_denied_onboard.components.c5_estimator.types import EstimatorState, FixDecision
+
+#: Each exported name and the submodule that defines it.
+_HOME = {
+    "DEFAULT_VO_RECENT_S": "ekf",
+    "EstimatorCheckpoint": "ekf",
+    "FixReason": "ekf",
+    "NavEstimator": "ekf",
+    "AccelerationSource": "protocol",
+    "Admission": "time_axis",
+    "Refusal": "time_axis",
+    "TimeAxis": "time_axis",
+    "TimeAxisStats": "time_axis",
+    "EstimatorState": "types",
+    "FixDecision": "types",
+}
 
 __all__ = [
     "DEFAULT_VO_RECENT_S",
@@ -29,3 +54,12 @@ __all__ = [
     "TimeAxis",
     "TimeAxisStats",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _HOME.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value

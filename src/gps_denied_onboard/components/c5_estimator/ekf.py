@@ -669,22 +669,7 @@ class NavEstimator:
         ``no_estimate`` with NaN position and infinite covariance.
         """
         if self._time_usec is None:
-            nan3 = np.full(3, np.nan)
-            inf_cov = np.diag(np.full(3, np.inf))
-            return EstimatorState(
-                time_unix_usec=int(time_unix_usec or 0),
-                provenance=Provenance.NO_ESTIMATE,
-                pos_ned_m=nan3,
-                vel_ned_m_s=nan3.copy(),
-                cov_pos_ned_m2=inf_cov,
-                cov_vel_ned_m2_s2=inf_cov.copy(),
-                lat_deg=math.nan,
-                lon_deg=math.nan,
-                alt_amsl_m=math.nan,
-                yaw_rad=None,
-                last_fix_age_s=math.inf,
-                shared_sigma_m=0.0,
-            )
+            return EstimatorState.no_estimate(int(time_unix_usec or 0))
         t_req = self._time_usec if time_unix_usec is None else int(time_unix_usec)
         x, p_mat, t = self._predicted(t_req)
         label = self._label(p_mat, t)

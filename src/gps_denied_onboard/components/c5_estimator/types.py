@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,26 @@ class EstimatorState:
     @property
     def speed_sigma_m_s(self) -> float:
         return float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov_vel_ned_m2_s2[:2, :2]))))
+
+    @classmethod
+    def no_estimate(cls, time_unix_usec: int) -> EstimatorState:
+        """No estimate at ``time_unix_usec``: NaN position, infinite covariance (fix_type 0)."""
+        nan3 = np.full(3, np.nan)
+        inf_cov = np.diag(np.full(3, np.inf))
+        return cls(
+            time_unix_usec=int(time_unix_usec),
+            provenance=Provenance.NO_ESTIMATE,
+            pos_ned_m=nan3,
+            vel_ned_m_s=nan3.copy(),
+            cov_pos_ned_m2=inf_cov,
+            cov_vel_ned_m2_s2=inf_cov.copy(),
+            lat_deg=math.nan,
+            lon_deg=math.nan,
+            alt_amsl_m=math.nan,
+            yaw_rad=None,
+            last_fix_age_s=math.inf,
+            shared_sigma_m=0.0,
+        )
 
 
 @dataclass(frozen=True)

@@ -221,6 +221,14 @@ def severity_for(new: Provenance) -> int:
     return DIALECT.MAV_SEVERITY_WARNING
 
 
+def _no_frame(config: MavlinkConfig) -> MavlinkConfigError:
+    return MavlinkConfigError(
+        "mavlink.outputs has vision_position_estimate but the link was given no local frame (ltp) "
+        "to offer the autopilot as its origin",
+        url=config.url,
+    )
+
+
 class MavlinkLink:
     """The daemon's MAVLink endpoint (see the module docstring). Thread-safe: sends may come from the
     pipeline thread while the event loop polls."""
@@ -234,15 +242,13 @@ class MavlinkLink:
         rng: random.Random | None = None,
         *,
         ltp: LocalTangentPlane | None = None,
+        frame_later: bool = False,
     ) -> None:
         """``ltp``: the daemon's local tangent plane (the frame of ``EstimatorState.pos_ned_m``); required
-        when ``vision_position_estimate`` is among ``config.outputs``."""
-        if _VISION_OUTPUT in config.outputs and ltp is None:
-            raise MavlinkConfigError(
-                "mavlink.outputs has vision_position_estimate but the link was given no local frame (ltp) "
-                "to offer the autopilot as its origin",
-                url=config.url,
-            )
+        when ``vision_position_estimate`` is among ``config.outputs``. ``frame_later``: the link starts
+        before the map is open (the start-up beacon); ``attach`` then gives it the frame and the FDR."""
+        if _VISION_OUTPUT in config.outputs and ltp is None and not frame_later:
+            raise _no_frame(config)
         self._config = config
         self._ltp = ltp
         self._tracker = tracker
@@ -288,10 +294,20 @@ class MavlinkLink:
         self._alt_distrust: str | None = None
 
     # --- lifecycle ----------------------------------------------------------------------------------
+    def attach(self, fdr: FdrClient | None, ltp: LocalTangentPlane | None) -> None:
+        """Give a link made with ``frame_later`` the daemon's FDR and local frame, once they exist."""
+        if _VISION_OUTPUT in self._config.outputs and ltp is None:
+            raise _no_frame(self._config)
+        with self._lock:
+            self._fdr = fdr
+            self._ltp = ltp
+
     def open(self) -> None:
         """Validate the config (URL, signing key, a UDP listen port nobody else holds) and connect.
         Raises ``MavlinkConfigError`` for a configuration that cannot work; a transport failure only
-        schedules a reconnect."""
+        schedules a reconnect. A second call (the link opened before start-up finished) does nothing."""
+        if self._opened:
+            return
         _validate_url(self._config.url)
         if self._config.signing_key_file is not None:
             self._signing_key = load_signing_key(self._config.signing_key_file)
