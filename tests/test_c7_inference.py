@@ -6,6 +6,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import onnxruntime as ort
 import pytest
 from structlog.testing import capture_logs
 
@@ -18,7 +19,7 @@ from gps_denied_onboard.components.c7_inference import (
     TensorSpec,
     resolve_providers,
 )
-from gps_denied_onboard.components.c7_inference.onnx_runtime import ORT_FAULT_FILE_ENV
+from gps_denied_onboard.components.c7_inference.onnx_runtime import ORT_FAULT_FILE_ENV, session_options
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.helpers.onnx_signatures import (
     ALIKED_EXTRACTOR,
@@ -92,6 +93,36 @@ def test_load_engine_logs_provider_inputs_outputs_and_time(runtime, models) -> N
     assert set(event["outputs"]) == {"keypoints", "scores", "descriptors"}
     assert event["load_ms"] > 0
     assert event["intra_op_threads"] == 1
+
+
+def test_session_options_default_no_spinning_and_configured_threads() -> None:
+    """The CPU session options: threads as given, sequential, ALL optimisations, arena, no spin-waiting."""
+    opts = session_options(2)
+    assert opts.intra_op_num_threads == 2 and opts.inter_op_num_threads == 1
+    assert opts.execution_mode == ort.ExecutionMode.ORT_SEQUENTIAL
+    assert opts.graph_optimization_level == ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    assert opts.enable_cpu_mem_arena and opts.enable_mem_pattern
+    assert opts.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+    assert opts.get_session_config_entry("session.inter_op.allow_spinning") == "0"
+    spinning = session_options(1, allow_spinning=True)
+    assert spinning.get_session_config_entry("session.intra_op.allow_spinning") == "1"
+    with pytest.raises(ValueError, match="intra_op_threads"):
+        session_options(0)
+
+
+def test_load_engine_reports_and_logs_its_session_options(models) -> None:
+    """engine_info and engine_loaded name the session options the engine runs with."""
+    rt = OnnxInferenceRuntime(intra_op_threads=2)
+    with capture_logs() as logs:
+        info = rt.engine_info(rt.load_engine(str(models["disk"]), DISK_EXTRACTOR))
+    fields = dict(info.session_options)
+    assert fields["intra_op_num_threads"] == "2"
+    assert fields["session.intra_op.allow_spinning"] == "0"
+    (event,) = [e for e in logs if e["event"] == LogEvent.C7_ENGINE_LOADED]
+    assert event["session_options"] == fields
+    spinning = OnnxInferenceRuntime(intra_op_threads=1, allow_spinning=True)
+    info = spinning.engine_info(spinning.load_engine(str(models["disk"]), DISK_EXTRACTOR))
+    assert dict(info.session_options)["session.intra_op.allow_spinning"] == "1"
 
 
 def test_load_engine_warmup_runs_small_image(runtime, models) -> None:

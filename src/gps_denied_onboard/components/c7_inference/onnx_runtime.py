@@ -11,8 +11,10 @@ Rule:
 2. inputs and outputs are checked against the signature (names, ranks, dtypes, fixed dims);
 3. one warm-up pass on a dummy input, so provider initialisation happens at start-up, not in flight;
 4. ``c7.inference.engine_loaded`` logs the path, the provider in use, the tensors and the load time.
-Sessions run with ``intra_op_num_threads`` from config, one inter-op thread, sequential execution, and a
-lock each, so callers from several threads are served one at a time.
+Session options (``session_options``, measured in docs/benchmarks.md): ``daemon.onnx_intra_op_threads``
+intra-op threads, one inter-op thread, sequential, every graph optimisation, memory arena and pattern on,
+and no spin-waiting (``session.intra_op.allow_spinning=0``): on two cores shared with VO and the output, a
+spinning worker takes the core another thread needs. A lock per session serves callers one at a time.
 
 Test hook (SITL soak): when the variable named by ``ORT_FAULT_FILE_ENV`` is set when the runtime is built,
 each ``run`` reads that file; while it holds a count N > 0, the run goes to ONNX Runtime with
@@ -31,7 +33,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 import onnxruntime as ort
@@ -54,6 +56,10 @@ PROVIDER_PREFERENCE: tuple[str, ...] = (
     "CUDAExecutionProvider",
     "CPUExecutionProvider",
 )
+
+#: Whether ONNX Runtime's thread-pool workers spin-wait for work between operators (see the module
+#: docstring): off by default.
+ALLOW_SPINNING_DEFAULT: Final[bool] = False
 
 #: Environment variable naming the fault-injection file (test hook; see the module docstring).
 ORT_FAULT_FILE_ENV = "GDNAV_TEST_ORT_FAULT_FILE"
@@ -165,6 +171,8 @@ class EngineInfo:
     load_ms: float
     warmup: str
     warmup_shapes: tuple[tuple[str, tuple[int, ...]], ...]
+    #: The session options set (``session_options_fields``), as logged with ``c7.inference.engine_loaded``.
+    session_options: tuple[tuple[str, str], ...] = ()
 
 
 @dataclass
@@ -293,6 +301,44 @@ def _warmup_feed(
     return feed, ""
 
 
+def session_options_fields(
+    intra_op_threads: int, *, allow_spinning: bool = ALLOW_SPINNING_DEFAULT
+) -> tuple[tuple[str, str], ...]:
+    """The session options of the module docstring, as (name, value) pairs (what ``session_options`` sets)."""
+    spin = "1" if allow_spinning else "0"
+    return (
+        ("intra_op_num_threads", str(intra_op_threads)),
+        ("inter_op_num_threads", "1"),
+        ("execution_mode", "ORT_SEQUENTIAL"),
+        ("graph_optimization_level", "ORT_ENABLE_ALL"),
+        ("enable_cpu_mem_arena", "True"),
+        ("enable_mem_pattern", "True"),
+        ("session.intra_op.allow_spinning", spin),
+        ("session.inter_op.allow_spinning", spin),
+    )
+
+
+def session_options(
+    intra_op_threads: int, *, allow_spinning: bool = ALLOW_SPINNING_DEFAULT
+) -> ort.SessionOptions:
+    """A fresh ``SessionOptions`` with the module docstring's settings (errors-only ORT logging)."""
+    if intra_op_threads < 1:
+        raise ValueError(f"intra_op_threads must be >= 1, got {intra_op_threads}")
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = intra_op_threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.enable_cpu_mem_arena = True
+    opts.enable_mem_pattern = True
+    spin = "1" if allow_spinning else "0"
+    opts.add_session_config_entry("session.intra_op.allow_spinning", spin)
+    opts.add_session_config_entry("session.inter_op.allow_spinning", spin)
+    # Errors only: failures reach the caller as EngineLoadError/InferenceError anyway.
+    opts.log_severity_level = 3
+    return opts
+
+
 class OnnxInferenceRuntime:
     """``InferenceRuntime`` backed by ONNX Runtime sessions (see the module docstring).
 
@@ -301,6 +347,7 @@ class OnnxInferenceRuntime:
     ones are skipped; ``ValueError`` if none is available.
     ``warmup``: run one dummy forward pass at load time.
     ``provider_options``: optional per-provider option dicts (e.g. TensorRT's ``trt_fp16_enable``).
+    ``allow_spinning``: let ONNX Runtime's idle workers spin-wait (off by default; see the module docstring).
     """
 
     def __init__(
@@ -310,10 +357,12 @@ class OnnxInferenceRuntime:
         warmup: bool = True,
         *,
         provider_options: Mapping[str, Mapping[str, Any]] | None = None,
+        allow_spinning: bool = ALLOW_SPINNING_DEFAULT,
     ) -> None:
         if intra_op_threads < 1:
             raise ValueError(f"intra_op_threads must be >= 1, got {intra_op_threads}")
         self._intra_op_threads = intra_op_threads
+        self._allow_spinning = bool(allow_spinning)
         self._providers = resolve_providers(providers)
         self._warmup = warmup
         self._provider_options = {k: dict(v) for k, v in (provider_options or {}).items()}
@@ -331,14 +380,7 @@ class OnnxInferenceRuntime:
         return self._providers
 
     def _session_options(self) -> ort.SessionOptions:
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = self._intra_op_threads
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        # Errors only: failures reach the caller as EngineLoadError/InferenceError anyway.
-        opts.log_severity_level = 3
-        return opts
+        return session_options(self._intra_op_threads, allow_spinning=self._allow_spinning)
 
     def _create_session(self, path: str) -> ort.InferenceSession:
         """Session on the first provider that accepts the model; later providers are fallbacks."""
@@ -404,6 +446,9 @@ class OnnxInferenceRuntime:
                 load_ms=load_ms,
                 warmup=warmup,
                 warmup_shapes=warmup_shapes,
+                session_options=session_options_fields(
+                    self._intra_op_threads, allow_spinning=self._allow_spinning
+                ),
             )
             self._engines[engine_id] = _Engine(
                 info=info,
@@ -421,6 +466,7 @@ class OnnxInferenceRuntime:
             load_ms=round(load_ms, 1),
             warmup=warmup,
             intra_op_threads=self._intra_op_threads,
+            session_options=dict(info.session_options),
         )
         return engine_id
 
