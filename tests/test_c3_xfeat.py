@@ -12,6 +12,7 @@ import uuid
 from collections.abc import Mapping
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from structlog.testing import capture_logs
@@ -315,3 +316,18 @@ def test_xfeat_preprocess_resizes_to_multiples_of_32() -> None:
     assert rgb.shape == (1, 3, 384, 640)
     with pytest.raises(ValueError, match="channels"):
         preprocess_xfeat(image, 640, 2)
+
+
+@pytest.mark.parametrize("size", [(480, 640), (512, 512), (300, 500)])
+def test_xfeat_preprocess_is_the_plain_formula_bit_for_bit(size: tuple[int, int]) -> None:
+    """The tensor is exactly cvtColor -> float32 -> x float32(1/255), NCHW and C-contiguous, RGB and grey."""
+    image = np.random.default_rng(3).integers(0, 256, (*size, 3), dtype=np.uint8)
+    w, h = xfeat_input_size(size[1], size[0], 640)
+    interp = cv2.INTER_AREA if w * h < size[0] * size[1] else cv2.INTER_LINEAR
+    resized = image if (w, h) == (size[1], size[0]) else cv2.resize(image, (w, h), interpolation=interp)
+    rgb = cv2.cvtColor(resized, cv2.COLOR_BGR2RGB).transpose(2, 0, 1)[None].astype(np.float32)
+    grey = cv2.cvtColor(resized, cv2.COLOR_BGR2GRAY)[None, None].astype(np.float32)
+    for channels, plain in ((3, rgb), (1, grey)):
+        tensor, _ = preprocess_xfeat(image, 640, channels)
+        assert tensor.flags.c_contiguous and tensor.dtype == np.float32
+        np.testing.assert_array_equal(tensor, plain * np.float32(1.0 / 255.0))

@@ -308,6 +308,41 @@ def test_mnn_threshold_and_mutuality() -> None:
     np.testing.assert_array_equal(strict, [[0, 0]])
 
 
+def _mnn_reference(d0: np.ndarray, d1: np.ndarray, min_similarity: float) -> np.ndarray:
+    """Mutual nearest neighbours spelt out: argmax down each column (first row on ties) and along rows."""
+    n0 = d0 / np.maximum(np.linalg.norm(d0, axis=1, keepdims=True), np.float32(1e-12))
+    n1 = d1 / np.maximum(np.linalg.norm(d1, axis=1, keepdims=True), np.float32(1e-12))
+    sim = n0.astype(np.float32) @ n1.astype(np.float32).T
+    nn01, nn10 = np.argmax(sim, axis=1), np.argmax(sim, axis=0)
+    rows = [i for i in range(len(d0)) if nn10[nn01[i]] == i and sim[i, nn01[i]] >= min_similarity]
+    return np.array([[i, nn01[i]] for i in rows], dtype=np.int64).reshape(-1, 2)
+
+
+def test_mnn_tie_goes_to_the_lower_row() -> None:
+    """A column whose maximum two rows reach (duplicated descriptors) is matched to the first of them."""
+    d0 = np.array([[0.8, 0.6], [1, 0], [1, 0]], np.float32)
+    d1 = np.array([[1, 0], [0, 1]], np.float32)
+    matches, _ = mutual_nearest_neighbours(d0, d1, min_similarity=0.5)
+    np.testing.assert_array_equal(matches, [[1, 0]])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_mnn_equals_the_spelt_out_rule_with_and_without_ties(seed: int) -> None:
+    """On XFeat-sized random sets, with duplicated rows and columns, MNN is the spelt-out rule exactly."""
+    rng = np.random.default_rng(seed)
+    d0 = rng.standard_normal((512, 64)).astype(np.float32)
+    d1 = rng.standard_normal((600, 64)).astype(np.float32)
+    d1[:100] = d0[:100] + 0.05 * rng.standard_normal((100, 64)).astype(np.float32)
+    for a, b in ((d0, d1), (d0.copy(), d1.copy())):
+        matches, _ = mutual_nearest_neighbours(a, b, min_similarity=0.0)
+        np.testing.assert_array_equal(matches, _mnn_reference(a, b, 0.0))
+    d0[7] = d0[3]  # a tie down a column
+    d1[11] = d1[5]  # a tie along a row
+    matches, _ = mutual_nearest_neighbours(d0, d1, min_similarity=0.0)
+    np.testing.assert_array_equal(matches, _mnn_reference(d0, d1, 0.0))
+    assert len(matches) >= 90
+
+
 def test_extractor_and_matcher_recover_image_shift(runtime, models) -> None:
     """End to end on real sessions: extractor on two shifted views + matcher -> matches agree on the shift."""
     extractor = runtime.load_engine(str(models["extractor"]), DISK_EXTRACTOR)

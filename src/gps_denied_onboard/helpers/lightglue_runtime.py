@@ -75,8 +75,12 @@ def mutual_nearest_neighbours(
     # more than the product itself). Columns whose maximum is reached twice are resolved one by one.
     col_max = sim.max(axis=0)
     mutual = best == col_max[nn01]
-    for j in np.flatnonzero((sim == col_max).sum(axis=0) > 1):
-        mutual &= (nn01 != j) | (idx0 == np.argmax(sim[:, j] == col_max[j]))
+    at_max = sim == col_max
+    # Every column reaches its (non-NaN) maximum at least once, so as many hits as columns means no column
+    # reaches it twice: one count over the whole matrix instead of a sum down each column.
+    if np.isnan(col_max).any() or np.count_nonzero(at_max) != sim.shape[1]:
+        for j in np.flatnonzero(at_max.sum(axis=0) > 1):
+            mutual &= (nn01 != j) | (idx0 == np.argmax(at_max[:, j]))
     keep = mutual & (best >= min_similarity)
     matches = np.stack([idx0[keep], nn01[keep]], axis=1).astype(np.int64)
     return matches, best[keep].astype(np.float32)

@@ -102,13 +102,13 @@ def preprocess_xfeat(
         interp = cv2.INTER_AREA if new_w * new_h < w * h else cv2.INTER_LINEAR
         image_bgr = cv2.resize(image_bgr, (new_w, new_h), interpolation=interp)
     if channels == 1:
-        grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
-        tensor = grey[None, None].astype(np.float32)
+        planes = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)[None]
     else:
-        rgb = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2RGB)
-        tensor = rgb.transpose(2, 0, 1)[None].astype(np.float32)
-    tensor *= np.float32(1.0 / 255.0)
-    return np.ascontiguousarray(tensor), (new_w / w, new_h / h)
+        planes = image_bgr[:, :, ::-1].transpose(2, 0, 1)  # RGB planes, a view
+    # One pass into the C-contiguous tensor: uint8 -> float32, times float32(1/255), as the model was fed.
+    tensor = np.empty((1, *planes.shape), dtype=np.float32)
+    np.multiply(planes, np.float32(1.0 / 255.0), out=tensor[0], dtype=np.float32)
+    return tensor, (new_w / w, new_h / h)
 
 
 def model_input_channels(runtime: InferenceRuntime, engine_id: str, path: str) -> int:
