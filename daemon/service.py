@@ -91,6 +91,11 @@ class DaemonCounters:
     #: Solved fixes that passed every check but arrived later than the time axis can fuse them
     #: (``estimator.max_fix_delay_s``): the matcher is too slow for that setting on this computer.
     fixes_too_late: int = 0
+    #: Fix attempts and accepted fixes per effort-ladder rung (``c3_matcher/ladder.py``), and the rung of
+    #: the newest attempt.
+    rung_attempts: dict[str, int] = field(default_factory=dict)
+    rung_accepted: dict[str, int] = field(default_factory=dict)
+    last_fix_rung: str | None = None
 
 
 class NavDaemon:
@@ -107,7 +112,7 @@ class NavDaemon:
         self._queue: LatestQueue[tuple[CapturedFrame, int]] = LatestQueue(self._cfg.camera.queue_depth)
         self._fix_mailbox: LatestQueue[NavCameraFrame] = LatestQueue(1)
         self._track_thread = WorkerThread("track")
-        self._fix_thread = WorkerThread("fix")
+        self._fix_thread = WorkerThread("fix", nice=self._cfg.daemon.fix_thread_nice)
         self._provenance = Provenance.NO_ESTIMATE
         #: The autopilot's ground altitude disagrees with the daemon's (``_check_ground_alt``).
         self._ground_alt_off = False
@@ -161,7 +166,13 @@ class NavDaemon:
         tasks = {name: asyncio.create_task(body, name=name) for name, body in bodies.items()}
         stopper = asyncio.create_task(stop.wait(), name="stop")
         self._notifier.ready(f"matcher={self._cfg.matcher.strategy} tiles={len(self._root.tile_store)}")
-        log.info(LogEvent.DAEMON_READY, tasks=sorted(tasks), matcher=self._cfg.matcher.strategy)
+        log.info(
+            LogEvent.DAEMON_READY,
+            tasks=sorted(tasks),
+            matcher=self._cfg.matcher.strategy,
+            rungs=[r.name for r in self._root.pipeline.ladder.rungs] if self._root.pipeline.ladder else [],
+            nice={"track": self._track_thread.nice_value, "fix": self._fix_thread.nice_value},
+        )
         exit_code = 0
         try:
             done, _ = await asyncio.wait([stopper, *tasks.values()], return_when=asyncio.FIRST_COMPLETED)
@@ -482,6 +493,11 @@ class NavDaemon:
     def _note_fix(self, outcome: FixOutcome) -> None:
         self.counters.fix_attempts += 1
         self.counters.fixes_accepted += int(outcome.fix_accepted)
+        if outcome.rung is not None:
+            c = self.counters
+            c.rung_attempts[outcome.rung] = c.rung_attempts.get(outcome.rung, 0) + 1
+            c.rung_accepted[outcome.rung] = c.rung_accepted.get(outcome.rung, 0) + int(outcome.fix_accepted)
+            c.last_fix_rung = outcome.rung
         verdict = outcome.integrity
         refused = self.counters.fixes_refused_integrity
         if verdict is not None and not verdict.accepted and verdict.reason is not None:
@@ -503,6 +519,7 @@ class NavDaemon:
             LogEvent.PIPELINE_FIX,
             seq=outcome.seq,
             accepted=outcome.fix_accepted,
+            rung=outcome.rung,
             inliers=outcome.inliers,
             reason=outcome.no_fix_reason,
             fused_behind_s=round(outcome.fused_behind_s, 3),

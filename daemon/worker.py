@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import queue
 import threading
 import time
@@ -28,10 +29,26 @@ def _settle(fut: asyncio.Future[Any], result: Any, exc: BaseException | None) ->
 
 
 class WorkerThread:
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, *, nice: int = 0) -> None:
+        """``nice``: added to the thread's nice value when it starts (Linux sets it per thread), so the
+        scheduler runs the daemon's other threads first when the cores are short."""
         self._jobs: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        self._nice = nice
+        #: The thread's nice value once it has started (None before, or where it cannot be read).
+        self.nice_value: int | None = None
+        self._started = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
+        self._started.wait(timeout=1.0)
+
+    def _lower_priority(self) -> None:
+        try:
+            tid = threading.get_native_id()
+            if self._nice > 0:
+                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + self._nice)
+            self.nice_value = os.getpriority(os.PRIO_PROCESS, tid)
+        except (OSError, AttributeError):  # not Linux, or refused: the thread runs at the daemon's priority
+            self.nice_value = None
 
     def submit(self, fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:
         loop = asyncio.get_running_loop()
@@ -40,6 +57,8 @@ class WorkerThread:
         return fut
 
     def _run(self) -> None:
+        self._lower_priority()
+        self._started.set()
         while True:
             job = self._jobs.get()
             if job is None:

@@ -110,3 +110,14 @@ def test_compose_unknown_strategy_lists_valid_names(tmp_path: Path, cache_dir: P
         compose_root(_config(tmp_path, cache_dir, "matcher.strategy=superglue"))
     assert "classical" in str(err.value) and "aliked_lightglue" in str(err.value)
     assert err.value.what == "matcher.strategy"
+
+
+def test_auto_orders_by_what_this_machine_can_run() -> None:
+    """``auto``: with a GPU execution provider the seed's default (DISK + LightGlue) first; on a CPU alone
+    the cheapest fix first, and the reason names which."""
+    from gps_denied_onboard.runtime_root.compose import auto_order
+
+    order, why = auto_order(("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"))
+    assert order[0] == "disk_lightglue" and "TensorrtExecutionProvider" in why
+    order, why = auto_order(("CPUExecutionProvider",))
+    assert order[0] == "xfeat" and order[-1] == "disk_lightglue" and "CPU only" in why

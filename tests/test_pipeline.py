@@ -22,8 +22,9 @@ from gps_denied_onboard.camera.types import (
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion
-from gps_denied_onboard.components.c2_vpr.types import VprQuery, VprResult
+from gps_denied_onboard.components.c2_vpr.types import VprCandidate, VprQuery, VprResult
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
+from gps_denied_onboard.components.c3_matcher.ladder import EffortLadder
 from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, MatchResult
 from gps_denied_onboard.components.c4_pose.attitude_check import MIN_FIXES, AttitudeCheck
 from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
@@ -34,7 +35,7 @@ from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.config import EstimatorConfig, IntegrityConfig, PoseConfig, VprConfig
 from gps_denied_onboard.constants import Provenance
 from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
-from gps_denied_onboard.pipeline import InitialPrior, NavigationPipeline
+from gps_denied_onboard.pipeline import MAX_CANDIDATES, InitialPrior, NavigationPipeline
 
 LTP = LocalTangentPlane(47.0, 8.0, 400.0)
 T0 = 1_700_000_000_000_000
@@ -262,7 +263,7 @@ def _two_tile_pipeline(
     fakes = _TwoTiles(inliers)
     p = _pipeline(_OneTileVpr(dim=256), fdr, vo, max_delay_s=max_delay_s)
     p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
+    p._ladder = EffortLadder.single("fake", fakes, MAX_CANDIDATES)  # type: ignore[arg-type]
     p._pose = pose  # type: ignore[assignment]
     return p
 
@@ -550,7 +551,7 @@ def _slow_matcher_pipeline(
     fakes = _TwoTiles((200, 40))
     p = _pipeline(_OneTileVpr(dim=256), _Fdr(), _HoverVo(), max_delay_s=max_delay_s)
     p._rerank = fakes  # type: ignore[assignment]
-    p._matcher = fakes  # type: ignore[assignment]
+    p._ladder = EffortLadder.single("fake", fakes, MAX_CANDIDATES)  # type: ignore[arg-type]
     p._pose = _PosePerTile(tilt_off_rad=0.0)
     t0 = T0 - n_frames * 333_333
     frames = [_frame(k, t0 + k * 333_333) for k in range(n_frames)]
@@ -651,3 +652,103 @@ def test_pipeline_cuts_the_first_chip_around_the_ground_under_the_camera(
     (lat, lon), = spy.asked
     assert haversine_m(47.0, 8.0, lat, lon) == pytest.approx(120.0 * math.tan(math.radians(5.0)), abs=0.05)
     assert abs(lat - 47.0) * 111_320.0 < 0.05  # no north component: the lean is across a north heading
+
+
+@dataclass
+class _RankedVpr(_Vpr):
+    """C2 double: ``tiles`` in the order of their descriptor distance, the same for every frame."""
+
+    tiles: list[TileId] = field(default_factory=list)
+
+    def retrieve_topk(self, query, k, *, region=None):  # type: ignore[no-untyped-def]
+        self.regions.append(region)
+        ranked = [VprCandidate(t, 0.1 * i, self.dim) for i, t in enumerate(self.tiles)]
+        return VprResult(query.frame_id, ranked[:k], 0, "fake")
+
+
+class _OnlyTrueTile:
+    """Rerank (the first ``top_n``, as passthrough) and matcher double: only ``true`` is matched (200
+    inliers), and ``rival`` as well when it is given too; the tiles each attempt was given are kept."""
+
+    def __init__(self, true: TileId | None, rival: TileId | None = None, top_n: int = 3) -> None:
+        self.true, self.rival, self.top_n = true, rival, top_n
+        self.given: list[list[TileId]] = []
+
+    def rerank(self, frame, vpr_result):  # type: ignore[no-untyped-def]
+        cands = [_Cand(c.tile_id) for c in vpr_result.candidates[: self.top_n]]
+        return RerankResult(frame.frame_id, cands, 0)  # type: ignore[arg-type]
+
+    def match(self, frame, rerank_result, calibration):  # type: ignore[no-untyped-def]
+        tiles = [c.tile_id for c in rerank_result.candidates]
+        self.given.append(tiles)
+        if self.true not in tiles:
+            raise InsufficientInliersError(
+                "none", frame_id=frame.frame_id, best_inlier_count=8, threshold=25,
+                candidates_input=len(tiles), candidates_dropped=0,
+            )  # fmt: skip
+        q = np.random.default_rng(0).uniform((0, 0), (640, 480), size=(200, 2))
+        pts = np.hstack([q, q]).astype(np.float32)
+        sets = [CandidateMatchSet(t, 200, pts, 50, 0.8) for t in (self.true, self.rival) if t in tiles]
+        return MatchResult(frame.frame_id, sets, 0, 0.8, 0, "fake")
+
+
+def _sweeping_pipeline(
+    fdr: _Fdr, tiles: list[TileId], fakes: _OnlyTrueTile
+) -> NavigationPipeline:
+    """A pipeline over ``tiles`` (ranked in that order for every frame), matched by ``fakes``."""
+    p = _pipeline(_RankedVpr(dim=256, tiles=tiles), fdr, _HoverVo())
+    p._rerank = fakes  # type: ignore[assignment]
+    p._ladder = EffortLadder.single("fake", fakes, MAX_CANDIDATES)  # type: ignore[arg-type]
+    p._pose = _PosePerTile(tilt_off_rad=0.0)
+    return p
+
+
+def _fly(p: NavigationPipeline, n_frames: int) -> list[bool]:
+    """``n_frames`` frames 1 s apart from the whole map as the prior; whether each fix was accepted."""
+    accepted = []
+    for k in range(n_frames):
+        frame = _frame(k, T0 - n_frames * 1_000_000 + k * 1_000_000)
+        p.track(frame, InitialPrior(47.0, 8.0, 3000.0, "map_extent"))
+        accepted.append(p.localise(frame).fix_accepted)
+    return accepted
+
+
+def _ranks(fdr: _Fdr) -> list[int | None]:
+    return [f["vpr_first_rank"] for kind, f in fdr.records if kind == "pipeline.fix"]
+
+
+def test_corpus_wide_attempts_sweep_down_the_ranking_until_one_anchors() -> None:
+    """With the whole map as the prior (a restart with nothing to resume), each failed attempt goes on
+    to the next ``rerank.top_n`` tiles of the ranking: the true tile at rank 20 of 28 anchors on the 7th
+    attempt, where matching the top 3 again and again never would; then the search is gated again."""
+    fdr = _Fdr()
+    tiles = [TileId(15, 1, i) for i in range(28)]
+    fakes = _OnlyTrueTile(tiles[20])
+    p = _sweeping_pipeline(fdr, tiles, fakes)
+    assert _fly(p, 8)[:7] == [False] * 6 + [True]
+    assert _ranks(fdr) == [0, 3, 6, 9, 12, 15, 18, None]
+    assert fakes.given[6] == tiles[18:21]
+    assert p._vpr.regions[-1] is not None  # type: ignore[union-attr]
+
+
+def test_the_corpus_wide_sweep_starts_again_at_the_top_past_the_last_tile() -> None:
+    """Eight tiles, none of them matched: the attempts start at ranks 0, 3, 6, then 0 again."""
+    fdr = _Fdr()
+    fakes = _OnlyTrueTile(None)
+    p = _sweeping_pipeline(fdr, [TileId(15, 1, i) for i in range(8)], fakes)
+    assert _fly(p, 5) == [False] * 5
+    assert _ranks(fdr) == [0, 3, 6, 0, 3]
+    assert [len(g) for g in fakes.given] == [3, 3, 2, 3, 3]
+
+
+def test_the_sweep_tries_the_same_ranks_once_more_after_a_solved_pose_that_was_refused() -> None:
+    """Two tiles of the first three both match (200 inliers each, 80 m apart): each pose is solved and
+    refused as ambiguous. The next attempt tries the same ranks again (a held-back fix may be confirmed
+    there), but only once: then the sweep goes on, so a wrong pair cannot hold it."""
+    fdr = _Fdr()
+    tiles = [TileId(15, 1, 0), TILE_A, TILE_B] + [TileId(15, 1, i) for i in range(3, 8)]
+    p = _sweeping_pipeline(fdr, tiles, _OnlyTrueTile(TILE_A, rival=TILE_B))
+    assert _fly(p, 6) == [False] * 6
+    assert _ranks(fdr) == [0, 0, 3, 6, 0, 0]
+    reasons = [f["no_fix_reason"] for kind, f in fdr.records if kind == "pipeline.fix"]
+    assert reasons[:3] == ["integrity:ambiguous_candidates"] * 2 + ["insufficient_inliers"]

@@ -254,13 +254,34 @@ class RerankConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class LadderRung:
+    """One rung of the fix path's effort ladder (``matcher.ladder``; ``c3_matcher/ladder.py``)."""
+
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: The rung's name, as the FDR (pipeline.fix "rung") and daemon.status give it.
+    name: Str
+    #: C3 strategy on this rung; null = matcher.strategy (as resolved: auto, model_dir).
+    strategy: Str | None = None
+    #: Candidates the matcher gets, best first: 1 = the footprint chip (or the best tile) alone; at most
+    #: rerank.top_n.
+    candidates: Annotated[int, Strict(), Field(ge=1, le=10)] = 1
+    #: The rung applies only while the prior's horizontal sigma is at most this, m; null = any prior.
+    max_prior_sigma_m: PosFloat | None = None
+    #: After this many attempts in a row on this rung without an accepted fix, the next rung's turn (an
+    #: accepted fix on any rung starts again at the bottom); null = never.
+    give_up_after: PosInt | None = None
+
+
+@dataclasses.dataclass(frozen=True)
 class MatcherConfig:
     __pydantic_config__: ClassVar[ConfigDict] = _STRICT
 
     #: C3 strategy: classical (weights-free), disk_lightglue, aliked_lightglue, xfeat, xfeat_mnn (the XFeat
-    #: extractor matched by mutual nearest neighbour, no LightGlue: the fast one on a CPU), or auto (the
-    #: first family in model_dir that passed `gdnav models verify`, in the order disk_lightglue,
-    #: aliked_lightglue, xfeat; else an ALIKED extractor alone with mutual NN; else classical; logged).
+    #: extractor matched by mutual nearest neighbour, no LightGlue: the fast one on a CPU), or auto (by what
+    #: this machine runs: with a CUDA or TensorRT provider disk_lightglue, aliked_lightglue, xfeat; on a CPU
+    #: alone xfeat, aliked_lightglue, disk_lightglue; the first whose export in model_dir passed `gdnav
+    #: models verify`; else an ALIKED extractor alone with mutual NN; else classical; logged with why).
     strategy: Str = "classical"
     #: Model directory made by `gdnav models export` (its manifest is verified at start-up); a learned
     #: strategy whose extractor path is null takes its extractor, and its LightGlue when
@@ -299,6 +320,11 @@ class MatcherConfig:
     #: and it verifies, else extract live (logged, recorded); require = refuse to start without such a
     #: set (exit 3); off = always extract live.
     tile_features: Literal["auto", "require", "off"] = "auto"
+    #: The fix path's effort ladder, cheapest rung first (each: name, strategy, candidates,
+    #: max_prior_sigma_m, give_up_after; see LadderRung and docs/design.md "Effort ladder"). Each attempt
+    #: takes the first rung the prior's sigma and that rung's run of failures allow. Empty = one rung:
+    #: matcher.strategy with rerank.top_n candidates.
+    ladder: tuple[LadderRung, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -513,6 +539,9 @@ class DaemonConfig:
     #: At stop, how long the worker threads may take to finish the frame they are in before the process
     #: ends without them (it then exits at once, without tearing down a running ONNX Runtime), s.
     frame_stop_grace_s: Annotated[float, Strict(), Field(gt=0, le=1.5)] = 0.5
+    #: The fix thread's nice value above the daemon's (Linux: per thread): when the two cores are short,
+    #: VO and the 10 Hz output (the event loop) run first and the fix path waits. 0 = the same priority.
+    fix_thread_nice: Annotated[int, Strict(), Field(ge=0, le=19)] = 5
 
 
 @dataclasses.dataclass(frozen=True)

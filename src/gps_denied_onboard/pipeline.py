@@ -41,8 +41,9 @@ from gps_denied_onboard.components.c2_5_rerank.footprint import FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
 from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion, VprStrategy
-from gps_denied_onboard.components.c2_vpr.types import VprError
+from gps_denied_onboard.components.c2_vpr.types import VprError, VprQuery, VprResult
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherError
+from gps_denied_onboard.components.c3_matcher.ladder import EffortLadder, Rung
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, MatchResult
 from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeCheck, AttitudeVerdict
@@ -71,6 +72,8 @@ log = structlog.get_logger(__name__)
 #: ``FixOutcome.no_fix_reason`` of a fix that passed every check but came later than the time axis can
 #: still fuse it (``estimator.max_fix_delay_s``).
 FIX_TOO_LATE_REASON: Final = f"gated:{Refusal.TOO_LATE.value}"
+#: A bare matcher's one rung gets every candidate C2.5 hands on (``rerank.top_n`` is at most this).
+MAX_CANDIDATES: Final = 10
 
 
 @dataclass(frozen=True)
@@ -116,6 +119,8 @@ class FixOutcome:
     attitude: AttitudeVerdict | None = None
     #: The VO ground-tilt check when the fix was fused (None: off, or no tilt seen yet).
     ground_tilt: AttitudeVerdict | None = None
+    #: The effort-ladder rung the attempt was made on (``c3_matcher/ladder.py``; None: no matcher ran).
+    rung: str | None = None
 
 
 @dataclass(frozen=True)
@@ -132,6 +137,10 @@ class FixAttempt:
     integrity: IntegrityVerdict | None = None
     #: The attitude check after the solved fix (None when no fix was solved).
     attitude: AttitudeVerdict | None = None
+    #: Corpus-wide search only: the VPR rank this attempt's candidates started at (the sweep's position).
+    vpr_first_rank: int | None = None
+    #: The effort-ladder rung the attempt was made on (None: it never got to a matcher).
+    rung: str | None = None
 
 
 @dataclass(frozen=True)
@@ -190,7 +199,10 @@ class NavigationPipeline:
         footprint_chips: FootprintChips | None = None,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
         attitude_sigma_deg: float | None = None,
+        ladder: EffortLadder | None = None,
     ) -> None:
+        """``matcher``: C3 alone (a one-rung ladder, every candidate); ``ladder``: the effort ladder,
+        which then replaces it (``c3_matcher/ladder.py``)."""
         self._calib = calibration
         self._footprint_chips = footprint_chips
         self._mount = mount if mount is not None else CameraMount()
@@ -200,7 +212,10 @@ class NavigationPipeline:
         self._vpr = vpr
         self._vpr_cfg = vpr_config
         self._rerank = rerank
-        self._matcher = matcher
+        #: The effort ladder (``c3_matcher/ladder.py``); a bare ``matcher`` is a one-rung ladder.
+        self._ladder = ladder
+        if ladder is None and matcher is not None:
+            self._ladder = EffortLadder.single(type(matcher).__name__, matcher, MAX_CANDIDATES)
         self._pose = pose_solver
         self._axis = time_axis
         self._fdr = fdr
@@ -221,6 +236,10 @@ class NavigationPipeline:
         self._clock_ns = clock_ns
         #: F6 re-localisation (corpus-wide VPR) currently active; logged on transitions only.
         self._corpus_wide = False
+        #: The corpus-wide sweep: the VPR rank the next corpus-wide attempt starts at (``_sweep``).
+        self._sweep_rank = 0
+        #: The last corpus-wide attempt kept its ranks for the next one (at most once in a row).
+        self._sweep_held = False
         #: A tilt is compared with the autopilot's only while the frame's own doubt of that tilt (timing,
         #: the autopilot's recent manoeuvres) is under half the attitude's sigma
         #: (``pose.attitude_sigma_deg``): like with like (None: always).
@@ -233,6 +252,11 @@ class NavigationPipeline:
     @property
     def time_axis(self) -> TimeAxis:
         return self._axis
+
+    @property
+    def ladder(self) -> EffortLadder | None:
+        """The effort ladder (None without a map: no fix path)."""
+        return self._ladder
 
     def _initialise(self, prior: InitialPrior, frame: NavCameraFrame) -> None:
         alt_agl_m = frame.alt_agl_m if frame.alt_agl_m is not None else 0.0
@@ -258,6 +282,7 @@ class NavigationPipeline:
         )
         if corpus_wide != self._corpus_wide:
             self._corpus_wide = corpus_wide
+            self._sweep_rank, self._sweep_held = 0, False
             log.warning(
                 LogEvent.VPR_CORPUS_WIDE if corpus_wide else LogEvent.VPR_PRIOR_GATED,
                 horiz_sigma_m=round(state.horiz_sigma_m, 1),
@@ -451,6 +476,10 @@ class NavigationPipeline:
                     reason = f"consistency:{consistency.reason}"
             if not accepted:
                 self._axis.note_no_fix(t)
+            else:
+                self._sweep_rank, self._sweep_held = 0, False
+            if attempt.rung is not None and self._ladder is not None:
+                self._ladder.note(attempt.rung, accepted)
             unit["accepted"] = accepted
         timings["estimator_fix"] = (self._clock_ns() - mark) / 1e6
         out = FixOutcome(
@@ -467,6 +496,7 @@ class NavigationPipeline:
             verdict,
             attempt.attitude,
             ground_tilt,
+            attempt.rung,
         )
         self._fdr.record(
             FdrKind.FIX,
@@ -478,6 +508,8 @@ class NavigationPipeline:
                 "inliers": inliers,
                 "residual_px": residual,
                 "no_fix_reason": reason,
+                "vpr_first_rank": attempt.vpr_first_rank,
+                "rung": attempt.rung,
                 "fused_behind_s": round(behind_s, 4),
                 "fix_lat_deg": fix.lat_deg if fix else None,
                 "fix_lon_deg": fix.lon_deg if fix else None,
@@ -548,18 +580,21 @@ class NavigationPipeline:
     def _absolute_fix(
         self, frame: NavCameraFrame, timings: dict[str, float]
     ) -> FixAttempt:
-        if self._vpr is None or self._rerank is None or self._matcher is None:
+        if self._vpr is None or self._rerank is None or self._ladder is None:
             return FixAttempt(None, 0, None, "no_map")  # a replay without a map cache: VO only, never a fix
         if frame.attitude is None or frame.alt_agl_m is None:
             return FixAttempt(None, 0, None, "no_attitude_or_altitude")
         with self._axis.unit(UNIT_FIX_PRIOR, frame.exposure_time_unix_usec):
             prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
         t0 = self._clock_ns()
+        first_rank: int | None = None
         try:
             query = self._vpr.embed_query(frame, self._calib)
-            vpr_result = self._vpr.retrieve_topk(
-                query, self._vpr_cfg.top_k, region=self._search_region(prior_state, frame)
-            )
+            region = self._search_region(prior_state, frame)
+            if region is None:
+                first_rank, vpr_result = self._sweep(self._vpr, query)
+            else:
+                vpr_result = self._vpr.retrieve_topk(query, self._vpr_cfg.top_k, region=region)
         except VprError as exc:
             log.error(LogEvent.VPR_ERROR, frame=frame.seq, error=str(exc))
             return FixAttempt(None, 0, None, "vpr_error")
@@ -568,10 +603,48 @@ class NavigationPipeline:
         if not vpr_result.candidates:
             return FixAttempt(None, 0, None, "no_tiles_in_region")
         rerank_result = self._footprint_first(frame, prior_state, self._rerank.rerank(frame, vpr_result))
+        # The effort ladder: this attempt's matcher and how many of the candidates it gets.
+        rung = self._ladder.choose(prior_state.horiz_sigma_m)
+        rerank_result = replace(rerank_result, candidates=rerank_result.candidates[: rung.candidates])
+        attempt = replace(self._matched(frame, prior_state, rung, rerank_result, timings, t1), rung=rung.name)
+        if first_rank is None:
+            return attempt
+        # The next corpus-wide attempt goes on past the tiles this one matched (back to the top after a
+        # fix), unless it solved a pose there: then once more on the same ranks, so that a fix the
+        # integrity rule or the consistency monitor held back can be confirmed by the next frame's.
+        hold = attempt.fix is not None and not self._sweep_held
+        self._sweep_held = hold
+        if not hold:
+            self._sweep_rank = first_rank + max(1, len(rerank_result.candidates))
+        return replace(attempt, vpr_first_rank=first_rank)
+
+    def _sweep(self, vpr: VprStrategy, query: VprQuery) -> tuple[int, VprResult]:
+        """Corpus-wide retrieval (F6) as a sweep: the tiles ranked from ``_sweep_rank`` on (``vpr.top_k``
+        of them, for the rerank to choose from), so that consecutive attempts that fail go down the
+        ranking instead of matching the same top tiles again; past the last tile it starts again at the
+        top. Returns (the first rank handed on, the result). One pass over a cache of N tiles takes
+        ceil(N / ``rerank.top_n``) attempts, at most twice that when poses are solved and refused."""
+        k = self._vpr_cfg.top_k
+        first = self._sweep_rank
+        result = vpr.retrieve_topk(query, first + k, region=None)
+        if first >= len(result.candidates):  # past the corpus: from the top again
+            first = 0
+        return first, replace(result, candidates=result.candidates[first : first + k])
+
+    def _matched(
+        self,
+        frame: NavCameraFrame,
+        prior_state: EstimatorState,
+        rung: Rung,
+        rerank_result: RerankResult,
+        timings: dict[str, float],
+        t1: int,
+    ) -> FixAttempt:
+        """C3 -> C4 on the reranked candidates (``t1``: when retrieval ended, for ``timings``)."""
         t2 = self._clock_ns()
         timings["rerank"] = (t2 - t1) / 1e6
         try:
-            match = self._matcher.match(frame, rerank_result, self._calib)
+            match = rung.matcher.match(frame, rerank_result, self._calib)
         except InsufficientInliersError as exc:
             timings["match"] = (self._clock_ns() - t2) / 1e6
             return FixAttempt(None, exc.best_inlier_count, None, "insufficient_inliers")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +28,7 @@ from gps_denied_onboard.components.c3_matcher import registry as matcher_registr
 from gps_denied_onboard.components.c3_matcher.aliked_lightglue import ALIKED_MNN_MIN_SIMILARITY
 from gps_denied_onboard.components.c3_matcher.errors import StrategyNotLinkedError
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
+from gps_denied_onboard.components.c3_matcher.ladder import EffortLadder, LadderError
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.tile_features import (
     ExtractorIdentity,
@@ -50,6 +51,7 @@ from gps_denied_onboard.components.c5_estimator.resume_state import (
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
 from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
+from gps_denied_onboard.components.c7_inference.onnx_runtime import resolve_providers
 from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
 from gps_denied_onboard.components.c8_mavlink import (
     MavlinkConfigError,
@@ -62,7 +64,7 @@ from gps_denied_onboard.constants import FdrKind, LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
-from gps_denied_onboard.models.learned_export import FAMILIES, FAMILY_STRATEGY, family_models
+from gps_denied_onboard.models.learned_export import FAMILY_STRATEGY, family_models
 from gps_denied_onboard.models.manifest import ModelDirError, ModelEntry, verify_model_dir
 from gps_denied_onboard.models.verification import family_verified
 from gps_denied_onboard.pipeline import NavigationPipeline
@@ -145,13 +147,18 @@ def _check_strategy_names(config: Config) -> None:
     """Refuse an unknown strategy name as ``compose_root`` refuses it when it builds the strategy."""
     _pick("vpr", VPR_STRATEGIES, config.vpr.strategy)
     _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)
-    name = config.matcher.strategy
-    if name != "auto" and name not in matcher_registry.available_strategies():
-        raise StartupError(
-            "matcher.strategy",
-            f"C3 matcher strategy {name!r} is not linked; available: "
-            f"{', '.join(matcher_registry.available_strategies())}",
-        )
+    names = [("matcher.strategy", config.matcher.strategy)] + [
+        (f"matcher.ladder[{i}].strategy", r.strategy)
+        for i, r in enumerate(config.matcher.ladder)
+        if r.strategy is not None
+    ]
+    for key, name in names:
+        if name != "auto" and name not in matcher_registry.available_strategies():
+            raise StartupError(
+                key,
+                f"C3 matcher strategy {name!r} is not linked; available: "
+                f"{', '.join(matcher_registry.available_strategies())}",
+            )
 
 
 def preflight(config: Config) -> None:
@@ -309,16 +316,33 @@ def _family_paths(
     return None
 
 
+#: ``auto``'s order where ONNX Runtime has a GPU provider (CUDA, TensorRT): the seed's default first.
+AUTO_ORDER_GPU: tuple[str, ...] = ("disk_lightglue", "aliked_lightglue", "xfeat")
+#: ``auto``'s order on a CPU alone: cheapest fix first (docs/benchmarks.md, per strategy on the 2-core
+#: CPU: XFeat + LighterGlue ~2.4 s a frame, ALIKED ~9.6 s, DISK ~15.9 s).
+AUTO_ORDER_CPU: tuple[str, ...] = ("xfeat", "aliked_lightglue", "disk_lightglue")
+
+
+def auto_order(providers: Sequence[str]) -> tuple[tuple[str, ...], str]:
+    """``auto``'s strategy order for the ONNX Runtime ``providers`` available here, and why."""
+    gpu = [p for p in providers if p != "CPUExecutionProvider"]
+    if gpu:
+        return AUTO_ORDER_GPU, f"{gpu[0]} available"
+    return AUTO_ORDER_CPU, "CPU only (no CUDA or TensorRT execution provider)"
+
+
 def resolve_matcher(config: Config) -> Config:
     """Apply ``matcher.model_dir`` and ``matcher.strategy: auto`` (see MatcherConfig).
 
     The model directory is verified (manifest hashes) at start-up, and only where it is used: by
     ``auto``, and by a learned strategy whose extractor path is null (it then takes its extractor and,
     when ``lightglue_weights_path`` is null too, its LightGlue matcher from the directory). ``auto`` picks
-    the first family whose export also passed ``gdnav models verify`` (``verification.json``), in the
-    order disk_lightglue, aliked_lightglue, xfeat; then a lone ALIKED extractor (mutual NN); then the
-    weights-free strategy, and logs the choice and why. A learned strategy that needs the directory
-    refuses to start without it.
+    by what this machine can run (``auto_order``): with a GPU execution provider the order is
+    disk_lightglue, aliked_lightglue, xfeat; on a CPU alone the cheapest first. It takes the first whose
+    export also passed ``gdnav models verify`` (``verification.json``); then a lone ALIKED extractor
+    (mutual NN); then the weights-free strategy, and logs the choice and why. A learned strategy that needs
+    the directory refuses to start without it. (A GPU build of ONNX Runtime on a machine without the GPU
+    lists the provider; the session then falls back to the CPU, logged by C7.)
     """
     m = config.matcher
     field = _EXTRACTOR_FIELD.get(m.strategy)
@@ -356,11 +380,13 @@ def resolve_matcher(config: Config) -> Config:
             )
         return use(m.strategy, paths)
     unverified = []
-    for family in FAMILIES:
+    order, why = auto_order(resolve_providers())
+    family_of = {s: f for f, s in FAMILY_STRATEGY.items()}
+    for strategy in order:
+        family = family_of[_EXTRACTOR_OF.get(strategy, strategy)]
         found = family_models(entries, family)
         if found is None:
             continue
-        strategy = FAMILY_STRATEGY[family]
         if not family_verified(Path(m.model_dir), family, *found):
             unverified.append(strategy)
             continue
@@ -368,7 +394,7 @@ def resolve_matcher(config: Config) -> Config:
             LogEvent.C3_AUTO_SELECTED,
             strategy=strategy,
             model_dir=m.model_dir,
-            reason=f"verified {family} export (extractor + LightGlue)",
+            reason=f"{why}: verified {family} export, first in {', '.join(order)}",
             skipped_unverified=unverified,
         )
         return use(strategy, (str(Path(m.model_dir) / found[0].file), str(Path(m.model_dir) / found[1].file)))
@@ -485,6 +511,38 @@ def create_matcher(
     return matcher
 
 
+def create_ladder(
+    config: Config,
+    unresolved: Config,
+    pre: Mapping[str, Any],
+    fdr: FdrClient,
+    tiles: TileStore,
+    primary: CrossDomainMatcher,
+) -> EffortLadder:
+    """The fix path's effort ladder (``c3_matcher/ladder.py``) of the resolved ``config``: ``primary``
+    (its matcher.strategy) and one matcher for each other strategy a rung names, resolved from
+    ``unresolved`` as matcher.strategy is (models from model_dir, its own tile features). Raises
+    ``StartupError("matcher.ladder", ...)`` naming a rung that cannot work."""
+    m = config.matcher
+    if not m.ladder:
+        return EffortLadder.single(m.strategy, primary, config.rerank.top_n)
+    matchers: dict[str, CrossDomainMatcher] = {m.strategy: primary}
+    for rung in m.ladder:
+        if rung.strategy is None or rung.strategy in matchers:
+            continue
+        own = dataclasses.replace(unresolved.matcher, strategy=rung.strategy)
+        rung_config = resolve_matcher(dataclasses.replace(unresolved, matcher=own))
+        matchers[rung.strategy] = create_matcher(
+            rung_config, pre, fdr, open_tile_features(rung_config, tiles, fdr)
+        )
+    try:
+        return EffortLadder.from_config(
+            m.ladder, matchers, default_strategy=m.strategy, max_candidates=config.rerank.top_n
+        )
+    except LadderError as exc:
+        raise StartupError("matcher.ladder", str(exc)) from exc
+
+
 def open_camera_source(config: Config) -> FrameSource:
     """The configured camera source (nothing is connected until its ``frames()`` is iterated). Raises
     ``StartupError("camera.source", ...)`` for a source string that cannot be used."""
@@ -530,7 +588,7 @@ def _pipeline(
     vo: HomographyVo,
     vpr: VprStrategy | None,
     rerank: RerankStrategy | None,
-    matcher: CrossDomainMatcher | None,
+    ladder: EffortLadder | None,
     time_axis: TimeAxis,
     fdr: FdrClient,
     tiles: TileStore | None,
@@ -549,7 +607,8 @@ def _pipeline(
         vpr=vpr,
         vpr_config=config.vpr,
         rerank=rerank,
-        matcher=matcher,
+        matcher=None,
+        ladder=ladder,
         pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
         time_axis=time_axis,
         fdr=fdr,
@@ -584,7 +643,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     """
     pre = dict(pre_constructed or {})
     clock: DaemonClock = pre.get("clock") or DaemonClock()
-    config = resolve_matcher(config)
+    unresolved, config = config, resolve_matcher(config)
     calibration = _calibration(config)
     check_signing_key(config)
     _check_fdr_dir(config)
@@ -614,6 +673,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     # A map cell corrupted after verification is masked by the store; the FDR keeps which and when.
     tiles.on_corrupt = lambda info: fdr.record(FdrKind.TILE_CORRUPT, info)
     matcher = create_matcher(config, pre, fdr, open_tile_features(config, tiles, fdr))
+    ladder = create_ladder(config, unresolved, pre, fdr, tiles, matcher)
 
     vpr = create_vpr(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
@@ -623,7 +683,7 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     journal = RecordingJournal(tracker, lambda fields: fdr.record(FdrKind.ESTIMATOR_INPUT, fields))
     time_axis = _time_axis(config, ltp, journal, clock=clock)
     vo = HomographyVo(calibration)
-    pipeline = _pipeline(config, calibration, ltp, vo, vpr, rerank, matcher, time_axis, fdr, tiles)
+    pipeline = _pipeline(config, calibration, ltp, vo, vpr, rerank, ladder, time_axis, fdr, tiles)
     if early_link is not None:
         link = early_link
         try:
@@ -686,17 +746,18 @@ def compose_replay(
     brings its own). ``ltp_origin_lat_lon``: the NED origin without a map (the map's centre otherwise).
     ``vo_max_gap_s``: C1's longest measured interval (default: the daemon's).
     """
-    config = resolve_matcher(config)
+    unresolved, config = config, resolve_matcher(config)
     calib = calibration if calibration is not None else _calibration(config)
     tiles: TileStore | None = None
     vpr: VprStrategy | None = None
     rerank: RerankStrategy | None = None
-    matcher: CrossDomainMatcher | None = None
+    ladder: EffortLadder | None = None
     if with_map:
         tiles = open_tile_store(config)
         lon, lat = tiles.center_lonlat
         ltp = LocalTangentPlane(lat, lon, config.terrain.ground_alt_amsl_m)
         matcher = create_matcher(config, {}, fdr, open_tile_features(config, tiles, fdr))
+        ladder = create_ladder(config, unresolved, {}, fdr, tiles, matcher)
         vpr = create_vpr(tiles, config)
         rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
     else:
@@ -705,5 +766,5 @@ def compose_replay(
         ltp = LocalTangentPlane(*ltp_origin_lat_lon, config.terrain.ground_alt_amsl_m)
     time_axis = _time_axis(config, ltp, journal, clock_unix_usec=clock_unix_usec)
     vo = HomographyVo(calib) if vo_max_gap_s is None else HomographyVo(calib, max_gap_s=vo_max_gap_s)
-    pipeline = _pipeline(config, calib, ltp, vo, vpr, rerank, matcher, time_axis, fdr, tiles)
+    pipeline = _pipeline(config, calib, ltp, vo, vpr, rerank, ladder, time_axis, fdr, tiles)
     return ReplayRoot(config, calib, ltp, pipeline, time_axis, tiles)
