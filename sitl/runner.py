@@ -591,7 +591,8 @@ def _build_vpr_index(daemon_cfg: Config, cache_dir: Path, *, progress: bool) -> 
 def _build_tile_features(daemon_cfg: Config, cache_dir: Path, *, progress: bool) -> None:
     """The learned matcher's precomputed tile features (``gdnav cache features`` does the same), built
     with the matcher the daemon will build."""
-    from gps_denied_onboard.components.c3_matcher.base import NULL_FDR, LearnedPairMatcher
+    from gps_denied_onboard.components.c3_matcher.base import NULL_FDR
+    from gps_denied_onboard.components.c3_matcher.learned import LearnedPairMatcher
     from gps_denied_onboard.components.c10_cache_build.tile_features import build_tile_features
     from gps_denied_onboard.runtime_root.compose import StartupError, create_matcher, resolve_matcher
 
