@@ -37,7 +37,7 @@ from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.mission import AutopilotRelay, MissionDriver, MissionError, MissionPlan
 from gps_denied_onboard.sitl.photometric import PhotometricModel
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
-from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, score
+from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, restart_recovery, score
 from gps_denied_onboard.sitl.runner import (
     DAEMON_READY_TIMEOUT_S,
     DAEMON_STOP_TIMEOUT_S,
@@ -47,6 +47,7 @@ from gps_denied_onboard.sitl.runner import (
     _Flight,
     _free_udp_port,
     _sha_prefix,
+    daemon_ready,
     spawn_daemon,
 )
 from gps_denied_onboard.sitl.scenario import ScenarioError, load_scenario
@@ -55,6 +56,11 @@ from gps_denied_onboard.sitl.scenario import ScenarioError, load_scenario
 CAMERA_GROUND_HEIGHT_M = 0.3
 #: How long to wait for the autopilot's first true pose, s.
 TRUTH_TIMEOUT_S = 30.0
+
+
+#: The shipped unit's RestartSec= (systemd/gdnav.service; tests/test_systemd_unit.py keeps them equal): a
+#: restart on a real autopilot is flown with the gap it would have in the air, s.
+UNIT_RESTART_SEC_S = 1.0
 
 
 def _home_refusal(lat: float, lon: float, bbox: tuple[float, float, float, float], map_path: Path) -> str:
@@ -169,8 +175,11 @@ def _fly(
     cmd = flight._daemon_cmd(relay.daemon_port, 0)
     frames: list[SentFrame] = []
     mission: dict[str, Any] = {}
+    restarts: list[dict[str, float]] = []
     result = asyncio.run(
-        _run_flight(flight, cmd, relay, driver, scenario, renderer, ground_alt, frames, t0, say, mission)
+        _run_flight(
+            flight, cmd, relay, driver, scenario, renderer, ground_alt, frames, t0, say, mission, restarts
+        )
     )
     end_unix_s, exit_code, stop_s = result
 
@@ -236,6 +245,7 @@ def _fly(
             "daemon_overrides": list(overrides),
             "daemon_exit_code": exit_code,
             "daemon_stop_s": stop_s,
+            "daemon_restarts": restart_recovery(restarts, relay.received, records),
             "t0_unix_s": t0[0] if t0 else None,
             "daemon_log": str(workdir / "daemon.log"),
             "fdr_dir": str(workdir / "fdr"),
@@ -259,6 +269,7 @@ async def _run_flight(
     t0: list[float],
     say: Any,
     mission: dict[str, Any],
+    restarts: list[dict[str, float]],
 ) -> tuple[float, int | None, float | None]:
     server = FrameServer()
     cam_port = await server.start()
@@ -316,21 +327,41 @@ async def _run_flight(
         driver._event = event  # type: ignore[method-assign]
         mission.update(driver.fly())
 
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+
+    async def restarter(procs: list[subprocess.Popen[bytes]], log_file: Any) -> None:
+        """SIGKILL the daemon at each of the scenario's restart times (s after the take-off) and start
+        the same command again ``UNIT_RESTART_SEC_S`` later, as the shipped unit's Restart= does."""
+        for at_s in scenario.daemon_restarts_s:
+            while not t0:
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(max(0.0, t0[0] + at_s - time.time()))
+            old = procs[-1]
+            t_kill = time.time()
+            old.kill()
+            await loop.run_in_executor(None, old.wait)
+            await asyncio.sleep(UNIT_RESTART_SEC_S)
+            procs.append(spawn_daemon(cmd, log_file, env))
+            restarts.append({"killed_unix_s": t_kill, "restarted_unix_s": time.time()})
+            say(f"daemon killed (SIGKILL) at {at_s:.1f} s and restarted: pid {procs[-1].pid}")
+
     with log_path.open("wb") as log_file:
-        proc = spawn_daemon(cmd, log_file, {**os.environ, "PYTHONUNBUFFERED": "1"})
+        procs = [spawn_daemon(cmd, log_file, env)]
+        proc = procs[0]
         cam_task = asyncio.create_task(camera())
+        restart_task = asyncio.create_task(restarter(procs, log_file))
         exit_code: int | None = None
         stop_s: float | None = None
         try:
             deadline = time.time() + DAEMON_READY_TIMEOUT_S
-            while not any(m.type == "HEARTBEAT" for m in relay.received):
+            while not daemon_ready(relay.received):
                 if proc.poll() is not None:
                     raise SitlError(
-                        f"daemon exited with code {proc.returncode} before its first HEARTBEAT; "
-                        f"see {log_path}"
+                        f"daemon exited with code {proc.returncode} before it was ready (a HEARTBEAT out "
+                        f"of MAV_STATE_BOOT); see {log_path}"
                     )
                 if time.time() > deadline:
-                    raise SitlError(f"no HEARTBEAT from the daemon in {DAEMON_READY_TIMEOUT_S:.0f} s")
+                    raise SitlError(f"the daemon was not ready in {DAEMON_READY_TIMEOUT_S:.0f} s")
                 await asyncio.sleep(0.1)
             say(f"daemon pid {proc.pid} up; flying the mission")
             await loop.run_in_executor(None, fly_mission)
@@ -338,8 +369,12 @@ async def _run_flight(
             end = time.time()
         finally:
             stop.set()
+            restart_task.cancel()
+            with contextlib.suppress(BaseException):
+                await restart_task
             with contextlib.suppress(Exception):
                 await cam_task
+            proc = procs[-1]
             t_term = time.monotonic()
             if proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)

@@ -31,6 +31,7 @@ import subprocess
 import sys
 import time
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,7 +43,7 @@ from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import Config, ConfigError, load_config
 from gps_denied_onboard.constants import FRAME_STREAM_MAGIC
-from gps_denied_onboard.sitl.autopilot import SimAutopilot
+from gps_denied_onboard.sitl.autopilot import ReceivedMessage, SimAutopilot
 from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.host_faults import HostFaultError, HostFaults
 from gps_denied_onboard.sitl.photometric import PhotometricModel, degrade_for_gap
@@ -134,6 +135,13 @@ def _die_with_parent() -> None:
     with contextlib.suppress(OSError, AttributeError):
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+
+
+def daemon_ready(received: Sequence[ReceivedMessage]) -> bool:
+    """Whether the daemon has said it is up: a HEARTBEAT out of MAV_STATE_BOOT (its start-up beacon sends
+    BOOT while the fix path loads, ``daemon.beacon``)."""
+    boot = mavutil.mavlink.MAV_STATE_BOOT
+    return any(m.type == "HEARTBEAT" and m.fields.get("system_status") != boot for m in received)
 
 
 def spawn_daemon(cmd: list[str], log_file: Any, env: dict[str, str]) -> subprocess.Popen[bytes]:
@@ -500,17 +508,18 @@ class _Flight:
             restarter: asyncio.Task[None] | None = None
             try:
                 telemetry = asyncio.create_task(self._telemetry(ap, stop), name="sitl_telemetry")
-                self._say(f"daemon pid {proc.pid}; waiting for its HEARTBEAT (log: {log_path})")
+                self._say(f"daemon pid {proc.pid}; waiting for it to be ready (log: {log_path})")
                 deadline = time.time() + DAEMON_READY_TIMEOUT_S
-                while not ap.of_type("HEARTBEAT"):
+                while not daemon_ready(ap.received):
                     if proc.poll() is not None:
                         raise SitlError(
-                            f"daemon exited with code {proc.returncode} before its first HEARTBEAT; "
-                            f"see {log_path}"
+                            f"daemon exited with code {proc.returncode} before it was ready (a HEARTBEAT "
+                            f"out of MAV_STATE_BOOT); see {log_path}"
                         )
                     if time.time() > deadline:
                         raise SitlError(
-                            f"no HEARTBEAT from the daemon in {DAEMON_READY_TIMEOUT_S:.0f} s; see {log_path}"
+                            f"the daemon was not ready (a HEARTBEAT out of MAV_STATE_BOOT) in "
+                            f"{DAEMON_READY_TIMEOUT_S:.0f} s; see {log_path}"
                         )
                     await asyncio.sleep(0.1)
                 with contextlib.suppress(asyncio.TimeoutError):

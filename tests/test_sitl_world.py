@@ -139,6 +139,7 @@ def test_scenario_builtin_files_load() -> None:
     names = sorted(p.stem for p in BUILTIN_SCENARIOS_DIR.glob("*.yaml"))
     assert names == [
         "attitude_offset",
+        "autopilot_restart",
         "autopilot_square",
         "clock_faults",
         "demo",
@@ -245,7 +246,8 @@ def test_scenario_map_gaps_parse_and_validate() -> None:
 def test_scenario_file_errors_name_the_file(tmp_path: Path) -> None:
     """A missing file lists the built-ins; broken YAML is a ScenarioError naming the file."""
     listed = (
-        r"built-in scenarios: attitude_offset, autopilot_square, clock_faults, demo, faults, link_drop, "
+        r"built-in scenarios: attitude_offset, autopilot_restart, autopilot_square, clock_faults, demo, "
+        r"faults, link_drop, "
         r".*, smoke"
     )
     with pytest.raises(ScenarioError, match=listed):

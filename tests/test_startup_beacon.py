@@ -88,3 +88,16 @@ def test_beacon_speaks_to_the_autopilot_without_a_position_until_stopped() -> No
         beacon.stop()
         ap.close()
         link.close()
+
+
+def test_the_sitl_waits_for_a_heartbeat_out_of_boot_not_the_beacons() -> None:
+    """The flights start their clock when the daemon is ready: its beacon's HEARTBEATs (MAV_STATE_BOOT)
+    do not count, the daemon's own (STANDBY before its first estimate) do."""
+    from gps_denied_onboard.sitl.autopilot import ReceivedMessage
+    from gps_denied_onboard.sitl.runner import daemon_ready
+
+    boot = ReceivedMessage(1.0, "HEARTBEAT", {"system_status": D.MAV_STATE_BOOT})
+    standby = ReceivedMessage(2.0, "HEARTBEAT", {"system_status": D.MAV_STATE_STANDBY})
+    gps = ReceivedMessage(1.5, "GPS_INPUT", {"fix_type": 0})
+    assert not daemon_ready([boot, gps])
+    assert daemon_ready([boot, gps, standby])

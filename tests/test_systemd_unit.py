@@ -319,3 +319,11 @@ def test_unit_systemd_analyze_security_is_ok(tmp_path: Path) -> None:
     m = re.search(r"Overall exposure level for \S+: (\d+\.\d) (\w+)", proc.stdout)
     assert m, proc.stdout + proc.stderr
     assert float(m.group(1)) <= SECURITY_OK_EXPOSURE and m.group(2) in ("OK", "SAFE", "PERFECT"), m.group(0)
+
+
+def test_the_real_autopilot_flights_restart_with_the_units_delay() -> None:
+    """A restart flown on an external autopilot (``sitl.autopilot_flight``) leaves the gap the unit
+    would: its RestartSec=."""
+    from gps_denied_onboard.sitl.autopilot_flight import UNIT_RESTART_SEC_S
+
+    assert _seconds(_one("Service", "RestartSec")) == UNIT_RESTART_SEC_S
