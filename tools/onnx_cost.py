@@ -1,7 +1,7 @@
 """Wall time of one run of each exported model, per execution provider, side by side in one process.
 
     .venv/bin/python tools/onnx_cost.py --image FRAME.png [--model-dir models]
-        [--providers cpu,cuda] [--keypoints 512,1024,2048] [--repeats 5]
+        [--providers cpu,cuda] [--keypoints 512,1024,2048] [--repeats 5] [--int8]
 
 For every model file of ``gdnav models export`` in ``--model-dir``:
 - an extractor (``disk-*``, ``aliked-*``, ``xfeat-*``) is run on ``--image``, resized to its fixed input
@@ -15,6 +15,11 @@ Each is run once per provider to warm up (CUDA: three times, for its kernel sele
 included, as the daemon sees it. A provider ONNX Runtime does not offer here, or that refuses the
 model, is printed as such in its cell, never replaced by another. The last columns are each provider's
 time over the first's, measured in the same run.
+
+``--int8`` adds a second table, on the first provider: every int8 file of ``gdnav models quantize``
+beside the fp32 file it came from (``params.quantized_from``), on the same inputs, their runs interleaved
+(fp32, int8, fp32, ...) so that a load that changes during the run weighs on both alike; the ratio is
+int8 over fp32.
 
 Only ``onnxruntime``, ``numpy`` and OpenCV are imported, so the script runs on a machine that has
 ``onnxruntime-gpu`` and not the project's environment. A one-off measurement tool for
@@ -91,6 +96,54 @@ def _best_ms(session: ort.InferenceSession, feeds: dict[str, np.ndarray], warmup
     return best * 1e3
 
 
+def _best_pair_ms(
+    sessions: tuple[ort.InferenceSession, ort.InferenceSession], feeds: dict[str, np.ndarray], repeats: int
+) -> tuple[float, float]:
+    """Best wall time of each of two sessions on the same feeds, runs interleaved, ms."""
+    for session in sessions:
+        session.run(None, feeds)
+    best = [float("inf"), float("inf")]
+    for _ in range(repeats):
+        for i, session in enumerate(sessions):
+            start = time.perf_counter()
+            session.run(None, feeds)
+            best[i] = min(best[i], time.perf_counter() - start)
+    return best[0] * 1e3, best[1] * 1e3
+
+
+def _int8_rows(
+    model_dir: Path,
+    manifest: dict,
+    provider: str,
+    image: np.ndarray,
+    counts: list[int],
+    args: argparse.Namespace,
+) -> list[list[str]]:
+    """Rows (int8 file, input, fp32 ms, int8 ms, int8 / fp32) for every int8 file of the manifest."""
+    rows = []
+    for entry in manifest["models"]:
+        params = entry.get("params", {})
+        if params.get("precision") != "int8":
+            continue
+        pair = [_session(model_dir / params["quantized_from"], provider, args.threads)]
+        pair.append(_session(model_dir / entry["file"], provider, args.threads))
+        matcher = params.get("role") == "matcher"
+        for case in [f"{n} kpts" for n in counts] if matcher else ["image"]:
+            failed = next((s for s in pair if isinstance(s, str)), None)
+            if failed is not None:
+                rows.append([entry["file"], case, failed, "—", "—"])
+                continue
+            sessions = (pair[0], pair[1])
+            feeds = (
+                _keypoint_feeds(sessions[0], int(case.split()[0]))
+                if matcher
+                else _image_feed(sessions[0], image)
+            )
+            fp32_ms, int8_ms = _best_pair_ms(sessions, feeds, args.repeats)  # type: ignore[arg-type]
+            rows.append([entry["file"], case, f"{fp32_ms:.1f}", f"{int8_ms:.1f}", f"{int8_ms / fp32_ms:.3f}"])
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model-dir", type=Path, default=Path("models"), help="gdnav models export --out")
@@ -99,6 +152,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keypoints", default="512,1024,2048", help="matcher keypoint counts")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2, help="CPU intra-op threads (the daemon's 2)")
+    parser.add_argument(
+        "--int8", action="store_true", help="also time each int8 file against its fp32 file, interleaved"
+    )
+    parser.add_argument("--int8-only", action="store_true", help="only the int8 table (implies --int8)")
     args = parser.parse_args(argv)
 
     unknown = [p for p in args.providers.split(",") if p not in PROVIDERS]
@@ -113,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         ort.preload_dlls()
     counts = [int(k) for k in args.keypoints.split(",")]
     manifest = json.loads((args.model_dir / "manifest.json").read_text())
-    files = sorted(m["file"] for m in manifest["models"])
+    files = [] if args.int8_only else sorted(m["file"] for m in manifest["models"])
 
     # (model, input) -> provider -> best ms, or why that provider did not run it.
     cells_of: dict[tuple[str, str], dict[str, float | str]] = {}
@@ -152,6 +209,13 @@ def main(argv: list[str] | None = None) -> int:
             ratio = isinstance(first, float) and isinstance(value, float)
             out.append(f"{value / first:.3f}" if ratio else "—")
         print("| " + " | ".join(out) + " |")
+    if args.int8 or args.int8_only:
+        rows = _int8_rows(args.model_dir, manifest, providers[0], image, counts, args)
+        print(f"\nint8 vs fp32 on {short[providers[0]]}, runs interleaved, ms, best of {args.repeats}")
+        print("| int8 model | input | fp32 | int8 | int8 / fp32 |")
+        print("|---|---|---|---|---|")
+        for row in rows:
+            print("| " + " | ".join(row) + " |")
     return 0
 
 

@@ -1,7 +1,9 @@
-"""``gdnav models``: obtain pinned weights (import/fetch), export them to ONNX, verify a model directory.
+"""``gdnav models``: obtain pinned weights (import/fetch), export them to ONNX, quantise them to INT8,
+verify a model directory.
 
 Exit codes: 0 success; 2 bad input, missing or refused weights, no internet, failed export (one clear
-line on stderr, never a traceback). ``register(subparsers)`` adds the ``models`` command to ``gdnav``.
+line on stderr, never a traceback); 3 a model below its identical-match floor, or a model directory the
+manifest refuses. ``register(subparsers)`` adds the ``models`` command to ``gdnav``.
 """
 
 from __future__ import annotations
@@ -112,11 +114,89 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _cmd_verify(args: argparse.Namespace) -> int:
+def _naip_dir(args: argparse.Namespace) -> Path:
     import os
 
+    return Path(getattr(args, "naip_dir", None) or os.environ.get("GDNAV_NAIP_DIR", DEFAULT_NAIP_DIR))
+
+
+def _calibration_images(folder: Path) -> list[Any]:
+    """RGB images to calibrate an extractor on: the folder's GeoTIFFs/PNGs/JPEGs, without the years of
+    ``verify``'s pairs (the check must not run on what the quantiser was fitted to), at most 8."""
+    from gps_denied_onboard.models.reference_check import NAIP_FRAME_YEAR, NAIP_MAP_YEAR, read_rgb
+
+    names = sorted(
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() in (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+        and f"_{NAIP_MAP_YEAR}" not in p.name
+        and f"_{NAIP_FRAME_YEAR}" not in p.name
+    )
+    return [read_rgb(p) for p in names[:8]]
+
+
+def _cmd_quantize(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.models import ExportError, ModelDirError
+    from gps_denied_onboard.models.learned_export import (
+        FAMILIES,
+        ROLE_EXTRACTOR,
+        ROLE_MATCHER,
+        family_models,
+    )
+    from gps_denied_onboard.models.manifest import read_manifest
+
+    root = Path(args.dir)
+    if not root.is_dir():
+        return _err(f"{root}: not a directory (expected a model directory of gdnav models export)")
+    unknown = [f for f in args.family or () if f not in FAMILIES]
+    if unknown:
+        return _err(f"unknown model family {unknown[0]!r}; expected one of {', '.join(FAMILIES)}")
+    roles = [args.role] if args.role else [ROLE_EXTRACTOR, ROLE_MATCHER]
+    try:
+        entries = read_manifest(root)
+    except ModelDirError as exc:
+        print(f"gdnav models: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    families = args.family or [f for f in FAMILIES if family_models(entries, f)]
+    if not families:
+        return _err(f"{root}: the manifest has no exported family ({', '.join(FAMILIES)})")
+    images: list[Any] = []
+    if ROLE_EXTRACTOR in roles:
+        calib = Path(args.calibration_dir) if args.calibration_dir else _naip_dir(args)
+        if not calib.is_dir():
+            return _err(
+                f"{calib}: no calibration images for the extractors (give --calibration-dir DIR of "
+                "GeoTIFF/PNG/JPEG images, or --role matcher)"
+            )
+        images = _calibration_images(calib)
+        if not images:
+            return _err(f"{calib}: no GeoTIFF/PNG/JPEG image to calibrate the extractors on")
+    try:
+        from gps_denied_onboard.models.quantize import quantize_family
+    except ImportError as exc:
+        return _err(f"quantising needs onnx (install the 'export' extra): {exc}")
+    for family in families:
+        try:
+            quantize_family(
+                root, family, images, roles=roles, matcher_method=args.matcher_method, report=print
+            )
+        except ModelDirError as exc:
+            print(f"gdnav models: {exc}", file=sys.stderr)
+            return EXIT_REFUSED
+        except ImportError as exc:
+            return _err(f"quantising needs onnx (install the 'export' extra): {exc}")
+        except (ValueError, ExportError, OSError) as exc:
+            return _err(str(exc))
+    print(
+        f"int8 models in {root}; check them against PyTorch with: "
+        f"gdnav models verify --dir {root} --precision int8"
+    )
+    return EXIT_OK
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
     from gps_denied_onboard.models import ModelDirError, verify_model_dir
-    from gps_denied_onboard.models.learned_export import FAMILIES, family_models
+    from gps_denied_onboard.models.learned_export import FAMILIES, family_models_at
 
     try:
         entries = verify_model_dir(Path(args.dir))
@@ -124,10 +204,10 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         return _err(str(exc))
     for entry in entries:
         print(f"ok {entry.file} sha256={entry.sha256[:12]} from {entry.source.name} ({entry.source.licence})")
-    families = args.family or [f for f in FAMILIES if family_models(entries, f)]
+    families = args.family or [f for f in FAMILIES if family_models_at(entries, f, args.precision)]
     if args.hashes_only or not families:
         return EXIT_OK
-    naip = Path(args.naip_dir or os.environ.get("GDNAV_NAIP_DIR", DEFAULT_NAIP_DIR))
+    naip = _naip_dir(args)
     if not naip.is_dir():
         return _err(
             f"{naip}: no NAIP time series to verify on (give --naip-dir DIR holding the *_2009*.tif and "
@@ -138,7 +218,9 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     except ImportError as exc:
         return _err(f"verifying needs torch and kornia (install the 'export' extra): {exc}")
     try:
-        checks = verify_exports(Path(args.dir), naip_pairs(naip), families, report=print)
+        checks = verify_exports(
+            Path(args.dir), naip_pairs(naip), families, precision=args.precision, report=print
+        )
     except ImportError as exc:
         return _err(f"verifying needs torch, kornia and the weight packages (the 'export' extra): {exc}")
     except (VerificationError, ModelDirError, ValueError, OSError) as exc:
@@ -146,7 +228,10 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     failed = [c.family for c in checks if not c.passed]
     if failed:
         names = ", ".join(failed)
-        print(f"gdnav models: refused: {names} differ from the PyTorch reference", file=sys.stderr)
+        print(
+            f"gdnav models: refused: {args.precision} {names} differ from the PyTorch reference",
+            file=sys.stderr,
+        )
         return EXIT_REFUSED
     return EXIT_OK
 
@@ -155,7 +240,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``models`` (import, fetch, export, verify) to ``gdnav``'s subcommands; returns its parser."""
     models = subparsers.add_parser(
         "models",
-        help="pretrained model files: import, fetch, export, verify",
+        help="pretrained model files: import, fetch, export, quantize, verify",
         description="Obtain the pinned ALIKED weights, export them to ONNX, and verify a model directory.",
     )
     sub = models.add_subparsers(dest="models_command", required=True, metavar="SUBCOMMAND")
@@ -223,6 +308,37 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     )
     export.set_defaults(func=_cmd_export)
 
+    quantize = sub.add_parser(
+        "quantize",
+        help="INT8 copies of exported models, beside the fp32 files (needs the 'export' extra)",
+        description="Write <file>.int8.onnx for each exported family's extractor (static QDQ Conv "
+        "quantisation, calibrated on real images) and LightGlue matcher (dynamic MatMul quantisation), "
+        "recorded in DIR/manifest.json with precision int8 and the fp32 file they came from. The fp32 "
+        "files are left as they are. Check the result with: gdnav models verify --precision int8.",
+    )
+    quantize.add_argument("--dir", default="models", metavar="DIR", help="model directory (default: models)")
+    quantize.add_argument(
+        "--family", action="append", metavar="FAMILY", help="disk, aliked or xfeat (repeatable; default: all)"
+    )
+    quantize.add_argument(
+        "--role", choices=("extractor", "matcher"), default=None, help="only this model of each family"
+    )
+    quantize.add_argument(
+        "--matcher-method",
+        choices=("dynamic", "weight_only"),
+        default="dynamic",
+        help="dynamic: int8 weights and activations (integer MatMuls); weight_only: int8 weights, fp32 "
+        "multiply (default dynamic)",
+    )
+    quantize.add_argument(
+        "--calibration-dir",
+        default=None,
+        metavar="DIR",
+        help="images to calibrate the extractors on (default: verify's NAIP series, $GDNAV_NAIP_DIR or "
+        f"{DEFAULT_NAIP_DIR}, without the two years verify checks on)",
+    )
+    quantize.set_defaults(func=_cmd_quantize)
+
     verify = sub.add_parser(
         "verify",
         help="check a model directory against its manifest and its PyTorch reference",
@@ -230,7 +346,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         "then run every exported family (extractor + LightGlue) and its PyTorch reference on NAIP 2009/2020 "
         "image pairs, print keypoint/score/descriptor differences, identical-match shares and what "
         "LightGlue's pruning changes, and record the result in DIR/verification.json (matcher.strategy: "
-        "auto uses only verified families). Exit 3 when a family is below 99 %% identical matches.",
+        "auto uses only verified families). Exit 3 when a family is below 99 %% identical matches (95 %% "
+        "for --precision int8, which checks each family's int8 files, fp32 where a role is not quantised).",
     )
     verify.add_argument("--dir", default="models", metavar="DIR", help="model directory (default: models)")
     verify.add_argument(
@@ -241,6 +358,12 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         default=None,
         metavar="DIR",
         help=f"NAIP time-series GeoTIFFs (default: $GDNAV_NAIP_DIR or {DEFAULT_NAIP_DIR})",
+    )
+    verify.add_argument(
+        "--precision",
+        choices=("fp32", "int8"),
+        default="fp32",
+        help="which files of each family to check (int8: those of gdnav models quantize)",
     )
     verify.add_argument(
         "--hashes-only", action="store_true", help="only check the files against the manifest (no torch)"

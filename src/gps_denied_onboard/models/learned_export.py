@@ -47,6 +47,10 @@ EXTRACTOR_OPSET: Final[int] = 17
 MATCHER_OPSET: Final[int] = 18
 ROLE_EXTRACTOR: Final[str] = "extractor"
 ROLE_MATCHER: Final[str] = "matcher"
+#: ``params.precision`` of a model file; an entry without it is an fp32 export.
+PRECISION_FP32: Final[str] = "fp32"
+PRECISION_INT8: Final[str] = "int8"
+PRECISIONS: Final[tuple[str, ...]] = (PRECISION_FP32, PRECISION_INT8)
 #: C3 strategy that runs each family.
 FAMILY_STRATEGY: Final[dict[str, str]] = {
     "disk": "disk_lightglue",
@@ -109,18 +113,55 @@ def family_spec(family: str, top_k: int = DEFAULT_TOP_K) -> FamilySpec:
     return table[family]
 
 
-def family_models(entries: Iterable[ModelEntry], family: str) -> tuple[ModelEntry, ModelEntry] | None:
-    """(extractor, matcher) entries of ``family`` in a manifest, or None when either is missing."""
+def entry_precision(entry: ModelEntry) -> str:
+    """``params.precision`` of a manifest entry (``fp32`` when absent: every export before quantisation)."""
+    return str(entry.params.get("precision", PRECISION_FP32))
+
+
+def family_models(
+    entries: Iterable[ModelEntry], family: str, precision: str = PRECISION_FP32
+) -> tuple[ModelEntry, ModelEntry] | None:
+    """(extractor, matcher) entries of ``family`` at ``precision`` in a manifest, or None when either is
+    missing (``gdnav models quantize`` adds int8 entries beside the fp32 ones)."""
     found: dict[str, ModelEntry] = {}
     for entry in entries:
-        if entry.params.get("family") == family and entry.params.get("role") in (
-            ROLE_EXTRACTOR,
-            ROLE_MATCHER,
+        if (
+            entry.params.get("family") == family
+            and entry.params.get("role") in (ROLE_EXTRACTOR, ROLE_MATCHER)
+            and entry_precision(entry) == precision
         ):
             found[str(entry.params["role"])] = entry
     if ROLE_EXTRACTOR in found and ROLE_MATCHER in found:
         return found[ROLE_EXTRACTOR], found[ROLE_MATCHER]
     return None
+
+
+def family_models_at(
+    entries: Sequence[ModelEntry], family: str, precision: str
+) -> tuple[ModelEntry, ModelEntry] | None:
+    """(extractor, matcher) of ``family``, each at ``precision`` where the manifest has it and fp32
+    otherwise (a family may have only its matcher quantised); None when the fp32 pair is missing, or
+    when neither file exists at ``precision``."""
+    fp32 = family_models(entries, family)
+    if fp32 is None or precision == PRECISION_FP32:
+        return fp32
+    picked = []
+    for fp32_entry in fp32:
+        role = fp32_entry.params["role"]
+        other = next(
+            (
+                e
+                for e in entries
+                if e.params.get("family") == family
+                and e.params.get("role") == role
+                and entry_precision(e) == precision
+            ),
+            None,
+        )
+        picked.append(other or fp32_entry)
+    if all(entry_precision(e) == PRECISION_FP32 for e in picked):
+        return None
+    return picked[0], picked[1]
 
 
 def _source(name: str) -> ModelSource:

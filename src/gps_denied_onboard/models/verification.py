@@ -11,9 +11,16 @@ from pathlib import Path
 from typing import Any, Final
 
 from gps_denied_onboard.helpers import bounded_json
+from gps_denied_onboard.models.learned_export import PRECISION_FP32
 from gps_denied_onboard.models.manifest import ModelEntry
 
 VERIFICATION_NAME: Final[str] = "verification.json"
+
+
+def verification_key(family: str, precision: str = PRECISION_FP32) -> str:
+    """Key of a family's record: the family for its fp32 export, ``<family>.<precision>`` otherwise (the
+    int8 files of ``gdnav models quantize`` are verified on their own, against a floor of their own)."""
+    return family if precision == PRECISION_FP32 else f"{family}.{precision}"
 
 
 def read_verification(model_dir: Path) -> dict[str, Any]:
@@ -28,9 +35,11 @@ def read_verification(model_dir: Path) -> dict[str, Any]:
     return families if isinstance(families, dict) else {}
 
 
-def family_verified(model_dir: Path, family: str, extractor: ModelEntry, matcher: ModelEntry) -> bool:
-    """True when ``family`` passed the reference check with exactly these two files."""
-    record = read_verification(model_dir).get(family)
+def family_verified(
+    model_dir: Path, family: str, extractor: ModelEntry, matcher: ModelEntry, precision: str = PRECISION_FP32
+) -> bool:
+    """True when ``family`` at ``precision`` passed the reference check with exactly these two files."""
+    record = read_verification(model_dir).get(verification_key(family, precision))
     if not isinstance(record, dict) or record.get("passed") is not True:
         return False
     ext, lg = record.get("extractor") or {}, record.get("matcher") or {}

@@ -43,6 +43,7 @@ from gps_denied_onboard.components.c7_inference.protocol import (
     InferenceRuntime,
 )
 from gps_denied_onboard.components.c10_cache_build.manifest import sha256_file
+from gps_denied_onboard.models.learned_export import PRECISION_FP32, entry_precision
 from gps_denied_onboard.models.manifest import ModelDirError, verify_model_dir
 
 #: A keypoint closer than this to an invalid pixel (px of the model input) is dropped: XFeat's
@@ -70,7 +71,11 @@ def find_xfeat_extractor(model_dir: str | Path) -> Path:
     root = Path(model_dir)
     entries = verify_model_dir(root)
     for entry in entries:
-        if entry.params.get("family") == "xfeat" and entry.params.get("role") == "extractor":
+        if (
+            entry.params.get("family") == "xfeat"
+            and entry.params.get("role") == "extractor"
+            and entry_precision(entry) == PRECISION_FP32  # the vocabulary was learned on its descriptors
+        ):
             return root / entry.file
     raise ModelDirError(
         "no XFeat extractor in the manifest (run gdnav models export --family xfeat)", path=str(root)
