@@ -108,8 +108,12 @@ class StageTimer:
 
 
 def _wrap_method(timer: StageTimer, obj: Any, name: str, stage: Any, **kw: Any) -> None:
-    if obj is not None and hasattr(obj, name):
-        setattr(obj, name, timer.wrap(getattr(obj, name), stage, **kw))
+    """Time ``obj.name`` as ``stage`` (once: an object two matchers share is wrapped once)."""
+    if obj is None or not hasattr(obj, name) or getattr(getattr(obj, name), "stage_timed", False):
+        return
+    timed = timer.wrap(getattr(obj, name), stage, **kw)
+    timed.stage_timed = True  # type: ignore[attr-defined]
+    setattr(obj, name, timed)
 
 
 def _model_stage(parent: str | None) -> str:
@@ -128,14 +132,20 @@ def instrument(timer: StageTimer, root: Any) -> None:
     _wrap_method(timer, p._vpr, "retrieve_topk", "vpr")
     _wrap_method(timer, p._rerank, "rerank", "rerank")
     _wrap_method(timer, p._footprint_chips, "first", "footprint chip cut")
-    m = p._matcher
-    _wrap_method(timer, m, "match", "c3 loop")
-    _wrap_method(timer, m, "_query_view", "rectification")
-    _wrap_method(timer, m, "extract_query", "query extraction")
-    _wrap_method(timer, m, "extract_tile", "tile extraction")
-    _wrap_method(timer, m, "match_features", "matching")
-    _wrap_method(timer, getattr(m, "_tile_features", None), "lookup", "tile features (cache lookup)")
-    _wrap_method(timer, getattr(m, "_ransac_filter", None), "filter", "ransac")
+    # The matcher, or each rung's of an effort ladder (each instance once).
+    ladder = getattr(p, "_ladder", None)
+    found = [getattr(p, "_matcher", None)] + [r.matcher for r in (ladder.rungs if ladder else ())]
+    matchers = list({id(m): m for m in found if m is not None}.values())
+    ransacs = {id(r): r for r in (getattr(m, "_ransac_filter", None) for m in matchers) if r is not None}
+    for m in matchers:
+        _wrap_method(timer, m, "match", "c3 loop")
+        _wrap_method(timer, m, "_query_view", "rectification")
+        _wrap_method(timer, m, "extract_query", "query extraction")
+        _wrap_method(timer, m, "extract_tile", "tile extraction")
+        _wrap_method(timer, m, "match_features", "matching")
+        _wrap_method(timer, getattr(m, "_tile_features", None), "lookup", "tile features (cache lookup)")
+    for r in ransacs.values():
+        _wrap_method(timer, r, "filter", "ransac")
     _wrap_method(timer, p._pose, "solve", _pose_stage)
     _wrap_method(timer, p, "_judge", "integrity")
     _wrap_method(timer, p._attitude, "note", "attitude check")

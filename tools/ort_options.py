@@ -9,8 +9,9 @@ run is preceded by ``--gap-ms`` of sleep, as the daemon's fix thread waits betwe
 CPU time is the process's CPU time (all threads, ``time.process_time``) from the start of its run to the
 start of the next variant's, so the spinning of ONNX Runtime's idle worker threads after a run counts.
 
-Inputs: an extractor gets ``--image`` resized to 640 x 480 (the rectified query's size class) and to
-640 x 640 (a 512 px chip at the daemon's 640 px long side); a matcher gets two sets of N random keypoints
+Inputs: an extractor gets ``--image`` resized to its fixed input size or, for a dynamic-size export, to
+640 x 480 (the rectified query's size class) and to 640 x 640 (a 512 px chip at the daemon's 640 px long
+side); a matcher gets two sets of N random keypoints
 with random unit descriptors (its early exit is off in the export, so this is its full cost).
 
 The variants start from the runtime's defaults (``c7_inference.onnx_runtime.session_options``) and change
@@ -96,7 +97,9 @@ VARIANTS: dict[str, Variant] = {
 def _image_feeds(session: ort.InferenceSession, image_bgr: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
     (inp,) = session.get_inputs()
     out = {}
-    for w, h in ((640, 480), (640, 640)):
+    fixed = isinstance(inp.shape[2], int) and isinstance(inp.shape[3], int)
+    sizes = [(int(inp.shape[3]), int(inp.shape[2]))] if fixed else [(640, 480), (640, 640)]
+    for w, h in sizes:
         rgb = cv2.cvtColor(cv2.resize(image_bgr, (w, h), interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2RGB)
         tensor = (rgb.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
         if inp.shape[1] == 1:
