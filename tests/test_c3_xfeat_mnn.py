@@ -233,3 +233,94 @@ def test_real_xfeat_mnn_matches_a_2020_frame_to_its_2009_chip_with_shared_tile_f
     np.testing.assert_array_equal(best.inlier_correspondences, result_live.best.inlier_correspondences)
     assert pre_rt.extractor_calls == 1
     assert live_rt.extractor_calls == len(store) + 1 + len(rerank.candidates)  # build + query + N
+
+
+# --- cross-date evidence: what the integrity rule gets from mutual nearest neighbours ----------------------
+#: Frames per date, and how far (m) from the truth the ground under the principal point may land for a
+#: solution to count as right (6 map pixels at zoom 15; cross-date right solutions measured 10-12 m p50).
+CROSS_DATE_FRAMES = 6
+RIGHT_SOLUTION_M = 20.0
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_real_xfeat_mnn_cross_date_evidence_passes_only_for_right_fixes(
+    registry_models: Callable[[str], Path],  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    """NAIP 2009 map, frames of 2014 and 2020 at 1200 m AGL (``naip_cross_date``'s), the chip around the
+    footprint first and two far chips (``gdnav bench matcher --first-chip footprint``), the real export:
+    every candidate whose evidence would pass the integrity rule's thresholds (``integrity.min_inliers``,
+    ``min_inlier_ratio``, ``min_spread_share``) is the true chip with a right solution; no far chip does
+    (each is matched, so the test sees their evidence); the true chip wins every solved frame."""
+    import cv2
+
+    from gps_denied_onboard.bench.matcher import render_bench_frames, with_cache_candidates
+    from gps_denied_onboard.camera.types import CameraCalibration
+    from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
+    from gps_denied_onboard.config import IntegrityConfig
+    from gps_denied_onboard.geo import haversine_m
+
+    extractor, _lighterglue = _model_paths(registry_models("xfeat"))
+    cache = tmp_path / "c2009"
+    build_cache(shared_path(*NAIP, NAIP_2009), cache, progress=False)
+    store = TileStore.open(cache)
+    config = MatcherConfig(strategy="xfeat_mnn", xfeat_weights_path=str(extractor))
+    matcher = registry.create_matcher(
+        "xfeat_mnn",
+        config=config,
+        ransac_filter=RansacFilter(),
+        inference_runtime=_runtime(),
+        health_window=RollingHealthWindow(config.min_inliers_threshold),
+        fdr_client=None,
+    )
+    calib = CameraCalibration.from_hfov(640, 480, 70.0)
+    size = (calib.width_px, calib.height_px)
+    rule = IntegrityConfig()
+    solved, wrong_chips_seen, passed = 0, 0, []
+    for date in ("m_4709963_se_14_1_20140720.tif", NAIP_2020):
+        frames = render_bench_frames(
+            shared_path(*NAIP, NAIP_2009),
+            calib,
+            n_frames=CROSS_DATE_FRAMES,
+            n_candidates=1,
+            chip_size_px=config.chip_size_px,
+            alt_agl_m=1200.0,
+            seed=5,
+            frames_path=shared_path(*NAIP, date),
+        )
+        frames = with_cache_candidates(
+            frames, store, n_candidates=3, chip_size_px=config.chip_size_px, seed=5, first_chip="footprint"
+        )
+        for bf in frames:
+            try:
+                result = matcher.match(bf.frame, bf.rerank_result(), calib)
+            except InsufficientInliersError:
+                continue
+            solved += 1
+            true_id = bf.candidates[0].tile_id
+            assert result.best.tile_id == true_id, (date, bf.frame.seq)
+            for cand in result.per_candidate:
+                ev = MatchEvidence.of_candidate(cand, size)
+                assert ev.mean_confidence is None
+                passes = (
+                    ev.inlier_count >= rule.min_inliers
+                    and ev.inlier_ratio >= rule.min_inlier_ratio
+                    and ev.spread_share >= rule.min_spread_share
+                )
+                if cand.tile_id != true_id:
+                    wrong_chips_seen += 1
+                    assert not passes, (date, bf.frame.seq, ev)
+                    continue
+                # Where the inliers put the ground under the principal point, against the truth.
+                corr = cand.inlier_correspondences.astype(np.float64)
+                h_mat, _ = cv2.findHomography(corr[:, :2], corr[:, 2:4], 0)
+                p = np.array([calib.cx_px, calib.cy_px, 1.0]) @ h_mat.T
+                lon, lat = bf.candidates[0].chip_px_to_lonlat(np.array([[p[0] / p[2], p[1] / p[2]]]))
+                error_m = float(haversine_m(bf.centre_lonlat[1], bf.centre_lonlat[0], lat[0], lon[0]))
+                if passes:
+                    passed.append((date, bf.frame.seq, ev.inlier_ratio, error_m))
+                    assert error_m <= RIGHT_SOLUTION_M, (date, bf.frame.seq, ev, error_m)
+    print(f"xfeat_mnn cross-date: {solved} of {2 * CROSS_DATE_FRAMES} solved, evidence passed by {passed}")
+    assert solved >= CROSS_DATE_FRAMES, solved
+    assert wrong_chips_seen >= solved, wrong_chips_seen

@@ -34,7 +34,10 @@ LABEL: Final[str] = "xfeat_mnn"
 
 #: Cosine below which a mutual pair is dropped. Measured on 60 NAIP cross-date frames (docs/benchmarks.md,
 #: C3 matcher, xfeat_mnn): 0.7 solved 58 with 2 wrong, no floor 55 with 3; 0.5-0.6 change nothing, 0.8
-#: loses a third of the frames, and Lowe's ratio test (0.8-0.95) loses most of them.
+#: loses a third of the frames, and Lowe's ratio test (0.8-0.95) loses most of them. No matching rule
+#: tried (a higher floor, the ratio test, top-k by cosine, fewer keypoints) raises the inlier ratio to
+#: ``integrity.min_inlier_ratio`` honestly: docs/benchmarks.md, "xfeat_mnn: evidence the integrity rule
+#: accepts" (``tools/mnn_rules.py``).
 XFEAT_MNN_MIN_SIMILARITY: Final[float] = 0.7
 
 
