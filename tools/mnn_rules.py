@@ -1,5 +1,7 @@
 """Matching rules for ``xfeat_mnn`` side by side: the evidence the integrity rule would judge, per rule.
 
+    .venv/bin/python tools/mnn_rules.py replay "RULE" --fdr FDR --sequential --truth report.json [...]
+
     .venv/bin/python tools/mnn_rules.py --map MAP_2009.tif --frames-from FRAMES_2014.tif \
         [--frames-from FRAMES_2020.tif] --cache CACHE --model-dir MODELS [--frames 40] [--candidates 3] \
         [--alt 1200] [--seed 0] [--out rules.json]
@@ -18,8 +20,9 @@ disagrees). C4's pose and the prior test are not run here (``gdnav replay --sequ
 
 Right: the best candidate is the true chip and its centre error is at most ``RIGHT_M``; wrong: anything
 else solved. The timing per rule is one candidate's match + RANSAC on cached features, the rules
-interleaved per candidate so that the load weighs on all alike. A one-off measurement tool for
-``docs/benchmarks.md``: the daemon does not use it.
+interleaved per candidate so that the load weighs on all alike. ``replay "RULE" ...`` runs ``gdnav replay``
+with ``xfeat_mnn`` matching by that rule instead (the whole fix path in flight: pose, integrity rule,
+estimator). A one-off measurement tool for ``docs/benchmarks.md``: the daemon does not use it.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import argparse
 import json
 import math
 import os
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -149,7 +153,18 @@ def _pct(values: list[float], q: float) -> float | None:
     return round(float(np.percentile(values, q)), 3) if values else None
 
 
+def replay_with_rule(name: str, replay_args: list[str]) -> int:
+    """``gdnav replay replay_args`` with ``xfeat_mnn`` matching by the rule ``name`` of ``rules()``."""
+    from gps_denied_onboard.cli import main as gdnav
+
+    rule = rules()[name]
+    xfeat_mnn.XFeatMnnMatcher.match_features = lambda self, q, t: rule(q, t)  # type: ignore[method-assign,assignment]
+    return gdnav(["replay", *replay_args])
+
+
 def main() -> int:
+    if len(sys.argv) > 2 and sys.argv[1] == "replay":
+        return replay_with_rule(sys.argv[2], sys.argv[3:])
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--map", type=Path, required=True)
     ap.add_argument("--frames-from", type=Path, action="append", required=True)
