@@ -31,3 +31,22 @@ def test_a_worker_thread_runs_at_the_nice_value_it_was_given_and_the_rest_do_not
 
     fix_nice, track_nice, main_nice = asyncio.run(run())
     assert (fix_nice, track_nice, main_nice) == (base + 5, base, base)
+
+
+def test_gdnav_run_sets_numpys_blas_threads_before_numpy_loads() -> None:
+    """``daemon.blas_threads``: the variables OpenBLAS reads when it loads are set before anything has
+    imported numpy; once numpy is in, it is too late, and ``limit_blas_threads`` says so."""
+    import subprocess
+
+    code = (
+        "import os, sys\n"
+        "from gps_denied_onboard.cli import limit_blas_threads\n"
+        "assert 'numpy' not in sys.modules\n"
+        "ok = limit_blas_threads(1)\n"
+        "import numpy\n"
+        "first = os.environ['OPENBLAS_NUM_THREADS']\n"
+        "print(ok, first, limit_blas_threads(2), os.environ['OPENBLAS_NUM_THREADS'])\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert out.stdout.split() == ["True", "1", "False", "1"], out.stderr

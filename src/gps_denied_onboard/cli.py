@@ -41,12 +41,31 @@ def _resource_refusals() -> tuple[type[Exception], ...]:
     return (StartupError, MavlinkConfigError)
 
 
+#: The environment variables that set numpy's BLAS threads when it loads.
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def limit_blas_threads(n: int) -> bool:
+    """Set numpy's BLAS to ``n`` threads (``daemon.blas_threads``); only before numpy is imported, as
+    OpenBLAS reads the variables once when it loads. Returns whether it could."""
+    if "numpy" in sys.modules:
+        return False
+    for name in BLAS_THREAD_VARIABLES:
+        os.environ[name] = str(n)
+    return True
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.set or ())
+    blas_set = limit_blas_threads(config.daemon.blas_threads)
     configure_logging(config.logging.level, json=config.logging.json)
     log = structlog.get_logger("gdnav")
     log.info(
-        LogEvent.DAEMON_CONFIG, source=str(args.config), version=__version__, config=config_to_dict(config)
+        LogEvent.DAEMON_CONFIG,
+        source=str(args.config),
+        version=__version__,
+        config=config_to_dict(config),
+        blas_threads=config.daemon.blas_threads if blas_set else "not set: numpy was already loaded",
     )
 
     from gps_denied_onboard.clock import DaemonClock

@@ -539,6 +539,10 @@ class DaemonConfig:
     #: At stop, how long the worker threads may take to finish the frame they are in before the process
     #: ends without them (it then exits at once, without tearing down a running ONNX Runtime), s.
     frame_stop_grace_s: Annotated[float, Strict(), Field(gt=0, le=1.5)] = 0.5
+    #: Threads of numpy's BLAS (OpenBLAS, OpenMP), set before numpy loads (`gdnav run` only). 1: a matrix
+    #: product (mutual NN, RANSAC) runs on the thread that asked for it instead of spreading over both
+    #: cores beside the event loop; measured: the xfeat_mnn fix path 0.75x, its matrix product 0.53x.
+    blas_threads: PosInt = 1
     #: The fix thread's nice value above the daemon's (Linux: per thread): when the two cores are short,
     #: VO and the 10 Hz output (the event loop) run first and the fix path waits. 0 = the same priority.
     fix_thread_nice: Annotated[int, Strict(), Field(ge=0, le=19)] = 5
