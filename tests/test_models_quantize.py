@@ -6,6 +6,7 @@ fp32 for the other tests) in a real ``gdnav`` process, calibrated on the NAIP se
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -106,6 +107,34 @@ def test_int8_entries_do_not_replace_the_fp32_family(tmp_path: Path) -> None:
     assert not family_verified(tmp_path, "xfeat", fp32_x, fp32_lg)
 
 
+def _pair(share: float):  # type: ignore[no-untyped-def]
+    from gps_denied_onboard.models.reference_check import PairFigures
+
+    return PairFigures(4096, 1.0, 0.0, 0.0, 500, 500, share, share, 500, 0.9, 1.0, 1.0, 1.0, 1.0)
+
+
+def test_int8_check_passes_at_its_own_floor_and_is_recorded_under_its_own_key(tmp_path: Path) -> None:
+    """96 % identical matches pass the int8 floor (95 %), not the fp32 one (99 %); the int8 record goes
+    under ``<family>.int8`` and leaves the fp32 record of the family as it was."""
+    from gps_denied_onboard.models.reference_check import FamilyCheck, record_verification
+
+    fp32 = FamilyCheck("xfeat", "x.onnx", "a" * 64, "lg.onnx", "b" * 64, (_pair(1.0),))
+    int8 = FamilyCheck("xfeat", "x.int8.onnx", "c" * 64, "lg.int8.onnx", "d" * 64, (_pair(0.96),), "int8")
+    assert int8.passed and int8.min_share == 0.95
+    assert not dataclasses.replace(int8, precision="fp32").passed
+    assert not dataclasses.replace(int8, pairs=(_pair(0.94),)).passed
+
+    record_verification(tmp_path, [fp32])
+    record_verification(tmp_path, [int8])
+
+    families = json.loads((tmp_path / VERIFICATION_NAME).read_text())["families"]
+    assert set(families) == {"xfeat", "xfeat.int8"}
+    assert families["xfeat"]["extractor"]["file"] == "x.onnx"
+    assert families["xfeat.int8"]["matcher"]["file"] == "lg.int8.onnx"
+    assert families["xfeat.int8"]["min_identical_share"] == 0.95
+    assert families["xfeat.int8"]["precision"] == "int8"
+
+
 def test_quantize_refuses_a_missing_directory(tmp_path: Path) -> None:
     """A model directory that does not exist: exit 2, one line naming it."""
     res = _gdnav("quantize", "--dir", str(tmp_path / "nowhere"), cwd=tmp_path)
@@ -148,7 +177,8 @@ def test_quantize_writes_int8_files_and_manifest_entries(registry_models, tmp_pa
     """The real XFeat export quantised in a real ``gdnav`` process: both int8 files are written beside the
     fp32 ones (which stay as they were), each with a manifest entry that verifies, says int8 and names
     the fp32 file and its sha256; the matcher's MatMuls run as integer MatMuls (the folded weights) and
-    the extractor's Convs through Quantize/DequantizeLinear; both load and run in ONNX Runtime."""
+    the extractor's Convs through Quantize/DequantizeLinear; both load and run in ONNX Runtime; ``verify
+    --precision int8`` checks that pair, records it under ``xfeat.int8`` and exits by its 95 % floor."""
     naip = shared_path(*NAIP_SUBDIR)
     source_dir = registry_models("xfeat")
     model_dir = tmp_path / "models"
@@ -190,6 +220,15 @@ def test_quantize_writes_int8_files_and_manifest_entries(registry_models, tmp_pa
     feeds = {"kpts0": kpts / 320.0 - 1.0, "kpts1": kpts / 320.0 - 1.0, "desc0": desc, "desc1": desc}
     matches, _ = lg.run(None, {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in feeds.items()})
     assert len(matches) > 0.5 * kpts.shape[1]  # an image against itself matches most keypoints
+
+    res = _gdnav(
+        "verify", "--dir", str(model_dir), "--precision", "int8", "--naip-dir", str(naip), cwd=tmp_path
+    )
+    record = json.loads((model_dir / VERIFICATION_NAME).read_text())["families"]["xfeat.int8"]
+    assert (record["extractor"]["file"], record["matcher"]["file"]) == (extractor.file, matcher.file)
+    assert record["min_identical_share"] == 0.95
+    assert res.returncode == (0 if record["passed"] else 3), res.stderr
+    assert record["passed"] or "refused: int8 xfeat differ from the PyTorch reference" in res.stderr
 
 
 def test_vlad_xfeat_takes_the_fp32_extractor_when_an_int8_one_is_listed_first(tmp_path: Path) -> None:
