@@ -44,7 +44,7 @@ from gps_denied_onboard.components.c5_estimator.prior import (
 )
 from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxisStats
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
-from gps_denied_onboard.components.c8_mavlink.messages import fix_type_for
+from gps_denied_onboard.components.c8_mavlink.messages import gps_input_fix_type
 from gps_denied_onboard.components.c13_fdr import FdrHealth
 from gps_denied_onboard.constants import RESUME_STATE_INTERVAL_S, FdrKind, LogEvent, Provenance
 from gps_denied_onboard.daemon.beacon import StartupBeacon
@@ -302,6 +302,8 @@ class NavDaemon:
                     self._root.link.request_autopilot_estimate()
                     self._asked_autopilot_last_s = now_s
                 answered = tracker.estimate_answered_since(self._asked_autopilot_first_s)
+                # ... and its home, where the rules may use it (an autopilot without one never answers)
+                answered = answered and (home is not None or not self._cfg.init.use_home_position)
                 if not answered and now_s - self._asked_autopilot_first_s < self._cfg.init.autopilot_wait_s:
                     return None  # no answer yet (an autopilot that has no position says so: no wait)
         prior = choose_prior(
@@ -609,7 +611,7 @@ class NavDaemon:
             )
             self._root.link.notify_provenance(old, new, f"GDN: {new.value}: {reason}" if reason else None)
         horiz = state.horiz_sigma_m if math.isfinite(state.lat_deg) else None
-        fix_type = fix_type_for(new, horiz if horiz is not None else math.inf)
+        fix_type = gps_input_fix_type(state)
         if fix_type == 3 and horiz is not None:
             resume = ResumeState(state.lat_deg, state.lon_deg, horiz, state.time_unix_usec)
             self._last_3d = (resume, new.value)

@@ -94,6 +94,7 @@ class SimAutopilot:
         )
         self.mav = self._conn.mav
         self._alt_rel_m = 0.0  # height above home last sent (ALTITUDE), m
+        self._home: tuple[float, float, float] | None = None  # the last HOME_POSITION sent
         self.kernel_stamps = SO_TIMESTAMPNS is not None
         if SO_TIMESTAMPNS is not None:
             self._conn.port.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
@@ -191,6 +192,7 @@ class SimAutopilot:
         )
 
     def send_home(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> None:
+        self._home = (lat_deg, lon_deg, alt_amsl_m)
         send_home_position(self.mav, lat_deg, lon_deg, alt_amsl_m)
 
     def poll(self, *, discard: bool = False) -> int:
@@ -216,8 +218,9 @@ class SimAutopilot:
         ``handle_command_request_message``): the message now, if it is one it can send, and the ACK. This
         double has no EKF of its own (``sitl.ap_emulator`` models one): its GLOBAL_POSITION_INT says
         "no position" (lat/lon 0) with the height above home last sent, and its EKF_STATUS_REPORT flags
-        attitude only, as an ArduPilot without an absolute position answers. Others are refused
-        (MAV_RESULT_FAILED, as for a message ArduPilot cannot send)."""
+        attitude only, as an ArduPilot without an absolute position answers; HOME_POSITION is the home it
+        last sent. Others, and HOME_POSITION before there is a home, are refused (MAV_RESULT_FAILED, as
+        for a message ArduPilot cannot send)."""
         wanted = int(msg.param1)
         m = mavutil.mavlink
         result = m.MAV_RESULT_ACCEPTED
@@ -226,6 +229,8 @@ class SimAutopilot:
             self.mav.global_position_int_send(self._boot_ms(now_unix_s), 0, 0, rel_mm, rel_mm, 0, 0, 0, 0)
         elif wanted == m.MAVLINK_MSG_ID_EKF_STATUS_REPORT:
             self.mav.ekf_status_report_send(m.EKF_ATTITUDE, 0.0, 0.0, 0.0, 0.0, 0.0)
+        elif wanted == m.MAVLINK_MSG_ID_HOME_POSITION and self._home is not None:
+            send_home_position(self.mav, *self._home)
         else:
             result = m.MAV_RESULT_FAILED
         self.mav.command_ack_send(MAV_CMD_REQUEST_MESSAGE, result)

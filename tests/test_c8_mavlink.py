@@ -311,14 +311,18 @@ def test_tracker_knows_when_the_autopilot_answered_even_without_a_position() -> 
 
 
 def test_link_asks_the_autopilot_for_its_estimate_over_udp(udp_pair: tuple) -> None:
-    """``request_autopilot_estimate``: two MAV_CMD_REQUEST_MESSAGE to the autopilot (sysid 1, comp 1),
-    for GLOBAL_POSITION_INT and EKF_STATUS_REPORT, received by a real pymavlink endpoint."""
+    """``request_autopilot_estimate``: MAV_CMD_REQUEST_MESSAGE to the autopilot (sysid 1, comp 1) for
+    GLOBAL_POSITION_INT, EKF_STATUS_REPORT and HOME_POSITION, received by a real pymavlink endpoint."""
     link, ap, _clock, _ = udp_pair
     ap.mav.send(_ap_heartbeat(ap.mav))
     assert _pump(link, lambda: link.tracker.autopilot_seen)
     assert link.request_autopilot_estimate()
     got = _recv_all(ap, "COMMAND_LONG", wait_s=0.5)
-    wanted = {D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, D.MAVLINK_MSG_ID_EKF_STATUS_REPORT}
+    wanted = {
+        D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+        D.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
+        D.MAVLINK_MSG_ID_HOME_POSITION,
+    }
     # (The link's periodic GPS_GLOBAL_ORIGIN request may be among them.)
     requests = [m for m in got if m.command == D.MAV_CMD_REQUEST_MESSAGE and int(m.param1) in wanted]
     assert sorted(int(m.param1) for m in requests) == sorted(wanted)
@@ -385,6 +389,24 @@ def test_fix_type_policy_by_provenance_and_sigma() -> None:
     mav = D.MAVLink(None)
     nan_pos = m.gps_input(mav, _state(lat_deg=math.nan), time_unix_usec=T0_UNIX_USEC)
     assert nan_pos.fix_type == 0 and nan_pos.lat == 0
+
+
+def test_gps_input_is_no_fix_while_its_speed_is_not_known_to_arducopters_limit() -> None:
+    """A position good for 3D with the 10 m/s speed sigma of a just-started velocity is sent as no fix
+    (ArduPilot would latch "GPS Glitch" for ~15 s on that speed accuracy); at 1.5 m/s it is 3D again.
+    GLOBAL_POSITION_SENSOR carries no velocity: its validity stays the position's."""
+    from dataclasses import replace
+
+    mav = D.MAVLink(None)
+    unknown = replace(_state(), cov_vel_ned_m2_s2=np.diag([100.0, 100.0, 4.0]))
+    known = replace(_state(), cov_vel_ned_m2_s2=np.diag([m.FIX_3D_MAX_SPEED_SIGMA_M_S**2] * 2 + [1.0]))
+    slow = m.gps_input(mav, unknown, time_unix_usec=T0_UNIX_USEC)
+    assert (slow.fix_type, slow.speed_accuracy) == (1, pytest.approx(10.0))
+    assert m.gps_input(mav, known, time_unix_usec=T0_UNIX_USEC).fix_type == 3
+    gps = m.global_position_sensor(
+        mav, unknown, time_unix_usec=T0_UNIX_USEC, processing_time_usec=0, target_system=1, sensor_id=1
+    )
+    assert gps.flags & D.GLOBAL_POSITION_UNHEALTHY == 0
 
 
 def test_gps_input_accuracy_dop_and_ignore_flags() -> None:

@@ -53,9 +53,9 @@ def test_receive_time_is_the_arrival_not_the_read() -> None:
 
 def test_request_message_is_answered_as_an_autopilot_without_a_position() -> None:
     """MAV_CMD_REQUEST_MESSAGE for GLOBAL_POSITION_INT and EKF_STATUS_REPORT (the daemon's restart
-    question) gets the message and an accepted ACK, as ArduPilot answers it; the double has no EKF, so it
-    says "no position" (lat/lon 0, attitude-only flags) with the height above home it last sent. Another
-    message is refused (MAV_RESULT_FAILED)."""
+    question, with HOME_POSITION) gets the message and an accepted ACK, as ArduPilot answers it; the
+    double has no EKF, so it says "no position" (lat/lon 0, attitude-only flags) with the height above
+    home it last sent, and the home it last sent. Another message is refused (MAV_RESULT_FAILED)."""
     daemon, port = _daemon_side()
     ap = SimAutopilot(daemon_port=port)
     try:
@@ -63,13 +63,16 @@ def test_request_message_is_answered_as_an_autopilot_without_a_position() -> Non
         _data, ap_addr = daemon.recvfrom(4096)
         mav = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=MAV_COMPONENT_ID)
         m = mavutil.mavlink
-        for wanted in (m.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, m.MAVLINK_MSG_ID_EKF_STATUS_REPORT, 999):
+        ap.send_home(47.0, 8.0, 400.0)
+        _data, ap_addr = daemon.recvfrom(4096)
+        wanted_ids = (m.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, m.MAVLINK_MSG_ID_EKF_STATUS_REPORT)
+        for wanted in (*wanted_ids, m.MAVLINK_MSG_ID_HOME_POSITION, 999):
             cmd = mav.command_long_encode(1, 1, m.MAV_CMD_REQUEST_MESSAGE, 0, wanted, 0, 0, 0, 0, 0, 0)
             daemon.sendto(cmd.pack(mav), ap_addr)
         got: dict[str, list] = {}
         parser = mavutil.mavlink.MAVLink(None)
         deadline = time.time() + 3.0
-        while sum(len(v) for v in got.values()) < 5 and time.time() < deadline:
+        while sum(len(v) for v in got.values()) < 7 and time.time() < deadline:
             ap.poll()
             daemon.settimeout(0.2)
             try:
@@ -82,9 +85,11 @@ def test_request_message_is_answered_as_an_autopilot_without_a_position() -> Non
         assert (pos.lat, pos.lon, pos.relative_alt) == (0, 0, 120_000)
         (ekf,) = got["EKF_STATUS_REPORT"]
         assert ekf.flags == m.EKF_ATTITUDE
+        (home,) = got["HOME_POSITION"]
+        assert (home.latitude, home.longitude) == (470000000, 80000000)
         acks = sorted(a.result for a in got["COMMAND_ACK"])
-        assert acks == sorted([m.MAV_RESULT_ACCEPTED, m.MAV_RESULT_ACCEPTED, m.MAV_RESULT_FAILED])
-        assert ap.requests_answered == 2
+        assert acks == sorted([m.MAV_RESULT_ACCEPTED] * 3 + [m.MAV_RESULT_FAILED])
+        assert ap.requests_answered == 3
     finally:
         ap.close()
         daemon.close()

@@ -690,8 +690,9 @@ class MavlinkLink:
         self._record_event("origin_sent", **fields)
 
     def request_autopilot_estimate(self) -> bool:
-        """Ask the autopilot for its position estimate and EKF status now (MAV_CMD_REQUEST_MESSAGE for
-        GLOBAL_POSITION_INT and EKF_STATUS_REPORT): the restart rules in ``c5_estimator.prior``."""
+        """Ask the autopilot for its position estimate, EKF status and home now (MAV_CMD_REQUEST_MESSAGE
+        for GLOBAL_POSITION_INT, EKF_STATUS_REPORT and HOME_POSITION): the start-up rules in
+        ``c5_estimator.prior`` (HOME_POSITION is otherwise streamed only every few seconds)."""
         target = self._config.autopilot_system_id
 
         def request(message_id: int) -> Callable[[Any], Any]:
@@ -704,6 +705,7 @@ class MavlinkLink:
             for message_id in (
                 DIALECT.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
                 DIALECT.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
+                DIALECT.MAVLINK_MSG_ID_HOME_POSITION,
             )
         ]
         return all(sent)

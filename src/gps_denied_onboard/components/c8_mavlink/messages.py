@@ -5,7 +5,8 @@ Input: an ``EstimatorState`` and a pymavlink ``MAVLink`` instance (``connection.
 
 Rule (what the autopilot is told):
 - **fix_type** (``fix_type_for``): ``satellite_anchored`` and ``visual_propagated`` are 3 while the
-  horizontal 1-sigma is at most ``FIX_3D_MAX_HORIZ_SIGMA_M`` and the position is finite, else 1;
+  horizontal 1-sigma is at most ``FIX_3D_MAX_HORIZ_SIGMA_M`` and the position is finite (and, in
+  GPS_INPUT, the speed's 1-sigma at most ``FIX_3D_MAX_SPEED_SIGMA_M_S``), else 1;
   ``dead_reckoning`` is 1 (never to be fused as a measurement); ``no_estimate`` or a non-finite position 0;
 - **accuracy** fields are the state's 1-sigma values, never a constant; ``hdop``/``vdop`` are those over
   ``NOMINAL_UERE_M`` (5 m), clamped to [0.01, HDOP_MAX];
@@ -63,6 +64,12 @@ DIALECT: Final = mavutil.mavlink
 
 #: Horizontal 1-sigma above which an anchored/VIO estimate is reported as "no fix" instead of 3D, m.
 FIX_3D_MAX_HORIZ_SIGMA_M: Final[float] = 50.0
+#: Speed 1-sigma above which GPS_INPUT is "no fix" instead of 3D, m/s: ArduPilot's EKF3 calls a GPS whose
+#: speed accuracy (low-pass filtered, peak held with a 10 s decay) exceeds 1.5 m/s not good for flight
+#: ("GPS Glitch", AP_NavEKF3_VehicleStatus.cpp calcGpsGoodForFlight), so one 3D fix sent with the 10 m/s
+#: of a just-started velocity holds that state for 15 s (measured on copter SITL 4.7.0-dev after a
+#: restart). The position waits the few tenths of a second VO and the next fix take to know the speed.
+FIX_3D_MAX_SPEED_SIGMA_M_S: Final[float] = 1.5
 #: Nominal user-equivalent range error used to turn sigmas into DOPs, m (sigma 5 m -> hdop 1.0).
 NOMINAL_UERE_M: Final[float] = 5.0
 #: Largest DOP sent (ArduPilot stores hdop*100 in a uint16; 99.99 is "very bad", not "unknown").
@@ -93,16 +100,35 @@ def _finite(*values: float) -> bool:
 
 
 def fix_type_for(
-    provenance: Provenance, horiz_sigma_m: float, *, max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M
+    provenance: Provenance,
+    horiz_sigma_m: float,
+    *,
+    speed_sigma_m_s: float | None = None,
+    max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
 ) -> int:
-    """GPS_FIX_TYPE for an estimate (see the module docstring for the policy)."""
+    """GPS_FIX_TYPE for an estimate (see the module docstring for the policy). ``speed_sigma_m_s``: the
+    horizontal speed's 1-sigma where the message carries the velocity (GPS_INPUT); None where it does
+    not (GLOBAL_POSITION_SENSOR)."""
     if provenance is Provenance.NO_ESTIMATE or not _finite(horiz_sigma_m):
         return FIX_TYPE_NO_GPS
     if provenance is Provenance.DEAD_RECKONING:
         return FIX_TYPE_NO_FIX
+    if speed_sigma_m_s is not None and not (
+        _finite(speed_sigma_m_s) and speed_sigma_m_s <= FIX_3D_MAX_SPEED_SIGMA_M_S
+    ):
+        return FIX_TYPE_NO_FIX
     if horiz_sigma_m <= max_fix_sigma_m:
         return FIX_TYPE_3D
     return FIX_TYPE_NO_FIX
+
+
+def gps_input_fix_type(state: EstimatorState, *, max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M) -> int:
+    """GPS_INPUT's fix_type for ``state``: ``fix_type_for`` with its position and speed sigmas."""
+    horiz = state.horiz_sigma_m if np.all(np.isfinite(state.cov_pos_ned_m2[:2, :2])) else math.inf
+    cov_v = np.asarray(state.cov_vel_ned_m2_s2, dtype=np.float64)
+    speed = state.speed_sigma_m_s if np.all(np.isfinite(cov_v[:2, :2])) else math.inf
+    fix = fix_type_for(state.provenance, horiz, speed_sigma_m_s=speed, max_fix_sigma_m=max_fix_sigma_m)
+    return fix if _position_finite(state) else FIX_TYPE_NO_GPS
 
 
 def _dop(sigma_m: float) -> float:
@@ -153,7 +179,7 @@ def gps_input(
         )
     horiz_sigma = state.horiz_sigma_m if np.all(np.isfinite(state.cov_pos_ned_m2[:2, :2])) else math.inf
     if fix_type is None:
-        fix_type = fix_type_for(state.provenance, horiz_sigma, max_fix_sigma_m=max_fix_sigma_m)
+        fix_type = gps_input_fix_type(state, max_fix_sigma_m=max_fix_sigma_m)
     if not _position_finite(state):
         fix_type = FIX_TYPE_NO_GPS
     if satellites_visible is None:
