@@ -33,10 +33,14 @@ def _free_udp_port() -> int:
 
 def test_the_first_stage_imports_nothing_heavy() -> None:
     """``gdnav run``'s first stage (CLI, config, link, beacon) in a fresh interpreter: none of the heavy
-    libraries is loaded, so the link opens about a second before the rest."""
+    libraries is loaded, so the link opens about a second before the rest; ``run``'s own parser does not
+    load numpy (its BLAS threads are set from the config first)."""
     code = (
         "import sys\n"
-        "import gps_denied_onboard.cli, gps_denied_onboard.runtime_root.link_first\n"
+        "import gps_denied_onboard.cli as cli\n"
+        "cli.run_parser().parse_args(['run', '--config', 'x.yaml'])\n"
+        "assert 'numpy' not in sys.modules, 'numpy before daemon.blas_threads is applied'\n"
+        "import gps_denied_onboard.runtime_root.link_first\n"
         "import gps_denied_onboard.daemon.beacon\n"
         f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY_MODULES!r})))\n"
     )

@@ -15,6 +15,7 @@ import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import structlog
 
@@ -297,11 +298,13 @@ def _cmd_config_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _top_parser() -> tuple[argparse.ArgumentParser, Any]:
     parser = argparse.ArgumentParser(prog="gdnav", description=__doc__.split("\n")[0])
     parser.add_argument("--version", action="version", version=f"gdnav {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    return parser, parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
+
+def _add_run(sub: Any) -> None:
     run = sub.add_parser(
         "run", help="run the navigation daemon", description="Run the navigation daemon until SIGTERM/SIGINT."
     )
@@ -313,6 +316,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="override one setting (repeatable), validated like the file",
     )
     run.set_defaults(func=_cmd_run)
+
+
+def run_parser() -> argparse.ArgumentParser:
+    """The parser of ``gdnav run`` alone: the other commands' parsers import numpy, OpenCV and the
+    emulator (~0.3 s), which the daemon's start-up must not wait for, and numpy must load only after
+    ``daemon.blas_threads`` is applied."""
+    parser, sub = _top_parser()
+    _add_run(sub)
+    return parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser, sub = _top_parser()
+    _add_run(sub)
 
     cfg = sub.add_parser("config", help="configuration tools", description="Configuration tools.")
     cfg_sub = cfg.add_subparsers(dest="config_command", required=True, metavar="SUBCOMMAND")
@@ -519,8 +536,9 @@ def _command_name(args: argparse.Namespace) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    parser = run_parser() if words[:1] == ["run"] else build_parser()
+    args = parser.parse_args(words)
     # The one place where typed refusals become exit codes. Any other exception is a bug: one line naming
     # it, exit 1 (a runtime failure: under systemd a daemon's bug is restarted, a refusal is not), and
     # its traceback in the debug log. (An except clause's types are evaluated only when one reaches it.)
