@@ -32,6 +32,7 @@ from typing import Any
 import cv2
 import numpy as np
 import onnxruntime as ort
+from onnx_cost import _keypoint_feeds  # tools/ is this script's own folder on sys.path
 
 #: Variant name -> how it changes the defaults (applied to a fresh ``SessionOptions``).
 Variant = Callable[[ort.SessionOptions], None]
@@ -106,18 +107,6 @@ def _image_feeds(session: ort.InferenceSession, image_bgr: np.ndarray) -> dict[s
             tensor = tensor.mean(axis=1, keepdims=True)
         out[f"{w}x{h}"] = {inp.name: np.ascontiguousarray(tensor)}
     return out
-
-
-def _keypoint_feeds(session: ort.InferenceSession, n: int) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(0)
-    feeds = {}
-    for inp in session.get_inputs():
-        if inp.name.startswith("kpts"):
-            feeds[inp.name] = rng.uniform(-1.0, 1.0, (1, n, 2)).astype(np.float32)
-        else:
-            desc = rng.standard_normal((1, n, int(inp.shape[-1]))).astype(np.float32)
-            feeds[inp.name] = desc / np.linalg.norm(desc, axis=-1, keepdims=True)
-    return feeds
 
 
 def measure(
