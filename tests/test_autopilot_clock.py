@@ -188,6 +188,6 @@ def test_camera_stamp_offset_needs_motion_to_say_anything() -> None:
 def test_camera_stamp_offset_beyond_the_bound_is_reported_and_clamped() -> None:
     """A lateness beyond ``max_offset_s`` is corrected only up to it, said, and the rest stays doubt."""
     cam = CameraStampOffset(max_offset_s=0.1, prior_sigma_s=0.1)
-    _camera_samples(cam, 0.3, 80, rng=random.Random(4))
+    _camera_samples(cam, 0.3, 160, rng=random.Random(4))
     assert cam.applied_s == pytest.approx(0.1)
     assert cam.out_of_bounds

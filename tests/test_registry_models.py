@@ -203,10 +203,15 @@ def _auto_config(model_dir: Path):  # type: ignore[no-untyped-def]
 @pytest.mark.slow
 @pytest.mark.timeout(EXPORT_TIMEOUT_S)
 def test_auto_picks_verified_disk_lightglue_and_refuses_unverified(
-    disk_verified: Path, tmp_path: Path
+    disk_verified: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """auto takes disk_lightglue (with its LightGlue) from a verified export; without the verification
-    record it falls back to classical and says to run gdnav models verify."""
+    """With a GPU execution provider, auto takes disk_lightglue (with its LightGlue) from a verified
+    export (on a CPU alone the cheapest verified family: ``compose.auto_order``); without the
+    verification record it falls back to classical and says to run gdnav models verify."""
+    import gps_denied_onboard.runtime_root.compose as compose
+
+    gpu = ("CUDAExecutionProvider", "CPUExecutionProvider")
+    monkeypatch.setattr(compose, "resolve_providers", lambda: gpu)
     resolved = resolve_matcher(_auto_config(disk_verified)).matcher
     assert resolved.strategy == "disk_lightglue"
     assert Path(str(resolved.disk_weights_path)).name == family_spec("disk").extractor_file
