@@ -450,7 +450,7 @@ def test_composition_root_wires_the_verified_set_into_the_matcher(
             fdr=fdr,  # type: ignore[arg-type]
             clock_unix_usec=lambda: 0,
         )
-        matcher = root.pipeline._matcher  # type: ignore[attr-defined]
+        matcher = root.pipeline.ladder.rungs[0].matcher  # type: ignore[union-attr]
         assert (matcher.tile_features is not None) is expect_used
         assert fdr.of(FdrKind.TILE_FEATURES)[0]["used"] is expect_used
 
