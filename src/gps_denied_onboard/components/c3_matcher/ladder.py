@@ -120,5 +120,5 @@ class EffortLadder:
             self._failures[rung_name] += 1
 
     def failures(self) -> dict[str, int]:
-        """Attempts in a row without an accepted fix, per rung (for the status record)."""
+        """Attempts in a row without an accepted fix, per rung."""
         return dict(self._failures)
