@@ -166,6 +166,17 @@ def test_camera_stamp_offset_is_measured_and_applied_once_sure() -> None:
     assert not cam.out_of_bounds
 
 
+def test_a_correction_follows_later_fits_that_disown_the_first() -> None:
+    """Once a correction is applied, it follows the fit beyond the fit's own error: an early 0.3 s
+    that later fits put at 0.23 s (within two floors of 0.3) does not stay applied."""
+    cam = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
+    _camera_samples(cam, 0.3, 50, rng=random.Random(6))
+    assert cam.applied_s == pytest.approx(0.3, abs=0.01)
+    _camera_samples(cam, 0.23, 300, rng=random.Random(7))
+    assert cam.fit is not None and cam.fit.offset_s == pytest.approx(0.23, abs=0.01)
+    assert cam.applied_s == pytest.approx(0.23, abs=0.01)
+
+
 def test_a_small_lateness_is_carried_as_doubt_not_corrected_on_a_claim_the_fit_cannot_back() -> None:
     """A fit of 0.065 s is within two floors of the error fits have on a camera that is on time
     (measured on copter SITL: -0.035 to +0.065 s): nothing is applied, and the frames' timing doubt
