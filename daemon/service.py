@@ -44,7 +44,7 @@ from gps_denied_onboard.components.c5_estimator.prior import (
 )
 from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxisStats
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
-from gps_denied_onboard.components.c8_mavlink.messages import gps_input_fix_type
+from gps_denied_onboard.components.c8_mavlink.messages import Fix3dGate
 from gps_denied_onboard.components.c13_fdr import FdrHealth
 from gps_denied_onboard.constants import RESUME_STATE_INTERVAL_S, FdrKind, LogEvent, Provenance
 from gps_denied_onboard.daemon.beacon import StartupBeacon
@@ -117,6 +117,7 @@ class NavDaemon:
         #: The autopilot's ground altitude disagrees with the daemon's (``_check_ground_alt``).
         self._ground_alt_off = False
         self._last_state: EstimatorState | None = None
+        self._fix_gate = Fix3dGate()  # the output stream's fix_type: one gate for the one stream
         self._last_fix: FixOutcome | None = None
         self._last_fix_reason: str | None = None
         #: The tilt checks' last verdicts on the autopilot's tilt (``c4_pose/attitude_check.py``): the
@@ -599,7 +600,10 @@ class NavDaemon:
     def _send_estimate(self) -> None:
         state = self._axis.state_at()
         self._last_state = state
-        sent = self._root.link.send_estimate(state, time_unix_usec=state.time_unix_usec)
+        fix_type = self._fix_gate.fix_type(state)
+        sent = self._root.link.send_estimate(
+            state, time_unix_usec=state.time_unix_usec, gps_fix_type=fix_type
+        )
         self.counters.estimates_sent += int(sent > 0)
         new = state.provenance
         if new is not self._provenance:
@@ -611,7 +615,6 @@ class NavDaemon:
             )
             self._root.link.notify_provenance(old, new, f"GDN: {new.value}: {reason}" if reason else None)
         horiz = state.horiz_sigma_m if math.isfinite(state.lat_deg) else None
-        fix_type = gps_input_fix_type(state)
         if fix_type == 3 and horiz is not None:
             resume = ResumeState(state.lat_deg, state.lon_deg, horiz, state.time_unix_usec)
             self._last_3d = (resume, new.value)

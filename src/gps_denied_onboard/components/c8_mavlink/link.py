@@ -543,9 +543,13 @@ class MavlinkLink:
         self._flush_pending_status(self._clock())
         return ok
 
-    def send_estimate(self, state: EstimatorState, *, time_unix_usec: int) -> int:
+    def send_estimate(
+        self, state: EstimatorState, *, time_unix_usec: int, gps_fix_type: int | None = None
+    ) -> int:
         """Send ``config.outputs`` for ``state`` stamped ``time_unix_usec`` (the time the state is valid
-        for); returns the number of messages handed to the transport (0 while the link is down)."""
+        for); returns the number of messages handed to the transport (0 while the link is down).
+        ``gps_fix_type``: GPS_INPUT's fix_type as the output stream decided it (``messages.Fix3dGate``);
+        None: the pure rule for this state alone."""
         sent = 0
         with self._lock:
             if (
@@ -562,6 +566,7 @@ class MavlinkLink:
                         mav,
                         state,
                         time_unix_usec=time_unix_usec,
+                        fix_type=gps_fix_type,
                         gps_id=self._config.gps_input_gps_id,
                         alt_trusted=self._alt_distrust is None,
                     )

@@ -8,6 +8,8 @@ Rule (what the autopilot is told):
   horizontal 1-sigma is at most ``FIX_3D_MAX_HORIZ_SIGMA_M`` and the position is finite (and, in
   GPS_INPUT, the speed's 1-sigma at most ``FIX_3D_MAX_SPEED_SIGMA_M_S``), else 1;
   ``dead_reckoning`` is 1 (never to be fused as a measurement); ``no_estimate`` or a non-finite position 0;
+  over a stream (``Fix3dGate``, the one stateful piece here), a 3D fix after anything else waits until
+  the estimate has qualified for ``FIX_3D_SETTLE_S``;
 - **accuracy** fields are the state's 1-sigma values, never a constant; ``hdop``/``vdop`` are those over
   ``NOMINAL_UERE_M`` (5 m), clamped to [0.01, HDOP_MAX];
 - **ignore_flags** only for fields that are truly unknown (non-finite), sent as 0, never NaN;
@@ -129,6 +131,37 @@ def gps_input_fix_type(state: EstimatorState, *, max_fix_sigma_m: float = FIX_3D
     speed = state.speed_sigma_m_s if np.all(np.isfinite(cov_v[:2, :2])) else math.inf
     fix = fix_type_for(state.provenance, horiz, speed_sigma_m_s=speed, max_fix_sigma_m=max_fix_sigma_m)
     return fix if _position_finite(state) else FIX_TYPE_NO_GPS
+
+
+#: After any GPS_INPUT that is not 3D, a 3D fix is declared only once the estimate has qualified for
+#: this long, s (``Fix3dGate``). Right after a start or a first fix the speed's sigma saw-tooths across
+#: ``FIX_3D_MAX_SPEED_SIGMA_M_S`` at the camera rate (propagation raises it, each update lowers it): one
+#: 3D message followed by three of fix 1 trips ArduPilot's GPS health rules (mean interval over 215 ms,
+#: ``sitl/ardupilot_rules.py``) for about 5 s. This covers one period of a 3 Hz camera.
+FIX_3D_SETTLE_S: Final[float] = 0.35
+
+
+class Fix3dGate:
+    """GPS_INPUT's fix_type over a stream of states: ``gps_input_fix_type``, except that a 3D fix after
+    anything else is held back as 1 (no fix) until the states have qualified for ``settle_s``. It only
+    ever lowers what the pure rule says. Not thread-safe: one output stream owns one gate."""
+
+    def __init__(self, settle_s: float = FIX_3D_SETTLE_S) -> None:
+        if not (math.isfinite(settle_s) and settle_s >= 0):
+            raise ValueError(f"settle_s must be a finite number of seconds >= 0, got {settle_s}")
+        self._settle_usec = round(settle_s * 1e6)
+        self._since_usec: int | None = None
+
+    def fix_type(self, state: EstimatorState) -> int:
+        """The fix_type to send for ``state`` (a later state than the previous call's)."""
+        fix = gps_input_fix_type(state)
+        if fix != FIX_TYPE_3D:
+            self._since_usec = None
+            return fix
+        t = int(state.time_unix_usec)
+        if self._since_usec is None or t < self._since_usec:
+            self._since_usec = t
+        return FIX_TYPE_3D if t - self._since_usec >= self._settle_usec else FIX_TYPE_NO_FIX
 
 
 def _dop(sigma_m: float) -> float:
