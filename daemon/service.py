@@ -615,6 +615,8 @@ class NavDaemon:
             )
             self._root.link.notify_provenance(old, new, f"GDN: {new.value}: {reason}" if reason else None)
         horiz = state.horiz_sigma_m if math.isfinite(state.lat_deg) else None
+        cov_v = np.asarray(state.cov_vel_ned_m2_s2, dtype=np.float64)[:2, :2]
+        speed = state.speed_sigma_m_s if np.all(np.isfinite(cov_v)) else math.inf
         if fix_type == 3 and horiz is not None:
             resume = ResumeState(state.lat_deg, state.lon_deg, horiz, state.time_unix_usec)
             self._last_3d = (resume, new.value)
@@ -627,6 +629,7 @@ class NavDaemon:
                 "lat_deg": state.lat_deg if horiz is not None else None,
                 "lon_deg": state.lon_deg if horiz is not None else None,
                 "horiz_sigma_m": horiz,
+                "speed_sigma_m_s": speed if math.isfinite(speed) else None,
                 "last_fix_age_s": state.last_fix_age_s if math.isfinite(state.last_fix_age_s) else None,
                 "sent": sent,
             },

@@ -8,8 +8,9 @@ Rule (what the autopilot is told):
   horizontal 1-sigma is at most ``FIX_3D_MAX_HORIZ_SIGMA_M`` and the position is finite (and, in
   GPS_INPUT, the speed's 1-sigma at most ``FIX_3D_MAX_SPEED_SIGMA_M_S``), else 1;
   ``dead_reckoning`` is 1 (never to be fused as a measurement); ``no_estimate`` or a non-finite position 0;
-  over a stream (``Fix3dGate``, the one stateful piece here), a 3D fix after anything else waits until
-  the estimate has qualified for ``FIX_3D_SETTLE_S``;
+  over a stream (``Fix3dGate``, the one stateful piece here), 3D once entered stays 3D up to a speed
+  1-sigma of ``FIX_3D_KEEP_SPEED_SIGMA_M_S``, and the stream's first 3D fix waits until the estimate
+  has qualified for ``FIX_3D_SETTLE_S``;
 - **accuracy** fields are the state's 1-sigma values, never a constant; ``hdop``/``vdop`` are those over
   ``NOMINAL_UERE_M`` (5 m), clamped to [0.01, HDOP_MAX];
 - **ignore_flags** only for fields that are truly unknown (non-finite), sent as 0, never NaN;
@@ -72,6 +73,13 @@ FIX_3D_MAX_HORIZ_SIGMA_M: Final[float] = 50.0
 #: of a just-started velocity holds that state for 15 s (measured on copter SITL 4.7.0-dev after a
 #: restart). The position waits the few tenths of a second VO and the next fix take to know the speed.
 FIX_3D_MAX_SPEED_SIGMA_M_S: Final[float] = 1.5
+#: Once GPS_INPUT is 3D, it stays 3D while the speed's 1-sigma is at most this, m/s (``Fix3dGate``; the
+#: other conditions unchanged). A speed sigma above 1.5 m/s only raises EKF3's "GPS glitching" flag and
+#: stops its GSF yaw estimator and GPS height (AP_NavEKF3_VehicleStatus.cpp ``calcGpsGoodForFlight`` and
+#: the users of ``gpsSpdAccPass``): the position is still fused. Dropping to fix 1 instead starves the
+#: EKF: where the speed sigma saw-tooths between 1.0 and 2.6 m/s at the camera rate (VO alone, or right
+#: after a link cut), the emulator's square flight went 14 s without a 3D fix and failed safe to LAND.
+FIX_3D_KEEP_SPEED_SIGMA_M_S: Final[float] = 3.0
 #: Nominal user-equivalent range error used to turn sigmas into DOPs, m (sigma 5 m -> hdop 1.0).
 NOMINAL_UERE_M: Final[float] = 5.0
 #: Largest DOP sent (ArduPilot stores hdop*100 in a uint16; 99.99 is "very bad", not "unknown").
@@ -107,6 +115,7 @@ def fix_type_for(
     *,
     speed_sigma_m_s: float | None = None,
     max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
+    max_speed_sigma_m_s: float = FIX_3D_MAX_SPEED_SIGMA_M_S,
 ) -> int:
     """GPS_FIX_TYPE for an estimate (see the module docstring for the policy). ``speed_sigma_m_s``: the
     horizontal speed's 1-sigma where the message carries the velocity (GPS_INPUT); None where it does
@@ -116,7 +125,7 @@ def fix_type_for(
     if provenance is Provenance.DEAD_RECKONING:
         return FIX_TYPE_NO_FIX
     if speed_sigma_m_s is not None and not (
-        _finite(speed_sigma_m_s) and speed_sigma_m_s <= FIX_3D_MAX_SPEED_SIGMA_M_S
+        _finite(speed_sigma_m_s) and speed_sigma_m_s <= max_speed_sigma_m_s
     ):
         return FIX_TYPE_NO_FIX
     if horiz_sigma_m <= max_fix_sigma_m:
@@ -124,44 +133,78 @@ def fix_type_for(
     return FIX_TYPE_NO_FIX
 
 
-def gps_input_fix_type(state: EstimatorState, *, max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M) -> int:
+def gps_input_fix_type(
+    state: EstimatorState,
+    *,
+    max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
+    max_speed_sigma_m_s: float = FIX_3D_MAX_SPEED_SIGMA_M_S,
+) -> int:
     """GPS_INPUT's fix_type for ``state``: ``fix_type_for`` with its position and speed sigmas."""
     horiz = state.horiz_sigma_m if np.all(np.isfinite(state.cov_pos_ned_m2[:2, :2])) else math.inf
     cov_v = np.asarray(state.cov_vel_ned_m2_s2, dtype=np.float64)
     speed = state.speed_sigma_m_s if np.all(np.isfinite(cov_v[:2, :2])) else math.inf
-    fix = fix_type_for(state.provenance, horiz, speed_sigma_m_s=speed, max_fix_sigma_m=max_fix_sigma_m)
+    fix = fix_type_for(
+        state.provenance,
+        horiz,
+        speed_sigma_m_s=speed,
+        max_fix_sigma_m=max_fix_sigma_m,
+        max_speed_sigma_m_s=max_speed_sigma_m_s,
+    )
     return fix if _position_finite(state) else FIX_TYPE_NO_GPS
 
 
-#: After any GPS_INPUT that is not 3D, a 3D fix is declared only once the estimate has qualified for
-#: this long, s (``Fix3dGate``). Right after a start or a first fix the speed's sigma saw-tooths across
-#: ``FIX_3D_MAX_SPEED_SIGMA_M_S`` at the camera rate (propagation raises it, each update lowers it): one
-#: 3D message followed by three of fix 1 trips ArduPilot's GPS health rules (mean interval over 215 ms,
-#: ``sitl/ardupilot_rules.py``) for about 5 s. This covers one period of a 3 Hz camera.
+#: The stream's first 3D fix is declared only once the estimate has qualified for this long, s
+#: (``Fix3dGate``). ArduPilot seeds its filtered mean GPS interval with the first interval it sees
+#: (AP_GPS.cpp ``update_instance``; ``sitl/ardupilot_rules.py``), and right after a first fix the speed's
+#: sigma can saw-tooth across ``FIX_3D_MAX_SPEED_SIGMA_M_S`` at the camera rate (propagation raises it,
+#: each update lowers it): one 3D message followed by three of fix 1 seeds the mean at 400 ms, which
+#: holds the GPS unhealthy for about 5 s. Later gaps fold into a mean of ~100 ms, and holding 3D back
+#: then would only starve the EKF, so the settling is asked once. It covers one period of a 3 Hz camera.
 FIX_3D_SETTLE_S: Final[float] = 0.35
 
 
 class Fix3dGate:
-    """GPS_INPUT's fix_type over a stream of states: ``gps_input_fix_type``, except that a 3D fix after
-    anything else is held back as 1 (no fix) until the states have qualified for ``settle_s``. It only
-    ever lowers what the pure rule says. Not thread-safe: one output stream owns one gate."""
+    """GPS_INPUT's fix_type over a stream of states (``gps_input_fix_type`` for each state alone):
+
+    - **entering 3D** takes the pure rule (speed sigma at most ``FIX_3D_MAX_SPEED_SIGMA_M_S``), and the
+      stream's first 3D fix is held back as 1 (no fix) until the states have qualified for ``settle_s``
+      in a row;
+    - **staying 3D** takes the same rule with ``FIX_3D_KEEP_SPEED_SIGMA_M_S`` for the speed: position,
+      provenance and horizontal sigma are judged exactly as alone.
+
+    So a speed sigma that saw-tooths across 1.5 m/s neither flickers the stream nor starves the EKF,
+    and a velocity just started (10 m/s sigma after a restart) never enters 3D. Not thread-safe: one
+    output stream owns one gate.
+    """
 
     def __init__(self, settle_s: float = FIX_3D_SETTLE_S) -> None:
         if not (math.isfinite(settle_s) and settle_s >= 0):
             raise ValueError(f"settle_s must be a finite number of seconds >= 0, got {settle_s}")
         self._settle_usec = round(settle_s * 1e6)
         self._since_usec: int | None = None
+        self._declared = False
+        self._in_3d = False
 
     def fix_type(self, state: EstimatorState) -> int:
         """The fix_type to send for ``state`` (a later state than the previous call's)."""
+        if self._in_3d:
+            keep = gps_input_fix_type(state, max_speed_sigma_m_s=FIX_3D_KEEP_SPEED_SIGMA_M_S)
+            self._in_3d = keep == FIX_TYPE_3D
+            if self._in_3d:
+                return FIX_TYPE_3D
         fix = gps_input_fix_type(state)
         if fix != FIX_TYPE_3D:
             self._since_usec = None
             return fix
-        t = int(state.time_unix_usec)
-        if self._since_usec is None or t < self._since_usec:
-            self._since_usec = t
-        return FIX_TYPE_3D if t - self._since_usec >= self._settle_usec else FIX_TYPE_NO_FIX
+        if not self._declared:
+            t = int(state.time_unix_usec)
+            if self._since_usec is None or t < self._since_usec:
+                self._since_usec = t
+            if t - self._since_usec < self._settle_usec:
+                return FIX_TYPE_NO_FIX
+            self._declared = True
+        self._in_3d = True
+        return FIX_TYPE_3D
 
 
 def _dop(sigma_m: float) -> float:
