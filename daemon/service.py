@@ -44,7 +44,7 @@ from gps_denied_onboard.components.c5_estimator.prior import (
 )
 from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxisStats
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
-from gps_denied_onboard.components.c8_mavlink.messages import Fix3dGate
+from gps_denied_onboard.components.c8_mavlink.messages import Fix3dGate, stated_speed_sigma_m_s
 from gps_denied_onboard.components.c13_fdr import FdrHealth
 from gps_denied_onboard.constants import RESUME_STATE_INTERVAL_S, FdrKind, LogEvent, Provenance
 from gps_denied_onboard.daemon.beacon import StartupBeacon
@@ -615,8 +615,7 @@ class NavDaemon:
             )
             self._root.link.notify_provenance(old, new, f"GDN: {new.value}: {reason}" if reason else None)
         horiz = state.horiz_sigma_m if math.isfinite(state.lat_deg) else None
-        cov_v = np.asarray(state.cov_vel_ned_m2_s2, dtype=np.float64)[:2, :2]
-        speed = state.speed_sigma_m_s if np.all(np.isfinite(cov_v)) else math.inf
+        speed = stated_speed_sigma_m_s(state)
         if fix_type == 3 and horiz is not None:
             resume = ResumeState(state.lat_deg, state.lon_deg, horiz, state.time_unix_usec)
             self._last_3d = (resume, new.value)

@@ -424,9 +424,8 @@ CAMERA_OFFSET_MAX_SE_S: Final[float] = 0.02
 CAMERA_OFFSET_GRID_S: Final[float] = 0.005
 #: The applied correction moves only when the fit differs from it by more than this many standard errors
 #: (and at least CAMERA_OFFSET_MIN_STEP_S), so that it does not chase noise: the floored error to leave
-#: no correction, the fit's own once a correction is applied. On the simulated square with a camera
-#: 0.2 s late, the first sure fit said 0.315 s and later ones 0.19-0.225 s, each within the floored
-#: threshold of the 0.3 s applied, which then held for 18 s (and to the end of the flight under load).
+#: no correction, the fit's own once a correction is applied, so that an early fit which later fits
+#: disown (0.315 s against a true 0.2 s, in the emulator) is not kept.
 CAMERA_OFFSET_STEP_SE: Final[float] = 2.0
 #: The fit's standard error is taken as at least this, s: neighbouring tilts share their errors, which
 #: the scatter alone does not show. Measured on copter SITL 4.7.0-dev with a camera on time: fits of

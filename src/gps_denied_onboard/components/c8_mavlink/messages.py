@@ -133,6 +133,12 @@ def fix_type_for(
     return FIX_TYPE_NO_FIX
 
 
+def stated_speed_sigma_m_s(state: EstimatorState) -> float:
+    """The horizontal speed 1-sigma the fix_type rule judges, m/s: inf where its covariance is not finite."""
+    cov_v = np.asarray(state.cov_vel_ned_m2_s2, dtype=np.float64)
+    return state.speed_sigma_m_s if np.all(np.isfinite(cov_v[:2, :2])) else math.inf
+
+
 def gps_input_fix_type(
     state: EstimatorState,
     *,
@@ -141,12 +147,10 @@ def gps_input_fix_type(
 ) -> int:
     """GPS_INPUT's fix_type for ``state``: ``fix_type_for`` with its position and speed sigmas."""
     horiz = state.horiz_sigma_m if np.all(np.isfinite(state.cov_pos_ned_m2[:2, :2])) else math.inf
-    cov_v = np.asarray(state.cov_vel_ned_m2_s2, dtype=np.float64)
-    speed = state.speed_sigma_m_s if np.all(np.isfinite(cov_v[:2, :2])) else math.inf
     fix = fix_type_for(
         state.provenance,
         horiz,
-        speed_sigma_m_s=speed,
+        speed_sigma_m_s=stated_speed_sigma_m_s(state),
         max_fix_sigma_m=max_fix_sigma_m,
         max_speed_sigma_m_s=max_speed_sigma_m_s,
     )
