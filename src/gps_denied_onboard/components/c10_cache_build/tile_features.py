@@ -18,14 +18,11 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
-import hashlib
-import io
-import os
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 import structlog
@@ -44,12 +41,12 @@ from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
 from gps_denied_onboard.components.c10_cache_build.manifest import (
     TILES_NAME,
-    ArtifactInfo,
     CacheBuildError,
     CacheManifest,
     CacheManifestError,
     TileFeatureSetInfo,
 )
+from gps_denied_onboard.components.c10_cache_build.npy_stream import NpyStream
 from gps_denied_onboard.constants import LogEvent
 
 _log = structlog.get_logger(__name__)
@@ -119,8 +116,8 @@ def build_tile_features(
     n = len(store)
     table = np.zeros(n, dtype=TILE_TABLE_DTYPE)
     kp_name, desc_name, table_name = file_names(label)
-    kp_out = _NpyStream(cache_dir / kp_name)
-    desc_out = _NpyStream(cache_dir / desc_name)
+    kp_out = NpyStream(cache_dir / kp_name)
+    desc_out = NpyStream(cache_dir / desc_name)
     dim: int | None = None
     offset = 0
     show = progress and sys.stderr.isatty()
@@ -176,7 +173,7 @@ def build_tile_features(
             kp_name: kp_out.finish(np.dtype(np.float32), (offset, 2)),
             desc_name: desc_out.finish(np.dtype(np.float32), (offset, dim or 0)),
         }
-        table_stream = _NpyStream(cache_dir / table_name)
+        table_stream = NpyStream(cache_dir / table_name)
         table_stream.append(table)
         files[table_name] = table_stream.finish(TILE_TABLE_DTYPE, (n,))
     except OSError as exc:
@@ -239,53 +236,3 @@ def _intact(
     except CacheManifestError:
         return False
     return True
-
-
-class _NpyStream:
-    """Writes one ``.npy`` whose row count is known only at the end: rows are streamed to a raw
-    temporary file, then the header and the rows are written to ``<name>.tmp`` (hashed on the way),
-    fsynced and renamed to ``path``."""
-
-    def __init__(self, path: Path) -> None:
-        self._path = path
-        self._raw_path = path.with_name(path.name + ".raw.tmp")
-        self._raw: BinaryIO | None = open(self._raw_path, "wb")  # noqa: SIM115 - closed in finish/discard
-
-    def append(self, array: np.ndarray) -> None:
-        if self._raw is None:
-            raise ValueError(f"{self._path.name}: already finished")
-        self._raw.write(np.ascontiguousarray(array).data)
-
-    def finish(self, dtype: np.dtype, shape: tuple[int, ...]) -> ArtifactInfo:
-        if self._raw is None:
-            raise ValueError(f"{self._path.name}: already finished")
-        self._raw.close()
-        self._raw = None
-        expected = int(np.prod(shape)) * dtype.itemsize
-        written = self._raw_path.stat().st_size
-        if written != expected:
-            raise OSError(f"{self._raw_path.name}: {written} bytes written, expected {expected}")
-        tmp = self._path.with_name(self._path.name + ".tmp")
-        head = io.BytesIO()
-        np.lib.format.write_array_header_1_0(
-            head, {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False, "shape": shape}
-        )
-        digest = hashlib.sha256(head.getvalue())
-        with open(tmp, "wb") as out:
-            out.write(head.getvalue())
-            with open(self._raw_path, "rb") as raw:
-                while chunk := raw.read(_COPY_CHUNK_BYTES):
-                    out.write(chunk)
-                    digest.update(chunk)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(tmp, self._path)
-        self._raw_path.unlink(missing_ok=True)
-        return ArtifactInfo(sha256=digest.hexdigest(), bytes=self._path.stat().st_size)
-
-    def discard(self) -> None:
-        """Drop the raw temporary file (after ``finish`` or on failure)."""
-        if self._raw is not None:
-            self._raw.close()
-            self._raw = None
-        self._raw_path.unlink(missing_ok=True)
