@@ -35,8 +35,11 @@ BLUR_SIGMA_PX: Final = 1.0
 LOCAL_SIGMA_PX: Final = 8.0
 #: ``w`` is one half where an edge is this many times its neighbourhood's mean gradient.
 SOFT_KNEE: Final = 1.0
-#: How far inside the valid footprint a pixel must be for its gradient to count, px (blur + Sobel).
-EDGE_MARGIN_PX: Final = 3
+#: How far inside the valid footprint a pixel must be for its gradient to count, px: the blur's kernel
+#: reaches 4 px (OpenCV's 9-tap kernel at sigma 1) and the Sobel one more, so no counted gradient sees a
+#: pixel outside the footprint (what fills nodata does not matter, and a band of a map gives the same
+#: field as the whole map).
+EDGE_MARGIN_PX: Final = 5
 #: The int8 value that marks nodata in the real part of a quantised field.
 NODATA: Final = -128
 _SCALE: Final = 127.0
