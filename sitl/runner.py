@@ -618,6 +618,7 @@ def _build_tile_features(daemon_cfg: Config, cache_dir: Path, *, progress: bool)
 def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     """Fly one scenario and return the report (also written to ``opts.report_path`` with a PNG)."""
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache_from_geotiff
+    from gps_denied_onboard.components.c10_cache_build.map_fields import build_map_fields
 
     workdir = opts.workdir or opts.report_path.parent / "work"
     workdir.mkdir(parents=True, exist_ok=True)
@@ -669,6 +670,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
     t_cache = time.monotonic()
     try:
         build_cache_from_geotiff(cache_source, cache_dir, progress=not opts.quiet)
+        build_map_fields(cache_dir, progress=not opts.quiet)  # as `gdnav cache build` does
         _build_vpr_index(daemon_cfg, cache_dir, progress=not opts.quiet)
         if daemon_cfg.matcher.tile_features == "require":  # the daemon refuses to start without them
             _build_tile_features(daemon_cfg, cache_dir, progress=not opts.quiet)

@@ -175,7 +175,46 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
         _err(str(exc))
         return EXIT_CONFIG
     print(f"cache: {args.out}: zoom {manifest.zoom}, {manifest.tile_count} tiles")
+    if args.no_fields:
+        return EXIT_OK
+    return _map_fields(Path(args.out), force=False, quiet=args.quiet)
+
+
+def _map_fields(cache_dir: Path, *, force: bool, quiet: bool) -> int:
+    """Add the area correlation's orientation fields and their calibration (``c10_cache_build.map_fields``)
+    and say what they are."""
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.map_fields import build_map_fields
+
+    try:
+        result = build_map_fields(cache_dir, force=force, progress=not quiet)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_RESOURCE
+    info = result.manifest.map_fields
+    assert info is not None
+    size_mib = sum(f.bytes for f in info.files.values()) / 2**20
+    what = "built" if result.built else "up to date"
+    cal = info.calibration
+    if cal is None:
+        print(
+            f"cache: {cache_dir}: orientation fields {what} ({size_mib:.1f} MiB), not calibrated: the map "
+            "has no room for a calibration template and its search disc; orientation_corr will not run on it"
+        )
+        return EXIT_OK
+    print(
+        f"cache: {cache_dir}: orientation fields {what} ({size_mib:.1f} MiB); calibration over "
+        f"{cal.samples} templates of {cal.template_px[0]}x{cal.template_px[1]} px in a "
+        f"{cal.radius_px:.0f} px disc: wrong places PSR <= {cal.null_psr_max:.1f}, peak <= "
+        f"{cal.null_peak_max:.3f}; right places PSR p5 {cal.right_psr_p5:.1f}, "
+        f"peak p5 {cal.right_peak_p5:.3f}"
+    )
     return EXIT_OK
+
+
+def _cmd_cache_fields(args: argparse.Namespace) -> int:
+    configure_logging("info", json=False)
+    return _map_fields(Path(args.cache), force=args.force, quiet=args.quiet)
 
 
 def _cmd_cache_vpr(args: argparse.Namespace) -> int:
@@ -397,6 +436,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="tile server: build with gaps where downloads still failed after retries",
     )
     build.add_argument("--quiet", action="store_true", help="no progress bar")
+    build.add_argument(
+        "--no-fields",
+        action="store_true",
+        help="skip the orientation fields of the area correlation (gdnav cache fields adds them later)",
+    )
     build.set_defaults(func=_cmd_cache_build)
     vpr = cache_sub.add_parser(
         "vpr",
@@ -450,6 +494,17 @@ def build_parser() -> argparse.ArgumentParser:
     feats.add_argument("--force", action="store_true", help="rebuild even when the set is up to date")
     feats.add_argument("--quiet", action="store_true", help="no progress bar")
     feats.set_defaults(func=_cmd_cache_features)
+    fields = cache_sub.add_parser(
+        "fields",
+        help="add the area correlation's orientation fields and their calibration to a cache",
+        description="Compute the map's gradient-orientation fields (two pyramid levels, CRC-32 per cell) "
+        "and calibrate what a right and a wrong place score on this map, for matcher.strategy "
+        "orientation_corr and the area rung of auto. `gdnav cache build` does this itself. Idempotent.",
+    )
+    fields.add_argument("--cache", required=True, help="cache directory made by `gdnav cache build`")
+    fields.add_argument("--force", action="store_true", help="rebuild even when the fields are up to date")
+    fields.add_argument("--quiet", action="store_true", help="no progress bar")
+    fields.set_defaults(func=_cmd_cache_fields)
 
     sitl = sub.add_parser(
         "sitl",

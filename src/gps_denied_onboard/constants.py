@@ -181,6 +181,14 @@ class LogEvent:
     TILE_FEATURES_REFUSED: Final = "c3.tile_features.refused"
     #: One tile's precomputed features failed their CRC-32 on read: that tile is extracted live.
     TILE_FEATURES_CORRUPT: Final = "c3.tile_features.corrupt"
+    #: The map's orientation fields for the area correlation were built, or were already up to date.
+    MAP_FIELDS_BUILT: Final = "c10.cache.map_fields_built"
+    MAP_FIELDS_UP_TO_DATE: Final = "c10.cache.map_fields_up_to_date"
+    #: At start: the area correlation's map fields are used (with their calibration), or why not.
+    MAP_FIELDS_READY: Final = "c6.map_fields.ready"
+    MAP_FIELDS_REFUSED: Final = "c6.map_fields.refused"
+    #: A cell of the map fields failed its CRC-32 on read: nodata for the rest of the run.
+    MAP_FIELDS_CELL_CORRUPT: Final = "c6.map_fields.cell_corrupt"
     RERANK_DONE: Final = "c2_5.rerank.done"
     CACHE_OPENED: Final = "c6.cache.opened"
     CACHE_REFUSED: Final = "c6.cache.refused"
@@ -219,6 +227,11 @@ class IntegrityReason:
     LOW_MATCH_CONFIDENCE: Final = "low_match_confidence"
     AMBIGUOUS_CANDIDATES: Final = "ambiguous_candidates"
     PRIOR_DISAGREEMENT: Final = "prior_disagreement"
+    #: An area alignment's peak does not stand out of its disc (peak-to-sidelobe ratio), is too weak
+    #: (normalised peak), or has a second place almost as strong.
+    LOW_PSR: Final = "low_psr"
+    LOW_PEAK: Final = "low_peak"
+    AMBIGUOUS_PEAK: Final = "ambiguous_peak"
 
 
 class FdrKind:
@@ -263,3 +276,7 @@ class FdrKind:
     TILE_FEATURES: Final = "cache.tile_features"
     #: One tile's precomputed features failed their CRC-32 on read: never used again, extracted live.
     TILE_FEATURES_CORRUPT: Final = "cache.tile_features_corrupt"
+    #: At start: whether the area correlation uses the cache's map fields (and their calibration), or why not.
+    MAP_FIELDS: Final = "cache.map_fields"
+    #: A cell of the map fields failed its CRC-32 on read: nodata for the rest of the run.
+    MAP_FIELDS_CORRUPT: Final = "cache.map_fields_corrupt"

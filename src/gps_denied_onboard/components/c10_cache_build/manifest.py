@@ -8,7 +8,9 @@ A cache is a directory::
     tile_valid_fraction.npy    float32 (rows, cols): valid-pixel fraction of every tile in the range
 
 Every artifact is listed in ``manifest.artifacts`` with its size and sha256; C6 refuses a cache whose
-artifacts do not match (D-C10-3). Precomputed tile features (``gdnav cache features``) are an optional
+artifacts do not match (D-C10-3). The map's orientation fields for the area correlation
+(``c10_cache_build/map_fields.py``) are listed apart, in ``map_fields``, with their calibration, and so
+are precomputed tile features (``gdnav cache features``) are an optional
 accelerator listed apart, in ``tile_features`` (one set per C3 strategy, with the identity of the
 extractor that made it and its own files' sizes and sha256): the matcher verifies and uses a set, or
 refuses it and extracts live; a damaged set never refuses the cache itself. This module is deliberately
@@ -173,6 +175,98 @@ class TileFeatureSetInfo:
 
 
 @dataclass(frozen=True)
+class FieldCalibration:
+    """What the area correlation scores on this map (``c10_cache_build/map_fields.py``, "Calibration").
+
+    Templates cut from the map itself (degraded like a frame) are searched in discs of ``radius_px``
+    level-1 px: once where the truth lies inside (``right_*``: how well this map's own structure is
+    found, an upper bound for a real frame) and once where it lies outside (``null_*``: what a wrong
+    place scores here, the level a real fix must clear). ``texture_p50`` is the median share of
+    structure in those templates.
+    """
+
+    samples: int
+    radius_px: float
+    template_px: tuple[int, int]
+    null_psr_max: float
+    null_psr_p95: float
+    null_peak_max: float
+    right_psr_p5: float
+    right_peak_p5: float
+    texture_p50: float
+
+    def to_json(self) -> dict[str, Any]:
+        out = vars(self).copy()
+        out["template_px"] = list(self.template_px)
+        return out
+
+    @classmethod
+    def from_json(cls, payload: Mapping[str, Any]) -> FieldCalibration:
+        return cls(
+            samples=int(payload["samples"]),
+            radius_px=float(payload["radius_px"]),
+            template_px=(int(payload["template_px"][0]), int(payload["template_px"][1])),
+            null_psr_max=float(payload["null_psr_max"]),
+            null_psr_p95=float(payload["null_psr_p95"]),
+            null_peak_max=float(payload["null_peak_max"]),
+            right_psr_p5=float(payload["right_psr_p5"]),
+            right_peak_p5=float(payload["right_peak_p5"]),
+            texture_p50=float(payload["texture_p50"]),
+        )
+
+
+@dataclass(frozen=True)
+class MapFieldsInfo:
+    """The map's orientation fields (``c10_cache_build/map_fields.py``): the field definition they were
+    made with (``version``), the mosaic they were made from, one quantised field and one CRC-32 table per
+    pyramid level (``levels``: level -> (field file, CRC file, cell side px)), every file's size and
+    sha256, the map's calibration (None until it is made) and build figures (``stats``, for people)."""
+
+    version: str
+    mosaic_sha256: str
+    levels: Mapping[int, tuple[str, str, int]]
+    files: Mapping[str, ArtifactInfo]
+    calibration: FieldCalibration | None = None
+    stats: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "version": self.version,
+            "mosaic_sha256": self.mosaic_sha256,
+            "levels": {
+                str(level): {"file": f, "crc_file": c, "cell_px": cell}
+                for level, (f, c, cell) in sorted(self.levels.items())
+            },
+            "files": {name: vars(info).copy() for name, info in sorted(self.files.items())},
+            "calibration": None if self.calibration is None else self.calibration.to_json(),
+            "stats": dict(self.stats),
+        }
+
+    @classmethod
+    def from_json(cls, payload: Mapping[str, Any]) -> MapFieldsInfo:
+        cal = payload.get("calibration")
+        return cls(
+            version=str(payload["version"]),
+            mosaic_sha256=str(payload["mosaic_sha256"]),
+            levels={
+                int(level): (str(v["file"]), str(v["crc_file"]), int(v["cell_px"]))
+                for level, v in payload["levels"].items()
+            },
+            files={
+                str(name): ArtifactInfo(sha256=str(info["sha256"]), bytes=int(info["bytes"]))
+                for name, info in payload["files"].items()
+            },
+            calibration=None if cal is None else FieldCalibration.from_json(cal),
+            stats=dict(payload.get("stats", {})),
+        )
+
+    def verify_files(self, cache_dir: Path, *, verify_hashes: bool = True) -> None:
+        """Every file present with its recorded size and (optionally) sha256; CacheManifestError names
+        the first that is not."""
+        _verify_files(Path(cache_dir), self.files, verify_hashes=verify_hashes)
+
+
+@dataclass(frozen=True)
 class CacheManifest:
     """In-memory form of ``manifest.json`` (field names mirror the JSON keys).
 
@@ -197,6 +291,8 @@ class CacheManifest:
     artifacts: Mapping[str, ArtifactInfo] = field(default_factory=dict)
     #: Precomputed tile features by C3 strategy label (optional; absent in caches made before them).
     tile_features: Mapping[str, TileFeatureSetInfo] = field(default_factory=dict)
+    #: The orientation fields of the area correlation (optional; absent in caches made before them).
+    map_fields: MapFieldsInfo | None = None
 
     @property
     def mosaic_name(self) -> str:
@@ -219,6 +315,7 @@ class CacheManifest:
             "vpr": vars(self.vpr).copy(),
             "artifacts": {name: vars(info).copy() for name, info in sorted(self.artifacts.items())},
             "tile_features": {name: info.to_json() for name, info in sorted(self.tile_features.items())},
+            "map_fields": None if self.map_fields is None else self.map_fields.to_json(),
         }
 
     @classmethod
@@ -258,6 +355,11 @@ class CacheManifest:
                     str(name): TileFeatureSetInfo.from_json(info)
                     for name, info in payload.get("tile_features", {}).items()
                 },
+                map_fields=(
+                    MapFieldsInfo.from_json(payload["map_fields"])
+                    if payload.get("map_fields") is not None
+                    else None
+                ),
             )
         except (KeyError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as exc:
             raise CacheManifestError(f"malformed cache manifest: {exc!r}"[:500], path=path) from exc
