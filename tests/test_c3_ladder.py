@@ -58,15 +58,32 @@ def test_failures_climb_the_ladder_and_an_accepted_fix_sends_it_back_down() -> N
     assert ladder.choose(10.0).name == "chip"
 
 
-def test_when_every_allowed_rung_gave_up_the_highest_keeps_the_attempts() -> None:
+def test_when_every_allowed_rung_gave_up_the_ladder_starts_again_from_the_lowest() -> None:
+    rungs = (
+        LadderRung("a", candidates=1, give_up_after=1),
+        LadderRung("b", candidates=2, give_up_after=2),
+        LadderRung("c", candidates=2, max_prior_sigma_m=5.0, give_up_after=1),
+    )
+    ladder = EffortLadder.from_config(rungs, MATCHERS, default_strategy="xfeat_mnn", max_candidates=3)  # type: ignore[arg-type]
+    ladder.note(ladder.choose(50.0).name, accepted=False)
+    assert ladder.choose(50.0).name == "b"
+    for _ in range(2):
+        ladder.note(ladder.choose(50.0).name, accepted=False)
+    # a and b (c is not allowed at 50 m) both gave up: a again, with fresh counts for both
+    assert ladder.choose(50.0).name == "a"
+    assert ladder.failures() == {"a": 0, "b": 0, "c": 0}
+
+
+def test_a_rung_without_give_up_keeps_the_attempts_once_the_rest_gave_up() -> None:
     rungs = (
         LadderRung("a", candidates=1, give_up_after=1),
         LadderRung("b", candidates=2, max_prior_sigma_m=5.0),
     )
     ladder = EffortLadder.from_config(rungs, MATCHERS, default_strategy="xfeat_mnn", max_candidates=3)  # type: ignore[arg-type]
     ladder.note("a", accepted=False)
-    assert ladder.choose(50.0).name == "a"  # b is not allowed at 50 m; a gave up but is the highest left
     assert ladder.choose(1.0).name == "b"
+    ladder.note("b", accepted=False)
+    assert ladder.choose(1.0).name == "b"  # b never gives up
 
 
 def test_no_ladder_is_one_rung_with_the_configured_matcher() -> None:

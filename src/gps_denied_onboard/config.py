@@ -274,11 +274,33 @@ class LadderRung:
 
 
 @dataclasses.dataclass(frozen=True)
+class CorrelationConfig:
+    """The area correlation (``matcher.strategy: orientation_corr``; ``c3_matcher/orientation_corr.py``):
+    which heading and height hypotheses it tries. The rest is fixed by the map's calibration."""
+
+    __pydantic_config__: ClassVar[ConfigDict] = _STRICT
+
+    #: 1-sigma of the autopilot's heading as the nav camera sees it (compass or GSF yaw, and the camera's
+    #: mount in yaw), degrees. Rotations out to 3 sigma are tried (at most ``max_steps`` each way).
+    heading_sigma_deg: PosFloat = 1.5
+    #: 1-sigma of the autopilot's height above the map's ground, as a share of it (baro drift, and ground
+    #: that is not at ``terrain.ground_alt_amsl_m``). Scales out to 3 sigma are tried.
+    height_sigma_frac: Annotated[float, Strict(), Field(gt=0, le=0.2)] = 0.02
+    #: Steps of the hypothesis grid: one template tolerates about a degree and 2 % (docs/design.md).
+    heading_step_deg: Annotated[float, Strict(), Field(gt=0, le=5)] = 1.0
+    height_step_frac: Annotated[float, Strict(), Field(gt=0, le=0.1)] = 0.02
+    #: Most steps tried on each side of the autopilot's heading and height.
+    max_steps: Annotated[int, Strict(), Field(ge=0, le=8)] = 4
+
+
+@dataclasses.dataclass(frozen=True)
 class MatcherConfig:
     __pydantic_config__: ClassVar[ConfigDict] = _STRICT
 
     #: C3 strategy: classical (weights-free), disk_lightglue, aliked_lightglue, xfeat, xfeat_mnn (the XFeat
-    #: extractor matched by mutual nearest neighbour, no LightGlue: the fast one on a CPU), or auto (by what
+    #: extractor matched by mutual nearest neighbour, no LightGlue: the fast one on a CPU),
+    #: orientation_corr (the whole frame correlated with the map's orientation fields: weights-free, the
+    #: real-time cross-date matcher on a CPU; needs the cache's calibrated map fields), or auto (by what
     #: this machine runs: with a CUDA or TensorRT provider disk_lightglue, aliked_lightglue, xfeat; on a CPU
     #: alone xfeat, aliked_lightglue, disk_lightglue; the first whose export in model_dir passed `gdnav
     #: models verify`; else an ALIKED extractor alone with mutual NN; else classical; logged with why).
@@ -300,6 +322,8 @@ class MatcherConfig:
     ransac_max_iters: PosInt = 5000
     #: Side of the map chip matched per candidate, px (the chip is centred on the tile).
     chip_size_px: Annotated[int, Strict(), Field(ge=128, le=4096)] = 512
+    #: The area correlation's hypotheses (``orientation_corr``).
+    correlation: CorrelationConfig = CorrelationConfig()
     #: Classical (weights-free) strategy.
     classical_detector: Literal["sift", "orb"] = "sift"
     #: Features per image and Lowe's ratio for the classical strategy.
@@ -424,6 +448,21 @@ class IntegrityConfig:
     #: 20-50 m measured on cross-date XFeat fixes at 1200 m AGL were the camera's tilt solved from the
     #: image alone; with the attitude prior (``pose.attitude_sigma_deg``) they are gone (docs/benchmarks.md).
     regional_sigma_map_px: Annotated[float, Strict(), Field(ge=0)] = 0.0
+    #: An area correlation's fix (``orientation_corr``) is refused when its peak-to-sidelobe ratio is below
+    #: ``min_psr``, or below ``psr_null_margin`` times what a wrong place scores on this map (the cache's
+    #: calibration); likewise its normalised peak against ``min_peak`` and ``peak_null_margin``; and when
+    #: a second place scores ``max_secondary_ratio`` of the peak or more. Measured on NAIP across dates
+    #: (docs/benchmarks.md, "Area correlation"): right fixes PSR p5 12-14, peak p5 0.13; wrong places
+    #: PSR at most 5.7, peak at most 0.045.
+    min_psr: PosFloat = 8.0
+    psr_null_margin: Annotated[float, Strict(), Field(ge=1)] = 1.5
+    min_peak: Fraction = 0.06
+    peak_null_margin: Annotated[float, Strict(), Field(ge=1)] = 2.0
+    max_secondary_ratio: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.8
+    #: Full evidence of an area fix: at or above these its sigma is not inflated; below, each scales it up
+    #: linearly.
+    full_evidence_psr: PosFloat = 15.0
+    full_evidence_peak: Fraction = 0.15
     #: Cap on the sigma factor.
     max_sigma_scale: Annotated[float, Strict(), Field(ge=1)] = 10.0
     #: Floor on the per-axis sigma in map pixels (a match is never better than the map's pixel).

@@ -39,20 +39,21 @@ from gps_denied_onboard.camera.types import CameraCalibration, CameraMount, Fram
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 from gps_denied_onboard.components.c2_5_rerank.footprint import FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
-from gps_denied_onboard.components.c2_5_rerank.types import RerankResult
+from gps_denied_onboard.components.c2_5_rerank.types import RerankResult, SearchPrior
 from gps_denied_onboard.components.c2_vpr.protocol import SearchRegion, VprStrategy
 from gps_denied_onboard.components.c2_vpr.types import VprError, VprQuery, VprResult
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherError
 from gps_denied_onboard.components.c3_matcher.ladder import EffortLadder, Rung
 from gps_denied_onboard.components.c3_matcher.protocol import CrossDomainMatcher
 from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, MatchResult
+from gps_denied_onboard.components.c4_pose.area_pose import AreaPoseSolver
 from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeCheck, AttitudeVerdict
 from gps_denied_onboard.components.c4_pose.consistency import ConsistencyVerdict, FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import (
     CandidateFix,
     FixIntegrity,
     IntegrityVerdict,
-    MatchEvidence,
+    evidence_of,
     with_regional_error,
     with_timing_error,
 )
@@ -200,9 +201,11 @@ class NavigationPipeline:
         clock_ns: Callable[[], int] = time.perf_counter_ns,
         attitude_sigma_deg: float | None = None,
         ladder: EffortLadder | None = None,
+        area_pose_solver: AreaPoseSolver | None = None,
     ) -> None:
         """``matcher``: C3 alone (a one-rung ladder, every candidate); ``ladder``: the effort ladder,
-        which then replaces it (``c3_matcher/ladder.py``)."""
+        which then replaces it (``c3_matcher/ladder.py``). ``area_pose_solver``: the pose of an area
+        matcher's alignments (``c4_pose/area_pose.py``; needed when a rung runs ``orientation_corr``)."""
         self._calib = calibration
         self._footprint_chips = footprint_chips
         self._mount = mount if mount is not None else CameraMount()
@@ -217,6 +220,7 @@ class NavigationPipeline:
         if ladder is None and matcher is not None:
             self._ladder = EffortLadder.single(type(matcher).__name__, matcher, MAX_CANDIDATES)
         self._pose = pose_solver
+        self._area_pose = area_pose_solver
         self._axis = time_axis
         self._fdr = fdr
         self._integrity = integrity
@@ -516,11 +520,17 @@ class NavigationPipeline:
                 "fix_sigma_m": fix.horiz_sigma_m if fix else None,
                 "fix_shared_sigma_m": fix.shared_sigma_m if fix else None,
                 "fix_image_tilt_off_deg": (
-                    round(math.degrees(fix.attitude_disagreement_rad), 3) if fix else None
+                    round(math.degrees(fix.attitude_disagreement_rad), 3)
+                    if fix and fix.attitude_disagreement_rad is not None
+                    else None
                 ),
                 "fix_image_tilt_off_cam_deg": (
-                    [round(math.degrees(v), 4) for v in fix.image_tilt_off_cam_rad] if fix else None
+                    [round(math.degrees(v), 4) for v in fix.image_tilt_off_cam_rad]
+                    if fix and fix.image_tilt_off_cam_rad is not None
+                    else None
                 ),
+                "fix_yaw_deg": round(math.degrees(fix.yaw_rad), 3) if fix else None,
+                "fix_alt_amsl_m": round(fix.alt_amsl_m, 2) if fix else None,
                 "timing": _timing_fields(frame.timing),
                 "attitude_check": attempt.attitude.fdr_fields() if attempt.attitude is not None else None,
                 "ground_tilt_check": ground_tilt.fdr_fields() if ground_tilt is not None else None,
@@ -603,6 +613,7 @@ class NavigationPipeline:
         if not vpr_result.candidates:
             return FixAttempt(None, 0, None, "no_tiles_in_region")
         rerank_result = self._footprint_first(frame, prior_state, self._rerank.rerank(frame, vpr_result))
+        rerank_result = replace(rerank_result, search=_search_prior(prior_state))
         # The effort ladder: this attempt's matcher and how many of the candidates it gets.
         rung = self._ladder.choose(prior_state.horiz_sigma_m)
         rerank_result = replace(rerank_result, candidates=rerank_result.candidates[: rung.candidates])
@@ -655,6 +666,8 @@ class NavigationPipeline:
         t3 = self._clock_ns()
         timings["match"] = (t3 - t2) / 1e6
         best = match.best
+        if best.area is not None:
+            return self._area_matched(frame, match, rerank_result, prior_state, timings, t3)
         handle = next(c.tile_pixels_handle for c in rerank_result.candidates if c.tile_id == best.tile_id)
         try:
             fix = self._pose.solve(frame, best, handle, self._calib)
@@ -665,6 +678,7 @@ class NavigationPipeline:
             )
         t4 = self._clock_ns()
         timings["pose"] = (t4 - t3) / 1e6
+        assert fix.image_tilt_off_cam_rad is not None  # a solve from points measures the tilt
         self._note_camera_tilt(fix.image_tilt_off_cam_rad, frame.exposure_time_unix_usec, frame.timing)
         if not self._comparable(frame.timing):
             # The timing doubt at this attitude rate could make the tilt difference by itself: the check
@@ -682,6 +696,32 @@ class NavigationPipeline:
         timings["integrity"] = (self._clock_ns() - t4) / 1e6
         return self._judged(frame, match, best, verdict, attitude)
 
+    def _area_matched(
+        self,
+        frame: NavCameraFrame,
+        match: MatchResult,
+        rerank_result: RerankResult,
+        prior_state: EstimatorState,
+        timings: dict[str, float],
+        t3: int,
+    ) -> FixAttempt:
+        """C4 on an area matcher's best alignment (``c4_pose/area_pose.py``): its pose, then the
+        integrity rule. The fix measured no tilt of its own, so neither the camera's stamp fit nor the
+        fixes' attitude check hears from it (VO's ground tilt still judges its exposure)."""
+        best = match.best
+        if self._area_pose is None:
+            raise RuntimeError("an area matcher ran but the pipeline has no area pose solver (composition)")
+        try:
+            fix = self._area_pose.solve(frame, best)
+        except PoseError as exc:
+            timings["pose"] = (self._clock_ns() - t3) / 1e6
+            return FixAttempt(None, 0, None, f"pose_rejected:{exc.reason}")
+        t4 = self._clock_ns()
+        timings["pose"] = (t4 - t3) / 1e6
+        verdict = self._judge(frame, match, rerank_result, fix, prior_state)
+        timings["integrity"] = (self._clock_ns() - t4) / 1e6
+        return self._judged(frame, match, best, verdict, None)
+
     def _judged(
         self,
         frame: NavCameraFrame,
@@ -691,6 +731,7 @@ class NavigationPipeline:
         attitude: AttitudeVerdict | None,
     ) -> FixAttempt:
         """The attempt the integrity rule's ``verdict`` makes of a solved fix."""
+        residual = None if best.area is not None else match.reprojection_residual_px
         if not verdict.accepted:
             log.warning(
                 LogEvent.FIX_INTEGRITY_REFUSED,
@@ -701,7 +742,7 @@ class NavigationPipeline:
             return FixAttempt(
                 verdict.fix,
                 best.inlier_count,
-                match.reprojection_residual_px,
+                residual,
                 f"integrity:{verdict.reason}",
                 integrity=verdict,
                 attitude=attitude,
@@ -709,7 +750,7 @@ class NavigationPipeline:
         return FixAttempt(
             verdict.fix,
             best.inlier_count,
-            match.reprojection_residual_px,
+            residual,
             None,
             integrity=verdict,
             attitude=attitude,
@@ -746,24 +787,38 @@ class NavigationPipeline:
         candidates it asks for (solved here; one that cannot be solved is no rival), and the prior."""
         size = (self._calib.width_px, self._calib.height_px)
         best = match.best
+        best_ev = evidence_of(best, size)
         handles = {c.tile_id: c.tile_pixels_handle for c in rerank_result.candidates}
         rivals = []
         for i, cand in enumerate(match.per_candidate):
-            if i == match.best_candidate_idx or not self._integrity.wants_rival(
-                best.inlier_count, cand.inlier_count
-            ):
+            rival_ev = evidence_of(cand, size)
+            if i == match.best_candidate_idx or not self._integrity.wants_rival(best_ev, rival_ev):
                 continue
             try:
-                rival_fix = self._pose.solve(frame, cand, handles[cand.tile_id], self._calib)
+                if cand.area is not None and self._area_pose is not None:
+                    rival_fix = self._area_pose.solve(frame, cand)
+                else:
+                    rival_fix = self._pose.solve(frame, cand, handles[cand.tile_id], self._calib)
             except PoseError:
                 continue
-            rivals.append(CandidateFix(rival_fix, MatchEvidence.of_candidate(cand, size)))
+            rivals.append(CandidateFix(rival_fix, rival_ev))
+        gsd = best.area.map_gsd_m_px if best.area is not None else float(handles[best.tile_id].gsd_m_px)
         return self._integrity.assess(
-            CandidateFix(fix, MatchEvidence.of_candidate(best, size)),
-            map_gsd_m_px=float(handles[best.tile_id].gsd_m_px),
+            CandidateFix(fix, best_ev),
+            map_gsd_m_px=gsd,
             rivals=rivals,
             prior=prior_state,
         )
+
+
+def _search_prior(state: EstimatorState) -> SearchPrior:
+    """Where the estimate puts the camera, for a matcher that searches around it: its position and its
+    horizontal sigma relative to the map (the map's own error is common to the map and the fix)."""
+    cov = state.map_frame_cov_ne_m2
+    if not np.all(np.isfinite(cov)):
+        return SearchPrior(state.lat_deg, state.lon_deg, math.inf)
+    sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(cov))), 0.0))
+    return SearchPrior(state.lat_deg, state.lon_deg, sigma)
 
 
 def _timing_fields(timing: FrameTiming | None) -> dict[str, object] | None:

@@ -37,6 +37,7 @@ from gps_denied_onboard.components.c3_matcher.tile_features import (
 )
 from gps_denied_onboard.components.c3_matcher.xfeat import XFEAT_DESCRIPTOR_DIM
 from gps_denied_onboard.components.c4_pose import PoseSolver
+from gps_denied_onboard.components.c4_pose.area_pose import AreaPoseSolver
 from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeCheck
 from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
@@ -48,6 +49,7 @@ from gps_denied_onboard.components.c5_estimator.resume_state import (
     default_path,
     read_resume_state,
 )
+from gps_denied_onboard.components.c6_tiles.map_fields import MapFields, MapFieldsRefused
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
 from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
@@ -59,7 +61,7 @@ from gps_denied_onboard.components.c8_mavlink import (
     VehicleStateTracker,
 )
 from gps_denied_onboard.components.c13_fdr import FdrClient, FlightDataRecorder, read_records_newest_first
-from gps_denied_onboard.config import Config, MatcherConfig
+from gps_denied_onboard.config import Config, LadderRung, MatcherConfig
 from gps_denied_onboard.constants import FdrKind, LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
@@ -172,7 +174,9 @@ def preflight(config: Config) -> None:
 
 
 #: C3 strategies that need no model file (and so no ONNX runtime objects).
-WEIGHTS_FREE_MATCHERS = frozenset({"classical"})
+WEIGHTS_FREE_MATCHERS = frozenset({"classical", "orientation_corr"})
+#: The strategies that read the cache's orientation fields instead of chip pixels.
+AREA_MATCHERS = frozenset({"orientation_corr"})
 
 def _vlad_xfeat(tiles: TileStore, config: Config) -> VprStrategy:
     """``vlad_xfeat``: the XFeat extractor from ``vpr.xfeat_weights_path``, else from the verified
@@ -248,6 +252,7 @@ def _matcher_deps(
     fdr: FdrClient,
     health: RollingHealthWindow,
     tile_features: PrecomputedTileFeatures | None = None,
+    map_fields: MapFields | None = None,
 ) -> dict[str, Any]:
     """The superset of collaborators a C3 strategy may ask for; ONNX objects only for learned strategies
     (the weights-free default must start on a machine without any model file)."""
@@ -257,6 +262,7 @@ def _matcher_deps(
         "fdr_client": fdr,
         "health_window": health,
         "tile_features": tile_features,
+        "map_fields": map_fields,
     }
     if config.matcher.strategy in WEIGHTS_FREE_MATCHERS:
         return deps
@@ -416,6 +422,85 @@ def resolve_matcher(config: Config) -> Config:
     return fallback(f"no learned model in {m.model_dir}")
 
 
+def _uses_area_matcher(config: Config) -> bool:
+    m = config.matcher
+    return m.strategy in AREA_MATCHERS or any(r.strategy in AREA_MATCHERS for r in m.ladder)
+
+
+def with_area_rung(unresolved: Config, config: Config, tiles: TileStore) -> Config:
+    """``auto`` on a CPU alone, with no ladder configured, on a cache whose orientation fields are
+    calibrated: the area correlation first, as the fast rung of a ladder whose heavy rung is the strategy
+    ``resolve_matcher`` picked (docs/design.md, "Area correlation"). It gives up to the heavy rung after
+    ``AUTO_AREA_GIVE_UP`` attempts in a row without an accepted fix, which gives back after
+    ``AUTO_HEAVY_GIVE_UP``. Anything else: ``config`` unchanged. The choice is logged with why."""
+    m = unresolved.matcher
+    if m.strategy != "auto" or m.ladder:
+        return config
+    _order, why = auto_order(resolve_providers())
+    if any(p != "CPUExecutionProvider" for p in resolve_providers()):
+        return config
+    info = tiles.manifest.map_fields
+    if info is None or info.calibration is None:
+        log.info(
+            LogEvent.C3_AUTO_SELECTED,
+            strategy=config.matcher.strategy,
+            area_rung=False,
+            reason=f"{why}: the cache has no calibrated orientation fields (gdnav cache fields)",
+        )
+        return config
+    top_n = config.rerank.top_n
+    ladder = (
+        LadderRung("correlation", "orientation_corr", candidates=top_n, give_up_after=AUTO_AREA_GIVE_UP),
+        LadderRung("keypoints", None, candidates=top_n, give_up_after=AUTO_HEAVY_GIVE_UP),
+    )
+    log.info(
+        LogEvent.C3_AUTO_SELECTED,
+        strategy="orientation_corr",
+        heavy_rung=config.matcher.strategy,
+        area_rung=True,
+        reason=f"{why}: the cache's orientation fields are calibrated; {config.matcher.strategy} "
+        f"after {AUTO_AREA_GIVE_UP} attempts without a fix",
+    )
+    return dataclasses.replace(config, matcher=dataclasses.replace(config.matcher, ladder=ladder))
+
+
+#: ``auto``'s area rung gives the attempts to the heavy rung after this many in a row without a fix,
+#: and the heavy rung gives them back after its own run of failures.
+AUTO_AREA_GIVE_UP = 3
+AUTO_HEAVY_GIVE_UP = 2
+
+
+def open_map_fields(config: Config, tiles: TileStore, fdr: FdrClient) -> MapFields | None:
+    """The cache's orientation fields when a rung runs an area matcher (``orientation_corr``), verified
+    (``cache.verify_hashes``) and calibrated; None when none does. What was decided is logged and
+    recorded (``cache.map_fields``). Raises ``StartupError("cache", ...)`` when the fields are needed and
+    absent, damaged or not calibrated."""
+    if not _uses_area_matcher(config):
+        return None
+    try:
+        fields = MapFields.open(tiles, verify_hashes=config.cache.verify_hashes)
+        if fields.calibration is None:
+            raise MapFieldsRefused(
+                f"{tiles.cache_dir}: the orientation fields are not calibrated (gdnav cache fields --cache "
+                f"{tiles.cache_dir})"
+            )
+    except MapFieldsRefused as exc:
+        log.error(LogEvent.MAP_FIELDS_REFUSED, reason=str(exc))
+        fdr.record(FdrKind.MAP_FIELDS, {"used": False, "reason": str(exc)})
+        raise StartupError("cache", f"orientation_corr: {exc}") from exc
+    fields.on_corrupt = lambda info: fdr.record(FdrKind.MAP_FIELDS_CORRUPT, info)
+    cal = fields.calibration
+    fields_rec = {
+        "used": True,
+        "version": fields.info.version,
+        "verified_hashes": config.cache.verify_hashes,
+        "calibration": None if cal is None else cal.to_json(),
+    }
+    log.info(LogEvent.MAP_FIELDS_READY, **fields_rec)
+    fdr.record(FdrKind.MAP_FIELDS, fields_rec)
+    return fields
+
+
 def open_tile_store(config: Config) -> TileStore:
     """Open the map cache, verifying its manifest hashes when ``cache.verify_hashes`` (seconds for a
     large cache). Raises ``StartupError("cache", ...)``."""
@@ -492,17 +577,20 @@ def create_matcher(
     pre: Mapping[str, Any],
     fdr: FdrClient,
     tile_features: PrecomputedTileFeatures | None = None,
+    map_fields: MapFields | None = None,
 ) -> CrossDomainMatcher:
     """The C3 strategy of an already resolved ``config`` (``resolve_matcher``), with its ONNX Runtime
-    sessions for a learned strategy and ``tile_features`` (``open_tile_features``). Raises
-    ``StartupError`` for an unknown strategy or a model that does not load."""
+    sessions for a learned strategy, ``tile_features`` (``open_tile_features``) and the cache's
+    ``map_fields`` for an area matcher (``open_map_fields``). Raises ``StartupError`` for an unknown
+    strategy or a model that does not load."""
     ransac = pre.get("c282_ransac_filter") or RansacFilter(
         confidence=config.matcher.ransac_confidence, max_iters=config.matcher.ransac_max_iters
     )
     health = RollingHealthWindow(low_inlier_threshold=config.matcher.min_inliers_threshold)
     try:
         matcher: CrossDomainMatcher = matcher_registry.create_matcher(
-            config.matcher.strategy, **_matcher_deps(config, pre, ransac, fdr, health, tile_features)
+            config.matcher.strategy,
+            **_matcher_deps(config, pre, ransac, fdr, health, tile_features, map_fields),
         )
     except StrategyNotLinkedError as exc:
         raise StartupError("matcher.strategy", str(exc)) from exc
@@ -518,6 +606,7 @@ def create_ladder(
     fdr: FdrClient,
     tiles: TileStore,
     primary: CrossDomainMatcher,
+    map_fields: MapFields | None = None,
 ) -> EffortLadder:
     """The fix path's effort ladder (``c3_matcher/ladder.py``) of the resolved ``config``: ``primary``
     (its matcher.strategy) and one matcher for each other strategy a rung names, resolved from
@@ -533,7 +622,7 @@ def create_ladder(
         own = dataclasses.replace(unresolved.matcher, strategy=rung.strategy)
         rung_config = resolve_matcher(dataclasses.replace(unresolved, matcher=own))
         matchers[rung.strategy] = create_matcher(
-            rung_config, pre, fdr, open_tile_features(rung_config, tiles, fdr)
+            rung_config, pre, fdr, open_tile_features(rung_config, tiles, fdr), map_fields
         )
     try:
         return EffortLadder.from_config(
@@ -610,6 +699,7 @@ def _pipeline(
         matcher=None,
         ladder=ladder,
         pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
+        area_pose_solver=AreaPoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
         time_axis=time_axis,
         fdr=fdr,
         integrity=FixIntegrity(config.integrity),
@@ -672,8 +762,10 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     )
     # A map cell corrupted after verification is masked by the store; the FDR keeps which and when.
     tiles.on_corrupt = lambda info: fdr.record(FdrKind.TILE_CORRUPT, info)
-    matcher = create_matcher(config, pre, fdr, open_tile_features(config, tiles, fdr))
-    ladder = create_ladder(config, unresolved, pre, fdr, tiles, matcher)
+    config = with_area_rung(unresolved, config, tiles)
+    fields = open_map_fields(config, tiles, fdr)
+    matcher = create_matcher(config, pre, fdr, open_tile_features(config, tiles, fdr), fields)
+    ladder = create_ladder(config, unresolved, pre, fdr, tiles, matcher, fields)
 
     vpr = create_vpr(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
@@ -756,8 +848,10 @@ def compose_replay(
         tiles = open_tile_store(config)
         lon, lat = tiles.center_lonlat
         ltp = LocalTangentPlane(lat, lon, config.terrain.ground_alt_amsl_m)
-        matcher = create_matcher(config, {}, fdr, open_tile_features(config, tiles, fdr))
-        ladder = create_ladder(config, unresolved, {}, fdr, tiles, matcher)
+        config = with_area_rung(unresolved, config, tiles)
+        fields = open_map_fields(config, tiles, fdr)
+        matcher = create_matcher(config, {}, fdr, open_tile_features(config, tiles, fdr), fields)
+        ladder = create_ladder(config, unresolved, {}, fdr, tiles, matcher, fields)
         vpr = create_vpr(tiles, config)
         rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
     else:

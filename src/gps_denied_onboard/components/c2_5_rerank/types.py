@@ -20,8 +20,21 @@ class RerankCandidate:
 
 
 @dataclass(frozen=True)
+class SearchPrior:
+    """Where the estimate puts the camera at the frame's exposure, for a matcher that searches the map
+    around it (C3 ``orientation_corr``): the ground point under the camera, and the horizontal 1-sigma
+    of the estimate relative to the map (``EstimatorState.map_frame_cov_ne_m2``), m."""
+
+    lat_deg: float
+    lon_deg: float
+    sigma_m: float
+
+
+@dataclass(frozen=True)
 class RerankResult:
     frame_id: uuid.UUID
     #: Up to N candidates, best first.
     candidates: list[RerankCandidate]
     reranked_at: int  # monotonic_ns
+    #: The estimate the search started from (None: no estimate handed on, e.g. a tool matching one pair).
+    search: SearchPrior | None = None

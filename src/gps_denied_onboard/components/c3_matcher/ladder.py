@@ -8,8 +8,10 @@ situation allows:
 - a rung with ``give_up_after`` yields to the next rung after that many attempts in a row on it gave no
   accepted fix; an accepted fix on any rung sends the ladder back to the bottom.
 
-When every rung the prior allows has given up, the highest of them keeps the attempts; when the prior
-allows none, the top rung does. No rung in config is one rung, ``default``: the configured matcher with
+When every rung the prior allows has given up, the ladder starts again from the lowest of them with fresh
+counts (a rung gives up on the ground it was flying over, and the ground changes); a rung without
+``give_up_after`` never gives up, so a ladder topped by one stays there. When the prior allows none, the
+top rung takes the attempts. No rung in config is one rung, ``default``: the configured matcher with
 ``rerank.top_n`` candidates (the behaviour without a ladder).
 
 The fix worker is the only caller (``choose`` before an attempt, ``note`` once it is judged), so a
@@ -107,7 +109,9 @@ class EffortLadder:
         for rung in allowed:
             if rung.give_up_after is None or self._failures[rung.name] < rung.give_up_after:
                 return rung
-        return allowed[-1]
+        for rung in allowed:
+            self._failures[rung.name] = 0
+        return allowed[0]
 
     def note(self, rung_name: str, accepted: bool) -> None:
         """The outcome of an attempt made on ``rung_name``: an accepted fix resets every rung."""

@@ -1,7 +1,8 @@
 """C3 strategy registry: config ``matcher.strategy`` name -> factory (the composition root's only way
 to build a matcher).
 
-Built-in: ``classical``, ``disk_lightglue``, ``aliked_lightglue``, ``xfeat`` and ``xfeat_mnn``; others
+Built-in: ``classical``, ``disk_lightglue``, ``aliked_lightglue``, ``xfeat``, ``xfeat_mnn`` and
+``orientation_corr``; others
 join through ``register_strategy``. ``create_matcher`` passes each factory only the dependencies its signature
 names, so the composition root can hand every strategy the same superset of shared helpers.
 """
@@ -18,6 +19,7 @@ from gps_denied_onboard.components.c3_matcher import (
     aliked_lightglue,
     classical,
     disk_lightglue,
+    orientation_corr,
     xfeat,
     xfeat_mnn,
 )
@@ -35,6 +37,7 @@ _STRATEGY_REGISTRY: dict[str, MatcherFactory] = {
     xfeat.LABEL: xfeat.create,
     aliked_lightglue.LABEL: aliked_lightglue.create,
     xfeat_mnn.LABEL: xfeat_mnn.create,
+    orientation_corr.LABEL: orientation_corr.create,
 }
 
 

@@ -127,7 +127,11 @@ class AttitudeCheck:
 
     def note(self, fix: PoseFix, footprint_m: float) -> AttitudeVerdict:
         """Add ``fix``'s image-only tilt and say whether the autopilot's attitude is off.
-        ``footprint_m``: the ground the frame covers across, m (its fixes' errors are correlated)."""
+        ``footprint_m``: the ground the frame covers across, m (its fixes' errors are correlated).
+        A fix that measured no tilt (``image_tilt_off_cam_rad`` None) is a ValueError: it has nothing to
+        add, and the caller must not feed it."""
+        if fix.image_tilt_off_cam_rad is None:
+            raise ValueError("a fix that measured no tilt of its own cannot feed the attitude check")
         return self.note_tilt(
             fix.exposure_time_unix_usec,
             fix.image_tilt_off_cam_rad,

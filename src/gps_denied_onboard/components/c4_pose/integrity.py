@@ -10,15 +10,20 @@ invented), the other candidates' poses and the VO-propagated prior. Output: an :
 that refuses the fix with a reason, or passes it with a covariance that reflects the evidence.
 
 The rule (:meth:`FixIntegrity.assess`; the first failing test refuses; thresholds in ``integrity.*``):
-1. ``too_few_inliers``, ``low_inlier_ratio``, ``narrow_spread``, ``low_match_confidence``;
+1. ``too_few_inliers``, ``low_inlier_ratio``, ``narrow_spread``, ``low_match_confidence`` for a fix from
+   point correspondences; for an area alignment (:class:`AreaEvidence`, C3 ``orientation_corr``)
+   ``low_psr`` and ``low_peak`` (below the config's floor, or below a margin over what a wrong place
+   scores on this map: the cache's calibration) and ``ambiguous_peak`` (a second place in the disc
+   scores ``max_secondary_ratio`` of the peak or more);
 2. ``ambiguous_candidates``: another candidate with at least ``ambiguity_inlier_share`` of the best's
    inliers gives a pose more than ``ambiguity_sigma`` combined (solver) sigmas away;
 3. ``prior_disagreement``: a fix whose sigma the evidence scales by ``weak_evidence_scale`` or more must
    agree with an informative prior (NIS within ``prior_gate_chi2``); stronger fixes are C5's gate's.
 A fix that passes has its covariance floored at ``min_sigma_map_px`` map pixels and scaled by ``k**2``
-(``k`` grows as the inlier ratio and count fall below ``full_evidence_*``, capped at
-``max_sigma_scale``); ``PoseFix.shared_sigma_m`` is floored and scaled alike. ``regional_sigma_map_px``
-(off by default) adds shared regional error to fixes short of full evidence (:func:`with_regional_error`).
+(``k`` grows as the inlier ratio and count, or an area alignment's PSR and peak, fall below
+``full_evidence_*``, capped at ``max_sigma_scale``); ``PoseFix.shared_sigma_m`` is floored and scaled
+alike. ``regional_sigma_map_px`` (off by default) adds shared regional error to fixes short of full
+evidence (:func:`with_regional_error`).
 
 Why each test exists: docs/design.md, "Fix integrity"; measured: docs/benchmarks.md, "How the integrity
 thresholds were chosen".
@@ -35,7 +40,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet
+from gps_denied_onboard.components.c3_matcher.types import AreaAlignment, CandidateMatchSet
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.config import IntegrityConfig
@@ -83,6 +88,60 @@ class MatchEvidence:
         }
 
 
+@dataclass(frozen=True)
+class AreaEvidence:
+    """What an area alignment offers as evidence (``CandidateMatchSet.area``; see ``AreaAlignment``)."""
+
+    psr: float
+    peak: float
+    secondary_ratio: float
+    coverage: float
+    texture: float
+    #: What a wrong place scores on this map for this footprint (the cache's calibration).
+    null_psr: float
+    null_peak: float
+    #: The disc searched, m, and what the winning hypothesis measured of the autopilot's heading and height.
+    radius_m: float
+    heading_offset_deg: float
+    height_scale: float
+
+    @classmethod
+    def of_alignment(cls, area: AreaAlignment) -> AreaEvidence:
+        return cls(
+            psr=area.psr,
+            peak=area.peak,
+            secondary_ratio=area.secondary_ratio,
+            coverage=area.coverage,
+            texture=area.texture,
+            null_psr=area.null_psr,
+            null_peak=area.null_peak,
+            radius_m=area.radius_m,
+            heading_offset_deg=math.degrees(area.heading_offset_rad),
+            height_scale=area.height_scale,
+        )
+
+    def fdr_fields(self) -> dict[str, Any]:
+        return {
+            "psr": round(self.psr, 3),
+            "peak": round(self.peak, 4),
+            "secondary_ratio": round(self.secondary_ratio, 4),
+            "coverage": round(self.coverage, 4),
+            "texture": round(self.texture, 4),
+            "null_psr": round(self.null_psr, 3),
+            "null_peak": round(self.null_peak, 4),
+            "radius_m": round(self.radius_m, 1),
+            "heading_offset_deg": round(self.heading_offset_deg, 3),
+            "height_scale": round(self.height_scale, 4),
+        }
+
+
+def evidence_of(candidate: CandidateMatchSet, frame_size_px: tuple[int, int]) -> MatchEvidence | AreaEvidence:
+    """The evidence ``candidate`` offers: its alignment's when it is an area match, else its points'."""
+    if candidate.area is not None:
+        return AreaEvidence.of_alignment(candidate.area)
+    return MatchEvidence.of_candidate(candidate, frame_size_px)
+
+
 def hull_share(points_px: np.ndarray, frame_size_px: tuple[int, int]) -> float:
     """Area of the convex hull of ``points_px`` (N, 2) over ``width * height``, clipped to 0..1."""
     pts = np.ascontiguousarray(np.asarray(points_px, dtype=np.float32).reshape(-1, 2))
@@ -98,7 +157,7 @@ class CandidateFix:
     """A pose solved from one matched candidate, with that candidate's evidence."""
 
     fix: PoseFix
-    evidence: MatchEvidence
+    evidence: MatchEvidence | AreaEvidence
 
 
 @dataclass(frozen=True)
@@ -113,7 +172,7 @@ class IntegrityVerdict:
     accepted: bool
     reason: str | None
     fix: PoseFix
-    evidence: MatchEvidence
+    evidence: MatchEvidence | AreaEvidence
     #: The factor applied to the sigma (1 = full evidence).
     sigma_scale: float
     #: The stated horizontal sigma before the rule (the solver's) and after it, metres.
@@ -178,14 +237,35 @@ class FixIntegrity:
     def config(self) -> IntegrityConfig:
         return self._cfg
 
-    def wants_rival(self, best_inliers: int, rival_inliers: int) -> bool:
-        """Whether a candidate with ``rival_inliers`` is supported well enough to be a rival of the best
-        (then the pipeline solves its pose and passes it to :meth:`assess`)."""
-        return rival_inliers >= self._cfg.ambiguity_inlier_share * best_inliers
+    def wants_rival(self, best: MatchEvidence | AreaEvidence, rival: MatchEvidence | AreaEvidence) -> bool:
+        """Whether a candidate with evidence ``rival`` is supported well enough to be a rival of the best
+        (then the pipeline solves its pose and passes it to :meth:`assess`): points, at least
+        ``ambiguity_inlier_share`` of the best's inliers; an area alignment, evidence that would pass
+        the area tests on its own."""
+        if isinstance(rival, AreaEvidence):
+            return self._area_refusal(rival) is None
+        if isinstance(best, AreaEvidence):
+            return False
+        return rival.inlier_count >= self._cfg.ambiguity_inlier_share * best.inlier_count
 
-    def sigma_scale(self, ev: MatchEvidence) -> float:
+    def _area_refusal(self, ev: AreaEvidence) -> str | None:
+        """Why an area alignment's own evidence refuses it (None: it does not)."""
+        cfg = self._cfg
+        if not ev.psr >= max(cfg.min_psr, cfg.psr_null_margin * ev.null_psr):
+            return IntegrityReason.LOW_PSR
+        if not ev.peak >= max(cfg.min_peak, cfg.peak_null_margin * ev.null_peak):
+            return IntegrityReason.LOW_PEAK
+        if not ev.secondary_ratio < cfg.max_secondary_ratio:
+            return IntegrityReason.AMBIGUOUS_PEAK
+        return None
+
+    def sigma_scale(self, ev: MatchEvidence | AreaEvidence) -> float:
         """The evidence's sigma factor: 1 at full evidence, larger as it weakens, capped."""
         cfg = self._cfg
+        if isinstance(ev, AreaEvidence):
+            k = max(cfg.full_evidence_psr / max(ev.psr, 1e-6), 1.0)
+            k *= max(cfg.full_evidence_peak / max(ev.peak, 1e-6), 1.0)
+            return min(k, cfg.max_sigma_scale)
         k = math.sqrt(cfg.full_evidence_inliers / max(ev.inlier_count, 1)) if ev.inlier_count else math.inf
         k = max(k, 1.0)
         k *= max(cfg.full_evidence_ratio / max(ev.inlier_ratio, 1e-6), 1.0)
@@ -199,11 +279,28 @@ class FixIntegrity:
         floor_var = (self._cfg.min_sigma_map_px * float(map_gsd_m_px)) ** 2
         return cov + np.diag(np.maximum(floor_var - np.diag(cov), 0.0))
 
-    def stated_cov(self, fix: PoseFix, ev: MatchEvidence, map_gsd_m_px: float) -> tuple[np.ndarray, float]:
-        """(covariance the fix should state, its sigma scale): floored at the map pixel, then scaled."""
-        cov = self.floored_cov(fix, map_gsd_m_px)
+    def stated_cov(
+        self, fix: PoseFix, ev: MatchEvidence | AreaEvidence, map_gsd_m_px: float
+    ) -> tuple[np.ndarray, float]:
+        """(covariance the fix should state, its sigma scale): floored at the map pixel, then scaled.
+
+        An area alignment's error is mostly the part every fix shares (the autopilot's tilt times the
+        height, the map's registration: ``PoseFix.shared_sigma_m``, floored at the map pixel), which no
+        peak can vouch for or against; only its own part, the alignment's, grows as the peak weakens."""
         k = self.sigma_scale(ev)
+        if isinstance(ev, AreaEvidence):
+            shared = self.area_shared_sigma_m(fix, map_gsd_m_px)
+            cov = np.array(fix.cov_ned_m2, dtype=np.float64, copy=True)
+            own_var = np.maximum(np.diag(cov)[:2] - fix.shared_sigma_m**2, 0.0)
+            cov[:2, :2] = np.diag(shared**2 + own_var * k * k)
+            return cov, k
+        cov = self.floored_cov(fix, map_gsd_m_px)
         return cov * k * k, k
+
+    def area_shared_sigma_m(self, fix: PoseFix, map_gsd_m_px: float) -> float:
+        """The error an area fix shares with every fix (its tilt and registration), floored at the map's
+        pixel: the map's own georeference is common to every fix too."""
+        return max(fix.shared_sigma_m, self._cfg.min_sigma_map_px * float(map_gsd_m_px))
 
     def assess(
         self,
@@ -221,7 +318,10 @@ class FixIntegrity:
         solver_sigma = best.fix.horiz_sigma_m
         cov, k = self.stated_cov(best.fix, ev, map_gsd_m_px)
         # The map pixel is the map's own georeference: common to every fix, like the solver's floor.
-        shared = max(best.fix.shared_sigma_m, cfg.min_sigma_map_px * float(map_gsd_m_px)) * k
+        if isinstance(ev, AreaEvidence):
+            shared = self.area_shared_sigma_m(best.fix, map_gsd_m_px)
+        else:
+            shared = max(best.fix.shared_sigma_m, cfg.min_sigma_map_px * float(map_gsd_m_px)) * k
         stated = dataclasses.replace(best.fix, cov_ned_m2=cov, shared_sigma_m=shared)
 
         def verdict(reason: str | None, **extra: Any) -> IntegrityVerdict:
@@ -245,7 +345,7 @@ class FixIntegrity:
         ambiguous = False
         sigma_b = _horiz_sigma_m(self.floored_cov(best.fix, map_gsd_m_px))
         for rival in rivals:
-            if not self.wants_rival(ev.inlier_count, rival.evidence.inlier_count):
+            if not self.wants_rival(ev, rival.evidence):
                 continue
             d = float(np.hypot(*(np.asarray(rival.fix.pos_ned_m)[:2] - np.asarray(best.fix.pos_ned_m)[:2])))
             sigma_r = _horiz_sigma_m(self.floored_cov(rival.fix, map_gsd_m_px))
@@ -253,7 +353,8 @@ class FixIntegrity:
             far = d > limit
             # Report the disagreeing rival if any, else the nearest one.
             if (far and not ambiguous) or (not ambiguous and (rival_d is None or d < rival_d)):
-                rival_d, rival_n = d, rival.evidence.inlier_count
+                rival_d = d
+                rival_n = rival.evidence.inlier_count if isinstance(rival.evidence, MatchEvidence) else None
             ambiguous = ambiguous or far
 
         nis: float | None = None
@@ -267,13 +368,17 @@ class FixIntegrity:
                 nis = None
         extra = {"rival_distance_m": rival_d, "rival_inliers": rival_n, "prior_nis": nis}
 
-        if ev.inlier_count < cfg.min_inliers:
+        if isinstance(ev, AreaEvidence):
+            refusal = self._area_refusal(ev)
+            if refusal is not None:
+                return verdict(refusal, **extra)
+        elif ev.inlier_count < cfg.min_inliers:
             return verdict(IntegrityReason.TOO_FEW_INLIERS, **extra)
-        if ev.inlier_ratio < cfg.min_inlier_ratio:
+        elif ev.inlier_ratio < cfg.min_inlier_ratio:
             return verdict(IntegrityReason.LOW_INLIER_RATIO, **extra)
-        if ev.spread_share < cfg.min_spread_share:
+        elif ev.spread_share < cfg.min_spread_share:
             return verdict(IntegrityReason.NARROW_SPREAD, **extra)
-        if ev.mean_confidence is not None and ev.mean_confidence < cfg.min_mean_confidence:
+        elif ev.mean_confidence is not None and ev.mean_confidence < cfg.min_mean_confidence:
             return verdict(IntegrityReason.LOW_MATCH_CONFIDENCE, **extra)
         if ambiguous:
             return verdict(IntegrityReason.AMBIGUOUS_CANDIDATES, **extra)

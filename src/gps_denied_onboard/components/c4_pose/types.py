@@ -25,13 +25,16 @@ class PoseFix:
     yaw_rad: float
     yaw_sigma_rad: float
     #: Angle between the image-only pose's camera axis (before the attitude prior) and the autopilot's,
-    #: radians (the plausibility gate; recorded as ``fix_image_tilt_off_deg``).
-    attitude_disagreement_rad: float
+    #: radians (the plausibility gate; recorded as ``fix_image_tilt_off_deg``). None: the fix measured no
+    #: tilt of its own (an area alignment, ``c4_pose/area_pose.py``: the frame was rectified with the
+    #: autopilot's).
+    attitude_disagreement_rad: float | None
     #: The same on the camera's x and y axes: world down seen by the image-only pose minus world down by
     #: the autopilot's attitude, radians (small angles). The camera is fixed to the airframe, so an AHRS
-    #: or mount error is the same from fix to fix here (``c4_pose/attitude_check.py``).
-    image_tilt_off_cam_rad: tuple[float, float]
+    #: or mount error is the same from fix to fix here (``c4_pose/attitude_check.py``). None as above.
+    image_tilt_off_cam_rad: tuple[float, float] | None
     inlier_count: int
+    #: Median reprojection residual of the inliers, px; NaN for an area alignment (no points).
     residual_px: float
     tile_id: TileId
     #: Per-axis horizontal 1-sigma, metres, of the part of this fix's error that every fix against the

@@ -1,0 +1,337 @@
+"""Area correlation, label ``orientation_corr``: the whole nav frame matched against the map as one image.
+
+Across dates a matcher of points must find the same points in two images that differ in season, crops,
+water and light; a frame correlated as a whole needs only the pattern of edges to survive (field
+boundaries, roads, shores), and the map's side of the work is done once, at ``cache build``. Fielded scene
+matchers have done this on small computers for decades (DSMAC-style area correlation); OrienterNet (CVPR
+2023) does it with exhaustive FFT matching over position and heading.
+
+Per attempt (``match``):
+1. the frame is warped north-up at the map's GSD with the autopilot's attitude and height
+   (``helpers/frame_rectifier.py``); what is left is a 2-D shift plus the heading and height errors;
+2. where to search: with a prior (``RerankResult.search``) one disc around it, of radius 3 sigma
+   (``MIN_RADIUS_PX`` .. ``MAX_RADIUS_PX``); a prior too wide for that, or none, gives one disc of
+   ``MAX_RADIUS_PX`` around each candidate tile (at most the rung's candidates), the prior's first;
+3. each disc is searched over the heading and height hypotheses ``matcher.correlation`` allows
+   (``c3_matcher/area_search.py``: gradient-orientation fields by FFT, coarse to fine, sub-pixel);
+4. each disc found gives a candidate with an ``AreaAlignment``: where the ground under the camera lies,
+   the heading and height errors measured, and the correlation's evidence with the map's own calibration
+   of what a wrong place scores (``null_psr``, ``null_peak``). Candidates come best first by PSR.
+
+C4 solves the pose from the alignment (``c4_pose/area_pose.py``) and the integrity rule judges its
+evidence. There are no point correspondences, so the candidate has none (``inlier_count`` 0).
+
+The map side is the cache's orientation fields and their calibration (``c6_tiles/map_fields.py``): the
+strategy refuses to start without calibrated fields.
+
+Failure phases: ``rectify`` (the frame cannot be warped to the ground: a ray above the horizon) fails the
+frame; no disc with the footprint on the map raises ``InsufficientInliersError``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import uuid
+from dataclasses import dataclass
+from typing import Final, NoReturn
+
+import numpy as np
+import structlog
+
+from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
+from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
+from gps_denied_onboard.components.c3_matcher.area_search import AreaSearch, Template, search
+from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherBackboneError
+from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
+from gps_denied_onboard.components.c3_matcher.types import (
+    AreaAlignment,
+    CandidateMatchSet,
+    MatcherHealth,
+    MatchResult,
+)
+from gps_denied_onboard.components.c6_tiles.map_fields import MapFields
+from gps_denied_onboard.components.c6_tiles.types import TileId
+from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
+from gps_denied_onboard.config import CorrelationConfig, MatcherConfig
+from gps_denied_onboard.constants import FdrKind, LogEvent
+from gps_denied_onboard.helpers.frame_rectifier import RectificationError, rectify_to_map_frame
+from gps_denied_onboard.helpers.orientation_field import grey_of
+
+LABEL: Final[str] = "orientation_corr"
+#: The search disc's radius, level-1 (map) px: at least enough sidelobes beyond the peak's exclusion for
+#: a peak-to-sidelobe ratio, at most the radius the map's calibration was made at
+#: (``c10_cache_build.map_fields.CALIBRATION_RADIUS_PX``): a wider disc offers more places to look right.
+MIN_RADIUS_PX: Final = 48.0
+MAX_RADIUS_PX: Final = 192.0
+#: The prior's sigmas the disc covers.
+PRIOR_SIGMAS: Final = 3.0
+
+_LOG = structlog.get_logger(__name__)
+
+
+@dataclass(frozen=True)
+class _Disc:
+    """One place to search: the candidate it is reported as, and the predicted nadir with its radius."""
+
+    candidate: RerankCandidate
+    lat_deg: float
+    lon_deg: float
+    radius_px: float
+
+
+def hypothesis_grid(config: CorrelationConfig) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(rotations, deg; scales) tried: out to 3 sigma of the heading and the height, in the config's
+    steps, at most ``max_steps`` each way, always including (0, 1)."""
+    n_rot = min(config.max_steps, math.ceil(3.0 * config.heading_sigma_deg / config.heading_step_deg))
+    n_scale = min(config.max_steps, math.ceil(3.0 * config.height_sigma_frac / config.height_step_frac))
+    rotations = tuple(round(i * config.heading_step_deg, 6) for i in range(-n_rot, n_rot + 1))
+    scales = tuple(round(1.0 + i * config.height_step_frac, 6) for i in range(-n_scale, n_scale + 1))
+    return rotations, scales
+
+
+class OrientationCorrMatcher:
+    """``CrossDomainMatcher`` by area correlation (module docstring)."""
+
+    label = LABEL
+
+    def __init__(
+        self,
+        *,
+        config: MatcherConfig,
+        fields: MapFields,
+        health_window: RollingHealthWindow,
+        fdr_client: FdrClient | None = None,
+    ) -> None:
+        calibration = fields.calibration
+        if calibration is None:
+            raise ValueError(
+                f"{LABEL} needs the cache's calibrated map fields: run gdnav cache fields --cache "
+                f"{fields.store.cache_dir}"
+            )
+        self._config = config
+        self._fields = fields
+        self._store = fields.store
+        self._calibration = calibration
+        self._health = health_window
+        self._fdr = fdr_client
+        self._rotations, self._scales = hypothesis_grid(config.correlation)
+        #: Never search a wider disc than the map was calibrated for.
+        self._max_radius_px = min(MAX_RADIUS_PX, calibration.radius_px)
+
+    def health_snapshot(self) -> MatcherHealth:
+        return self._health.snapshot()
+
+    @property
+    def hypotheses(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """(rotations deg, scales) the search may try."""
+        return self._rotations, self._scales
+
+    def match(
+        self, frame: NavCameraFrame, rerank_result: RerankResult, calibration: CameraCalibration
+    ) -> MatchResult:
+        """See ``CrossDomainMatcher.match`` and the module docstring."""
+        t0 = time.perf_counter()
+        frame_id = rerank_result.frame_id
+        candidates = list(rerank_result.candidates)
+        try:
+            if frame.frame_id != frame_id:
+                raise ValueError(f"rerank result is for frame {frame_id}, not for frame {frame.frame_id}")
+            result = self._match(frame, rerank_result, candidates, calibration)
+        except InsufficientInliersError:
+            self._health.update(time.monotonic_ns(), best_inlier_count=0, had_backbone_error=False)
+            raise
+        except MatcherBackboneError:
+            self._health.update(time.monotonic_ns(), best_inlier_count=0, had_backbone_error=True)
+            raise
+        best = result.best.area
+        assert best is not None
+        # The health window counts frames by their best "inliers": an area match has none, so a frame
+        # counts as good (the threshold) when its best peak stands out of what the map's wrong places
+        # score (the integrity rule asks for a margin more).
+        good = best.psr > best.null_psr
+        self._health.update(
+            time.monotonic_ns(),
+            best_inlier_count=self._health.low_inlier_threshold if good else 0,
+            had_backbone_error=False,
+        )
+        if self._fdr is not None:
+            self._fdr.record(
+                FdrKind.MATCHER_FRAME_DONE,
+                {
+                    "frame_id": str(frame_id),
+                    "candidates_input": len(candidates),
+                    "candidates_dropped": result.candidates_dropped,
+                    "best_tile_id": list(result.best.tile_id),
+                    "best_psr": round(best.psr, 3),
+                    "best_peak": round(best.peak, 4),
+                    "ms": round((time.perf_counter() - t0) * 1e3, 2),
+                },
+            )
+        return result
+
+    def _discs(self, rerank_result: RerankResult, candidates: list[RerankCandidate]) -> list[_Disc]:
+        gsd = float(self._store.gsd_m_px)
+        prior = rerank_result.search
+        if prior is not None and candidates:
+            radius_px = max(MIN_RADIUS_PX, PRIOR_SIGMAS * prior.sigma_m / gsd)
+            if radius_px <= self._max_radius_px:
+                return [_Disc(candidates[0], prior.lat_deg, prior.lon_deg, radius_px)]
+        discs = []
+        if prior is not None and candidates:
+            discs.append(_Disc(candidates[0], prior.lat_deg, prior.lon_deg, self._max_radius_px))
+        for cand in candidates[len(discs) :]:
+            handle = cand.tile_pixels_handle
+            w, h = (int(v) for v in np.asarray(handle.pixels()).shape[1::-1])
+            lon, lat = handle.chip_px_to_lonlat(np.array([(w - 1) / 2.0, (h - 1) / 2.0]))
+            discs.append(_Disc(cand, float(np.ravel(lat)[0]), float(np.ravel(lon)[0]), self._max_radius_px))
+        return discs
+
+    def _match(
+        self,
+        frame: NavCameraFrame,
+        rerank_result: RerankResult,
+        candidates: list[RerankCandidate],
+        calibration: CameraCalibration,
+    ) -> MatchResult:
+        frame_id = rerank_result.frame_id
+        n_input = len(candidates)
+        if n_input == 0:
+            self._fail(frame_id, 0, 0, "no candidates")
+        attitude, alt_agl_m = frame.attitude, frame.alt_agl_m
+        if attitude is None or alt_agl_m is None:
+            self._fail(frame_id, n_input, n_input, "the frame has no attitude or height")
+            raise AssertionError("unreachable")  # _fail raises
+        discs = self._discs(rerank_result, candidates)
+        lat0 = discs[0].lat_deg
+        gsd = float(self._store.grid.gsd_m_px(lat0))
+        try:
+            rect = rectify_to_map_frame(frame.image_bgr, calibration, attitude, alt_agl_m, gsd)
+        except RectificationError as exc:
+            err = MatcherBackboneError(str(exc), tile_id=None, phase="rectify")
+            _LOG.error(LogEvent.C3_BACKBONE_ERROR, phase="rectify", error=str(exc), backbone=LABEL)
+            raise err from exc
+        valid = np.asarray(rect.image.any(axis=2), dtype=bool)
+        template = Template(grey_of(rect.image), valid, _nadir_px(rect.H_frame_to_rect, calibration, frame))
+        # What a wrong place scores for a footprint of this size (the calibration's peak is for its own
+        # template: a correlation's spread falls as the square root of the pixels it sums).
+        cal = self._calibration
+        area_ratio = (cal.template_px[0] * cal.template_px[1]) / max(float(valid.sum()), 1.0)
+        null_peak = cal.null_peak_max * math.sqrt(min(area_ratio, 1.0))
+        survivors: list[CandidateMatchSet] = []
+        dropped = 0
+        for disc in discs:
+            pred = self._store.lonlat_to_mosaic_px(np.array(disc.lon_deg), np.array(disc.lat_deg))
+            found = search(
+                template,
+                self._fields,
+                (float(pred[0]), float(pred[1])),
+                disc.radius_px,
+                self._rotations,
+                self._scales,
+            )
+            if found is None:
+                dropped += 1
+                continue
+            survivors.append(self._candidate(disc, found, gsd, cal.null_psr_max, null_peak))
+        _LOG.debug(
+            LogEvent.C3_CANDIDATES,
+            candidates=[
+                (round(s.area.psr, 2), round(s.area.peak, 3)) for s in survivors if s.area is not None
+            ],
+            dropped=dropped,
+        )
+        if not survivors:
+            self._fail(frame_id, n_input, dropped, "no disc with the frame's footprint on the map")
+        survivors.sort(key=lambda s: -s.area.psr if s.area is not None else 0.0)
+        return MatchResult(
+            frame_id=frame_id,
+            per_candidate=survivors,
+            best_candidate_idx=0,
+            reprojection_residual_px=math.nan,
+            matched_at=time.monotonic_ns(),
+            matcher_label=LABEL,
+            candidates_input=n_input,
+            candidates_dropped=dropped,
+        )
+
+    def _candidate(
+        self, disc: _Disc, found: AreaSearch, gsd: float, null_psr: float, null_peak: float
+    ) -> CandidateMatchSet:
+        lon, lat = self._store.mosaic_px_to_lonlat(np.array(found.nadir_map_px, dtype=np.float64))
+        cfg = self._config.correlation
+        area = AreaAlignment(
+            nadir_lat_deg=float(lat),
+            nadir_lon_deg=float(lon),
+            # The rotation that brought the frame onto the map turns it against the autopilot's heading
+            # error (OpenCV's sense is counter-clockwise on the image, north up: towards the west).
+            heading_offset_rad=-math.radians(found.hypothesis.rotation_deg),
+            heading_step_rad=math.radians(cfg.heading_step_deg),
+            height_scale=found.hypothesis.scale,
+            height_scale_step=cfg.height_step_frac,
+            map_gsd_m_px=gsd,
+            peak=found.peak,
+            psr=found.psr,
+            secondary_ratio=found.secondary_ratio,
+            coverage=found.coverage,
+            texture=found.texture,
+            radius_m=found.radius_px * gsd,
+            hypotheses_tried=found.hypotheses_tried,
+            null_psr=float(null_psr),
+            null_peak=float(null_peak),
+        )
+        tile_id: TileId = disc.candidate.tile_id
+        return CandidateMatchSet(
+            tile_id=tile_id,
+            inlier_count=0,
+            inlier_correspondences=np.empty((0, 4), dtype=np.float32),
+            ransac_outlier_count=0,
+            per_candidate_residual_px=math.nan,
+            area=area,
+        )
+
+    def _fail(self, frame_id: uuid.UUID, n_input: int, dropped: int, reason: str) -> NoReturn:
+        fields = {
+            "frame_id": str(frame_id),
+            "backbone": LABEL,
+            "best_inlier_count": 0,
+            "threshold": 0,
+            "candidates_input": n_input,
+            "candidates_dropped": dropped,
+            "reason": reason,
+        }
+        _LOG.error(LogEvent.C3_INSUFFICIENT_INLIERS, **{k: v for k, v in fields.items() if k != "frame_id"})
+        if self._fdr is not None:
+            self._fdr.record(FdrKind.MATCHER_INSUFFICIENT_INLIERS, fields)
+        raise InsufficientInliersError(
+            f"C3 {LABEL}: {reason}",
+            frame_id=frame_id,
+            best_inlier_count=0,
+            threshold=0,
+            candidates_input=n_input,
+            candidates_dropped=dropped,
+        )
+
+
+def _nadir_px(
+    h_frame_to_rect: np.ndarray, calibration: CameraCalibration, frame: NavCameraFrame
+) -> tuple[float, float]:
+    """Where the ground under the camera lies in the rectified frame (the nadir ray through the
+    camera's own rotation: it need not be in the picture)."""
+    assert frame.attitude is not None
+    ray_cam = frame.attitude.R_ned_cam().T @ np.array([0.0, 0.0, 1.0])
+    p = h_frame_to_rect @ (calibration.K @ ray_cam)
+    return float(p[0] / p[2]), float(p[1] / p[2])
+
+
+def create(
+    config: MatcherConfig,
+    map_fields: MapFields,
+    health_window: RollingHealthWindow,
+    fdr_client: FdrClient | None = None,
+) -> OrientationCorrMatcher:
+    """Registry factory for ``orientation_corr``: needs the cache's map fields with their calibration
+    (``ValueError`` naming the command that makes them otherwise)."""
+    return OrientationCorrMatcher(
+        config=config, fields=map_fields, health_window=health_window, fdr_client=fdr_client
+    )
