@@ -666,7 +666,7 @@ class NavigationPipeline:
         t3 = self._clock_ns()
         timings["match"] = (t3 - t2) / 1e6
         best = match.best
-        if best.area is not None:
+        if best.area is not None and best.inlier_count == 0:
             return self._area_matched(frame, match, rerank_result, prior_state, timings, t3)
         handle = next(c.tile_pixels_handle for c in rerank_result.candidates if c.tile_id == best.tile_id)
         try:
@@ -705,9 +705,10 @@ class NavigationPipeline:
         timings: dict[str, float],
         t3: int,
     ) -> FixAttempt:
-        """C4 on an area matcher's best alignment (``c4_pose/area_pose.py``): its pose, then the
-        integrity rule. The fix measured no tilt of its own, so neither the camera's stamp fit nor the
-        fixes' attitude check hears from it (VO's ground tilt still judges its exposure)."""
+        """C4 on an area matcher's best alignment without correspondences (``c4_pose/area_pose.py``):
+        its pose, then the integrity rule. The fix measured no tilt of its own, so neither the camera's
+        stamp fit nor the fixes' attitude check hears from it (VO's ground tilt still judges its
+        exposure). An alignment with correspondences is solved from them like any point match."""
         best = match.best
         if self._area_pose is None:
             raise RuntimeError("an area matcher ran but the pipeline has no area pose solver (composition)")
@@ -731,7 +732,7 @@ class NavigationPipeline:
         attitude: AttitudeVerdict | None,
     ) -> FixAttempt:
         """The attempt the integrity rule's ``verdict`` makes of a solved fix."""
-        residual = None if best.area is not None else match.reprojection_residual_px
+        residual = None if best.inlier_count == 0 else match.reprojection_residual_px
         if not verdict.accepted:
             log.warning(
                 LogEvent.FIX_INTEGRITY_REFUSED,
@@ -795,7 +796,7 @@ class NavigationPipeline:
             if i == match.best_candidate_idx or not self._integrity.wants_rival(best_ev, rival_ev):
                 continue
             try:
-                if cand.area is not None and self._area_pose is not None:
+                if cand.area is not None and cand.inlier_count == 0 and self._area_pose is not None:
                     rival_fix = self._area_pose.solve(frame, cand)
                 else:
                     rival_fix = self._pose.solve(frame, cand, handles[cand.tile_id], self._calib)

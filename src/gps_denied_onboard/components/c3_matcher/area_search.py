@@ -44,6 +44,15 @@ MIN_SIDELOBE_PX: Final = 64
 #: Half-width of the fine search around the coarse peak, level-1 px (the coarse peak is good to 1 px,
 #: 2 level-1 px).
 FINE_RADIUS_PX: Final = 4
+#: Local patches: the aligned footprint is cut into about this many cells per side, each a patch of
+#: ``PATCH_MIN_PX``..``PATCH_MAX_PX`` level-1 px, placed by its own peak within ``PATCH_RADIUS_PX`` of
+#: where the global alignment puts it.
+PATCH_CELLS: Final = 8
+PATCH_MIN_PX: Final = 24
+PATCH_MAX_PX: Final = 64
+PATCH_RADIUS_PX: Final = 3
+#: A patch whose mean squared field magnitude is below this has too little structure to be placed.
+PATCH_MIN_TEXTURE: Final = 0.05
 _EPS: Final = 1e-9
 
 
@@ -94,6 +103,11 @@ class AreaSearch:
     candidates: int
     #: How many hypotheses were correlated over the disc.
     hypotheses_tried: int = 0
+    #: Local correspondences (P, 4) float64: (x, y) in the rectified frame (``Template`` px) and (x, y)
+    #: on the map (level-1 px), one per patch placed by its own peak (:func:`_patches`); and how many
+    #: patches had the structure to be tried.
+    patches: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
+    patches_tried: int = 0
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -173,7 +187,9 @@ def _subpixel(score: np.ndarray, r: int, c: int) -> tuple[float, float]:
 
     def vertex(a: float, b: float, d: float) -> float:
         den = a - 2.0 * b + d
-        return float(np.clip(0.5 * (a - d) / den, -0.5, 0.5)) if den < 0.0 else 0.0
+        if not (math.isfinite(a) and math.isfinite(d) and den < 0.0):
+            return 0.0
+        return float(np.clip(0.5 * (a - d) / den, -0.5, 0.5))
 
     dx = vertex(score[r, c - 1], score[r, c], score[r, c + 1]) if 0 < c < score.shape[1] - 1 else 0.0
     dy = vertex(score[r - 1, c], score[r, c], score[r + 1, c]) if 0 < r < score.shape[0] - 1 else 0.0
@@ -280,8 +296,12 @@ def search(
     rf = FINE_RADIUS_PX
     fx = round(c1[0] - nadir1[0]) - rf
     fy = round(c1[1] - nadir1[1]) - rf
-    wf, wfv = source.window(1, fx, fy, canvas1.shape[1] + 2 * rf, canvas1.shape[0] + 2 * rf)
-    fine = _Correlator(wf, wfv, canvas1.shape)
+    pad = rf + PATCH_RADIUS_PX
+    big, big_valid = source.window(
+        1, fx - PATCH_RADIUS_PX, fy - PATCH_RADIUS_PX, canvas1.shape[1] + 2 * pad, canvas1.shape[0] + 2 * pad
+    )
+    inner = (slice(PATCH_RADIUS_PX, -PATCH_RADIUS_PX), slice(PATCH_RADIUS_PX, -PATCH_RADIUS_PX))
+    fine = _Correlator(big[inner], big_valid[inner], canvas1.shape)
     e1, cov1 = fine.energy_and_coverage(m1)
     et1 = float(np.vdot(z1, z1).real)
     ok1 = (cov1 >= MIN_COVERAGE) & (e1 > _EPS)
@@ -293,6 +313,15 @@ def search(
     dx, dy = _subpixel(s1, fr, fc)
     nadir_map = (fx + fc + dx + nadir1[0], fy + fr + dy + nadir1[1])
     timings["fine"] = (time.perf_counter() - t0) * 1e3
+    # Local: each patch placed by its own peak near where the global alignment puts it.
+    placed, patches_tried = _patches(z1, m1, big, big_valid, (fc, fr))
+    if placed.shape[0]:
+        # Back through the hypothesis warp to the rectified frame's px, and to the map's.
+        inverse = cv2.invertAffineTransform(cv2.getRotationMatrix2D(nadir1, hyp.rotation_deg, hyp.scale))
+        canvas_px = placed[:, :2] @ inverse[:, :2].T + inverse[:, 2]
+        placed = np.column_stack(
+            [canvas_px - margin1, placed[:, 2] + fx - PATCH_RADIUS_PX, placed[:, 3] + fy - PATCH_RADIUS_PX]
+        )
     timings["total"] = (time.perf_counter() - t0) * 1e3
     return AreaSearch(
         nadir_map_px=(float(nadir_map[0]), float(nadir_map[1])),
@@ -305,5 +334,52 @@ def search(
         radius_px=float(radius_px),
         candidates=n_candidates,
         hypotheses_tried=len(tried),
+        patches=placed,
+        patches_tried=patches_tried,
         timings_ms=timings,
     )
+
+
+def _patches(
+    z: np.ndarray, mask: np.ndarray, window: np.ndarray, window_valid: np.ndarray, at: tuple[int, int]
+) -> tuple[np.ndarray, int]:
+    """Place the patches of the aligned template field ``z`` (``mask``) each by its own peak.
+
+    ``window`` (``window_valid``) is the map's level-1 field with ``PATCH_RADIUS_PX`` of room around the
+    template placed at integer offset ``at`` (x, y). A cell is a patch when it lies wholly in the footprint
+    and holds structure (``PATCH_MIN_TEXTURE``); it is placed when its normalised correlation (the same
+    ``Re conj(a) b`` as the global search, two channels) peaks inside its search square, on map data: a
+    patch whose best is on the square's rim has not found its place. Returns ((P, 4) float64: patch
+    centre in template px, its place in window px; patches tried)."""
+    ys, xs = np.nonzero(mask)
+    if ys.size == 0:
+        return np.empty((0, 4)), 0
+    x_lo, x_hi, y_lo, y_hi = int(xs.min()), int(xs.max()) + 1, int(ys.min()), int(ys.max()) + 1
+    cell = int(np.clip(max(x_hi - x_lo, y_hi - y_lo) // PATCH_CELLS, PATCH_MIN_PX, PATCH_MAX_PX))
+    r = PATCH_RADIUS_PX
+    pair_t = z.view(np.float32).reshape(z.shape[0], z.shape[1], 2)
+    pair_w = window.view(np.float32).reshape(window.shape[0], window.shape[1], 2)
+    centre = (cell - 1) / 2.0
+    out: list[tuple[float, float, float, float]] = []
+    tried = 0
+    for y0 in range(y_lo, y_hi - cell + 1, cell):
+        for x0 in range(x_lo, x_hi - cell + 1, cell):
+            if not mask[y0 : y0 + cell, x0 : x0 + cell].all():
+                continue
+            if float(np.mean(np.abs(z[y0 : y0 + cell, x0 : x0 + cell]) ** 2)) < PATCH_MIN_TEXTURE:
+                continue
+            tried += 1
+            wx, wy = x0 + at[0], y0 + at[1]
+            if not window_valid[wy : wy + cell + 2 * r, wx : wx + cell + 2 * r].all():
+                continue
+            surface = cv2.matchTemplate(
+                np.ascontiguousarray(pair_w[wy : wy + cell + 2 * r, wx : wx + cell + 2 * r]),
+                np.ascontiguousarray(pair_t[y0 : y0 + cell, x0 : x0 + cell]),
+                cv2.TM_CCORR_NORMED,
+            )
+            i, j = (int(v) for v in np.unravel_index(int(np.argmax(surface)), surface.shape))
+            if not (0 < i < surface.shape[0] - 1 and 0 < j < surface.shape[1] - 1):
+                continue
+            dx, dy = _subpixel(surface, i, j)
+            out.append((x0 + centre, y0 + centre, wx + j + dx + centre, wy + i + dy + centre))
+    return np.array(out, dtype=np.float64).reshape(-1, 4), tried

@@ -16,10 +16,16 @@ Per attempt (``match``):
    (``c3_matcher/area_search.py``: gradient-orientation fields by FFT, coarse to fine, sub-pixel);
 4. each disc found gives a candidate with an ``AreaAlignment``: where the ground under the camera lies,
    the heading and height errors measured, and the correlation's evidence with the map's own calibration
-   of what a wrong place scores (``null_psr``, ``null_peak``). Candidates come best first by PSR.
+   of what a wrong place scores (``null_psr``, ``null_peak``). Candidates come best first by PSR;
+5. the aligned footprint's patches are placed each by its own peak; where they agree with one another
+   (the shared RANSAC keeps at least ``PATCH_MIN_INLIERS``, and ``PATCH_MIN_AGREEMENT`` of the patches
+   tried), they are point correspondences and the candidate carries them.
 
-C4 solves the pose from the alignment (``c4_pose/area_pose.py``) and the integrity rule judges its
-evidence. There are no point correspondences, so the candidate has none (``inlier_count`` 0).
+C4 solves a candidate with correspondences like any point match (PnP with the attitude prior: the camera's
+tilt is measured, and the tilt checks hear from it), and one without from the alignment alone
+(``c4_pose/area_pose.py``: the tilt is the autopilot's). Same-source imagery gives patches that agree
+(every one of 53 on GeoVision), imagery from another date mostly does not (a quarter to two thirds on
+NAIP): there the alignment is the fix. Either way the integrity rule judges the correlation's evidence.
 
 The map side is the cache's orientation fields and their calibration (``c6_tiles/map_fields.py``): the
 strategy refuses to start without calibrated fields.
@@ -55,8 +61,13 @@ from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import CorrelationConfig, MatcherConfig
 from gps_denied_onboard.constants import FdrKind, LogEvent
-from gps_denied_onboard.helpers.frame_rectifier import RectificationError, rectify_to_map_frame
+from gps_denied_onboard.helpers.frame_rectifier import (
+    RectificationError,
+    RectifiedQuery,
+    rectify_to_map_frame,
+)
 from gps_denied_onboard.helpers.orientation_field import grey_of
+from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 
 LABEL: Final[str] = "orientation_corr"
 #: The search disc's radius, level-1 (map) px: at least enough sidelobes beyond the peak's exclusion for
@@ -66,6 +77,10 @@ MIN_RADIUS_PX: Final = 48.0
 MAX_RADIUS_PX: Final = 192.0
 #: The prior's sigmas the disc covers.
 PRIOR_SIGMAS: Final = 3.0
+#: Patches handed on as point correspondences only when this many agree (the shared RANSAC's inliers),
+#: and at least this share of those tried (module docstring, step 5).
+PATCH_MIN_INLIERS: Final = 12
+PATCH_MIN_AGREEMENT: Final = 0.8
 
 _LOG = structlog.get_logger(__name__)
 
@@ -101,6 +116,7 @@ class OrientationCorrMatcher:
         config: MatcherConfig,
         fields: MapFields,
         health_window: RollingHealthWindow,
+        ransac_filter: RansacFilter,
         fdr_client: FdrClient | None = None,
     ) -> None:
         calibration = fields.calibration
@@ -114,6 +130,7 @@ class OrientationCorrMatcher:
         self._store = fields.store
         self._calibration = calibration
         self._health = health_window
+        self._ransac = ransac_filter
         self._fdr = fdr_client
         self._rotations, self._scales = hypothesis_grid(config.correlation)
         #: Never search a wider disc than the map was calibrated for.
@@ -233,7 +250,7 @@ class OrientationCorrMatcher:
             if found is None:
                 dropped += 1
                 continue
-            survivors.append(self._candidate(disc, found, gsd, cal.null_psr_max, null_peak))
+            survivors.append(self._candidate(disc, found, gsd, cal.null_psr_max, null_peak, rect))
         _LOG.debug(
             LogEvent.C3_CANDIDATES,
             candidates=[
@@ -248,7 +265,7 @@ class OrientationCorrMatcher:
             frame_id=frame_id,
             per_candidate=survivors,
             best_candidate_idx=0,
-            reprojection_residual_px=math.nan,
+            reprojection_residual_px=survivors[0].per_candidate_residual_px,
             matched_at=time.monotonic_ns(),
             matcher_label=LABEL,
             candidates_input=n_input,
@@ -256,7 +273,13 @@ class OrientationCorrMatcher:
         )
 
     def _candidate(
-        self, disc: _Disc, found: AreaSearch, gsd: float, null_psr: float, null_peak: float
+        self,
+        disc: _Disc,
+        found: AreaSearch,
+        gsd: float,
+        null_psr: float,
+        null_peak: float,
+        rect: RectifiedQuery,
     ) -> CandidateMatchSet:
         lon, lat = self._store.mosaic_px_to_lonlat(np.array(found.nadir_map_px, dtype=np.float64))
         cfg = self._config.correlation
@@ -281,12 +304,31 @@ class OrientationCorrMatcher:
             null_peak=float(null_peak),
         )
         tile_id: TileId = disc.candidate.tile_id
-        return CandidateMatchSet(
+        none = CandidateMatchSet(
             tile_id=tile_id,
             inlier_count=0,
             inlier_correspondences=np.empty((0, 4), dtype=np.float32),
             ransac_outlier_count=0,
             per_candidate_residual_px=math.nan,
+            area=area,
+        )
+        if found.patches.shape[0] < PATCH_MIN_INLIERS:
+            return none
+        handle = disc.candidate.tile_pixels_handle
+        lon_p, lat_p = self._store.mosaic_px_to_lonlat(found.patches[:, 2:4])
+        corr = np.hstack(
+            [rect.rect_to_frame_px(found.patches[:, 0:2]), handle.lonlat_to_chip_px(lon_p, lat_p)]
+        ).astype(np.float32)
+        result = self._ransac.filter(corr, threshold_px=self._config.ransac_threshold_px)
+        n = result.inlier_count
+        if n < PATCH_MIN_INLIERS or n < PATCH_MIN_AGREEMENT * found.patches_tried:
+            return none
+        return CandidateMatchSet(
+            tile_id=tile_id,
+            inlier_count=n,
+            inlier_correspondences=np.array(result.inlier_correspondences, dtype=np.float32, copy=True),
+            ransac_outlier_count=int(result.ransac_outlier_count),
+            per_candidate_residual_px=float(result.per_candidate_residual_px),
             area=area,
         )
 
@@ -328,10 +370,15 @@ def create(
     config: MatcherConfig,
     map_fields: MapFields,
     health_window: RollingHealthWindow,
+    ransac_filter: RansacFilter,
     fdr_client: FdrClient | None = None,
 ) -> OrientationCorrMatcher:
     """Registry factory for ``orientation_corr``: needs the cache's map fields with their calibration
     (``ValueError`` naming the command that makes them otherwise)."""
     return OrientationCorrMatcher(
-        config=config, fields=map_fields, health_window=health_window, fdr_client=fdr_client
+        config=config,
+        fields=map_fields,
+        health_window=health_window,
+        ransac_filter=ransac_filter,
+        fdr_client=fdr_client,
     )
