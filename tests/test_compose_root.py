@@ -121,3 +121,50 @@ def test_auto_orders_by_what_this_machine_can_run() -> None:
     assert order[0] == "disk_lightglue" and "TensorrtExecutionProvider" in why
     order, why = auto_order(("CPUExecutionProvider",))
     assert order[0] == "xfeat" and order[-1] == "disk_lightglue" and "CPU only" in why
+
+
+@pytest.fixture(scope="module")
+def cache_with_fields(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from gps_denied_onboard.components.c10_cache_build.map_fields import build_map_fields
+
+    cache = build_small_cache(tmp_path_factory.mktemp("compose_fields"))[1]
+    build_map_fields(cache, progress=False)
+    return cache
+
+
+def test_compose_auto_on_a_cpu_flies_the_area_correlation_first_on_a_calibrated_cache(
+    tmp_path: Path, cache_with_fields: Path
+) -> None:
+    """auto on a CPU alone with the cache's calibrated orientation fields: orientation_corr is the fast
+    rung, the keypoint strategy auto picked the heavy one, and the log says why."""
+    with structlog.testing.capture_logs() as logs:
+        root = compose_root(
+            _config(tmp_path, cache_with_fields, "matcher.strategy=auto", "matcher.model_dir=null")
+        )
+    root.close()
+    ladder = root.pipeline.ladder
+    assert ladder is not None
+    assert [(r.name, r.strategy) for r in ladder.rungs] == [
+        ("correlation", "orientation_corr"),
+        ("keypoints", "classical"),
+    ]
+    picked = [e for e in logs if e["event"] == "c3.matcher.auto_selected" and e.get("area_rung")]
+    assert picked and "calibrated" in picked[0]["reason"]
+
+
+def test_compose_auto_without_fields_keeps_the_keypoint_matcher_alone(
+    tmp_path: Path, cache_dir: Path
+) -> None:
+    with structlog.testing.capture_logs() as logs:
+        root = compose_root(_config(tmp_path, cache_dir, "matcher.strategy=auto", "matcher.model_dir=null"))
+    root.close()
+    ladder = root.pipeline.ladder
+    assert ladder is not None and [r.strategy for r in ladder.rungs] == ["classical"]
+    assert any(e.get("area_rung") is False and "gdnav cache fields" in e["reason"] for e in logs)
+
+
+def test_compose_orientation_corr_without_fields_refuses_start_naming_the_command(
+    tmp_path: Path, cache_dir: Path
+) -> None:
+    with pytest.raises(StartupError, match="gdnav cache fields"):
+        compose_root(_config(tmp_path, cache_dir, "matcher.strategy=orientation_corr"))

@@ -195,20 +195,20 @@ def _map_fields(cache_dir: Path, *, force: bool, quiet: bool) -> int:
     assert info is not None
     size_mib = sum(f.bytes for f in info.files.values()) / 2**20
     what = "built" if result.built else "up to date"
-    cal = info.calibration
-    if cal is None:
+    if not info.calibrations:
         print(
             f"cache: {cache_dir}: orientation fields {what} ({size_mib:.1f} MiB), not calibrated: the map "
             "has no room for a calibration template and its search disc; orientation_corr will not run on it"
         )
         return EXIT_OK
-    print(
-        f"cache: {cache_dir}: orientation fields {what} ({size_mib:.1f} MiB); calibration over "
-        f"{cal.samples} templates of {cal.template_px[0]}x{cal.template_px[1]} px in a "
-        f"{cal.radius_px:.0f} px disc: wrong places PSR <= {cal.null_psr_max:.1f}, peak <= "
-        f"{cal.null_peak_max:.3f}; right places PSR p5 {cal.right_psr_p5:.1f}, "
-        f"peak p5 {cal.right_peak_p5:.3f}"
-    )
+    print(f"cache: {cache_dir}: orientation fields {what} ({size_mib:.1f} MiB)")
+    for level, cal in sorted(info.calibrations.items()):
+        print(
+            f"  level {level}: {cal.samples} templates of {cal.template_px[0]}x{cal.template_px[1]} px in a "
+            f"{cal.radius_px:.0f} px disc: wrong places PSR <= {cal.null_psr_max:.1f}, peak <= "
+            f"{cal.null_peak_max:.3f}; right places PSR p5 {cal.right_psr_p5:.1f}, peak p5 "
+            f"{cal.right_peak_p5:.3f}"
+        )
     return EXIT_OK
 
 

@@ -440,7 +440,7 @@ def with_area_rung(unresolved: Config, config: Config, tiles: TileStore) -> Conf
     if any(p != "CPUExecutionProvider" for p in resolve_providers()):
         return config
     info = tiles.manifest.map_fields
-    if info is None or info.calibration is None:
+    if info is None or not info.calibrations:
         log.info(
             LogEvent.C3_AUTO_SELECTED,
             strategy=config.matcher.strategy,
@@ -479,7 +479,7 @@ def open_map_fields(config: Config, tiles: TileStore, fdr: FdrClient) -> MapFiel
         return None
     try:
         fields = MapFields.open(tiles, verify_hashes=config.cache.verify_hashes)
-        if fields.calibration is None:
+        if not fields.calibrated_levels:
             raise MapFieldsRefused(
                 f"{tiles.cache_dir}: the orientation fields are not calibrated (gdnav cache fields --cache "
                 f"{tiles.cache_dir})"
@@ -489,12 +489,11 @@ def open_map_fields(config: Config, tiles: TileStore, fdr: FdrClient) -> MapFiel
         fdr.record(FdrKind.MAP_FIELDS, {"used": False, "reason": str(exc)})
         raise StartupError("cache", f"orientation_corr: {exc}") from exc
     fields.on_corrupt = lambda info: fdr.record(FdrKind.MAP_FIELDS_CORRUPT, info)
-    cal = fields.calibration
     fields_rec = {
         "used": True,
         "version": fields.info.version,
         "verified_hashes": config.cache.verify_hashes,
-        "calibration": None if cal is None else cal.to_json(),
+        "calibrations": [c.to_json() for c in fields.info.calibrations.values()],
     }
     log.info(LogEvent.MAP_FIELDS_READY, **fields_rec)
     fdr.record(FdrKind.MAP_FIELDS, fields_rec)

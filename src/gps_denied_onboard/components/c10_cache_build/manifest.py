@@ -176,15 +176,17 @@ class TileFeatureSetInfo:
 
 @dataclass(frozen=True)
 class FieldCalibration:
-    """What the area correlation scores on this map (``c10_cache_build/map_fields.py``, "Calibration").
+    """What the area correlation scores on this map at one working level (``c10_cache_build/map_fields.py``,
+    "Calibration").
 
-    Templates cut from the map itself (degraded like a frame) are searched in discs of ``radius_px``
-    level-1 px: once where the truth lies inside (``right_*``: how well this map's own structure is
-    found, an upper bound for a real frame) and once where it lies outside (``null_*``: what a wrong
-    place scores here, the level a real fix must clear). ``texture_p50`` is the median share of
-    structure in those templates.
+    Templates cut from the map itself at ``level`` (degraded like a frame) are searched in discs of
+    ``radius_px`` px of that level: once where the truth lies inside (``right_*``: how well this map's
+    own structure is found, an upper bound for a real frame) and once where it lies outside (``null_*``:
+    what a wrong place scores here, the level a real fix must clear). ``texture_p50`` is the median share
+    of structure in those templates.
     """
 
+    level: int
     samples: int
     radius_px: float
     template_px: tuple[int, int]
@@ -203,6 +205,7 @@ class FieldCalibration:
     @classmethod
     def from_json(cls, payload: Mapping[str, Any]) -> FieldCalibration:
         return cls(
+            level=int(payload["level"]),
             samples=int(payload["samples"]),
             radius_px=float(payload["radius_px"]),
             template_px=(int(payload["template_px"][0]), int(payload["template_px"][1])),
@@ -220,13 +223,16 @@ class MapFieldsInfo:
     """The map's orientation fields (``c10_cache_build/map_fields.py``): the field definition they were
     made with (``version``), the mosaic they were made from, one quantised field and one CRC-32 table per
     pyramid level (``levels``: level -> (field file, CRC file, cell side px)), every file's size and
-    sha256, the map's calibration (None until it is made) and build figures (``stats``, for people)."""
+    sha256, the map's calibration at each working level it has room for (empty until it is made) and
+    build figures (``stats``, for people)."""
 
     version: str
     mosaic_sha256: str
     levels: Mapping[int, tuple[str, str, int]]
     files: Mapping[str, ArtifactInfo]
-    calibration: FieldCalibration | None = None
+    calibrations: Mapping[int, FieldCalibration] = field(default_factory=dict)
+    #: Whether the calibration was run (it may have found no level with room for it).
+    calibrated: bool = False
     stats: Mapping[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
@@ -238,13 +244,13 @@ class MapFieldsInfo:
                 for level, (f, c, cell) in sorted(self.levels.items())
             },
             "files": {name: vars(info).copy() for name, info in sorted(self.files.items())},
-            "calibration": None if self.calibration is None else self.calibration.to_json(),
+            "calibrated": self.calibrated,
+            "calibrations": {str(level): c.to_json() for level, c in sorted(self.calibrations.items())},
             "stats": dict(self.stats),
         }
 
     @classmethod
     def from_json(cls, payload: Mapping[str, Any]) -> MapFieldsInfo:
-        cal = payload.get("calibration")
         return cls(
             version=str(payload["version"]),
             mosaic_sha256=str(payload["mosaic_sha256"]),
@@ -256,7 +262,11 @@ class MapFieldsInfo:
                 str(name): ArtifactInfo(sha256=str(info["sha256"]), bytes=int(info["bytes"]))
                 for name, info in payload["files"].items()
             },
-            calibration=None if cal is None else FieldCalibration.from_json(cal),
+            calibrations={
+                int(level): FieldCalibration.from_json(c)
+                for level, c in payload.get("calibrations", {}).items()
+            },
+            calibrated=bool(payload.get("calibrated", False)),
             stats=dict(payload.get("stats", {})),
         )
 

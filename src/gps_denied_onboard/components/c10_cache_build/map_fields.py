@@ -3,7 +3,8 @@
 ``gdnav cache build`` adds them to every cache it builds; ``gdnav cache fields`` adds them to an existing
 one. A fix then does no map-side work: it reads a window of the fields (``c6_tiles/map_fields.py``).
 
-**Files.** Per pyramid level (1: the mosaic's pixels; 2: half its resolution), ``field_l{L}.npy``: the
+**Files.** Per pyramid level (1: the mosaic's pixels; each level down half the resolution; three levels, so
+that a fix can work at level 1 or 2 with the next one as its coarse level), ``field_l{L}.npy``: the
 field of ``helpers/orientation_field.py`` quantised to (H, W, 2) int8, nodata marked; and
 ``field_l{L}_crc.npy``: the CRC-32 of every cell (one map tile: ``tile_size_px / 2**(L-1)`` px square),
 taken as the field was written, so that the daemon checks what it reads without reading the whole map at
@@ -11,16 +12,20 @@ start-up. Both are listed in the manifest's ``map_fields`` block with their size
 block names the field definition (``FIELD_VERSION``) and the mosaic they were made from.
 
 **Computed in bands** of ``BAND_ROWS`` rows with ``HALO_ROWS`` of context above and below: every kernel of
-the field (blur, Sobel, the neighbourhood mean, the footprint margin) reaches fewer rows than the halo, so
-the result is the same bytes as over the whole mosaic at once, in bounded memory.
+the field (blur, Sobel, the neighbourhood mean, the footprint margin) reaches fewer rows than the halo at
+every level (the neighbourhood mean's 32 px at level 3 are 128 rows of the mosaic), so the result is the
+same bytes as over the whole mosaic at once, in bounded memory.
 
 **Calibration.** How strongly a right place and a wrong place answer on *this* map, measured on the map
-itself: ``CALIBRATION_SAMPLES`` templates of ``CALIBRATION_TEMPLATE_PX`` cut where the map has data,
-degraded like a frame (gain, gamma, blur, noise: ``_degrade``), are searched in a disc of the largest
-radius the daemon searches (``orientation_corr.MAX_RADIUS_PX``, or what fits the map): once with the truth
-inside the disc and once with it outside. The wrong places' peak-to-sidelobe ratios and peaks are the
-level a real fix must clear (the integrity rule's ``min_psr`` and ``min_peak`` are raised to a margin over
-them, ``c4_pose/integrity.py``); the right ones tell whether the map has the structure to be found at all.
+itself, at each working level (1 and 2) the map has room for: ``CALIBRATION_SAMPLES`` templates of
+``CALIBRATION_TEMPLATE_PX`` px of that level cut where the map has data, degraded like a frame (gain,
+gamma, blur, noise: ``_degrade``), are searched in a disc of the largest radius the daemon searches
+(``orientation_corr.MAX_RADIUS_PX``, or what fits the map): once with the truth inside the disc and once
+with it outside. The daemon works at the level that keeps its footprint near the calibration's size, so
+the statistics compare like with like whatever the map's resolution. The wrong places' peak-to-sidelobe
+ratios and peaks are the level a real fix must clear (the integrity rule's ``min_psr`` and ``min_peak`` are
+raised to a margin over them, ``c4_pose/integrity.py``); the right ones tell whether the map has the
+structure to be found at all.
 Templates from the map are kinder than frames from another date, so ``right_*`` is an upper bound; the
 ``null_*`` figures are what matters, and a wrong place is a wrong place whatever the date. The samples
 come from a seeded generator: the same map gives the same calibration.
@@ -45,7 +50,13 @@ import cv2
 import numpy as np
 import structlog
 
-from gps_denied_onboard.components.c3_matcher.area_search import FieldWindowSource, Template, search
+from gps_denied_onboard.components.c3_matcher.area_search import (
+    FieldWindowSource,
+    LevelView,
+    Template,
+    search,
+)
+from gps_denied_onboard.components.c6_tiles.map_fields import FIELD_LEVELS
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c6_tiles.types import TileStoreError
 from gps_denied_onboard.components.c10_cache_build.manifest import (
@@ -67,11 +78,13 @@ from gps_denied_onboard.helpers.orientation_field import (
 
 _log = structlog.get_logger(__name__)
 
-#: Pyramid levels stored (1: the mosaic's pixels, 2: half its resolution).
-LEVELS: Final = (1, 2)
-#: Rows computed at once, and the context rows read above and below them (even, so level 2 aligns).
+#: Pyramid levels stored (1: the mosaic's pixels, each next one half the resolution): what C6 reads.
+LEVELS: Final = FIELD_LEVELS
+#: Working levels calibrated (a working level's coarse search runs one level down).
+WORKING_LEVELS: Final = (1, 2)
+#: Rows computed at once, and the context rows read above and below them (multiples of 4: the levels align).
 BAND_ROWS: Final = 1024
-HALO_ROWS: Final = 64
+HALO_ROWS: Final = 192
 #: Templates per calibration (each searched twice: truth inside, truth outside the disc).
 CALIBRATION_SAMPLES: Final = 24
 #: Calibration template, level-1 px (width, height): the footprint of a 4:3 frame; smaller on a small map.
@@ -122,12 +135,13 @@ def build_map_fields(cache_dir: Path, *, force: bool = False, progress: bool = T
     else:
         info = existing
         built = False
-    if info.calibration is None:
+    if not info.calibrated:
         from gps_denied_onboard.components.c6_tiles.map_fields import MapFields
 
         fields = MapFields.open(store, info, verify_hashes=False)  # hashed just above or in _intact
-        calibration = calibrate(store, fields)
-        info = dataclasses.replace(info, calibration=calibration)
+        found = {level: calibrate(store, fields, level) for level in WORKING_LEVELS}
+        calibrations = {level: c for level, c in found.items() if c is not None}
+        info = dataclasses.replace(info, calibrations=calibrations, calibrated=True)
         manifest = dataclasses.replace(manifest, map_fields=info)
         try:
             manifest.save(cache_dir)
@@ -140,12 +154,12 @@ def build_map_fields(cache_dir: Path, *, force: bool = False, progress: bool = T
             cache_dir=str(cache_dir),
             version=info.version,
             bytes=sum(f.bytes for f in info.files.values()),
-            calibration=None if info.calibration is None else info.calibration.to_json(),
+            calibrations={level: c.to_json() for level, c in info.calibrations.items()},
             seconds=round(time.monotonic() - t0, 2),
         )
     else:
         _log.info(LogEvent.MAP_FIELDS_UP_TO_DATE, cache_dir=str(cache_dir), version=info.version)
-    return MapFieldsBuild(manifest, built, info.calibration is not None)
+    return MapFieldsBuild(manifest, built, bool(info.calibrations))
 
 
 def _intact(info: MapFieldsInfo, cache_dir: Path, mosaic_sha: str) -> bool:
@@ -182,6 +196,7 @@ def _write_fields(store: TileStore, cache_dir: Path, mosaic_sha: str) -> MapFiel
     try:
         for r0 in range(0, height, BAND_ROWS):
             r1 = min(r0 + BAND_ROWS, height)
+            # A multiple of 4 rows from the top, so every level's rows align with the whole map's.
             a, b = max(0, r0 - HALO_ROWS), min(height, r1 + HALO_ROWS)
             band = np.asarray(mosaic[a:b])
             fields = level_fields(grey_of(band), np.asarray(band.any(axis=2), dtype=bool))
@@ -235,12 +250,17 @@ def _degrade(grey: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return (blurred + rng.normal(0.0, 4.0, blurred.shape)).astype(np.float32)
 
 
-def calibrate(store: TileStore, fields: FieldWindowSource) -> FieldCalibration | None:
-    """The map's calibration (module docstring); None when the map has no room for one template and
-    a disc of ``CALIBRATION_MIN_RADIUS_PX`` around it."""
+def calibrate(store: TileStore, fields: FieldWindowSource, level: int) -> FieldCalibration | None:
+    """The map's calibration at working ``level`` (module docstring); None when the map has no room
+    there for one template and a disc of ``CALIBRATION_MIN_RADIUS_PX`` around it."""
+    f = 2 ** (level - 1)
     mosaic = store.mosaic
-    height, width = mosaic.shape[:2]
-    valid = np.asarray(np.asarray(mosaic).any(axis=2), dtype=np.uint8)
+    valid1 = np.asarray(np.asarray(mosaic).any(axis=2), dtype=bool)
+    valid = valid1
+    for _ in range(level - 1):
+        valid = downsample2(np.zeros(valid.shape, np.float32), valid)[1]
+    valid = np.asarray(valid, dtype=np.uint8)
+    height, width = valid.shape[:2]
     tw, th = CALIBRATION_TEMPLATE_PX
     # A smaller template on a small map: at most a third of its valid extent.
     ys, xs = np.nonzero(valid)
@@ -268,21 +288,25 @@ def calibrate(store: TileStore, fields: FieldWindowSource) -> FieldCalibration |
     while len(texture) < CALIBRATION_SAMPLES and attempts < 4 * CALIBRATION_SAMPLES:
         attempts += 1
         y0, x0 = (int(v) for v in corners[rng.integers(len(corners))])
-        grey = grey_of(np.asarray(mosaic[y0 : y0 + th, x0 : x0 + tw]))
+        grey = grey_of(np.asarray(mosaic[y0 * f : (y0 + th) * f, x0 * f : (x0 + tw) * f]))
+        cut = np.ones(grey.shape, bool)
+        for _ in range(level - 1):
+            grey, cut = downsample2(grey, cut)
         template = Template(_degrade(grey, rng), np.ones((th, tw), bool), ((tw - 1) / 2.0, (th - 1) / 2.0))
         truth = (x0 + (tw - 1) / 2.0, y0 + (th - 1) / 2.0)
         a = rng.uniform(0.0, 2.0 * math.pi)
         d_right = rng.uniform(0.0, 0.7) * radius
         d_null = rng.uniform(1.3, 2.5) * radius
+        view = LevelView(fields, level)
         right = search(
             template,
-            fields,
+            view,
             (truth[0] + d_right * math.cos(a), truth[1] + d_right * math.sin(a)),
             radius,
         )
         null = search(
             template,
-            fields,
+            view,
             (truth[0] + d_null * math.cos(a), truth[1] + d_null * math.sin(a)),
             radius,
         )
@@ -296,6 +320,7 @@ def calibrate(store: TileStore, fields: FieldWindowSource) -> FieldCalibration |
     if len(texture) < CALIBRATION_SAMPLES // 2:
         return None
     return FieldCalibration(
+        level=level,
         samples=len(texture),
         radius_px=float(radius),
         template_px=(tw, th),

@@ -17,8 +17,10 @@ The evidence it returns is the integrity rule's to judge (``c4_pose/integrity.py
 - ``peak``: the fine peak's normalised value: how much of the frame's structure the map explains;
 - ``secondary_ratio``: the highest sidelobe over the peak: a second place that looks almost as right.
 
-Pixel conventions: OpenCV's (x right, y down, (0, 0) the centre of the top-left pixel); level 2 pixel
-centres are ``x2 = (x1 + 0.5) / 2 - 0.5``.
+Levels are relative to the template: level 1 is its GSD, level 2 half of it. A caller matching a large
+footprint hands a coarser pair of the map's levels (:class:`LevelView`), so the work per fix does not grow
+with the map's resolution. Pixel conventions: OpenCV's (x right, y down, (0, 0) the centre of the
+top-left pixel); one level down, pixel centres are ``x2 = (x1 + 0.5) / 2 - 0.5``.
 """
 
 from __future__ import annotations
@@ -57,12 +59,29 @@ _EPS: Final = 1e-9
 
 
 class FieldWindowSource(Protocol):
-    """Map orientation fields by level (1: the mosaic's pixels, 2: half its resolution)."""
+    """Map orientation fields by level (1: the mosaic's pixels, each level down half the resolution)."""
 
     def window(self, level: int, x0: int, y0: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         """``(z, valid)`` of the level's pixels [y0, y0 + height) x [x0, x0 + width): (h, w) complex64
         and (h, w) bool; outside the map ``valid`` is false and ``z`` 0."""
         ...
+
+
+@dataclass(frozen=True)
+class LevelView:
+    """``source`` seen from its level ``base``: this view's level 1 is ``base``, its level 2 ``base + 1``."""
+
+    source: FieldWindowSource
+    base: int
+
+    def window(self, level: int, x0: int, y0: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.source.window(self.base + level - 1, x0, y0, width, height)
+
+
+def to_level(px: float, from_level: int, to_level: int) -> float:
+    """A pixel coordinate at ``from_level`` in the pixels of ``to_level`` (centres, see the docstring)."""
+    scale = 2.0 ** (to_level - from_level)
+    return (px + 0.5) / scale - 0.5
 
 
 @dataclass(frozen=True)

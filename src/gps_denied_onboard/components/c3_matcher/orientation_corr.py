@@ -7,8 +7,13 @@ matchers have done this on small computers for decades (DSMAC-style area correla
 2023) does it with exhaustive FFT matching over position and heading.
 
 Per attempt (``match``):
-1. the frame is warped north-up at the map's GSD with the autopilot's attitude and height
-   (``helpers/frame_rectifier.py``); what is left is a 2-D shift plus the heading and height errors;
+1. the frame is warped north-up with the autopilot's attitude and height (``helpers/frame_rectifier.py``)
+   at the GSD of a working level of the map's fields (level 1: the map's pixels; level 2: half that):
+   one that keeps the footprint within ``MIN_WORKING_SIDE_PX``..``MAX_WORKING_SIDE_PX``, so the work per
+   fix does not grow with the map's resolution and the footprint stays near the size the map was
+   calibrated with, and of those the one where the map's calibration tells places apart best (a 0.5 m map
+   of striped fields repeats itself at 0.5 m and far less at 1 m). What is left is a 2-D shift plus the
+   heading and height errors;
 2. where to search: with a prior (``RerankResult.search``) one disc around it, of radius 3 sigma
    (``MIN_RADIUS_PX`` .. ``MAX_RADIUS_PX``); a prior too wide for that, or none, gives one disc of
    ``MAX_RADIUS_PX`` around each candidate tile (at most the rung's candidates), the prior's first;
@@ -47,7 +52,13 @@ import structlog
 
 from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
 from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
-from gps_denied_onboard.components.c3_matcher.area_search import AreaSearch, Template, search
+from gps_denied_onboard.components.c3_matcher.area_search import (
+    AreaSearch,
+    LevelView,
+    Template,
+    search,
+    to_level,
+)
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError, MatcherBackboneError
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.types import (
@@ -70,11 +81,16 @@ from gps_denied_onboard.helpers.orientation_field import grey_of
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 
 LABEL: Final[str] = "orientation_corr"
-#: The search disc's radius, level-1 (map) px: at least enough sidelobes beyond the peak's exclusion for
+#: The search disc's radius, working-level px: at least enough sidelobes beyond the peak's exclusion for
 #: a peak-to-sidelobe ratio, at most the radius the map's calibration was made at
 #: (``c10_cache_build.map_fields.CALIBRATION_RADIUS_PX``): a wider disc offers more places to look right.
 MIN_RADIUS_PX: Final = 48.0
 MAX_RADIUS_PX: Final = 192.0
+#: The footprint's long side, px, a working level must keep it within (module docstring, step 1).
+MIN_WORKING_SIDE_PX: Final = 160.0
+MAX_WORKING_SIDE_PX: Final = 640.0
+#: How much better a coarser working level must separate places to be chosen over a finer one.
+COARSER_GAIN: Final = 1.5
 #: The prior's sigmas the disc covers.
 PRIOR_SIGMAS: Final = 3.0
 #: Patches handed on as point correspondences only when this many agree (the shared RANSAC's inliers),
@@ -92,6 +108,7 @@ class _Disc:
     candidate: RerankCandidate
     lat_deg: float
     lon_deg: float
+    #: In px of the level the search runs at.
     radius_px: float
 
 
@@ -119,8 +136,7 @@ class OrientationCorrMatcher:
         ransac_filter: RansacFilter,
         fdr_client: FdrClient | None = None,
     ) -> None:
-        calibration = fields.calibration
-        if calibration is None:
+        if not fields.calibrated_levels:
             raise ValueError(
                 f"{LABEL} needs the cache's calibrated map fields: run gdnav cache fields --cache "
                 f"{fields.store.cache_dir}"
@@ -128,13 +144,10 @@ class OrientationCorrMatcher:
         self._config = config
         self._fields = fields
         self._store = fields.store
-        self._calibration = calibration
         self._health = health_window
         self._ransac = ransac_filter
         self._fdr = fdr_client
         self._rotations, self._scales = hypothesis_grid(config.correlation)
-        #: Never search a wider disc than the map was calibrated for.
-        self._max_radius_px = min(MAX_RADIUS_PX, calibration.radius_px)
 
     def health_snapshot(self) -> MatcherHealth:
         return self._health.snapshot()
@@ -187,21 +200,51 @@ class OrientationCorrMatcher:
             )
         return result
 
-    def _discs(self, rerank_result: RerankResult, candidates: list[RerankCandidate]) -> list[_Disc]:
-        gsd = float(self._store.gsd_m_px)
+    def _working_level(self, frame: NavCameraFrame, calibration: CameraCalibration, gsd1: float) -> int:
+        """The calibrated working level for this frame (module docstring, step 1): of the levels where the
+        footprint's long side is within ``MIN_WORKING_SIDE_PX``..``MAX_WORKING_SIDE_PX``, the finest (its
+        alignment is twice as fine), unless a coarser one tells a right place from a wrong one
+        ``COARSER_GAIN`` times as well by the map's calibration (``right_psr_p5 / null_psr_max``: crop
+        rows that repeat at the map's own resolution wash out one level down); with none in that range,
+        the finest level whose footprint fits, else the coarsest."""
+        alt = frame.alt_agl_m if frame.alt_agl_m is not None else 0.0
+        side_m = 2.0 * alt * math.tan(calibration.hfov_rad / 2.0)
+        levels = self._fields.calibrated_levels
+
+        def side_px(level: int) -> float:
+            return side_m / (gsd1 * 2 ** (level - 1))
+
+        sized = [lv for lv in levels if MIN_WORKING_SIDE_PX <= side_px(lv) <= MAX_WORKING_SIDE_PX]
+        if sized:
+            best = sized[0]
+            for level in sized[1:]:
+                if self._separation(level) >= COARSER_GAIN * self._separation(best):
+                    best = level
+            return best
+        fits = [lv for lv in levels if side_px(lv) <= MAX_WORKING_SIDE_PX]
+        return fits[0] if fits else levels[-1]
+
+    def _separation(self, level: int) -> float:
+        cal = self._fields.calibration(level)
+        return 0.0 if cal is None else cal.right_psr_p5 / max(cal.null_psr_max, 1e-6)
+
+    def _discs(
+        self, rerank_result: RerankResult, candidates: list[RerankCandidate], gsd: float, max_radius_px: float
+    ) -> list[_Disc]:
+        """Where to search (module docstring, step 2); radii in px of GSD ``gsd``."""
         prior = rerank_result.search
         if prior is not None and candidates:
             radius_px = max(MIN_RADIUS_PX, PRIOR_SIGMAS * prior.sigma_m / gsd)
-            if radius_px <= self._max_radius_px:
+            if radius_px <= max_radius_px:
                 return [_Disc(candidates[0], prior.lat_deg, prior.lon_deg, radius_px)]
         discs = []
         if prior is not None and candidates:
-            discs.append(_Disc(candidates[0], prior.lat_deg, prior.lon_deg, self._max_radius_px))
+            discs.append(_Disc(candidates[0], prior.lat_deg, prior.lon_deg, max_radius_px))
         for cand in candidates[len(discs) :]:
             handle = cand.tile_pixels_handle
             w, h = (int(v) for v in np.asarray(handle.pixels()).shape[1::-1])
             lon, lat = handle.chip_px_to_lonlat(np.array([(w - 1) / 2.0, (h - 1) / 2.0]))
-            discs.append(_Disc(cand, float(np.ravel(lat)[0]), float(np.ravel(lon)[0]), self._max_radius_px))
+            discs.append(_Disc(cand, float(np.ravel(lat)[0]), float(np.ravel(lon)[0]), max_radius_px))
         return discs
 
     def _match(
@@ -219,9 +262,16 @@ class OrientationCorrMatcher:
         if attitude is None or alt_agl_m is None:
             self._fail(frame_id, n_input, n_input, "the frame has no attitude or height")
             raise AssertionError("unreachable")  # _fail raises
-        discs = self._discs(rerank_result, candidates)
-        lat0 = discs[0].lat_deg
-        gsd = float(self._store.grid.gsd_m_px(lat0))
+        prior = rerank_result.search
+        lat0 = prior.lat_deg if prior is not None else self._store.center_lonlat[1]
+        gsd1 = float(self._store.grid.gsd_m_px(lat0))
+        level = self._working_level(frame, calibration, gsd1)
+        cal = self._fields.calibration(level)
+        assert cal is not None  # a calibrated level
+        gsd = gsd1 * 2 ** (level - 1)
+        # Never search a wider disc than the map was calibrated for.
+        discs = self._discs(rerank_result, candidates, gsd, min(MAX_RADIUS_PX, cal.radius_px))
+        view = LevelView(self._fields, level)
         try:
             rect = rectify_to_map_frame(frame.image_bgr, calibration, attitude, alt_agl_m, gsd)
         except RectificationError as exc:
@@ -232,25 +282,18 @@ class OrientationCorrMatcher:
         template = Template(grey_of(rect.image), valid, _nadir_px(rect.H_frame_to_rect, calibration, frame))
         # What a wrong place scores for a footprint of this size (the calibration's peak is for its own
         # template: a correlation's spread falls as the square root of the pixels it sums).
-        cal = self._calibration
         area_ratio = (cal.template_px[0] * cal.template_px[1]) / max(float(valid.sum()), 1.0)
         null_peak = cal.null_peak_max * math.sqrt(min(area_ratio, 1.0))
         survivors: list[CandidateMatchSet] = []
         dropped = 0
         for disc in discs:
-            pred = self._store.lonlat_to_mosaic_px(np.array(disc.lon_deg), np.array(disc.lat_deg))
-            found = search(
-                template,
-                self._fields,
-                (float(pred[0]), float(pred[1])),
-                disc.radius_px,
-                self._rotations,
-                self._scales,
-            )
+            pred1 = self._store.lonlat_to_mosaic_px(np.array(disc.lon_deg), np.array(disc.lat_deg))
+            pred = (to_level(float(pred1[0]), 1, level), to_level(float(pred1[1]), 1, level))
+            found = search(template, view, pred, disc.radius_px, self._rotations, self._scales)
             if found is None:
                 dropped += 1
                 continue
-            survivors.append(self._candidate(disc, found, gsd, cal.null_psr_max, null_peak, rect))
+            survivors.append(self._candidate(disc, found, level, gsd, cal.null_psr_max, null_peak, rect))
         _LOG.debug(
             LogEvent.C3_CANDIDATES,
             candidates=[
@@ -276,12 +319,15 @@ class OrientationCorrMatcher:
         self,
         disc: _Disc,
         found: AreaSearch,
+        level: int,
         gsd: float,
         null_psr: float,
         null_peak: float,
         rect: RectifiedQuery,
     ) -> CandidateMatchSet:
-        lon, lat = self._store.mosaic_px_to_lonlat(np.array(found.nadir_map_px, dtype=np.float64))
+        """The candidate of one disc's search at working ``level`` (GSD ``gsd``)."""
+        nadir1 = np.array([to_level(v, level, 1) for v in found.nadir_map_px], dtype=np.float64)
+        lon, lat = self._store.mosaic_px_to_lonlat(nadir1)
         cfg = self._config.correlation
         area = AreaAlignment(
             nadir_lat_deg=float(lat),
@@ -315,7 +361,7 @@ class OrientationCorrMatcher:
         if found.patches.shape[0] < PATCH_MIN_INLIERS:
             return none
         handle = disc.candidate.tile_pixels_handle
-        lon_p, lat_p = self._store.mosaic_px_to_lonlat(found.patches[:, 2:4])
+        lon_p, lat_p = self._store.mosaic_px_to_lonlat((found.patches[:, 2:4] + 0.5) * 2 ** (level - 1) - 0.5)
         corr = np.hstack(
             [rect.rect_to_frame_px(found.patches[:, 0:2]), handle.lonlat_to_chip_px(lon_p, lat_p)]
         ).astype(np.float32)

@@ -29,6 +29,9 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.helpers.orientation_field import FIELD_VERSION, NODATA, dequantise
 
+#: The pyramid levels a cache's fields hold (``c10_cache_build.map_fields.LEVELS``; a test keeps them equal).
+FIELD_LEVELS = (1, 2, 3)
+
 _log = structlog.get_logger(__name__)
 
 
@@ -107,16 +110,21 @@ class MapFields:
                 )
             fields[level] = f
             crcs[level] = c
-        if set(fields) != {1, 2}:
+        if set(fields) != set(FIELD_LEVELS):
             raise MapFieldsRefused(
-                f"{cache_dir}: orientation fields of levels {sorted(fields)}, need 1 and 2"
+                f"{cache_dir}: orientation fields of levels {sorted(fields)}, need {list(FIELD_LEVELS)} "
+                "(run gdnav cache fields --force)"
             )
         return cls(cache_dir, info, fields, crcs, store)
 
+    def calibration(self, level: int) -> FieldCalibration | None:
+        """The map's calibration at working ``level`` (None: not made, or no room for it there)."""
+        return self._info.calibrations.get(level)
+
     @property
-    def calibration(self) -> FieldCalibration | None:
-        """The map's calibration (None: not made)."""
-        return self._info.calibration
+    def calibrated_levels(self) -> tuple[int, ...]:
+        """The working levels with a calibration, finest first."""
+        return tuple(sorted(self._info.calibrations))
 
     @property
     def info(self) -> MapFieldsInfo:
