@@ -56,6 +56,29 @@ def limit_blas_threads(n: int) -> bool:
     return True
 
 
+def _apply_process_nice(target: int | None, log: Any) -> None:
+    """``daemon.process_nice`` (see the config): lower this process's nice value to ``target`` before any
+    thread starts (threads inherit it), where the process may; log what it runs at, and why."""
+    if target is None:
+        return
+    before = os.getpriority(os.PRIO_PROCESS, 0)
+    if before <= target:
+        log.info(LogEvent.DAEMON_PRIORITY, nice=before, wanted=target, action="kept (already as high)")
+        return
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, target)
+    except OSError as exc:  # not root and no CAP_SYS_NICE: run as started, and say so
+        log.warning(
+            LogEvent.DAEMON_PRIORITY,
+            nice=before,
+            wanted=target,
+            action="kept: not permitted (set Nice= in the unit, or CAP_SYS_NICE)",
+            error=str(exc),
+        )
+        return
+    log.info(LogEvent.DAEMON_PRIORITY, nice=os.getpriority(os.PRIO_PROCESS, 0), wanted=target, action="set")
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.set or ())
     blas_set = limit_blas_threads(config.daemon.blas_threads)
@@ -68,6 +91,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         config=config_to_dict(config),
         blas_threads=config.daemon.blas_threads if blas_set else "not set: numpy was already loaded",
     )
+    _apply_process_nice(config.daemon.process_nice, log)
 
     from gps_denied_onboard.clock import DaemonClock
     from gps_denied_onboard.components.c8_mavlink import MavlinkConfigError

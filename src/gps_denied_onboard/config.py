@@ -585,6 +585,12 @@ class DaemonConfig:
     #: The fix thread's nice value above the daemon's (Linux: per thread): when the two cores are short,
     #: VO and the 10 Hz output (the event loop) run first and the fix path waits. 0 = the same priority.
     fix_thread_nice: Annotated[int, Strict(), Field(ge=0, le=19)] = 5
+    #: The daemon's own nice value: ahead of a companion's ordinary work (nice 0), so that its fix thread
+    #: (``fix_thread_nice`` above it) shares the CPU with that work as an equal instead of giving way to
+    #: it. The systemd unit sets it (``Nice=-5``); `gdnav run` started otherwise lowers its nice value to
+    #: this at start where the process may (root, or CAP_SYS_NICE) and logs what it got (never raises it:
+    #: an operator who started it nicer meant it). null = leave it as started.
+    process_nice: Annotated[int, Strict(), Field(ge=-20, le=19)] | None = -5
 
 
 @dataclasses.dataclass(frozen=True)

@@ -96,6 +96,8 @@ class LogEvent:
     """Structured-log event names (the seeds' names where a seed defines them)."""
 
     DAEMON_CONFIG: Final = "daemon.config"
+    #: The nice value ``gdnav run`` runs at (``daemon.process_nice``): set, kept, or not permitted.
+    DAEMON_PRIORITY: Final = "daemon.priority"
     DAEMON_READY: Final = "daemon.ready"
     #: The start-up beacon (``daemon.beacon``) began / handed the link to the daemon's tasks.
     DAEMON_BEACON_STARTED: Final = "daemon.beacon_started"

@@ -18,7 +18,10 @@ Per attempt (``match``):
    (``MIN_RADIUS_PX`` .. ``MAX_RADIUS_PX``); a prior too wide for that, or none, gives one disc of
    ``MAX_RADIUS_PX`` around each candidate tile (at most the rung's candidates), the prior's first;
 3. each disc is searched over the heading and height hypotheses ``matcher.correlation`` allows
-   (``c3_matcher/area_search.py``: gradient-orientation fields by FFT, coarse to fine, sub-pixel);
+   (``c3_matcher/area_search.py``: gradient-orientation fields by FFT, coarse to fine, sub-pixel),
+   climbing from the last frame's hypothesis while its peak stood out (the autopilot's heading and height
+   errors change slowly), with the whole grid every ``FULL_SEARCH_EVERY`` attempts and after any weak
+   one;
 4. each disc found gives a candidate with an ``AreaAlignment``: where the ground under the camera lies,
    the heading and height errors measured, and the correlation's evidence with the map's own calibration
    of what a wrong place scores (``null_psr``, ``null_peak``). Candidates come best first by PSR;
@@ -54,6 +57,7 @@ from gps_denied_onboard.camera.types import CameraCalibration, NavCameraFrame
 from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate, RerankResult
 from gps_denied_onboard.components.c3_matcher.area_search import (
     AreaSearch,
+    Hypothesis,
     LevelView,
     Template,
     search,
@@ -93,6 +97,11 @@ MAX_WORKING_SIDE_PX: Final = 640.0
 COARSER_GAIN: Final = 1.5
 #: The prior's sigmas the disc covers.
 PRIOR_SIGMAS: Final = 3.0
+#: Every this many attempts the whole hypothesis grid is searched, whatever the last frame found.
+FULL_SEARCH_EVERY: Final = 8
+#: The last frame's hypothesis is a starting point only when its peak stood this many times out of what
+#: a wrong place scores on the map (``null_psr``).
+START_PSR_FACTOR: Final = 1.5
 #: Patches handed on as point correspondences only when this many agree (the shared RANSAC's inliers),
 #: and at least this share of those tried (module docstring, step 5).
 PATCH_MIN_INLIERS: Final = 12
@@ -148,6 +157,10 @@ class OrientationCorrMatcher:
         self._ransac = ransac_filter
         self._fdr = fdr_client
         self._rotations, self._scales = hypothesis_grid(config.correlation)
+        #: Where the next search climbs from (step 3 of the module docstring), and attempts since the
+        #: whole grid was searched. The one fix worker is the only caller, so a replay climbs alike.
+        self._start: Hypothesis | None = None
+        self._since_full = 0
 
     def health_snapshot(self) -> MatcherHealth:
         return self._health.snapshot()
@@ -286,10 +299,12 @@ class OrientationCorrMatcher:
         null_peak = cal.null_peak_max * math.sqrt(min(area_ratio, 1.0))
         survivors: list[CandidateMatchSet] = []
         dropped = 0
+        start = self._start if self._since_full < FULL_SEARCH_EVERY else None
+        self._since_full = 0 if start is None else self._since_full + 1
         for disc in discs:
             pred1 = self._store.lonlat_to_mosaic_px(np.array(disc.lon_deg), np.array(disc.lat_deg))
             pred = (to_level(float(pred1[0]), 1, level), to_level(float(pred1[1]), 1, level))
-            found = search(template, view, pred, disc.radius_px, self._rotations, self._scales)
+            found = search(template, view, pred, disc.radius_px, self._rotations, self._scales, start)
             if found is None:
                 dropped += 1
                 continue
@@ -302,8 +317,10 @@ class OrientationCorrMatcher:
             dropped=dropped,
         )
         if not survivors:
+            self._start = None
             self._fail(frame_id, n_input, dropped, "no disc with the frame's footprint on the map")
         survivors.sort(key=lambda s: -s.area.psr if s.area is not None else 0.0)
+        self._note_start(survivors[0].area)
         return MatchResult(
             frame_id=frame_id,
             per_candidate=survivors,
@@ -313,6 +330,16 @@ class OrientationCorrMatcher:
             matcher_label=LABEL,
             candidates_input=n_input,
             candidates_dropped=dropped,
+        )
+
+    def _note_start(self, best: AreaAlignment | None) -> None:
+        """Keep the best hypothesis as the next search's start while its peak stands out."""
+        if best is None or best.psr < START_PSR_FACTOR * best.null_psr:
+            self._start = None
+            return
+        # The grid's own values (rounded as ``hypothesis_grid`` rounds them).
+        self._start = Hypothesis(
+            round(-math.degrees(best.heading_offset_rad), 6), round(best.height_scale, 6)
         )
 
     def _candidate(
