@@ -35,6 +35,7 @@ from gps_denied_onboard.camera.sources import CapturedFrame
 from gps_denied_onboard.camera.stream import FrameStreamError
 from gps_denied_onboard.camera.types import FrameTiming, NavCameraFrame
 from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeVerdict
+from gps_denied_onboard.components.c4_pose.heading_height_check import HeadingHeightVerdict
 from gps_denied_onboard.components.c5_estimator.prior import (
     InitialPrior,
     PriorSource,
@@ -96,6 +97,10 @@ class DaemonCounters:
     rung_attempts: dict[str, int] = field(default_factory=dict)
     rung_accepted: dict[str, int] = field(default_factory=dict)
     last_fix_rung: str | None = None
+    #: What the area fixes measured of the autopilot's heading (deg) and height (scale), medians
+    #: (``c4_pose/heading_height_check.py``; None before enough strong area fixes).
+    heading_offset_deg: float | None = None
+    height_scale: float | None = None
 
 
 class NavDaemon:
@@ -124,6 +129,8 @@ class NavDaemon:
         #: fixes' and VO's ground tilt (``c1_vio/ground_tilt.py``); the operator hears when either finds
         #: it off and when both agree again.
         self._attitude_off = {"fixes": False, "vo": False}
+        self._heading_off = False
+        self._height_off = False
         #: Inside a run of fixes dropped as too late (``_note_too_late``): the operator has been told.
         self._fixes_late_run = False
         #: F8: when the autopilot was first / last asked for its estimate after a restart (daemon clock, s).
@@ -515,6 +522,8 @@ class NavDaemon:
             refused[reason] = refused.get(reason, 0) + 1
         if outcome.attitude is not None:
             self._note_attitude("fixes", outcome.attitude)
+        if outcome.heading_height is not None:
+            self._note_heading_height(outcome.heading_height)
         self._note_too_late(outcome)
         self._last_fix = outcome
         self._last_fix_reason = outcome.no_fix_reason
@@ -558,6 +567,37 @@ class NavDaemon:
             mavutil.mavlink.MAV_SEVERITY_WARNING,
             f"GDN: fix {outcome.fused_behind_s:.1f} s late > {limit_s:g} s, dropped",
         )
+
+    def _note_heading_height(self, check: HeadingHeightVerdict) -> None:
+        """Tell the operator when the area fixes find the autopilot's heading or height off, and when it
+        agrees again (``c4_pose/heading_height_check.py``): the correlation searches around both, so the
+        fixes stay right, but the compass, the baro or ``terrain.ground_alt_amsl_m`` is off."""
+        c = self.counters
+        c.heading_offset_deg = check.heading_offset_deg
+        c.height_scale = check.height_scale
+        for what, off, was in (
+            ("heading", check.heading_off, self._heading_off),
+            ("height", check.height_off, self._height_off),
+        ):
+            if off == was:
+                continue
+            if what == "heading":
+                self._heading_off = off
+                text = (
+                    f"GDN: AP heading {check.heading_offset_deg:+.0f} deg off the map"
+                    if off
+                    else "GDN: AP heading agrees with the map"
+                )
+            else:
+                self._height_off = off
+                text = (
+                    f"GDN: AP height x{check.height_scale:.2f} of the map's"
+                    if off
+                    else "GDN: AP height agrees with the map"
+                )
+            log.warning(LogEvent.HEADING_HEIGHT_CHECK, what=what, off=off, **check.fdr_fields())
+            severity = mavutil.mavlink.MAV_SEVERITY_WARNING if off else mavutil.mavlink.MAV_SEVERITY_INFO
+            self._root.link.send_statustext(severity, text)
 
     def _note_attitude(self, source: str, check: AttitudeVerdict) -> None:
         """Tell the operator when a tilt check (``source``: ``fixes`` or ``vo``) finds the autopilot's

@@ -277,11 +277,15 @@ class _Flight:
                 ap.send_attitude(now, math.nan, math.nan, math.nan)
             else:
                 d_roll, d_pitch = self._attitude_error_rad()
+                d_yaw = 0.0
                 offset = self.scenario.fault_at(FaultKind.ATTITUDE_OFFSET, t_s) if flying else None
                 if offset is not None:
                     d_roll += math.radians(offset.offset_deg[0])
                     d_pitch += math.radians(offset.offset_deg[1])
-                ap.send_attitude(now, truth.roll_rad + d_roll, truth.pitch_rad + d_pitch, truth.yaw_rad)
+                    d_yaw = math.radians(offset.offset_deg[2])
+                ap.send_attitude(
+                    now, truth.roll_rad + d_roll, truth.pitch_rad + d_pitch, truth.yaw_rad + d_yaw
+                )
             ap.send_highres_imu(now, self._specific_force_body(t_s, truth))
         if full:
             if flying:
@@ -781,14 +785,24 @@ def _rss_summary(samples: list[tuple[float, float]]) -> dict[str, Any]:
 
 
 def _matcher_in_use(log_path: Path) -> str | None:
-    """The C3 strategy the daemon actually built (its c3.matcher.ready event), e.g. what 'auto' chose."""
+    """The C3 strategies the daemon actually built (its c3.matcher.ready events), e.g. what 'auto' chose:
+    one name, or the effort ladder's, cheapest rung first, joined by '+' ('orientation_corr+classical')."""
+    built: list[str] = []
+    area_first = False
     try:
         for line in log_path.read_text(errors="replace").splitlines():
             if '"c3.matcher.ready"' in line:
-                return str(json.loads(line).get("strategy"))
+                name = str(json.loads(line).get("strategy"))
+                if name not in built:
+                    built.append(name)
+            elif '"c3.matcher.auto_selected"' in line and json.loads(line).get("area_rung"):
+                area_first = True
     except (OSError, ValueError):
         return None
-    return None
+    if area_first and "orientation_corr" in built:
+        built.remove("orientation_corr")
+        built.insert(0, "orientation_corr")
+    return "+".join(built) or None
 
 
 def summary_lines(report: dict[str, Any]) -> list[str]:

@@ -185,8 +185,8 @@ class Fault:
     step_s: float = 0.0
     #: ``ort_fault``: ONNX Runtime runs to refuse.
     count: int = 0
-    #: ``attitude_offset``: (roll, pitch) added to the autopilot's ATTITUDE, degrees.
-    offset_deg: tuple[float, float] = (0.0, 0.0)
+    #: ``attitude_offset``: (roll, pitch, yaw) added to the autopilot's ATTITUDE, degrees.
+    offset_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -948,14 +948,17 @@ def _read_faults(value: object, source: str | None) -> tuple[Fault, ...]:
                 raise b.error("reconnect", f"expected true or false, got {reconnect!r}")
             floods = (FaultKind.MAVLINK_FLOOD, FaultKind.SOURCE_FLOOD)
             rate = b.number("rate_hz", 500.0, gt=0.0, le=5000.0) if kind in floods else 500.0
-            offset = (0.0, 0.0)
+            offset = (0.0, 0.0, 0.0)
             if kind is FaultKind.ATTITUDE_OFFSET:
                 offset = (
                     b.number("roll_deg", 0.0, ge=-30.0, le=30.0),
                     b.number("pitch_deg", 0.0, ge=-30.0, le=30.0),
+                    b.number("yaw_deg", 0.0, ge=-30.0, le=30.0),
                 )
-                if offset == (0.0, 0.0):
-                    raise b.error("roll_deg", "expected a non-zero roll_deg or pitch_deg, got both 0")
+                if offset == (0.0, 0.0, 0.0):
+                    raise b.error(
+                        "roll_deg", "expected a non-zero roll_deg, pitch_deg or yaw_deg, got all three 0"
+                    )
             faults.append(Fault(kind, start, end, reconnect, rate, offset_deg=offset))
         b.finish()
     return tuple(faults)

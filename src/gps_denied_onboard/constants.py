@@ -96,6 +96,8 @@ class LogEvent:
     """Structured-log event names (the seeds' names where a seed defines them)."""
 
     DAEMON_CONFIG: Final = "daemon.config"
+    #: The area fixes find the autopilot's heading or height off the map's, or agreeing again.
+    HEADING_HEIGHT_CHECK: Final = "c4.heading_height.changed"
     #: The nice value ``gdnav run`` runs at (``daemon.process_nice``): set, kept, or not permitted.
     DAEMON_PRIORITY: Final = "daemon.priority"
     DAEMON_READY: Final = "daemon.ready"

@@ -49,7 +49,12 @@ from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, Ma
 from gps_denied_onboard.components.c4_pose.area_pose import AreaPoseSolver
 from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeCheck, AttitudeVerdict
 from gps_denied_onboard.components.c4_pose.consistency import ConsistencyVerdict, FixConsistency
+from gps_denied_onboard.components.c4_pose.heading_height_check import (
+    HeadingHeightCheck,
+    HeadingHeightVerdict,
+)
 from gps_denied_onboard.components.c4_pose.integrity import (
+    AreaEvidence,
     CandidateFix,
     FixIntegrity,
     IntegrityVerdict,
@@ -122,6 +127,9 @@ class FixOutcome:
     ground_tilt: AttitudeVerdict | None = None
     #: The effort-ladder rung the attempt was made on (``c3_matcher/ladder.py``; None: no matcher ran).
     rung: str | None = None
+    #: The autopilot's heading and height against an accepted area fix's (``c4_pose/heading_height_check``;
+    #: None: no such fix, or its evidence too weak to count).
+    heading_height: HeadingHeightVerdict | None = None
 
 
 @dataclass(frozen=True)
@@ -202,6 +210,7 @@ class NavigationPipeline:
         attitude_sigma_deg: float | None = None,
         ladder: EffortLadder | None = None,
         area_pose_solver: AreaPoseSolver | None = None,
+        heading_height_check: HeadingHeightCheck | None = None,
     ) -> None:
         """``matcher``: C3 alone (a one-rung ladder, every candidate); ``ladder``: the effort ladder,
         which then replaces it (``c3_matcher/ladder.py``). ``area_pose_solver``: the pose of an area
@@ -221,6 +230,7 @@ class NavigationPipeline:
             self._ladder = EffortLadder.single(type(matcher).__name__, matcher, MAX_CANDIDATES)
         self._pose = pose_solver
         self._area_pose = area_pose_solver
+        self._heading_height = heading_height_check
         self._axis = time_axis
         self._fdr = fdr
         self._integrity = integrity
@@ -482,6 +492,10 @@ class NavigationPipeline:
                 self._axis.note_no_fix(t)
             else:
                 self._sweep_rank, self._sweep_held = 0, False
+            heading_height = None
+            evidence = verdict.evidence if verdict is not None else None
+            if accepted and self._heading_height is not None and isinstance(evidence, AreaEvidence):
+                heading_height = self._heading_height.note(evidence)
             if attempt.rung is not None and self._ladder is not None:
                 self._ladder.note(attempt.rung, accepted)
             unit["accepted"] = accepted
@@ -501,6 +515,7 @@ class NavigationPipeline:
             attempt.attitude,
             ground_tilt,
             attempt.rung,
+            heading_height,
         )
         self._fdr.record(
             FdrKind.FIX,
@@ -536,6 +551,7 @@ class NavigationPipeline:
                 "ground_tilt_check": ground_tilt.fdr_fields() if ground_tilt is not None else None,
                 "integrity": verdict.fdr_fields() if verdict is not None else None,
                 "consistency": consistency.fdr_fields() if consistency is not None else None,
+                "heading_height_check": heading_height.fdr_fields() if heading_height is not None else None,
                 "timings_ms": timings,
             },
         )

@@ -40,6 +40,7 @@ from gps_denied_onboard.components.c4_pose import PoseSolver
 from gps_denied_onboard.components.c4_pose.area_pose import AreaPoseSolver
 from gps_denied_onboard.components.c4_pose.attitude_check import AttitudeCheck
 from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
+from gps_denied_onboard.components.c4_pose.heading_height_check import HeadingHeightCheck
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c5_estimator.journal import RecordingJournal
@@ -699,6 +700,7 @@ def _pipeline(
         ladder=ladder,
         pose_solver=PoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
         area_pose_solver=AreaPoseSolver(config.pose, ltp, config.terrain.ground_alt_amsl_m),
+        heading_height_check=HeadingHeightCheck(config.integrity.full_evidence_psr),
         time_axis=time_axis,
         fdr=fdr,
         integrity=FixIntegrity(config.integrity),
