@@ -316,7 +316,10 @@ def analyse(
       a solved fix its error (m), stated sigma (m) and error in sigmas;
     - ``vio_segments``: each VIO-only stretch with the distance flown, the error growth and the drift as
       a percentage of that distance, and how many fixes it took afterwards to get back under the
-      nominal p95 error (measured on the anchored frames before the first stretch that follows one).
+      nominal p95 error (measured on the anchored frames before the first stretch that follows one);
+    - ``fix_attempts_per_s``: attempts over the span from the first to the last attempt's record;
+      ``judged_fix_latency_ms``: p50 and p95 of each attempt's record time minus its frame's exposure
+      (from exposure to a judged fix, accepted or not); ``rung_attempts``: attempts per ladder rung.
     """
     frames = sorted(_of_kind(fdr_records, FdrKind.FRAME), key=lambda r: r["frame_seq"])
     fixes = sorted(_of_kind(fdr_records, FdrKind.FIX), key=lambda r: r["frame_seq"])
@@ -428,9 +431,18 @@ def analyse(
                 "fixes_to_recover_nominal_p95": recover,
             }
         )
+    times = [float(r["t_unix_s"]) for r in fixes]
+    span_s = max(times) - min(times) if len(times) > 1 else 0.0
+    judged_ms = [float(r["t_unix_s"]) * 1e3 - r["exposure_time_unix_usec"] / 1e3 for r in fixes]
     return {
         "fdr_frames": len(frames),
         "fdr_fix_attempts": len(fixes),
+        "fix_attempts_per_s": round((len(fixes) - 1) / span_s, 3) if span_s > 0 else None,
+        "judged_fix_latency_ms": {
+            "p50": _round_or_none(_pct(judged_ms, 50), 1),
+            "p95": _round_or_none(_pct(judged_ms, 95), 1),
+        },
+        "rung_attempts": dict(sorted(Counter(str(r.get("rung")) for r in fixes).items())),
         "frames_refused": dict(sorted(refused.items())),
         "accepted_fixes": len(fix_errors_sigma),
         "accepted_fixes_beyond_3sigma": sum(e > 3.0 for e in fix_errors_sigma),
@@ -455,6 +467,10 @@ def analyse(
         "nominal_p95_m": nominal_p95,
         "vio_segments": vio,
     }
+
+
+def _round_or_none(value: float | None, digits: int) -> float | None:
+    return None if value is None else round(value, digits)
 
 
 def _attempt_ms(record: Mapping[str, Any]) -> float:

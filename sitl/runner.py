@@ -846,6 +846,16 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
         ),
         fixes,
         *([f"              {refused}"] if (refused := refused_fixes_line(analysis)) else []),
+        *(
+            [
+                f"attempts      {analysis.get('fdr_fix_attempts')} at {rate:.2f}/s; exposure to judged fix "
+                f"p50 {f(judged.get('p50'), 'ms')}  p95 {f(judged.get('p95'), 'ms')}; by rung "
+                f"{analysis.get('rung_attempts')}"
+            ]
+            if (rate := analysis.get("fix_attempts_per_s")) is not None
+            and (judged := analysis.get("judged_fix_latency_ms") or {}) is not None
+            else []
+        ),
         f"provenance    {report['provenance_counts']}",
         f"daemon exit   code {report['daemon_exit_code']} after SIGTERM in {f(report['daemon_stop_s'], 's')}",
     ]
