@@ -587,7 +587,7 @@ def _build_vpr_index(daemon_cfg: Config, cache_dir: Path, *, progress: bool) -> 
         )
         from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
         from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
-        from gps_denied_onboard.models.manifest import ModelDirError
+        from gps_denied_onboard.helpers.model_manifest import ModelDirError
 
         try:
             path = daemon_cfg.vpr.xfeat_weights_path or find_xfeat_extractor(daemon_cfg.matcher.model_dir)

@@ -403,7 +403,7 @@ def test_model_and_vpr_metadata_nested_json_is_refused(tmp_path: Path) -> None:
     reader's own refusal, or for verification.json 'not verified'."""
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
     from gps_denied_onboard.components.c10_cache_build.vpr_index import VPR_META_NAME, read_vpr_meta
-    from gps_denied_onboard.models.manifest import MANIFEST_NAME, ModelDirError, read_manifest
+    from gps_denied_onboard.helpers.model_manifest import MANIFEST_NAME, ModelDirError, read_manifest
     from gps_denied_onboard.models.verification import VERIFICATION_NAME, read_verification
 
     nested = b"[" * 50_000 + b"]" * 50_000

@@ -232,7 +232,7 @@ def _cmd_cache_vpr(args: argparse.Namespace) -> int:
         )
         from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
         from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
-        from gps_denied_onboard.models.manifest import ModelDirError
+        from gps_denied_onboard.helpers.model_manifest import ModelDirError
 
         try:
             path = Path(args.xfeat) if args.xfeat else find_xfeat_extractor(args.model_dir)
