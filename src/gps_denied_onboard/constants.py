@@ -133,6 +133,8 @@ class LogEvent:
     MAVLINK_VISION_FRAME: Final = "c8.mavlink.vision_frame"
     FDR_WRITE_ERROR: Final = "c13.fdr.write_error"
     FDR_SEGMENT_DELETED: Final = "c13.fdr.segment_deleted"
+    #: A file named like a segment or an image that is not a regular file (FIFO, link, device): never opened.
+    FDR_FILE_REFUSED: Final = "c13.fdr.file_refused"
     #: A frame image deleted (images budget or low free space; debug level).
     FDR_IMAGE_DELETED: Final = "c13.fdr.image_deleted"
     #: The recorder's health changed (ok / degraded / failing).
