@@ -50,6 +50,7 @@ from gps_denied_onboard.constants import RESUME_STATE_INTERVAL_S, FdrKind, LogEv
 from gps_denied_onboard.daemon.beacon import StartupBeacon
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
+from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
 from gps_denied_onboard.daemon.worker import WorkerThread
 from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.pipeline import FIX_TOO_LATE_REASON, FixOutcome, TrackOutcome
@@ -96,6 +97,8 @@ class DaemonCounters:
     rung_attempts: dict[str, int] = field(default_factory=dict)
     rung_accepted: dict[str, int] = field(default_factory=dict)
     last_fix_rung: str | None = None
+    #: SIGHUP, SIGUSR1 and SIGUSR2 received and ignored (``daemon.signals``), by name.
+    signals_ignored: dict[str, int] = field(default_factory=dict)
 
 
 class NavDaemon:
@@ -150,6 +153,9 @@ class NavDaemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
+        for sig in IGNORED_SIGNALS:  # survived, logged and counted (``daemon.signals``)
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, self._signal_ignored, sig)
         if self._beacon is not None:
             self._beacon.stop()  # the link is the tasks' from here
         self._root.link.open()
@@ -211,6 +217,12 @@ class NavDaemon:
             self._notifier.close()
             log.info(LogEvent.DAEMON_STOPPED, exit_code=exit_code, **vars(self.counters))
         return exit_code
+
+    def _signal_ignored(self, sig: signal.Signals) -> None:
+        """One of ``IGNORED_SIGNALS`` arrived: the daemon flies on; the signal is logged and counted."""
+        counts = self.counters.signals_ignored
+        counts[sig.name] = counts.get(sig.name, 0) + 1
+        log.warning(LogEvent.DAEMON_SIGNAL_IGNORED, signal=sig.name, count=counts[sig.name])
 
     # -- tasks ---------------------------------------------------------------------------------------
     async def _camera_ingest(self) -> None:

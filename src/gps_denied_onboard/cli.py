@@ -57,6 +57,9 @@ def limit_blas_threads(n: int) -> bool:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.daemon import signals
+
+    signals.ignore()  # SIGHUP/SIGUSR1/SIGUSR2 must not end the daemon, not even while it starts
     config = load_config(args.config, args.set or ())
     blas_set = limit_blas_threads(config.daemon.blas_threads)
     configure_logging(config.logging.level, json=config.logging.json)

@@ -104,6 +104,8 @@ class LogEvent:
     DAEMON_STOPPED: Final = "daemon.stopped"
     DAEMON_TASK_FAILED: Final = "daemon.task_failed"
     DAEMON_TASK_STUCK: Final = "daemon.task_stuck"
+    #: SIGHUP, SIGUSR1 or SIGUSR2 arrived and was ignored (``daemon.signals``): the daemon flies on.
+    DAEMON_SIGNAL_IGNORED: Final = "daemon.signal_ignored"
     #: A command ended on an exception no refusal maps (a bug): its traceback, at debug level.
     CLI_UNEXPECTED_ERROR: Final = "cli.unexpected_error"
     DAEMON_STATUS: Final = "daemon.status"
