@@ -735,6 +735,9 @@ class NavDaemon:
                 "mavlink_sent": link.messages_sent,
                 "mavlink_send_errors": link.send_errors,
                 "mavlink_reconnects": link.reconnects,
+                "mavlink_impostor_messages": link.impostor_messages,
+                "mavlink_timesync_answered": link.timesync_answered,
+                "mavlink_timesync_ignored": link.timesync_ignored,
                 "fdr_state": fdr.state.value,
                 "tiles_corrupt": self._root.tile_store.corrupt_cells,
                 **self._timing_status(),
@@ -850,6 +853,7 @@ class NavDaemon:
                     fdr_records_dropped=fdr.records_dropped,
                     fdr_images_dropped=fdr.images_dropped,
                     fdr_write_errors=fdr.write_errors,
+                    mavlink_impostor_messages=self._root.link.stats().impostor_messages,
                     **{k: v for k, v in vars(c).items() if k != "frames_bad"},
                 )
                 self._record_status(alive, axis, fdr)

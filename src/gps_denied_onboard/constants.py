@@ -19,6 +19,17 @@ STATUSTEXT_MIN_INTERVAL_S: Final[float] = 1.0
 GPS_INPUT_GPS_ID: Final[int] = 0
 #: SET_GPS_GLOBAL_ORIGIN is repeated at this interval until the autopilot reports GPS_GLOBAL_ORIGIN, s.
 SET_GPS_GLOBAL_ORIGIN_INTERVAL_S: Final[float] = 10.0
+#: An impostor (another address claiming the autopilot's system and component ids) is reported (log,
+#: FDR, STATUSTEXT) at most once per this interval, with the messages ignored since the last report, s.
+IMPOSTOR_REPORT_INTERVAL_S: Final[float] = 10.0
+#: The ``mavlink.link_event`` record's ``event`` for an impostor report (docs/fdr.md).
+LINK_EVENT_IMPOSTOR: Final[str] = "impostor"
+#: The STATUSTEXT that reports an impostor to the ground: its address and the messages ignored so far (fits
+#: STATUSTEXT's 50 characters for any IPv4 address).
+IMPOSTOR_STATUSTEXT: Final[str] = "GDN: impostor {source} x{messages}"
+#: The autopilot's own TIMESYNC requests are answered at most once per this interval, s (ArduPilot asks
+#: every 10 s; a flood of 75,000 requests/s drew 50,538 answers in 10 s and cut GPS_INPUT to 4.6/s).
+TIMESYNC_ANSWER_MIN_INTERVAL_S: Final[float] = 0.1
 #: F8 resume state file (``c5_estimator.resume_state``): its name in ``fdr.dir`` when
 #: ``init.resume_state_path`` is null, and how often it is rewritten at most, s.
 RESUME_STATE_FILENAME: Final[str] = "resume_state.json"
@@ -129,6 +140,9 @@ class LogEvent:
     #: A listening link (udpin/tcpin) now writes to another address: the autopilot's valid HEARTBEAT came
     #: from there.
     MAVLINK_AUTOPILOT_ADDRESS: Final = "c8.mavlink.autopilot_address"
+    #: Another address claims the autopilot's system and component ids while the autopilot's own is
+    #: heard: its messages are ignored and counted (rate-limited, ``IMPOSTOR_REPORT_INTERVAL_S``).
+    MAVLINK_IMPOSTOR: Final = "c8.mavlink.impostor"
     #: SET_GPS_GLOBAL_ORIGIN sent (the daemon's local frame offered to the autopilot).
     MAVLINK_ORIGIN_SENT: Final = "c8.mavlink.origin_sent"
     #: The frame VISION_POSITION_ESTIMATE is sent in changed (the autopilot reported its GPS_GLOBAL_ORIGIN).
