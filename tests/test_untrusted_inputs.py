@@ -532,6 +532,14 @@ def test_cli_fdr_summary_names_the_fifo_and_the_link_and_reads_the_rest(tmp_path
     assert f"{_LATE_LINK}: symbolic link" in summary["refused_files"]
 
 
+def test_cli_fdr_summary_of_a_fifo_named_on_the_command_line_is_refused(tmp_path: Path) -> None:
+    """`gdnav fdr summary FIFO` refuses it in one line instead of waiting for a writer."""
+    fifo = tmp_path / "fdr-29991231T235959.999Z-000001.jsonl"
+    os.mkfifo(fifo)
+    line = _one_line(_gdnav_bounded(tmp_path, "fdr", "summary", str(fifo)), 2)
+    assert "not a regular file" in line
+
+
 def test_cli_fdr_boresight_over_a_fifo_and_a_link_ends_in_one_line(tmp_path: Path) -> None:
     """`gdnav fdr boresight` ends with its usual refusal (no run tracked a frame), not a hang."""
     d = _fdr_with_fifo_and_dev_zero(tmp_path)

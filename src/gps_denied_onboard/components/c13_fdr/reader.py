@@ -270,7 +270,9 @@ class FdrReader:
         if p.is_file():
             return [p]
         if not p.is_dir():
-            raise FdrReadError(f"{p}: no such file or directory", path=p)
+            there = p.exists() or p.is_symlink()
+            what = "not a regular file or a directory" if there else "no such file or directory"
+            raise FdrReadError(f"{p}: {what}", path=p)
         segs = list_segments(p)
         if not segs:
             raise FdrReadError(f"{p}: no FDR segments (fdr-*.jsonl) in this directory", path=p)
