@@ -51,6 +51,7 @@ from gps_denied_onboard.constants import RESUME_STATE_INTERVAL_S, FdrKind, LogEv
 from gps_denied_onboard.daemon.beacon import StartupBeacon
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
+from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
 from gps_denied_onboard.daemon.worker import WorkerThread
 from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.pipeline import FIX_TOO_LATE_REASON, FixOutcome, TrackOutcome
@@ -101,6 +102,8 @@ class DaemonCounters:
     #: (``c4_pose/heading_height_check.py``; None before enough strong area fixes).
     heading_offset_deg: float | None = None
     height_scale: float | None = None
+    #: SIGHUP, SIGUSR1 and SIGUSR2 received and ignored (``daemon.signals``), by name.
+    signals_ignored: dict[str, int] = field(default_factory=dict)
 
 
 class NavDaemon:
@@ -157,6 +160,9 @@ class NavDaemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
+        for sig in IGNORED_SIGNALS:  # survived, logged and counted (``daemon.signals``)
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, self._signal_ignored, sig)
         if self._beacon is not None:
             self._beacon.stop()  # the link is the tasks' from here
         self._root.link.open()
@@ -218,6 +224,12 @@ class NavDaemon:
             self._notifier.close()
             log.info(LogEvent.DAEMON_STOPPED, exit_code=exit_code, **vars(self.counters))
         return exit_code
+
+    def _signal_ignored(self, sig: signal.Signals) -> None:
+        """One of ``IGNORED_SIGNALS`` arrived: the daemon flies on; the signal is logged and counted."""
+        counts = self.counters.signals_ignored
+        counts[sig.name] = counts.get(sig.name, 0) + 1
+        log.warning(LogEvent.DAEMON_SIGNAL_IGNORED, signal=sig.name, count=counts[sig.name])
 
     # -- tasks ---------------------------------------------------------------------------------------
     async def _camera_ingest(self) -> None:
@@ -763,6 +775,9 @@ class NavDaemon:
                 "mavlink_sent": link.messages_sent,
                 "mavlink_send_errors": link.send_errors,
                 "mavlink_reconnects": link.reconnects,
+                "mavlink_impostor_messages": link.impostor_messages,
+                "mavlink_timesync_answered": link.timesync_answered,
+                "mavlink_timesync_ignored": link.timesync_ignored,
                 "fdr_state": fdr.state.value,
                 "tiles_corrupt": self._root.tile_store.corrupt_cells,
                 **self._timing_status(),
@@ -878,6 +893,7 @@ class NavDaemon:
                     fdr_records_dropped=fdr.records_dropped,
                     fdr_images_dropped=fdr.images_dropped,
                     fdr_write_errors=fdr.write_errors,
+                    mavlink_impostor_messages=self._root.link.stats().impostor_messages,
                     **{k: v for k, v in vars(c).items() if k != "frames_bad"},
                 )
                 self._record_status(alive, axis, fdr)

@@ -368,16 +368,21 @@ async def _run_flight(
             await asyncio.sleep(flight.opts.tail_s)
             end = time.time()
         finally:
+            # At once, before any await: on SIGTERM/Ctrl-C (a KeyboardInterrupt) asyncio cancels every
+            # task together, so awaiting the camera's raised CancelledError here and the daemon was never
+            # stopped, while the mission thread flew on until the disarm (issue 36).
+            driver.stop()
             stop.set()
-            restart_task.cancel()
-            with contextlib.suppress(BaseException):
-                await restart_task
-            with contextlib.suppress(Exception):
-                await cam_task
+            restart_task.cancel()  # no new daemon from here on
+            cam_task.cancel()
             proc = procs[-1]
             t_term = time.monotonic()
             if proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
+            with contextlib.suppress(BaseException):
+                await restart_task
+            with contextlib.suppress(BaseException):
+                await cam_task
             try:
                 exit_code = await loop.run_in_executor(None, lambda: proc.wait(DAEMON_STOP_TIMEOUT_S))
                 stop_s = time.monotonic() - t_term

@@ -74,6 +74,10 @@ class MissionError(RuntimeError):
     """The autopilot did not do what the mission needs (the message says what and what it said)."""
 
 
+class MissionStopped(MissionError):
+    """``MissionDriver.stop()`` was called (the runner got SIGTERM or Ctrl-C): the driver's thread ends."""
+
+
 @dataclass(frozen=True)
 class TruePose:
     t_unix_s: float
@@ -113,6 +117,7 @@ class AutopilotRelay:
         self._cond = threading.Condition()
         self._write_lock = threading.Lock()
         self._stop = threading.Event()
+        self._waits_interrupted = False
         self._att: Any = None
         #: The autopilot's boot time on this host's clock (the frames are stamped on it).
         self.clock = AutopilotClock()
@@ -269,11 +274,11 @@ class AutopilotRelay:
         self, pred: Callable[[Any], bool], types: Sequence[str], timeout_s: float, *, since: int | None = None
     ) -> Any:
         """The first message of ``types`` received after ``since`` (a :meth:`send`'s return; default: now)
-        for which ``pred`` holds, or None at the timeout."""
+        for which ``pred`` holds, or None at the timeout or once :meth:`interrupt_waits` was called."""
         deadline = time.time() + timeout_s
         with self._cond:
             start = len(self._events) if since is None else since
-            while True:
+            while not self._waits_interrupted:
                 for _, msg in self._events[start:]:
                     if msg.get_type() in types and pred(msg):
                         return msg
@@ -282,6 +287,13 @@ class AutopilotRelay:
                 if left <= 0:
                     return None
                 self._cond.wait(min(left, 0.2))
+            return None
+
+    def interrupt_waits(self) -> None:
+        """End every :meth:`wait`, now and later, with None (the mission is being stopped)."""
+        with self._cond:
+            self._waits_interrupted = True
+            self._cond.notify_all()
 
     def last(self, mtype: str) -> Any:
         with self._cond:
@@ -340,10 +352,51 @@ class MissionPlan:
 
 @dataclass
 class MissionDriver:
+    """Flies the mission (module docstring). ``stop()``, from any thread, ends it at once: every wait and
+    sleep of the driver's raises ``MissionStopped`` within a few milliseconds, and a GNSS the driver
+    switched off is switched back on, so the vehicle is not left flying blind without the daemon."""
+
     link: AutopilotRelay
     plan: MissionPlan
     say: Callable[[str], None] = print
     log: list[dict[str, Any]] = field(default_factory=list)
+    _stopped: threading.Event = field(default_factory=threading.Event, repr=False)
+    _gnss_off: bool = field(default=False, repr=False)
+    _done: bool = field(default=False, repr=False)
+
+    def stop(self) -> None:
+        """End the mission now (see the class docstring); idempotent."""
+        if self._stopped.is_set():
+            return
+        self._stopped.set()
+        self.link.interrupt_waits()
+        if self._done:
+            return
+        if self._gnss_off:  # one message, not waited on: the caller is stopping
+            self.link.send(
+                lambda mav: mav.param_set_send(
+                    *self._target(), b"SIM_GPS1_ENABLE", 1.0, mavutil.mavlink.MAV_PARAM_TYPE_REAL32
+                )
+            )
+        self._event("stopped", gnss_restored=self._gnss_off)
+
+    def _check(self) -> None:
+        if self._stopped.is_set():
+            raise MissionStopped("the mission was stopped")
+
+    def _sleep(self, seconds: float) -> None:
+        """``time.sleep`` that ends at once, raising ``MissionStopped``, when the driver is stopped."""
+        if self._stopped.wait(seconds):
+            self._check()
+
+    def _wait(
+        self, pred: Callable[[Any], bool], types: Sequence[str], timeout_s: float, *, since: int | None = None
+    ) -> Any:
+        """``AutopilotRelay.wait``, ended by ``stop()`` (``MissionStopped``)."""
+        self._check()
+        msg = self.link.wait(pred, types, timeout_s, since=since)
+        self._check()
+        return msg
 
     def _event(self, kind: str, **data: Any) -> None:
         self.log.append({"t_unix_s": round(time.time(), 3), "kind": kind, **data})
@@ -356,19 +409,20 @@ class MissionDriver:
     def get_param(self, name: str, timeout_s: float = 3.0) -> float | None:
         for _ in range(3):
             sent = self.link.send(lambda mav: mav.param_request_read_send(*self._target(), name.encode(), -1))
-            msg = self.link.wait(lambda m: _pid(m.param_id) == name, ["PARAM_VALUE"], timeout_s, since=sent)
+            msg = self._wait(lambda m: _pid(m.param_id) == name, ["PARAM_VALUE"], timeout_s, since=sent)
             if msg is not None:
                 return float(msg.param_value)
         return None
 
     def set_param(self, name: str, value: float) -> None:
         for _ in range(3):
+            self._check()  # never a parameter after stop() (it may have just restored the GNSS)
             sent = self.link.send(
                 lambda mav: mav.param_set_send(
                     *self._target(), name.encode(), float(value), mavutil.mavlink.MAV_PARAM_TYPE_REAL32
                 )
             )
-            msg = self.link.wait(lambda m: _pid(m.param_id) == name, ["PARAM_VALUE"], 3.0, since=sent)
+            msg = self._wait(lambda m: _pid(m.param_id) == name, ["PARAM_VALUE"], 3.0, since=sent)
             if msg is not None and abs(float(msg.param_value) - value) < 1e-3:
                 self._event("param_set", name=name, value=value)
                 return
@@ -381,7 +435,7 @@ class MissionDriver:
     def command(self, cmd: int, *params: float, timeout_s: float = 3.0) -> int | None:
         p = [*params, *([0.0] * (7 - len(params)))]
         sent = self.link.send(lambda mav: mav.command_long_send(*self._target(), cmd, 0, *p))
-        msg = self.link.wait(lambda m: int(m.command) == cmd, ["COMMAND_ACK"], timeout_s, since=sent)
+        msg = self._wait(lambda m: int(m.command) == cmd, ["COMMAND_ACK"], timeout_s, since=sent)
         return None if msg is None else int(msg.result)
 
     def set_mode(self, mode: int) -> None:
@@ -392,7 +446,7 @@ class MissionDriver:
             if res == mavutil.mavlink.MAV_RESULT_ACCEPTED:
                 self._event("mode", mode=mode)
                 return
-            time.sleep(1.0)
+            self._sleep(1.0)
         raise MissionError(f"the autopilot refused mode {mode}; last texts: {self._texts()}")
 
     def _texts(self, n: int = 6) -> list[str]:
@@ -413,7 +467,7 @@ class MissionDriver:
     def prepare(self, timeout_s: float = 60.0) -> bool:
         """Wait for the autopilot; make sure GPS2_TYPE=14 is in effect (a reboot when it had to be set).
         Returns True when it rebooted."""
-        if self.link.wait(lambda m: True, ["HEARTBEAT"], timeout_s) is None:
+        if self._wait(lambda m: True, ["HEARTBEAT"], timeout_s) is None:
             raise MissionError(f"no HEARTBEAT from the autopilot at {self.link.url} in {timeout_s:.0f} s")
         self._event("autopilot_heartbeat", system=self.link.ap_system)
         stale = self._boot_params_to_set()
@@ -424,16 +478,18 @@ class MissionDriver:
                 self.set_param(name, BOOT_PARAMS[name])
             self._event("reboot", why=f"{', '.join(stale)} reboot-required")
             self.command(mavutil.mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
-            time.sleep(2.0)
-            if self.link.wait(lambda m: True, ["HEARTBEAT"], timeout_s) is None:
+            self._sleep(2.0)
+            if self._wait(lambda m: True, ["HEARTBEAT"], timeout_s) is None:
                 raise MissionError("the autopilot did not come back after the reboot")
             rebooted = True
-            # a SITL started with --wipe wipes them again on the reboot: read them back
+            # a SITL started with --wipe wipes them again on the reboot (a literal -w does not: SITL drops it
+            # when it reboots): read them back
             still = self._boot_params_to_set()
             if still:
                 raise MissionError(
-                    f"{', '.join(still)} did not survive the reboot (a SITL started with --wipe/-w wipes "
-                    "its parameters on every boot: start it without, or set them with --defaults)"
+                    f"{', '.join(still)} did not survive the reboot (a SITL started with --wipe wipes its "
+                    "parameters again on every boot; a literal -w is dropped on reboot, so it cannot: start "
+                    "it without --wipe, or set them with --defaults)"
                 )
         # what the daemon and the scorer need, at rates a real ArduPilot does not stream by default
         for msg_id, hz in STREAM_RATES_HZ.items():
@@ -485,7 +541,7 @@ class MissionDriver:
                     mavutil.mavlink.MAVLINK_MSG_ID_HOME_POSITION,
                     timeout_s=1.0,
                 )
-            time.sleep(0.5)
+            self._sleep(0.5)
         raise MissionError(
             f"no EKF origin in {timeout_s:.0f} s (HOME_POSITION and a GLOBAL_POSITION_INT with a position): "
             f"the ground altitude is unknown; last texts: {self._texts()}"
@@ -508,7 +564,7 @@ class MissionDriver:
                 )
                 self._event("ready", ekf_flags=int(ekf.flags), gps2_fix=getattr(gps2, "fix_type", None))
                 return
-            time.sleep(0.5)
+            self._sleep(0.5)
         raise MissionError(
             f"not ready in {timeout_s:.0f} s (EKF position and GPS 2 3D fix): EKF "
             f"{getattr(self.link.last('EKF_STATUS_REPORT'), 'flags', None)}, GPS2 fix "
@@ -527,7 +583,7 @@ class MissionDriver:
             mark = self.link.send(lambda mav: mav.mission_count_send(sys_id, comp, len(items), 0))
             sent = -1
             while True:
-                msg = self.link.wait(
+                msg = self._wait(
                     lambda m: True, ["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], 5.0, since=mark
                 )
                 if msg is None:
@@ -583,14 +639,14 @@ class MissionDriver:
                 if skipped is not None:
                     self.set_param(*skipped)  # restored at once
                 return
-            time.sleep(0.5)
+            self._sleep(0.5)
             texts = [t for _, t in self.link.statustext[n_texts:]]
             gps1 = self.link.last("GPS_RAW_INT")
             only_gps2 = texts and all("GPS 2" in t for t in texts if "PreArm" in t or "Arm:" in t)
             if only_gps2 and skipped is None and gps1 is not None and int(gps1.fix_type) >= 3:
                 skipped = self._skip_gps_arming_check()
                 continue
-            time.sleep(1.5)
+            self._sleep(1.5)
         raise MissionError(f"the autopilot refused to arm for {timeout_s:.0f} s: {self._texts()}")
 
     def _skip_gps_arming_check(self) -> tuple[str, float]:
@@ -621,13 +677,14 @@ class MissionDriver:
         while self.rel_alt_m() < 0.95 * self.plan.alt_rel_m:
             if time.time() > t_end:
                 raise MissionError("take-off did not reach the altitude")
-            time.sleep(0.2)
+            self._sleep(0.2)
         self._event("takeoff_done", rel_alt_m=round(self.rel_alt_m(), 1))
         while gnss_off and not self.gps2_fix():
             if time.time() > t_end:
                 raise MissionError(f"GPS 2 (GPS_INPUT) never had a 3D fix: GNSS left on; {self._texts()}")
-            time.sleep(0.2)
+            self._sleep(0.2)
         if gnss_off:
+            self._gnss_off = True  # from the request on: stop() switches it back on
             self.set_param("SIM_GPS1_ENABLE", 0)
             self._event("gnss_off")
         self.set_mode(MODE_AUTO)
@@ -642,10 +699,12 @@ class MissionDriver:
                 or (hb is not None and hb.custom_mode == MODE_LAND)
             ):
                 self.set_param("SIM_GPS1_ENABLE", 1)
+                self._gnss_off = False
                 self._event("gnss_on", rel_alt_m=round(self.rel_alt_m(), 1))
                 gnss_back = True
-            time.sleep(0.2)
+            self._sleep(0.2)
         self._event("landed")
+        self._done = True
         return {"log": self.log, "land_seq": land_seq}
 
 

@@ -465,6 +465,60 @@ class _Flight:
             await asyncio.sleep(0.01)
         self.faults_injected.append({"kind": FaultKind.SOURCE_FLOOD.value, "datagrams": sent})
 
+    async def _impostor(self, ap: SimAutopilot, mav_port: int, stop: asyncio.Event) -> None:
+        """During ``impostor`` windows: from one UDP socket of its own (another source port), messages that
+        claim the autopilot's system and component ids, ``rate_hz`` a second in 10 ms batches: its
+        HEARTBEAT in every batch, ATTITUDE with NaN, huge and out-of-order values, SYSTEM_TIME going back
+        and TIMESYNC requests. The output must stay with the autopilot (issue 36: it followed the
+        impostor, and the autopilot got no GPS_INPUT for 19.9 s and 35.8 s). Whatever reaches the
+        impostor's socket is counted (``received_datagrams``: none expected)."""
+        faults = [f for f in self.scenario.faults if f.kind is FaultKind.IMPOSTOR]
+        if not faults:
+            return
+        mav = mavutil.mavlink.MAVLink(None, srcSystem=ap.system_id, srcComponent=1)
+        m = mavutil.mavlink
+        nan, huge = math.nan, 1e30
+
+        def packets(k: int, now: float) -> list[bytes]:
+            boot_ms = max(0, int((now - ap.boot_time_unix_s) * 1000))
+            hostile = [
+                mav.heartbeat_encode(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 4, 4),
+                mav.attitude_encode(boot_ms, nan, nan, nan, 0.0, 0.0, 0.0),
+                mav.attitude_encode((boot_ms + 3_600_000 * (k % 2)) & 0xFFFFFFFF, huge, -huge, huge, 0, 0, 0),
+                mav.attitude_encode(max(0, boot_ms - 60_000), 0.5, -0.5, 3.0, 0.0, 0.0, 0.0),
+                mav.system_time_encode(int((now - 3600.0 * (1 + k % 5)) * 1e6), max(0, boot_ms - 1000 * k)),
+                mav.timesync_encode(0, k),
+            ]
+            return [bytes(p.pack(mav)) for p in hostile]
+
+        sent = received = 0
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.setblocking(False)
+            k = 0
+            while not stop.is_set():
+                t_s = time.time() - self.t0_unix_s
+                fault = self.scenario.fault_at(FaultKind.IMPOSTOR, t_s)
+                if fault is not None:
+                    batch = packets(k, time.time())
+                    for i in range(max(1, round(fault.rate_hz / 100.0))):
+                        packet = batch[0 if i == 0 else 1 + (k + i) % (len(batch) - 1)]  # HEARTBEAT first
+                        with contextlib.suppress(OSError):
+                            sock.sendto(packet, ("127.0.0.1", mav_port))
+                            sent += 1
+                    k += 1
+                elif t_s > max(f.to_s for f in faults):
+                    break
+                while True:
+                    try:
+                        sock.recv(65535)
+                    except OSError:
+                        break
+                    received += 1
+                await asyncio.sleep(0.01)
+        self.faults_injected.append(
+            {"kind": FaultKind.IMPOSTOR.value, "messages": sent, "received_datagrams": received}
+        )
+
     async def _sample_rss(self, procs: list[subprocess.Popen[bytes]], stop: asyncio.Event) -> None:
         """The daemon's resident memory every RSS_SAMPLE_S (Linux /proc; nothing elsewhere)."""
         while not stop.is_set():
@@ -540,6 +594,7 @@ class _Flight:
                 side_tasks = [
                     asyncio.create_task(self._flood(mav_port, stop), name="sitl_flood"),
                     asyncio.create_task(self._source_flood(mav_port, stop), name="sitl_source_flood"),
+                    asyncio.create_task(self._impostor(ap, mav_port, stop), name="sitl_impostor"),
                     asyncio.create_task(self._sample_rss(procs, stop), name="sitl_rss"),
                     asyncio.create_task(self.host.run(self.t0_unix_s, stop), name="sitl_host_faults"),
                 ]
@@ -591,7 +646,7 @@ def _build_vpr_index(daemon_cfg: Config, cache_dir: Path, *, progress: bool) -> 
         )
         from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
         from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
-        from gps_denied_onboard.models.manifest import ModelDirError
+        from gps_denied_onboard.helpers.model_manifest import ModelDirError
 
         try:
             path = daemon_cfg.vpr.xfeat_weights_path or find_xfeat_extractor(daemon_cfg.matcher.model_dir)

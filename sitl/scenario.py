@@ -149,6 +149,9 @@ class FaultKind(str, Enum):
     MAVLINK_FLOOD = "mavlink_flood"
     #: One well-formed MAVLink datagram from each of many fresh source ports (``rate_hz`` of them).
     SOURCE_FLOOD = "source_flood"
+    #: Another UDP source port claiming the autopilot's system and component ids: its HEARTBEAT, hostile
+    #: ATTITUDE (NaN, huge, out of order), SYSTEM_TIME going back, TIMESYNC requests, ``rate_hz`` a second.
+    IMPOSTOR = "impostor"
     CORRUPT_FRAME = "corrupt_frame"
     BOMB_FRAME = "bomb_frame"
     WRONG_SIZE_FRAME = "wrong_size_frame"
@@ -946,7 +949,7 @@ def _read_faults(value: object, source: str | None) -> tuple[Fault, ...]:
             reconnect = b.get("reconnect", False) if kind is FaultKind.CAMERA_STALL else False
             if not isinstance(reconnect, bool):
                 raise b.error("reconnect", f"expected true or false, got {reconnect!r}")
-            floods = (FaultKind.MAVLINK_FLOOD, FaultKind.SOURCE_FLOOD)
+            floods = (FaultKind.MAVLINK_FLOOD, FaultKind.SOURCE_FLOOD, FaultKind.IMPOSTOR)
             rate = b.number("rate_hz", 500.0, gt=0.0, le=5000.0) if kind in floods else 500.0
             offset = (0.0, 0.0, 0.0)
             if kind is FaultKind.ATTITUDE_OFFSET:

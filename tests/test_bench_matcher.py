@@ -290,8 +290,8 @@ def test_bench_resolve_model_paths_from_dir(tmp_path: Path) -> None:
 
 def test_bench_resolve_model_paths_pairs_each_extractor_with_its_lightglue(tmp_path: Path) -> None:
     """A directory from ``gdnav models export`` gives each learned strategy its own LightGlue."""
+    from gps_denied_onboard.helpers.model_manifest import ModelEntry, ModelSource, write_manifest
     from gps_denied_onboard.models.learned_export import family_spec
-    from gps_denied_onboard.models.manifest import ModelEntry, ModelSource, write_manifest
 
     for family in ("disk", "xfeat"):
         spec = family_spec(family)

@@ -258,7 +258,7 @@ def test_run_inputs_hash_real_files(tmp_path: Path) -> None:
     """The start record pins the config file, the cache manifest (and its file count) and each model
     file: from the model manifest where it lists the file, computed otherwise."""
     from gps_denied_onboard.components.c7_inference.protocol import EngineSignature
-    from gps_denied_onboard.models.manifest import ModelEntry, ModelSource, write_manifest
+    from gps_denied_onboard.helpers.model_manifest import ModelEntry, ModelSource, write_manifest
 
     cfg = tmp_path / "profile.yaml"
     cfg.write_text("fdr:\n  max_bytes: 1048576\n")

@@ -39,7 +39,7 @@ from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
 from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest, sha256_file
 from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
-from gps_denied_onboard.models.manifest import ModelDirError
+from gps_denied_onboard.helpers.model_manifest import ModelDirError
 from registry_models_fixture import registry_models  # noqa: F401 - session fixture
 
 NAIP = ("data", "naip_timeseries", "naip")

@@ -65,8 +65,8 @@ def _features(rng: np.random.Generator, n: int, image_size: tuple[int, int]) -> 
 
 
 def _model_paths(model_dir: Path) -> tuple[Path, Path]:
+    from gps_denied_onboard.helpers.model_manifest import verify_model_dir
     from gps_denied_onboard.models.learned_export import family_models
-    from gps_denied_onboard.models.manifest import verify_model_dir
 
     extractor, lighterglue = family_models(verify_model_dir(model_dir), "xfeat")  # type: ignore[misc]
     return model_dir / extractor.file, model_dir / lighterglue.file

@@ -1,6 +1,8 @@
 """Who hears the daemon: a listening link (udpin/tcpin) writes only to the autopilot's address, learned
-from its valid messages (then moved by its HEARTBEAT only), whatever else sends to it. Real pymavlink
-and sockets on 127.0.0.1."""
+from its valid messages, then moved only by its HEARTBEAT from a new address once the old one has been
+silent past ``mavlink.link_timeout_s``, whatever else sends to it; an impostor (another address with the
+autopilot's ids) is ignored, counted and reported; TIMESYNC answers are bounded. Real pymavlink and
+sockets on 127.0.0.1."""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +22,7 @@ from gps_denied_onboard.components.c8_mavlink import MavlinkLink, VehicleStateTr
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT as D
 from gps_denied_onboard.components.c8_mavlink.messages import mavutil
 from gps_denied_onboard.config import MavlinkConfig
-from gps_denied_onboard.constants import FdrHealthState, Provenance
+from gps_denied_onboard.constants import TIMESYNC_ANSWER_MIN_INTERVAL_S, FdrHealthState, FdrKind, Provenance
 
 KEY_HEX = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff"
 T0_UNIX_USEC = 1_717_000_000_000_000
@@ -56,9 +58,28 @@ def _heartbeat(mav: Any, mav_type: int = D.MAV_TYPE_QUADROTOR) -> Any:
     return mav.heartbeat_encode(mav_type, autopilot, 0, 0, D.MAV_STATE_ACTIVE)
 
 
-def _link(url: str, signing_key_file: str | None = None) -> MavlinkLink:
-    tracker = VehicleStateTracker(1, attitude_max_age_s=0.3, altitude_max_age_s=1.0, link_timeout_s=3.0)
-    link = MavlinkLink(MavlinkConfig(url=url, signing_key_file=signing_key_file), tracker)
+class _RecordingFdr:
+    """The FDR at the link's boundary: keeps what is recorded."""
+
+    def __init__(self) -> None:
+        self.records: list[tuple[str, dict[str, Any]]] = []
+
+    def record(self, kind: str, fields: Mapping[str, object]) -> None:
+        self.records.append((kind, dict(fields)))
+
+
+def _link(
+    url: str,
+    signing_key_file: str | None = None,
+    *,
+    link_timeout_s: float = 3.0,
+    fdr: _RecordingFdr | None = None,
+) -> MavlinkLink:
+    tracker = VehicleStateTracker(
+        1, attitude_max_age_s=0.3, altitude_max_age_s=1.0, link_timeout_s=link_timeout_s
+    )
+    config = MavlinkConfig(url=url, signing_key_file=signing_key_file, link_timeout_s=link_timeout_s)
+    link = MavlinkLink(config, tracker, fdr=fdr)
     link.open()
     return link
 
@@ -197,51 +218,165 @@ def test_link_udpin_nothing_goes_out_before_the_autopilot_is_heard(
             conn.close()
 
 
-def test_link_udpin_only_a_heartbeat_moves_a_known_autopilot_address(
+def test_link_udpin_an_impostor_never_takes_a_heard_autopilots_output(
     udp_link: tuple[MavlinkLink, int],
 ) -> None:
-    """Once the output follows the autopilot, a message other than HEARTBEAT with its ids from another
-    port moves nothing; its HEARTBEAT from there does."""
+    """Another port claiming the autopilot's ids (HEARTBEAT, ATTITUDE) while the autopilot is heard moves
+    nothing and receives nothing; the autopilot gets every GPS_INPUT (issue 36: two hostile flights lost
+    GPS_INPUT for 19.9 s and 35.8 s when the output followed the impostor's HEARTBEAT)."""
     link, port = udp_link
-    old, new = _ap(port), _ap(port)
+    ap, impostor = _ap(port), _ap(port)
     try:
-        old.mav.send(_heartbeat(old.mav))
+        ap.mav.send(_heartbeat(ap.mav))
         assert _pump(link, lambda: link.tracker.autopilot_seen)
-        new.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        _pump(link, lambda: False, timeout_s=0.2)
+        for _ in range(5):
+            impostor.mav.send(_heartbeat(impostor.mav))
+            impostor.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            ap.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            _pump(link, lambda: False, timeout_s=0.05)
         _send_everything(link, 3)
-        assert _count(old, "GPS_INPUT") == 3
-        assert _count(new, None, 0.2) == 0
-        new.mav.send(_heartbeat(new.mav))
-        _pump(link, lambda: False, timeout_s=0.2)
-        _send_everything(link, 3)
-        assert _count(new, "GPS_INPUT") == 3
+        assert _count(ap, "GPS_INPUT") == 3
+        assert _count(impostor, None, 0.2) == 0
+        assert link.stats().impostor_messages == 10
     finally:
-        old.close()
-        new.close()
+        ap.close()
+        impostor.close()
 
 
-def test_link_udpin_follows_the_autopilots_newest_address(udp_link: tuple[MavlinkLink, int]) -> None:
-    """After the autopilot's HEARTBEAT comes from a new port (a reboot), the output goes there only; a
-    HEARTBEAT from another system id or a ground station moves nothing."""
-    link, port = udp_link
+def test_link_udpin_impostor_is_reported_to_the_ground_rate_limited() -> None:
+    """An impostor is counted, logged and recorded in the FDR, and a CRITICAL STATUSTEXT goes to the
+    autopilot (which forwards it to the ground), at most once per IMPOSTOR_REPORT_INTERVAL_S; its
+    TIMESYNC requests and its answers to ours are not answered or used."""
+    port = _free_port(socket.SOCK_DGRAM)
+    fdr = _RecordingFdr()
+    link = _link(f"udpin:127.0.0.1:{port}", fdr=fdr)
+    ap, impostor = _ap(port), _ap(port)
+    try:
+        ap.mav.send(_heartbeat(ap.mav))
+        assert _pump(link, lambda: link.tracker.autopilot_seen)
+        for _ in range(50):
+            impostor.mav.send(_heartbeat(impostor.mav))
+            impostor.mav.timesync_send(0, 555)
+        _pump(link, lambda: link.stats().impostor_messages >= 100)
+        texts = [m.text for m in _recv_all_of(ap, "STATUSTEXT", 0.4)]
+        assert texts == [f"GDN: impostor 127.0.0.1:{_local_port(impostor)} x1"]
+        reports = [f for kind, f in fdr.records if kind == FdrKind.LINK_EVENT and f["event"] == "impostor"]
+        assert len(reports) == 1 and reports[0]["source"] == f"127.0.0.1:{_local_port(impostor)}"
+        assert link.stats().impostor_messages == 100 and link.stats().timesync_answered == 0
+        assert _count(impostor, None, 0.1) == 0
+    finally:
+        ap.close()
+        impostor.close()
+        link.close()
+
+
+def test_link_udpin_moves_only_after_the_old_address_is_silent_and_on_a_heartbeat() -> None:
+    """The autopilot on a new port (a reboot, a new router): its HEARTBEAT there moves nothing while the
+    old address is heard; once the old one has been silent past link_timeout_s, its ATTITUDE there still
+    moves nothing, its HEARTBEAT does; a HEARTBEAT of another system id never does."""
+    port = _free_port(socket.SOCK_DGRAM)
+    link = _link(f"udpin:127.0.0.1:{port}", link_timeout_s=0.5)
     old, new = _ap(port), _ap(port)
     other_sys = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=2, source_component=1)
     try:
         old.mav.send(_heartbeat(old.mav))
         assert _pump(link, lambda: link.tracker.autopilot_seen)
-        _send_everything(link, 5)
-        assert _count(old, "GPS_INPUT") == 5
         new.mav.send(_heartbeat(new.mav))
+        _pump(link, lambda: False, timeout_s=0.1)
+        _send_everything(link, 3)
+        assert _count(old, "GPS_INPUT") == 3 and _count(new, None, 0.1) == 0
+        time.sleep(0.7)  # the old address falls silent past the timeout
+        new.mav.attitude_send(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         other_sys.mav.send(_heartbeat(other_sys.mav))  # a quadrotor autopilot, but not ours
-        _pump(link, lambda: False, timeout_s=0.2)
+        _pump(link, lambda: False, timeout_s=0.1)
+        _send_everything(link, 3)
+        assert _count(old, "GPS_INPUT") == 3 and _count(new, None, 0.1) == 0
+        new.mav.send(_heartbeat(new.mav))
+        _pump(link, lambda: False, timeout_s=0.1)
         _send_everything(link, 5)
         assert _count(new, "GPS_INPUT") == 5
-        assert _count(old, None, 0.2) == 0
-        assert _count(other_sys, None, 0.1) == 0
+        assert _count(old, None, 0.2) == 0 and _count(other_sys, None, 0.1) == 0
     finally:
         for conn in (old, new, other_sys):
             conn.close()
+        link.close()
+
+
+def test_link_udpin_signed_moves_only_on_a_signed_heartbeat(tmp_path: Path) -> None:
+    """With signing on, after the autopilot's old address falls silent, an unsigned HEARTBEAT with its ids
+    from a new port moves nothing; the autopilot's signed HEARTBEAT from a new port does."""
+    key_path = tmp_path / "key"
+    key_path.write_text(KEY_HEX)
+    os.chmod(key_path, 0o600)
+    port = _free_port(socket.SOCK_DGRAM)
+    link = _link(f"udpin:127.0.0.1:{port}", signing_key_file=str(key_path), link_timeout_s=0.5)
+    old, new, spoof = _ap(port), _ap(port), _ap(port)
+    try:
+        for signed in (old, new):
+            signed.setup_signing(bytes.fromhex(KEY_HEX), sign_outgoing=True)
+        old.mav.send(_heartbeat(old.mav))
+        assert _pump(link, lambda: link.tracker.autopilot_seen)
+        time.sleep(0.7)
+        spoof.mav.send(_heartbeat(spoof.mav))
+        _pump(link, lambda: False, timeout_s=0.1)
+        _send_everything(link, 3)
+        assert _count(spoof, None, 0.2) == 0 and _count(old, "GPS_INPUT") == 3
+        new.mav.send(_heartbeat(new.mav))
+        _pump(link, lambda: False, timeout_s=0.1)
+        _send_everything(link, 3)
+        assert _count(new, "GPS_INPUT") == 3 and _count(spoof, None, 0.1) == 0
+    finally:
+        for conn in (old, new, spoof):
+            conn.close()
+        link.close()
+
+
+def test_link_udpin_timesync_answers_are_bounded_and_only_to_the_autopilot(
+    udp_link: tuple[MavlinkLink, int],
+) -> None:
+    """A flood of TIMESYNC requests from the autopilot's own address draws at most one answer per
+    TIMESYNC_ANSWER_MIN_INTERVAL_S, none from another system or address, and the 10 Hz GPS_INPUT stream
+    stays whole (issue 36: 75,000 requests/s drew 50,538 answers in 10 s and cut GPS_INPUT to 4.6/s)."""
+    link, port = udp_link
+    ap = _ap(port)
+    stranger = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+    flood_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        ap.mav.send(_heartbeat(ap.mav))
+        assert _pump(link, lambda: link.tracker.autopilot_seen)
+        # the autopilot's own requests, from its own socket: one datagram of 40 requests each time
+        mav = D.MAVLink(None, srcSystem=1, srcComponent=1)
+        burst = b"".join(bytes(mav.timesync_encode(0, 1000 + i).pack(mav)) for i in range(40))
+        t0 = time.monotonic()
+        sent = got = answers = 0
+        next_send = t0
+        while time.monotonic() - t0 < 2.0:
+            for _ in range(20):
+                ap.port.sendto(burst, ("127.0.0.1", port))
+                stranger.mav.timesync_send(0, 42)
+            link.poll()
+            now = time.monotonic()
+            if now >= next_send:
+                link.send_estimate(_state(), time_unix_usec=T0_UNIX_USEC)
+                sent += 1
+                next_send += 0.1
+            while (msg := ap.recv_match(type=["GPS_INPUT", "TIMESYNC"], blocking=False)) is not None:
+                got += msg.get_type() == "GPS_INPUT"
+                answers += msg.get_type() == "TIMESYNC" and msg.tc1 != 0
+            time.sleep(0.002)
+        elapsed = time.monotonic() - t0
+        for msg in _recv_all_of(ap, None, 0.3):
+            got += msg.get_type() == "GPS_INPUT"
+            answers += msg.get_type() == "TIMESYNC" and msg.tc1 != 0
+        stats = link.stats()
+        assert stats.timesync_ignored > 1000, stats
+        assert 1 <= answers == stats.timesync_answered <= elapsed / TIMESYNC_ANSWER_MIN_INTERVAL_S + 2
+        assert got == sent
+        assert _count(stranger, None, 0.1) == 0
+    finally:
+        ap.close()
+        stranger.close()
+        flood_sock.close()
 
 
 def test_link_udpin_signed_ignores_an_unsigned_autopilot_heartbeat(tmp_path: Path) -> None:
@@ -297,6 +432,22 @@ def test_link_udpin_signed_ignores_unsigned_autopilot_messages_before_its_heartb
         ap.close()
         spoof.close()
         link.close()
+
+
+def _local_port(conn: Any) -> int:
+    """The source port a pymavlink udpout connection sends from."""
+    return int(conn.port.getsockname()[1])
+
+
+def _recv_all_of(conn: Any, msg_type: str | None, wait_s: float) -> list[Any]:
+    """Every message (of ``msg_type``) ``conn`` receives within ``wait_s``."""
+    out = []
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        msg = conn.recv_match(type=msg_type, blocking=True, timeout=0.05)
+        if msg is not None and msg.get_type() != "BAD_DATA":
+            out.append(msg)
+    return out
 
 
 def _flood(port: int, payload: bytes, n: int, keep: list[socket.socket], done: threading.Event) -> None:
@@ -403,8 +554,9 @@ def test_link_tcpin_silent_first_client_does_not_block_the_autopilot(monkeypatch
 
 
 def test_link_tcpin_holds_a_bounded_number_of_clients_and_follows_a_reconnecting_autopilot() -> None:
-    """Many idle connections never exceed TCP_MAX_CLIENTS and never push out the autopilot's; when the
-    autopilot connects again, the stream moves to the new connection."""
+    """Many idle connections never exceed TCP_MAX_CLIENTS and never push out the autopilot's; a second
+    connection's HEARTBEAT with its ids takes nothing while the autopilot's is open; once that closes, the
+    autopilot connecting again gets the stream."""
     port = _free_port(socket.SOCK_STREAM)
     link = _link(f"tcpin:127.0.0.1:{port}")
     ap = _ap(port, "tcp")
@@ -421,11 +573,16 @@ def test_link_tcpin_holds_a_bounded_number_of_clients_and_follows_a_reconnecting
         _send_everything(link, 5)
         assert _count(ap, "GPS_INPUT") == 5
         ap2 = _ap(port, "tcp")
+        ap2.mav.send(_heartbeat(ap2.mav))  # while the first connection is open and heard: an impostor
+        _pump(link, lambda: False, timeout_s=0.3)
+        _send_everything(link, 5)
+        assert _count(ap, "GPS_INPUT") == 5 and _count(ap2, None, 0.2) == 0
+        ap.close()  # the autopilot's connection closes: the next HEARTBEAT of its ids takes the output
+        _pump(link, lambda: False, timeout_s=0.3)
         ap2.mav.send(_heartbeat(ap2.mav))
         _pump(link, lambda: False, timeout_s=0.3)
         _send_everything(link, 5)
         assert _count(ap2, "GPS_INPUT") == 5
-        assert _count(ap, "GPS_INPUT", 0.2) == 0
     finally:
         for s in idle:
             s.close()

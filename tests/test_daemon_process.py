@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import signal
 import socket
 import struct
 import time
@@ -60,6 +62,41 @@ def test_daemon_sigterm_exits_cleanly_within_2s(tmp_path: Path, small_cache: Pat
     assert elapsed < 2.0, f"stop took {elapsed:.2f} s"
     events = [json.loads(line).get("event") for line in d.log_text().splitlines() if line.startswith("{")]
     assert "daemon.stopping" in events and "daemon.stopped" in events
+
+
+def test_daemon_survives_sighup_sigusr1_sigusr2_and_keeps_the_autopilot_fed(
+    tmp_path: Path, small_cache: Path
+) -> None:
+    """SIGHUP during start-up, then SIGHUP, SIGUSR1 and SIGUSR2 once running: the daemon neither dies (by
+    default each ended it at once; after SIGHUP, rc 129, systemd did not restart it) nor stops its
+    GPS_INPUT; each is logged and counted in daemon.status; SIGTERM still stops it cleanly."""
+    d = start_daemon(tmp_path, small_cache)
+    try:
+        assert wait_for(lambda: "daemon.config" in d.log_text() or d.proc.poll() is not None, 60.0)
+        os.kill(d.proc.pid, signal.SIGHUP)  # before ready: the start-up must survive it too
+        ap = _autopilot_until_heartbeat(d.mav_port)
+        assert wait_for(lambda: "daemon.ready" in d.log_text() or d.proc.poll() is not None, 60.0)
+        for sig in (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2):
+            os.kill(d.proc.pid, sig)
+            time.sleep(0.2)
+        before = len(ap.of_type("GPS_INPUT"))
+
+        def fed() -> bool:
+            ap.send_heartbeat()
+            ap.poll()
+            return len(ap.of_type("GPS_INPUT")) >= before + 10
+
+        assert wait_for(fed, 10.0, 0.1), "GPS_INPUT stopped after the signals"
+        assert d.proc.poll() is None, f"daemon died with {d.proc.returncode}"
+        time.sleep(1.5)  # one more daemon.status period
+    finally:
+        code = d.stop()
+    assert code == 0, d.log_text()[-2000:]
+    events = [json.loads(ln) for ln in d.log_text().splitlines() if ln.startswith("{")]
+    ignored = [e["signal"] for e in events if e.get("event") == "daemon.signal_ignored"]
+    assert ignored == ["SIGHUP", "SIGUSR1", "SIGUSR2"], ignored
+    status = [r for r in read_records(d.fdr_dir) if r["kind"] == "daemon.status"][-1]
+    assert status["signals_ignored"] == {"SIGHUP": 1, "SIGUSR1": 1, "SIGUSR2": 1}
 
 
 def test_daemon_keeps_running_and_records_bad_frames(tmp_path: Path, small_cache: Path) -> None:

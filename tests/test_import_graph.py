@@ -1,4 +1,5 @@
-"""No import circles in src/gps_denied_onboard: a layered module graph (read with ast, nothing imported).
+"""No import circles in src/gps_denied_onboard, and layers that point one way: a layered module graph (read
+with ast, nothing imported).
 
 An edge is any import statement anywhere in a module (top level, in a function, under TYPE_CHECKING):
 a circle hidden in a function is still a circle in the design. ``from pkg import name`` is an edge to
@@ -15,6 +16,16 @@ from conftest import REPO_ROOT
 
 SRC = REPO_ROOT / "src"
 PACKAGE = "gps_denied_onboard"
+#: The layers, lowest first, by the first name under the package ("" is the package's own
+#: ``__init__``): a module imports its own layer and those below, never one above. The shared base
+#: (helpers, the frame type, names, config, clocks, geodesy) serves the components; the build-time
+#: exporters (``models``) stand on the components' runtime; everything not named (the composition root,
+#: the pipeline, replay, bench, the CLI) is the application on top.
+LAYERS: tuple[frozenset[str], ...] = (
+    frozenset({"", "helpers", "camera", "constants", "config", "clock", "geo", "logging_setup"}),
+    frozenset({"components"}),
+    frozenset({"models"}),
+)
 
 
 def _modules(root: Path, package: str) -> dict[str, tuple[Path, bool]]:
@@ -101,6 +112,22 @@ def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
     return circles
 
 
+def layer_of(module: str, package: str) -> int:
+    """The index in ``LAYERS`` of ``module`` (a dotted name under ``package``); the application's is last."""
+    first = module.removeprefix(package).lstrip(".").split(".", 1)[0]
+    return next((i for i, names in enumerate(LAYERS) if first in names), len(LAYERS))
+
+
+def upward_imports(graph: dict[str, set[str]], package: str) -> list[tuple[str, str]]:
+    """Every (module, imported module) where the import reaches a higher layer, sorted."""
+    return sorted(
+        (module, dep)
+        for module, deps in graph.items()
+        for dep in deps
+        if layer_of(dep, package) > layer_of(module, package)
+    )
+
+
 def test_import_graph_has_no_circles() -> None:
     """No two modules of the package import each other, directly or through others."""
     graph = import_graph(SRC, PACKAGE)
@@ -123,3 +150,31 @@ def test_import_graph_finds_a_circle_through_a_function_level_import(tmp_path: P
     (pkg / "leaf.py").write_text("import pkg.sub.a\n")
     circles = import_circles(import_graph(tmp_path, "pkg"))
     assert circles == [["pkg.sub.a", "pkg.sub.b", "pkg.sub.c"]]
+
+
+def test_import_graph_layers_point_one_way() -> None:
+    """No module imports a layer above its own: helpers never read a component (C7's contract lives in
+    ``helpers.inference_contract``), components never read ``models`` (the manifest and the weight pins
+    live in ``helpers``), and neither reads the application."""
+    graph = import_graph(SRC, PACKAGE)
+    assert any(layer_of(m, PACKAGE) == 0 for m in graph) and any(layer_of(m, PACKAGE) == 2 for m in graph)
+    upward = upward_imports(graph, PACKAGE)
+    assert not upward, "imports that run up a layer: " + "; ".join(f"{a} -> {b}" for a, b in upward)
+
+
+def test_import_graph_finds_an_upward_import(tmp_path: Path) -> None:
+    """The check sees a helper that reads a component and a component that reads the exporters, even
+    inside a function, and lets the application read every layer."""
+    pkg = tmp_path / "pkg"
+    for sub in ("helpers", "components", "models", "runtime_root"):
+        (pkg / sub).mkdir(parents=True)
+        (pkg / sub / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "helpers" / "h.py").write_text("def f():\n    from pkg.components.c import thing\n")
+    (pkg / "components" / "c.py").write_text("from pkg.models.m import x\nfrom pkg.helpers import h\n")
+    (pkg / "models" / "m.py").write_text("from pkg.components import c\n")
+    (pkg / "runtime_root" / "r.py").write_text("from pkg.models import m\nfrom pkg.helpers import h\n")
+    assert upward_imports(import_graph(tmp_path, "pkg"), "pkg") == [
+        ("pkg.components.c", "pkg.models.m"),
+        ("pkg.helpers.h", "pkg.components.c"),
+    ]

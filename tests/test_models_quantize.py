@@ -21,10 +21,10 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from conftest import shared_path
+from gps_denied_onboard.helpers.model_manifest import ModelEntry, ModelSource, write_manifest
 from gps_denied_onboard.helpers.onnx_signatures import extractor_signature
 from gps_denied_onboard.models import read_manifest, sha256_file, verify_model_dir
 from gps_denied_onboard.models.learned_export import family_models, family_models_at
-from gps_denied_onboard.models.manifest import ModelEntry, ModelSource, write_manifest
 from gps_denied_onboard.models.quantize import fold_initializer_transposes, int8_name
 from gps_denied_onboard.models.verification import VERIFICATION_NAME, family_verified
 from onnx_builders import build_fake_extractor

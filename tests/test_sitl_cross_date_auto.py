@@ -8,8 +8,8 @@ honest and keep up with the camera in real time.
 
 Measured with this test on the 2-core development machine (AMD EPYC, load 2, 60 s): 3.0 attempts/s, every
 one on the correlation rung, exposure to judged fix p95 136 ms, 178 of 180 fixes accepted, output p95
-5.92 m, 0 beyond 3 sigma, interval max 106 ms. The bounds below leave room for a slower shared CI machine (half the attempt rate, twice the
-latency); the integrity and health checks have none.
+5.92 m, 0 beyond 3 sigma, interval max 106 ms. The bounds below leave room for a slower shared CI machine
+(half the attempt rate, several times the latency); the integrity and health checks have none.
 """
 
 from __future__ import annotations

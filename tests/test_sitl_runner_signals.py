@@ -3,6 +3,7 @@ daemon too (issue 26: a SIGTERM left it running, still holding its ports)."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -79,3 +80,71 @@ def test_runner_signal_stops_its_daemon(tmp_path: Path, sig: signal.Signals) -> 
     if left:
         os.kill(daemon_pid, signal.SIGKILL)
     assert not left, f"daemon {daemon_pid} still running 15 s after the runner got {sig.name}"
+
+
+def test_runner_sigterm_in_an_autopilot_flight_stops_the_mission_and_the_daemon_at_once(
+    tmp_path: Path,
+) -> None:
+    """`gdnav sitl run --autopilot` flying on the emulator, GNSS off: SIGTERM ends the runner (130) and
+    its daemon within 5 s, the mission driver sends nothing more but the GNSS switched back on (issue 36:
+    the mission flew on without frames until LAND, the daemon lived on, the runner exited only at the
+    disarm)."""
+    from daemon_harness import free_udp_port
+    from gps_denied_onboard.sitl.render import MapRenderer
+
+    map_path, _cache = build_small_cache(tmp_path)
+    west, south, east, north = MapRenderer(map_path).bbox_lonlat
+    port = free_udp_port()
+    events = tmp_path / "emulator_events.json"
+    emulator = subprocess.Popen(
+        [
+            sys.executable, "-m", "gps_denied_onboard.sitl.ap_emulator",
+            "--home", f"{(south + north) / 2},{(west + east) / 2},400,0", "--port", str(port),
+            "--ekf-origin-delay-s", "2", "--ekf-using-gps-delay-s", "4", "--events", str(events), "--quiet",
+        ],
+    )  # fmt: skip
+    log = tmp_path / "runner.log"
+    with log.open("wb") as out:
+        runner = subprocess.Popen(
+            [
+                sys.executable, "-m", "gps_denied_onboard.cli", "sitl", "run",
+                "--autopilot", f"udpout:127.0.0.1:{port}", "--map", str(map_path), "--scenario", "smoke",
+                "--report", str(tmp_path / "out" / "report.json"), "--workdir", str(tmp_path / "work"),
+                "--set", "matcher.strategy=classical",
+            ],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )  # fmt: skip
+    daemon_pid = None
+    try:
+        deadline = time.time() + 180.0
+        while "mission: gnss_off" not in log.read_text() and time.time() < deadline:
+            assert runner.poll() is None, log.read_text()[-3000:]
+            daemons = [c for c in _children(runner.pid) if b"run" in Path(f"/proc/{c}/cmdline").read_bytes()]
+            daemon_pid = daemons[0] if daemons else daemon_pid
+            time.sleep(0.2)
+        assert "mission: gnss_off" in log.read_text(), log.read_text()[-3000:]
+        assert daemon_pid is not None and _alive(daemon_pid)
+        t_term = time.time()
+        os.kill(runner.pid, signal.SIGTERM)
+        code = runner.wait(30)
+        runner_s = time.time() - t_term
+        while _alive(daemon_pid) and time.time() - t_term < 30.0:
+            time.sleep(0.1)
+        daemon_s = time.time() - t_term
+    finally:
+        if runner.poll() is None:
+            runner.kill()
+        if daemon_pid is not None and _alive(daemon_pid):
+            os.kill(daemon_pid, signal.SIGKILL)
+        emulator.send_signal(signal.SIGTERM)
+        emulator.wait(10)
+    assert code == 130, log.read_text()[-3000:]
+    assert runner_s < 5.0 and daemon_s < 5.0, (runner_s, daemon_s)
+    assert "mission: stopped {'gnss_restored': True}" in log.read_text()
+    # what the driver made the autopilot do after the SIGTERM (a mode command already on its way may
+    # still land in the first moment): the GNSS back on, nothing else
+    after = [e for e in json.loads(events.read_text())["events"] if e["t_unix_s"] > t_term]
+    params = [(e["name"], e["value"]) for e in after if e["kind"] == "param_set"]
+    modes = [e for e in after if e["kind"] == "mode" and e["t_unix_s"] > t_term + 0.5]
+    assert params == [("SIM_GPS1_ENABLE", 1.0)] and not modes, after

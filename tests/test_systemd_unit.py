@@ -132,6 +132,16 @@ def test_unit_does_not_restart_refusals() -> None:
     assert (EXIT_CONFIG, EXIT_RESOURCE) == (2, 3)
 
 
+def test_unit_restarts_a_daemon_ended_by_sighup() -> None:
+    """systemd counts a death by SIGHUP as a clean stop (no restart under on-failure): the unit forces the
+    restart for it, and the daemon ignores SIGHUP, SIGUSR1 and SIGUSR2 itself (daemon/signals.py; a death
+    by SIGUSR1/2 is unclean, so on-failure restarts it anyway)."""
+    from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
+
+    assert "SIGHUP" in _words("Service", "RestartForceExitStatus")
+    assert {s.name for s in IGNORED_SIGNALS} == {"SIGHUP", "SIGUSR1", "SIGUSR2"}
+
+
 def test_unit_has_no_start_check_that_delays_a_restart_or_escapes_the_exit_codes() -> None:
     """No ExecStartPre=: `gdnav run` refuses what `gdnav config check` refuses with the same exit codes,
     which RestartPreventExitStatus= sees only from the main process, and a separate check spent 2-3.6 s of

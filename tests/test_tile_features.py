@@ -387,8 +387,8 @@ def test_real_xfeat_precomputed_equals_live_on_a_2020_frame(
 ) -> None:
     """Real XFeat + LighterGlue, 2009 map cache, a rotated 2020 frame: the result with precomputed tile
     features is exactly the live one, and the extractor ran once (the query) instead of 1 + N."""
+    from gps_denied_onboard.helpers.model_manifest import verify_model_dir
     from gps_denied_onboard.models.learned_export import family_models
-    from gps_denied_onboard.models.manifest import verify_model_dir
 
     model_dir = registry_models("xfeat")
     extractor, lighterglue = family_models(verify_model_dir(model_dir), "xfeat")  # type: ignore[misc]

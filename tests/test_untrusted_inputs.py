@@ -5,6 +5,7 @@ The commands run as real `gdnav` processes."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -12,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from gps_denied_onboard.components.c5_estimator.prior import read_previous_run
-from gps_denied_onboard.components.c13_fdr import FlightDataRecorder, read_records_newest_first
+from gps_denied_onboard.components.c13_fdr import FlightDataRecorder, read_records, read_records_newest_first
 from gps_denied_onboard.components.c13_fdr.reader import FdrReader, scan
 from gps_denied_onboard.components.c13_fdr.recorder import MAX_RECORD_BYTES, parse_line
 
@@ -403,7 +404,7 @@ def test_model_and_vpr_metadata_nested_json_is_refused(tmp_path: Path) -> None:
     reader's own refusal, or for verification.json 'not verified'."""
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
     from gps_denied_onboard.components.c10_cache_build.vpr_index import VPR_META_NAME, read_vpr_meta
-    from gps_denied_onboard.models.manifest import MANIFEST_NAME, ModelDirError, read_manifest
+    from gps_denied_onboard.helpers.model_manifest import MANIFEST_NAME, ModelDirError, read_manifest
     from gps_denied_onboard.models.verification import VERIFICATION_NAME, read_verification
 
     nested = b"[" * 50_000 + b"]" * 50_000
@@ -453,3 +454,121 @@ def test_replay_fdr_with_a_malformed_frame_image_record_is_refused(tmp_path: Pat
     d = _fdr_with(tmp_path, frame, image)
     with pytest.raises(ReplayInputError, match="not what the daemon writes"):
         from_fdr(d)
+
+
+# --- files in the FDR that are not regular files (issue 36, item 9) ---------------------------------
+
+#: Segment names that sort after any the recorder writes now: the newest-first read meets them first.
+_LATE_FIFO = "fdr-29991231T235959.998Z-000001.jsonl"
+_LATE_LINK = "fdr-29991231T235959.999Z-000001.jsonl"
+
+
+def _fdr_with_fifo_and_dev_zero(tmp_path: Path) -> Path:
+    """A real recorder's segment with three 3D estimates, then a real FIFO (no writer: opening it for
+    reading blocks) and a real symbolic link to /dev/zero (reads without end), both named as the newest
+    segments, and a FIFO named as a frame image."""
+    d = _fdr_with(tmp_path)
+    os.mkfifo(d / _LATE_FIFO)
+    os.symlink("/dev/zero", d / _LATE_LINK)
+    (d / "images").mkdir(exist_ok=True)
+    os.mkfifo(d / "images" / "img-29991231T235959.999Z-000001-7.jpg")
+    return d
+
+
+@pytest.mark.timeout(60)
+def test_fdr_fifo_and_dev_zero_link_are_refused_by_the_readers(tmp_path: Path) -> None:
+    """The start-up read, the recording-order read and the scan skip the FIFO and the link unopened
+    (the FIFO blocked `gdnav run` before ready, the link read until MemoryError) and find the records."""
+    d = _fdr_with_fifo_and_dev_zero(tmp_path)
+    previous = read_previous_run(read_records_newest_first(d))
+    assert previous.last_3d is not None and previous.last_3d.lat_deg == 49.0
+    assert sum(1 for r in read_records(d) if r["kind"] == "mavlink.estimate") == 3
+    found = scan(d)
+    assert found.records >= 3 and found.segments == 1
+    assert sorted(found.unreadable_segments) == [
+        f"{_LATE_FIFO}: not a regular file (FIFO)",
+        f"{_LATE_LINK}: not a regular file (symbolic link)",
+        "img-29991231T235959.999Z-000001-7.jpg: not a regular file (FIFO)",
+    ]
+    assert sum(1 for _ in FdrReader(d).records("mavlink.estimate")) == 3
+
+
+@pytest.mark.timeout(60)
+def test_fdr_recorder_opens_over_a_fifo_and_a_dev_zero_link_and_names_them(tmp_path: Path) -> None:
+    """A recorder opened over the FIFO and the link neither reads nor writes them: it records on in a
+    segment of its own, and its fdr.opened record names what it refused."""
+    d = _fdr_with_fifo_and_dev_zero(tmp_path)
+    with FlightDataRecorder(d, max_bytes=1 << 20, segment_bytes=1 << 16) as fdr:
+        fdr.record("mavlink.estimate", {"time_unix_usec": NOW_USEC + 9, "fix_type": 3})
+    opened = [r for r in read_records(d) if r["kind"] == "fdr.opened"][-1]
+    assert sorted(opened["refused_files"]) == [
+        f"{_LATE_FIFO}: FIFO",
+        f"{_LATE_LINK}: symbolic link",
+        "img-29991231T235959.999Z-000001-7.jpg: FIFO",
+    ]
+    assert (d / _LATE_LINK).is_symlink() and os.readlink(d / _LATE_LINK) == "/dev/zero"
+    assert sum(1 for r in read_records(d) if r["kind"] == "mavlink.estimate") == 4
+
+
+def _gdnav_bounded(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """`gdnav ARGS` that must end within 60 s (each hung for 60 s or more over the FIFO)."""
+    return subprocess.run(
+        [sys.executable, "-m", "gps_denied_onboard.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=cwd,
+    )
+
+
+def test_cli_fdr_summary_names_the_fifo_and_the_link_and_reads_the_rest(tmp_path: Path) -> None:
+    """`gdnav fdr summary` ends, reads the real segment and lists the two files it refused."""
+    d = _fdr_with_fifo_and_dev_zero(tmp_path)
+    proc = _gdnav_bounded(tmp_path, "fdr", "summary", str(d), "--json")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads(proc.stdout)
+    assert summary["counts"]["mavlink.estimate"] == 3 and summary["segments"] == 1
+    assert f"{_LATE_FIFO}: FIFO" in summary["refused_files"]
+    assert f"{_LATE_LINK}: symbolic link" in summary["refused_files"]
+
+
+def test_cli_fdr_summary_of_a_fifo_named_on_the_command_line_is_refused(tmp_path: Path) -> None:
+    """`gdnav fdr summary FIFO` refuses it in one line instead of waiting for a writer."""
+    fifo = tmp_path / "fdr-29991231T235959.999Z-000001.jsonl"
+    os.mkfifo(fifo)
+    line = _one_line(_gdnav_bounded(tmp_path, "fdr", "summary", str(fifo)), 2)
+    assert "not a regular file" in line
+
+
+def test_cli_fdr_boresight_over_a_fifo_and_a_link_ends_in_one_line(tmp_path: Path) -> None:
+    """`gdnav fdr boresight` ends with its usual refusal (no run tracked a frame), not a hang."""
+    d = _fdr_with_fifo_and_dev_zero(tmp_path)
+    line = _one_line(_gdnav_bounded(tmp_path, "fdr", "boresight", str(d)), 3)
+    assert "no run tracked any frame" in line
+
+
+def test_cli_preflight_fails_the_fdr_check_on_a_fifo_naming_it(tmp_path: Path) -> None:
+    """`gdnav preflight --offline` ends, and its fdr check fails naming a file that is not regular."""
+    _fdr_with_fifo_and_dev_zero(tmp_path)
+    proc = _gdnav_bounded(tmp_path, "preflight", "--offline", *_sitl_args(tmp_path))
+    assert proc.returncode == 3, proc.stdout + proc.stderr[-3000:]
+    fdr_row = next(line for line in proc.stdout.splitlines() if line.lstrip().startswith("fdr"))
+    assert "not a regular file" in fdr_row, proc.stdout
+
+
+def test_daemon_starts_over_an_fdr_with_a_fifo_and_a_dev_zero_link(tmp_path: Path) -> None:
+    """`gdnav run` as a real process gets to ready over the FIFO and the link (it hung before ready on
+    the FIFO, or ended in a MemoryError on the link) and resumes from the real segment's records."""
+    from daemon_harness import build_small_cache, start_daemon, wait_for
+
+    cache = build_small_cache(tmp_path / "map")[1]
+    fdr = _fdr_with_fifo_and_dev_zero(tmp_path)
+    daemon = start_daemon(tmp_path, cache)
+    assert daemon.fdr_dir == fdr
+    try:
+        assert wait_for(lambda: "daemon.ready" in daemon.log_text() or daemon.proc.poll() is not None, 60.0)
+        assert "daemon.ready" in daemon.log_text(), daemon.log_text()[-3000:]
+        assert "c13.fdr.file_refused" in daemon.log_text()
+    finally:
+        code = daemon.stop()
+    assert code == 0 and "Traceback" not in daemon.log_text(), daemon.log_text()[-3000:]

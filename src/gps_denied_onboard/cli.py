@@ -80,6 +80,9 @@ def _apply_process_nice(target: int | None, log: Any) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.daemon import signals
+
+    signals.ignore()  # SIGHUP/SIGUSR1/SIGUSR2 must not end the daemon, not even while it starts
     config = load_config(args.config, args.set or ())
     blas_set = limit_blas_threads(config.daemon.blas_threads)
     configure_logging(config.logging.level, json=config.logging.json)
@@ -256,7 +259,7 @@ def _cmd_cache_vpr(args: argparse.Namespace) -> int:
         )
         from gps_denied_onboard.components.c7_inference import OnnxInferenceRuntime
         from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
-        from gps_denied_onboard.models.manifest import ModelDirError
+        from gps_denied_onboard.helpers.model_manifest import ModelDirError
 
         try:
             path = Path(args.xfeat) if args.xfeat else find_xfeat_extractor(args.model_dir)

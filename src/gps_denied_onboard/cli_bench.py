@@ -207,8 +207,8 @@ def _run_vpr(args: argparse.Namespace) -> int:
     from gps_denied_onboard.bench.vpr import BENCH_STRATEGIES, run_vpr_benchmark
     from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.helpers.model_manifest import ModelDirError
     from gps_denied_onboard.logging_setup import configure_logging
-    from gps_denied_onboard.models.manifest import ModelDirError
 
     configure_logging("warning", json=False)
     try:

@@ -69,6 +69,7 @@ def summarise(reader: FdrReader) -> dict[str, Any]:
     return {
         "path": str(reader.path),
         "segments": len(reader.segments()),
+        "refused_files": reader.refused(),
         "records": sum(counts.values()),
         "counts": dict(sorted(counts.items())),
         "runs": [
@@ -107,6 +108,8 @@ def _round(v: float | None) -> float | None:
 def format_summary(s: dict[str, Any]) -> str:
     """The summary as text for a terminal."""
     out = [f"FDR {s['path']}: {s['records']} records in {s['segments']} segment(s), {len(s['runs'])} run(s)"]
+    if s["refused_files"]:
+        out.append("refused unread (not regular files): " + ", ".join(s["refused_files"]))
     out.append("records by kind:")
     out += [f"  {kind:<32} {n:>8}" for kind, n in s["counts"].items()]
     out.append("runs:")

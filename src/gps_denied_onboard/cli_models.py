@@ -136,6 +136,7 @@ def _calibration_images(folder: Path) -> list[Any]:
 
 
 def _cmd_quantize(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.helpers.model_manifest import read_manifest
     from gps_denied_onboard.models import ExportError, ModelDirError
     from gps_denied_onboard.models.learned_export import (
         FAMILIES,
@@ -143,7 +144,6 @@ def _cmd_quantize(args: argparse.Namespace) -> int:
         ROLE_MATCHER,
         family_models,
     )
-    from gps_denied_onboard.models.manifest import read_manifest
 
     root = Path(args.dir)
     if not root.is_dir():

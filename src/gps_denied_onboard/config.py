@@ -151,7 +151,9 @@ class MavlinkConfig:
     #: Attitude/altitude older than this at a frame's exposure make the frame invalid for fixes.
     attitude_max_age_s: PosFloat = 0.3
     altitude_max_age_s: PosFloat = 1.0
-    #: No autopilot HEARTBEAT for this long = link lost (reported; estimation continues).
+    #: No autopilot HEARTBEAT for this long = link lost (reported; estimation continues). On a listening
+    #: link (udpin/tcpin) also how long the autopilot's address must be silent before its HEARTBEAT from
+    #: another address moves the output there (until then that address is an impostor).
     link_timeout_s: PosFloat = 3.0
     #: MAVLink 2 signing key file (32 bytes, or 64 hex chars); mode 0600 required. Null = unsigned.
     signing_key_file: Str | None = None

@@ -19,6 +19,17 @@ STATUSTEXT_MIN_INTERVAL_S: Final[float] = 1.0
 GPS_INPUT_GPS_ID: Final[int] = 0
 #: SET_GPS_GLOBAL_ORIGIN is repeated at this interval until the autopilot reports GPS_GLOBAL_ORIGIN, s.
 SET_GPS_GLOBAL_ORIGIN_INTERVAL_S: Final[float] = 10.0
+#: An impostor (another address claiming the autopilot's system and component ids) is reported (log,
+#: FDR, STATUSTEXT) at most once per this interval, with the messages ignored since the last report, s.
+IMPOSTOR_REPORT_INTERVAL_S: Final[float] = 10.0
+#: The ``mavlink.link_event`` record's ``event`` for an impostor report (docs/fdr.md).
+LINK_EVENT_IMPOSTOR: Final[str] = "impostor"
+#: The STATUSTEXT that reports an impostor to the ground: its address and the messages ignored so far (fits
+#: STATUSTEXT's 50 characters for any IPv4 address).
+IMPOSTOR_STATUSTEXT: Final[str] = "GDN: impostor {source} x{messages}"
+#: The autopilot's own TIMESYNC requests are answered at most once per this interval, s (ArduPilot asks
+#: every 10 s; a flood of 75,000 requests/s drew 50,538 answers in 10 s and cut GPS_INPUT to 4.6/s).
+TIMESYNC_ANSWER_MIN_INTERVAL_S: Final[float] = 0.1
 #: F8 resume state file (``c5_estimator.resume_state``): its name in ``fdr.dir`` when
 #: ``init.resume_state_path`` is null, and how often it is rewritten at most, s.
 RESUME_STATE_FILENAME: Final[str] = "resume_state.json"
@@ -108,6 +119,8 @@ class LogEvent:
     DAEMON_STOPPED: Final = "daemon.stopped"
     DAEMON_TASK_FAILED: Final = "daemon.task_failed"
     DAEMON_TASK_STUCK: Final = "daemon.task_stuck"
+    #: SIGHUP, SIGUSR1 or SIGUSR2 arrived and was ignored (``daemon.signals``): the daemon flies on.
+    DAEMON_SIGNAL_IGNORED: Final = "daemon.signal_ignored"
     #: A command ended on an exception no refusal maps (a bug): its traceback, at debug level.
     CLI_UNEXPECTED_ERROR: Final = "cli.unexpected_error"
     DAEMON_STATUS: Final = "daemon.status"
@@ -131,12 +144,17 @@ class LogEvent:
     #: A listening link (udpin/tcpin) now writes to another address: the autopilot's valid HEARTBEAT came
     #: from there.
     MAVLINK_AUTOPILOT_ADDRESS: Final = "c8.mavlink.autopilot_address"
+    #: Another address claims the autopilot's system and component ids while the autopilot's own is
+    #: heard: its messages are ignored and counted (rate-limited, ``IMPOSTOR_REPORT_INTERVAL_S``).
+    MAVLINK_IMPOSTOR: Final = "c8.mavlink.impostor"
     #: SET_GPS_GLOBAL_ORIGIN sent (the daemon's local frame offered to the autopilot).
     MAVLINK_ORIGIN_SENT: Final = "c8.mavlink.origin_sent"
     #: The frame VISION_POSITION_ESTIMATE is sent in changed (the autopilot reported its GPS_GLOBAL_ORIGIN).
     MAVLINK_VISION_FRAME: Final = "c8.mavlink.vision_frame"
     FDR_WRITE_ERROR: Final = "c13.fdr.write_error"
     FDR_SEGMENT_DELETED: Final = "c13.fdr.segment_deleted"
+    #: A file named like a segment or an image that is not a regular file (FIFO, link, device): never opened.
+    FDR_FILE_REFUSED: Final = "c13.fdr.file_refused"
     #: A frame image deleted (images budget or low free space; debug level).
     FDR_IMAGE_DELETED: Final = "c13.fdr.image_deleted"
     #: The recorder's health changed (ok / degraded / failing).

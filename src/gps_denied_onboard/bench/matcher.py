@@ -369,8 +369,8 @@ def resolve_model_paths(
         if value is not None:
             out[key] = Path(value)
     if model_dir is not None:
+        from gps_denied_onboard.helpers.model_manifest import ModelDirError, read_manifest
         from gps_denied_onboard.models.learned_export import FAMILIES, family_models
-        from gps_denied_onboard.models.manifest import ModelDirError, read_manifest
 
         try:
             entries = read_manifest(model_dir)

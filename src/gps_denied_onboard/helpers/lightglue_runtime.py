@@ -16,8 +16,8 @@ from typing import NamedTuple
 import numpy as np
 import structlog
 
-from gps_denied_onboard.components.c7_inference.protocol import InferenceError, InferenceRuntime
 from gps_denied_onboard.constants import LogEvent
+from gps_denied_onboard.helpers.inference_contract import InferenceError, InferenceRuntime
 from gps_denied_onboard.helpers.onnx_signatures import fused_pipeline_signature, lightglue_matcher_signature
 
 _log = structlog.get_logger(__name__)

@@ -33,7 +33,7 @@ Fused pipeline (extractor + LightGlue in one graph)::
 
 from __future__ import annotations
 
-from gps_denied_onboard.components.c7_inference.protocol import EngineSignature, TensorSpec
+from gps_denied_onboard.helpers.inference_contract import EngineSignature, TensorSpec
 
 #: Keypoint dtypes found in the wild: SuperPoint-style exports emit int64 pixels, others float32.
 KEYPOINT_DTYPES = "int64|float32"

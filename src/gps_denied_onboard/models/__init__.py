@@ -4,13 +4,7 @@ Importing this package never imports torch: ``aliked_torch`` (the network) is on
 exporter and the tests.
 """
 
-from gps_denied_onboard.models.export import (
-    ALIKED_EXTRACTOR_SIGNATURE,
-    ExportError,
-    default_onnx_name,
-    export_aliked_onnx,
-)
-from gps_denied_onboard.models.manifest import (
+from gps_denied_onboard.helpers.model_manifest import (
     MANIFEST_NAME,
     ModelDirError,
     ModelEntry,
@@ -18,6 +12,12 @@ from gps_denied_onboard.models.manifest import (
     read_manifest,
     verify_model_dir,
     write_manifest,
+)
+from gps_denied_onboard.models.export import (
+    ALIKED_EXTRACTOR_SIGNATURE,
+    ExportError,
+    default_onnx_name,
+    export_aliked_onnx,
 )
 from gps_denied_onboard.models.registry import (
     KNOWN_WEIGHTS,

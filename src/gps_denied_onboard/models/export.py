@@ -18,7 +18,7 @@ import warnings
 from pathlib import Path
 
 from gps_denied_onboard.components.c7_inference.protocol import EngineSignature, TensorSpec
-from gps_denied_onboard.models.manifest import ModelEntry, ModelSource, write_manifest
+from gps_denied_onboard.helpers.model_manifest import ModelEntry, ModelSource, write_manifest
 from gps_denied_onboard.models.registry import (
     KNOWN_WEIGHTS,
     WeightsError,

@@ -29,10 +29,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
-from gps_denied_onboard.components.c7_inference.protocol import EngineSignature
+from gps_denied_onboard.helpers.inference_contract import EngineSignature
+from gps_denied_onboard.helpers.model_manifest import (
+    PRECISION_FP32,
+    ModelEntry,
+    ModelSource,
+    entry_precision,
+    write_manifest,
+)
 from gps_denied_onboard.helpers.onnx_signatures import extractor_signature, lightglue_matcher_signature
 from gps_denied_onboard.models.export import ExportError, export_aliked_onnx
-from gps_denied_onboard.models.manifest import ModelEntry, ModelSource, write_manifest
 from gps_denied_onboard.models.package_weights import package_weights_path
 from gps_denied_onboard.models.registry import PACKAGE_WEIGHTS, sha256_file
 
@@ -47,10 +53,6 @@ EXTRACTOR_OPSET: Final[int] = 17
 MATCHER_OPSET: Final[int] = 18
 ROLE_EXTRACTOR: Final[str] = "extractor"
 ROLE_MATCHER: Final[str] = "matcher"
-#: ``params.precision`` of a model file; an entry without it is an fp32 export.
-PRECISION_FP32: Final[str] = "fp32"
-PRECISION_INT8: Final[str] = "int8"
-PRECISIONS: Final[tuple[str, ...]] = (PRECISION_FP32, PRECISION_INT8)
 #: C3 strategy that runs each family.
 FAMILY_STRATEGY: Final[dict[str, str]] = {
     "disk": "disk_lightglue",
@@ -111,11 +113,6 @@ def family_spec(family: str, top_k: int = DEFAULT_TOP_K) -> FamilySpec:
     if family not in table:
         raise ValueError(f"unknown model family {family!r}; valid: {', '.join(FAMILIES)}")
     return table[family]
-
-
-def entry_precision(entry: ModelEntry) -> str:
-    """``params.precision`` of a manifest entry (``fp32`` when absent: every export before quantisation)."""
-    return str(entry.params.get("precision", PRECISION_FP32))
 
 
 def family_models(

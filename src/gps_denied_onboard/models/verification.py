@@ -11,8 +11,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from gps_denied_onboard.helpers import bounded_json
-from gps_denied_onboard.models.learned_export import PRECISION_FP32
-from gps_denied_onboard.models.manifest import ModelEntry
+from gps_denied_onboard.helpers.model_manifest import PRECISION_FP32, ModelEntry
 
 VERIFICATION_NAME: Final[str] = "verification.json"
 

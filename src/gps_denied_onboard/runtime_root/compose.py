@@ -66,9 +66,9 @@ from gps_denied_onboard.config import Config, LadderRung, MatcherConfig
 from gps_denied_onboard.constants import FdrKind, LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
+from gps_denied_onboard.helpers.model_manifest import ModelDirError, ModelEntry, verify_model_dir
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
 from gps_denied_onboard.models.learned_export import FAMILY_STRATEGY, family_models
-from gps_denied_onboard.models.manifest import ModelDirError, ModelEntry, verify_model_dir
 from gps_denied_onboard.models.verification import family_verified
 from gps_denied_onboard.pipeline import NavigationPipeline
 from gps_denied_onboard.runtime_root.link_first import StartupError, check_signing_key, make_tracker

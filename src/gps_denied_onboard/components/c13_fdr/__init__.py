@@ -18,11 +18,13 @@ from gps_denied_onboard.components.c13_fdr.reader import (
 from gps_denied_onboard.components.c13_fdr.recorder import (
     FdrHealth,
     FlightDataRecorder,
+    NotRegularFileError,
     list_images,
     list_segments,
     parse_line,
     read_records,
     read_records_newest_first,
+    refused_files,
     to_jsonable,
 )
 
@@ -37,6 +39,7 @@ __all__ = [
     "FlightDataRecorder",
     "FrameError",
     "FrameRefusal",
+    "NotRegularFileError",
     "ProvenanceChange",
     "RunStop",
     "list_images",
@@ -44,5 +47,6 @@ __all__ = [
     "parse_line",
     "read_records",
     "read_records_newest_first",
+    "refused_files",
     "to_jsonable",
 ]

@@ -20,8 +20,8 @@ from typing import Any
 from gps_denied_onboard.components.c10_cache_build.manifest import MANIFEST_NAME as CACHE_MANIFEST_NAME
 from gps_denied_onboard.components.c10_cache_build.manifest import sha256_file
 from gps_denied_onboard.helpers import bounded_json
-from gps_denied_onboard.models.manifest import MANIFEST_NAME as MODEL_MANIFEST_NAME
-from gps_denied_onboard.models.manifest import ModelDirError, read_manifest
+from gps_denied_onboard.helpers.model_manifest import MANIFEST_NAME as MODEL_MANIFEST_NAME
+from gps_denied_onboard.helpers.model_manifest import ModelDirError, read_manifest
 
 
 def _sha256_bytes(data: bytes) -> str:

@@ -27,7 +27,9 @@ from gps_denied_onboard.components.c13_fdr.recorder import (
     MAX_RECORD_BYTES,
     bounded_lines,
     list_segments,
+    open_regular,
     parse_line,
+    refused_files,
 )
 from gps_denied_onboard.constants import FdrKind
 from gps_denied_onboard.helpers import bounded_json
@@ -151,7 +153,8 @@ class FdrScan:
     corrupt_lines: int
     #: The first corrupt line as ``segment:line: reason``, or None.
     first_corrupt: str | None
-    #: Segments that cannot be opened or read, with the reason.
+    #: Segments that cannot be opened or read, and files named like segments or images that are not
+    #: regular files (refused unopened), with the reason.
     unreadable_segments: tuple[str, ...]
 
 
@@ -164,10 +167,12 @@ def scan(path: str | Path) -> FdrScan:
     segs = list_segments(p) if p.is_dir() else []
     records = torn = corrupt = 0
     first: str | None = None
-    unreadable: list[str] = []
+    # a FIFO or a link among the segments is refused unopened: reading it could block or never end
+    refused = refused_files(p) if p.is_dir() else []
+    unreadable = [f"{f.name}: not a regular file ({what})" for f, what in refused]
     for seg in segs:
         try:
-            with seg.open("rb") as fh:
+            with open_regular(seg) as fh:
                 for n, raw in enumerate(bounded_lines(fh), start=1):
                     if not raw.strip():
                         continue
@@ -265,16 +270,25 @@ class FdrReader:
         if p.is_file():
             return [p]
         if not p.is_dir():
-            raise FdrReadError(f"{p}: no such file or directory", path=p)
+            there = p.exists() or p.is_symlink()
+            what = "not a regular file or a directory" if there else "no such file or directory"
+            raise FdrReadError(f"{p}: {what}", path=p)
         segs = list_segments(p)
         if not segs:
             raise FdrReadError(f"{p}: no FDR segments (fdr-*.jsonl) in this directory", path=p)
         return segs
 
+    def refused(self) -> list[str]:
+        """Files named like segments or images that are not regular files (FIFO, symbolic link, device),
+        as ``name: what``: never read."""
+        if not self.path.is_dir():
+            return []
+        return [f"{f.name}: {what}" for f, what in refused_files(self.path)]
+
     def _lines(self) -> Iterator[bytes]:
         for seg in self.segments():
-            try:
-                fh = seg.open("rb")
+            try:  # a segment named on the command line may be a link to a regular file; nothing else is
+                fh = open_regular(seg, follow_symlinks=seg == self.path)
             except OSError:
                 continue
             with fh:

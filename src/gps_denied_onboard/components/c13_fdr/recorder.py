@@ -16,7 +16,10 @@ Rules:
 - low disk: below ``min_free_bytes`` images go first; below a quarter of it, or when a write fails,
   records are dropped and counted, so the daemon keeps flying without its recorder;
 - ``record`` never raises: errors are counted and logged (rate-limited), and opening a segment is
-  retried on the next record.
+  retried on the next record;
+- only regular files are read: a FIFO, a device, a socket or a symbolic link named like a segment or an
+  image is refused unopened (``refused_files``), so nothing in the directory can block a reader or feed
+  it without end (a FIFO blocked ``gdnav run`` before ready; a link to /dev/zero read until MemoryError).
 
 Files, encoding and every record kind: docs/fdr.md.
 """
@@ -33,6 +36,7 @@ import math
 import os
 import re
 import shutil
+import stat
 import threading
 import time
 import uuid
@@ -149,14 +153,93 @@ def _image_key(path: Path) -> tuple[str, int] | None:
     return (m.group(1), int(m.group(2))) if m else None
 
 
-def _sorted_files(directory: Path, key: Callable[[Path], Any]) -> list[Path]:
-    """Files of ``directory`` that ``key`` recognises (not None), in ``key`` order; [] when unreadable."""
+class NotRegularFileError(OSError):
+    """A file of the FDR that is not a regular file (FIFO, device, socket, symbolic link): refused
+    unopened. ``what`` names its type."""
+
+    def __init__(self, path: Path, what: str) -> None:
+        super().__init__(errno.EINVAL, f"not a regular file ({what}); refused unread", str(path))
+        self.what = what
+
+
+def _file_type(mode: int) -> str:
+    """What a non-regular ``st_mode`` is, in words."""
+    for test, name in (
+        (stat.S_ISLNK, "symbolic link"),
+        (stat.S_ISFIFO, "FIFO"),
+        (stat.S_ISCHR, "character device"),
+        (stat.S_ISBLK, "block device"),
+        (stat.S_ISSOCK, "socket"),
+        (stat.S_ISDIR, "directory"),
+    ):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def open_regular(path: Path, *, follow_symlinks: bool = False) -> BinaryIO:
+    """``path`` opened for reading when it is a regular file; else ``NotRegularFileError``, without ever
+    blocking (a FIFO is opened non-blocking, then refused) or following a symbolic link unless asked."""
+    flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | (0 if follow_symlinks else os.O_NOFOLLOW)
     try:
-        entries = list(directory.iterdir())
+        fd = os.open(path, flags)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP and not follow_symlinks:  # O_NOFOLLOW on a link
+            raise NotRegularFileError(path, "symbolic link") from None
+        raise
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise NotRegularFileError(path, _file_type(mode))
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _entries(directory: Path, key: Callable[[Path], Any]) -> list[tuple[Any, Path, bool]]:
+    """(key, path, is a regular file) of the entries of ``directory`` that ``key`` recognises; [] when
+    unreadable. Symbolic links are not followed."""
+    out = []
+    try:
+        with os.scandir(directory) as it:
+            for entry in it:
+                path = directory / entry.name
+                if (k := key(path)) is None:
+                    continue
+                try:
+                    regular = entry.is_file(follow_symlinks=False)
+                except OSError:
+                    regular = False
+                out.append((k, path, regular))
     except OSError:
         return []
-    keyed = [(k, p) for p in entries if (k := key(p)) is not None]
+    return out
+
+
+def _sorted_files(directory: Path, key: Callable[[Path], Any]) -> list[Path]:
+    """Regular files of ``directory`` that ``key`` recognises (not None), in ``key`` order; [] when
+    unreadable. Anything else under such a name is left out (``refused_files``)."""
+    keyed = [(k, p) for k, p, regular in _entries(directory, key) if regular]
     return [p for _, p in sorted(keyed)]
+
+
+def refused_files(directory: str | Path) -> list[tuple[Path, str]]:
+    """Entries named like a segment of ``directory`` (or an image in its ``images/``) that are not regular
+    files, with what each is (``FIFO``, ``symbolic link``...): never opened by the recorder or the readers."""
+    d = Path(directory)
+    out = []
+    for where, key in ((d, _segment_key), (d / IMAGES_SUBDIR, _image_key)):
+        for _k, path, regular in sorted(_entries(where, key), key=lambda e: e[1].name):
+            if regular:
+                continue
+            try:
+                what = _file_type(path.lstat().st_mode)
+            except OSError:
+                what = "unreadable"
+            out.append((path, what))
+    return out
 
 
 def _last_number(keys: Iterable[tuple[str, int] | None], tag: str) -> int:
@@ -205,7 +288,7 @@ def read_records(directory: str | Path) -> Iterator[dict[str, Any]]:
     """Every record in ``directory`` in recording order; torn or unreadable lines are skipped."""
     for seg in list_segments(directory):
         try:
-            fh = seg.open("rb")
+            fh = open_regular(seg)
         except OSError:
             continue
         with fh:
@@ -220,7 +303,7 @@ def read_records_newest_first(directory: str | Path) -> Iterator[dict[str, Any]]
     the caller stops early, so only the newest segment is usually read); torn lines are skipped."""
     for seg in reversed(list_segments(directory)):
         try:
-            with seg.open("rb") as fh:
+            with open_regular(seg) as fh:
                 # A segment is at most fdr.segment_bytes plus one record; a file far larger than any (not
                 # the recorder's) is read from its last NEWEST_FIRST_MAX_BYTES only.
                 start = max(0, fh.seek(0, os.SEEK_END) - NEWEST_FIRST_MAX_BYTES)
@@ -300,6 +383,8 @@ class FlightDataRecorder:
         self.records_written = 0
         self.records_dropped = 0
         self.segments_deleted = 0
+        #: Files named like segments or images that are not regular files, never opened (``refused_files``).
+        self.refused: list[tuple[Path, str]] = []
         self._scan_existing()
         previous, torn, previous_closed = self._recover_previous()
         with self._lock:
@@ -311,6 +396,7 @@ class FlightDataRecorder:
                     "previous_segment": previous.name if previous is not None else None,
                     "previous_torn_lines": torn,
                     "previous_closed": previous_closed,
+                    "refused_files": [f"{path.name}: {what}" for path, what in self.refused],
                     "max_bytes": self.max_bytes,
                     "segment_bytes": self.segment_bytes,
                     "images_max_bytes": self.images_max_bytes,
@@ -321,6 +407,9 @@ class FlightDataRecorder:
 
     # --- files --------------------------------------------------------------------------------------
     def _scan_existing(self) -> None:
+        self.refused = refused_files(self.dir)
+        for path, what in self.refused:
+            _log.warning(LogEvent.FDR_FILE_REFUSED, path=str(path), what=what, reason="not a regular file")
         for seg in list_segments(self.dir):
             try:
                 self._sizes[seg] = seg.stat().st_size
@@ -355,13 +444,13 @@ class FlightDataRecorder:
             return None, 0, None
         newest = segs[-1]
         try:
-            with newest.open("rb") as fh:
+            with open_regular(newest) as fh:
                 size = fh.seek(0, os.SEEK_END)
                 start = max(0, size - RECOVERY_TAIL_BYTES)
                 fh.seek(start)
                 tail = fh.read()
             if tail and not tail.endswith(b"\n"):
-                fd = os.open(newest, os.O_WRONLY | os.O_APPEND | os.O_CLOEXEC)
+                fd = os.open(newest, os.O_WRONLY | os.O_APPEND | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NONBLOCK)
                 try:
                     os.write(fd, b"\n")
                 finally:
@@ -390,9 +479,10 @@ class FlightDataRecorder:
         while True:
             self._seg_seq += 1
             path = self.dir / f"fdr-{self._start_tag}-{self._seg_seq:06d}.jsonl"
-            if path not in self._sizes and not path.exists():
+            if path not in self._sizes and not os.path.lexists(path):
                 break
-        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
+        # O_EXCL: never a name that appeared since (a link or a FIFO put there would be written through)
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND | os.O_CLOEXEC, 0o644)
         self._fd_path = path
         self._fd_size = 0
         self._need_newline = False

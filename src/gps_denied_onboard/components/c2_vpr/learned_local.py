@@ -43,8 +43,12 @@ from gps_denied_onboard.components.c7_inference.protocol import (
     InferenceRuntime,
 )
 from gps_denied_onboard.components.c10_cache_build.manifest import sha256_file
-from gps_denied_onboard.models.learned_export import PRECISION_FP32, entry_precision
-from gps_denied_onboard.models.manifest import ModelDirError, verify_model_dir
+from gps_denied_onboard.helpers.model_manifest import (
+    PRECISION_FP32,
+    ModelDirError,
+    entry_precision,
+    verify_model_dir,
+)
 
 #: A keypoint closer than this to an invalid pixel (px of the model input) is dropped: XFeat's
 #: descriptors are read from a 1/8-resolution map whose receptive field spans a few cells.

@@ -12,8 +12,13 @@ Rules:
 - Signing when ``signing_key_file`` is set: unsigned or wrongly signed input is refused (RADIO_STATUS
   excepted).
 - Listening links write only to the autopilot (``transport``): first where any of its valid messages came
-  from (a restarted daemon hears its 50 Hz ATTITUDE before its 1 Hz HEARTBEAT), then where its newest
-  HEARTBEAT came from; signed ones only when signing is on.
+  from (a restarted daemon hears its 50 Hz ATTITUDE before its 1 Hz HEARTBEAT). Once known, the address
+  moves only when it has been silent past ``link_timeout_s`` and the new one sends the autopilot's valid
+  HEARTBEAT (signed when signing is on). Meanwhile another address claiming the autopilot's system and
+  component ids is an impostor: its messages are ignored (never reach the tracker, never answered),
+  counted, and reported at most once per ``IMPOSTOR_REPORT_INTERVAL_S`` (log, FDR, STATUSTEXT).
+- TIMESYNC: only the autopilot's own requests, from its address, are answered, at most one per
+  ``TIMESYNC_ANSWER_MIN_INTERVAL_S``.
 - VISION_POSITION_ESTIMATE goes out only in a frame the autopilot shares (its GPS_GLOBAL_ORIGIN, or ours
   offered with SET_GPS_GLOBAL_ORIGIN until it reports one).
 - GPS_INPUT's altitude is flagged as ignored while the ground altitude disagrees (``distrust_altitude``).
@@ -46,6 +51,9 @@ from gps_denied_onboard.components.c8_mavlink.vehicle_state import AUTOPILOT_COM
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import MavlinkConfig, check_mavlink_url
 from gps_denied_onboard.constants import (
+    IMPOSTOR_REPORT_INTERVAL_S,
+    IMPOSTOR_STATUSTEXT,
+    LINK_EVENT_IMPOSTOR,
     NV_FDR_HEALTH,
     NV_FRAME_DROPS,
     NV_HORIZ_SIGMA_M,
@@ -55,6 +63,7 @@ from gps_denied_onboard.constants import (
     NV_RESIDUAL_PX,
     SET_GPS_GLOBAL_ORIGIN_INTERVAL_S,
     STATUSTEXT_MIN_INTERVAL_S,
+    TIMESYNC_ANSWER_MIN_INTERVAL_S,
     FdrHealthState,
     FdrKind,
     LogEvent,
@@ -202,6 +211,12 @@ class LinkStats:
     global_origin_sent: int = 0
     #: VISION_POSITION_ESTIMATEs not sent because no frame shared with the autopilot was known yet.
     vision_withheld: int = 0
+    #: Messages ignored from an impostor: another address claiming the autopilot's ids.
+    impostor_messages: int = 0
+    #: The autopilot's TIMESYNC requests answered, and requests not answered (rate limit, another address
+    #: or another sender).
+    timesync_answered: int = 0
+    timesync_ignored: int = 0
 
 
 @dataclass
@@ -292,6 +307,16 @@ class MavlinkLink:
         self._last_timesync_s = -float("inf")
         #: Why the altitude is not given to the autopilot (None: it is); ``distrust_altitude``.
         self._alt_distrust: str | None = None
+        # the autopilot's address on a listening link (see the module docstring)
+        self._ap_address_followed = False  # an address was followed on this transport
+        self._ap_heard_s = -float("inf")  # its last valid message with the autopilot's ids (clock)
+        self._impostor_messages = 0
+        self._impostor_unreported = 0
+        self._impostor_reported_s = -float("inf")
+        # TIMESYNC answers
+        self._timesync_answered_s = -float("inf")
+        self._timesync_answered = 0
+        self._timesync_ignored = 0
 
     # --- lifecycle ----------------------------------------------------------------------------------
     def attach(self, fdr: FdrClient | None, ltp: LocalTangentPlane | None) -> None:
@@ -342,6 +367,7 @@ class MavlinkLink:
                 link_id=0,
             )
         self._conn = conn
+        self._ap_address_followed = False  # a new transport learns the autopilot's address afresh
         self._backoff_s = RECONNECT_BACKOFF_INITIAL_S
         self._next_reconnect_s = None
         _log.info(LogEvent.MAVLINK_CONNECTED, url=cfg.url, signed=self._signing_key is not None)
@@ -396,6 +422,7 @@ class MavlinkLink:
                 self._connect(now)
             conn = self._conn
             if conn is not None:
+                listening = isinstance(conn, (AutopilotUdpIn, AutopilotTcpIn))
                 try:
                     for _ in range(MAX_MESSAGES_PER_POLL):
                         msg = conn.recv_msg()
@@ -406,12 +433,13 @@ class MavlinkLink:
                             continue
                         count += 1
                         recv_s = self._clock()  # each message at its own arrival: the clock's bound
-                        if self._tracker.handle(msg, recv_s) and (
-                            msg.get_type() == "HEARTBEAT" or not getattr(conn, "autopilot_known", True)
-                        ):
-                            self._follow_autopilot(conn, msg)
+                        if listening and self._claims_autopilot(msg):
+                            if not self._autopilot_message(conn, msg, recv_s):
+                                continue  # an impostor's: ignored, counted, reported
+                        else:
+                            self._tracker.handle(msg, recv_s)
                         if msg.get_type() == "TIMESYNC":
-                            self._answer_timesync(msg, recv_s)
+                            self._answer_timesync(msg, recv_s, from_autopilot=self._from_autopilot(conn))
                 except (OSError, _PeerClosed) as exc:
                     self._drop_connection()
                     self._schedule_reconnect(now, reason=f"receive failed: {exc}")
@@ -437,26 +465,97 @@ class MavlinkLink:
         ts1_ns = ap_clock.request(int(self._clock() * 1e6))
         self._build_and_send(lambda mav: messages.timesync(mav, tc1_ns=0, ts1_ns=ts1_ns))
 
-    def _answer_timesync(self, msg: Any, recv_s: float) -> None:
+    def _answer_timesync(self, msg: Any, recv_s: float, *, from_autopilot: bool) -> None:
         """Answer the autopilot's own TIMESYNC request (ArduPilot sends one every 10 s and logs the
-        round trip), with our receive time."""
-        if int(msg.tc1) != 0 or msg.get_srcSystem() != self._config.autopilot_system_id:
+        round trip), with our receive time: only one from its system and component ids and its address,
+        at most one per ``TIMESYNC_ANSWER_MIN_INTERVAL_S`` (a flood of requests must not crowd out the
+        estimates). Answers to our own requests (``tc1`` != 0) are the tracker's."""
+        if int(msg.tc1) != 0:
             return
+        if (
+            not from_autopilot
+            or not self._claims_autopilot(msg)
+            or recv_s - self._timesync_answered_s < TIMESYNC_ANSWER_MIN_INTERVAL_S
+        ):
+            self._timesync_ignored += 1
+            return
+        self._timesync_answered_s = recv_s
+        self._timesync_answered += 1
         ts1 = int(msg.ts1)
         self._build_and_send(lambda mav: messages.timesync(mav, tc1_ns=int(recv_s * 1e9), ts1_ns=ts1))
 
-    def _follow_autopilot(self, conn: Any, msg: Any) -> None:
+    def _claims_autopilot(self, msg: Any) -> bool:
+        """``msg`` carries the configured autopilot's system id and component 1."""
+        return bool(
+            msg.get_srcSystem() == self._config.autopilot_system_id
+            and msg.get_srcComponent() == AUTOPILOT_COMPONENT_ID
+        )
+
+    @staticmethod
+    def _from_autopilot(conn: Any) -> bool:
+        """The last message came from the autopilot's address (a link with one peer: always)."""
+        if isinstance(conn, (AutopilotUdpIn, AutopilotTcpIn)):
+            return conn.source_is_autopilot()
+        return True
+
+    def _autopilot_message(self, conn: AutopilotUdpIn | AutopilotTcpIn, msg: Any, recv_s: float) -> bool:
+        """A message with the autopilot's ids on a listening link: handled when it is the autopilot's
+        (from its address; the first address; or a new one after the old fell silent, on its HEARTBEAT),
+        and True; an impostor's is counted and reported, and False (module docstring)."""
+        if conn.source_is_autopilot():
+            self._ap_heard_s = recv_s
+            self._tracker.handle(msg, recv_s)
+            return True
+        if not self._ap_address_followed:
+            # no address yet: the first valid message of the autopilot's gives it
+            if self._tracker.handle(msg, recv_s):
+                self._follow_autopilot(conn, msg, recv_s)
+            return True
+        silent_s = recv_s - self._ap_heard_s
+        if (
+            (not conn.autopilot_known or silent_s > self._config.link_timeout_s)
+            and msg.get_type() == "HEARTBEAT"
+            and (self._signing_key is None or msg.get_signed())
+            and self._tracker.handle(msg, recv_s)
+        ):
+            self._follow_autopilot(conn, msg, recv_s)
+            return True
+        self._impostor(conn, msg, recv_s)
+        return False
+
+    def _follow_autopilot(self, conn: AutopilotUdpIn | AutopilotTcpIn, msg: Any, recv_s: float) -> None:
         """Send to where ``msg``, a message the tracker used from the configured autopilot, came from (a
-        listening link; a signed one when signing is on): its HEARTBEAT, or any message while no address
-        is known; logged and recorded when that moves."""
-        if not isinstance(conn, (AutopilotUdpIn, AutopilotTcpIn)):
-            return
+        signed one when signing is on); logged and recorded when that moves."""
         if self._signing_key is not None and not msg.get_signed():
             return
         address = conn.follow_source()
+        self._ap_address_followed = True
+        self._ap_heard_s = recv_s
         if address is not None:
             _log.info(LogEvent.MAVLINK_AUTOPILOT_ADDRESS, url=self._config.url, address=address)
             self._record_event("autopilot_address", address=address)
+
+    def _impostor(self, conn: AutopilotUdpIn | AutopilotTcpIn, msg: Any, recv_s: float) -> None:
+        """Count a message from another address that claims the autopilot's ids; report them at most once
+        per ``IMPOSTOR_REPORT_INTERVAL_S`` (log, FDR, STATUSTEXT to the ground through the autopilot)."""
+        self._impostor_messages += 1
+        self._impostor_unreported += 1
+        if recv_s - self._impostor_reported_s < IMPOSTOR_REPORT_INTERVAL_S:
+            return
+        self._impostor_reported_s = recv_s
+        source = conn.source_label()
+        fields = {
+            "source": source,
+            "msg_type": msg.get_type(),
+            "messages": self._impostor_messages,
+            "since_last_report": self._impostor_unreported,
+            "autopilot_silent_s": round(min(recv_s - self._ap_heard_s, 1e6), 3),
+        }
+        self._impostor_unreported = 0
+        _log.warning(LogEvent.MAVLINK_IMPOSTOR, url=self._config.url, **fields)
+        self._record_event(LINK_EVENT_IMPOSTOR, **fields)
+        text = IMPOSTOR_STATUSTEXT.format(source=source, messages=self._impostor_messages)
+        self.send_statustext(DIALECT.MAV_SEVERITY_CRITICAL, text)
 
     def _schedule_reconnect(self, now: float, *, reason: str) -> None:
         delay = self._backoff_s * (1.0 + self._rng.uniform(-RECONNECT_JITTER_FRAC, RECONNECT_JITTER_FRAC))
@@ -824,6 +923,9 @@ class MavlinkLink:
                 statustext_coalesced=self._status_coalesced,
                 global_origin_sent=self._origin_sent,
                 vision_withheld=self._vision_withheld,
+                impostor_messages=self._impostor_messages,
+                timesync_answered=self._timesync_answered,
+                timesync_ignored=self._timesync_ignored,
             )
 
 

@@ -7,10 +7,10 @@ Here:
 - Input: every datagram and every connection is read; each datagram is parsed on its own, each TCP
   client with its own parser (signing state shared). ``source`` is where the message ``recv_msg``
   returned last came from.
-- Output: only to the autopilot's source. The link calls ``follow_source()`` after a message that was
-  the configured autopilot's valid HEARTBEAT (signed when signing is on), or any of its valid messages
-  while ``autopilot_known`` is False; nothing is written before one, and a newer HEARTBEAT from elsewhere
-  (a reboot, a new port, a new connection) moves the output.
+- Output: only to the autopilot's source. The link decides when ``follow_source()`` moves it (the
+  first valid message of the autopilot's; later only its HEARTBEAT from a new address once the old one
+  has been silent past ``mavlink.link_timeout_s``: ``MavlinkLink``); nothing is written before one.
+  ``source_is_autopilot()`` and ``source_label()`` tell the link where the last message came from.
 - Bounds: UDP keeps one address (``clients``); TCP keeps at most ``TCP_MAX_CLIENTS`` connections and
   closes one that has not sent the autopilot's HEARTBEAT within ``TCP_CLIENT_HELLO_TIMEOUT_S``.
 """
@@ -118,6 +118,14 @@ class AutopilotUdpIn(mavutil.mavudp):
         """True once the output follows an autopilot address."""
         return self.autopilot_addr is not None
 
+    def source_is_autopilot(self) -> bool:
+        """Whether the message ``recv_msg`` returned last came from the address the output follows."""
+        return self.source is not None and self.source == self.autopilot_addr
+
+    def source_label(self) -> str:
+        """Where the message ``recv_msg`` returned last came from, as ``HOST:PORT``."""
+        return "?" if self.source is None else f"{self.source[0]}:{self.source[1]}"
+
     def write(self, buf: bytes) -> None:
         addr = self.autopilot_addr
         if addr is None:
@@ -171,6 +179,14 @@ class AutopilotTcpIn(mavutil.mavtcpin):
     def autopilot_known(self) -> bool:
         """True while the output follows an autopilot connection."""
         return self._autopilot is not None
+
+    def source_is_autopilot(self) -> bool:
+        """Whether the message ``recv_msg`` returned last came from the connection the output follows."""
+        return self.source is not None and self.source is self._autopilot
+
+    def source_label(self) -> str:
+        """The peer of the connection the message ``recv_msg`` returned last came from, ``HOST:PORT``."""
+        return "?" if self.source is None else self.source.peer
 
     def recv(self, n: int | None = None) -> bytes:
         return b""  # every read goes through recv_msg (one parser per connection)

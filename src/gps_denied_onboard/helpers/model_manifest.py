@@ -23,14 +23,18 @@ import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
-from gps_denied_onboard.components.c7_inference.protocol import EngineSignature, TensorSpec
 from gps_denied_onboard.helpers import bounded_json
-from gps_denied_onboard.models.registry import ALL_WEIGHTS, sha256_file
+from gps_denied_onboard.helpers.inference_contract import EngineSignature, TensorSpec
+from gps_denied_onboard.helpers.weight_pins import ALL_WEIGHTS, sha256_file
 
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = 1
+#: ``params.precision`` of a model file; an entry without it is an fp32 export.
+PRECISION_FP32: Final[str] = "fp32"
+PRECISION_INT8: Final[str] = "int8"
+PRECISIONS: Final[tuple[str, ...]] = (PRECISION_FP32, PRECISION_INT8)
 
 
 class ModelDirError(RuntimeError):
@@ -61,6 +65,11 @@ class ModelEntry:
     signature: EngineSignature
     params: dict[str, Any] = field(default_factory=dict)
     created: str = ""  # ISO 8601 UTC
+
+
+def entry_precision(entry: ModelEntry) -> str:
+    """``params.precision`` of a manifest entry (``fp32`` when absent: every export before quantisation)."""
+    return str(entry.params.get("precision", PRECISION_FP32))
 
 
 def _signature_to_json(signature: EngineSignature) -> dict[str, Any]:
