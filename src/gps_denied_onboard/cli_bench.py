@@ -334,8 +334,85 @@ FLIGHTS_COMMAND: Final[BenchCommand] = BenchCommand(
     run=_run_flights,
 )
 
+# --- bench area ------------------------------------------------------------------------------------------
+def _add_area_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--maps",
+        default=None,
+        metavar="A.tif,B.tif",
+        help="GeoTIFFs of one area on several dates: every ordered pair (map, frames) is measured",
+    )
+    p.add_argument("--frames", type=int, default=12, help="rendered frames per pair (default 12)")
+    p.add_argument("--alt", type=float, default=1200.0, help="height above ground of the renders, m")
+    p.add_argument("--photos", type=Path, default=None, help="a directory of overlapping drone photos")
+    p.add_argument("--csv", type=Path, default=None, help="--photos: their positions and attitudes")
+    p.add_argument(
+        "--pairs",
+        default=None,
+        metavar="MAP:FRAME,...",
+        help="--photos: the photo orthorectified as the map and its neighbour matched as the frame",
+    )
+    p.add_argument("--ground-alt-amsl", type=float, default=None, help="--photos: ground height AMSL, m")
+    p.add_argument("--image-scale", type=float, default=0.25, help="--photos: downscale (default 0.25)")
+    p.add_argument("--seed", type=int, default=0, help="poses and prior offsets (default 0)")
+    p.add_argument("--workdir", type=Path, default=Path("out/bench_area"), help="caches and orthophotos")
+    p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write every figure to OUT")
+
+
+def _run_area(args: argparse.Namespace) -> int:
+    from gps_denied_onboard.bench.area import run_dates, run_photos
+    from gps_denied_onboard.logging_setup import configure_logging
+
+    configure_logging("warning", json=False)
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    if (args.maps is None) == (args.photos is None):
+        _err("give --maps (dates of one area) or --photos with --csv and --pairs")
+        return EXIT_CONFIG
+    if args.maps is not None:
+        tifs = [Path(t.strip()) for t in args.maps.split(",") if t.strip()]
+        missing = [str(t) for t in tifs if not t.is_file()]
+        if len(tifs) < 2 or missing:
+            _err(f"--maps needs two or more GeoTIFFs; not found: {', '.join(missing) or 'none'}")
+            return EXIT_CONFIG if len(tifs) < 2 else EXIT_RESOURCE
+        figures = run_dates(tifs, args.workdir, frames=args.frames, alt_agl_m=args.alt, seed=args.seed)
+    else:
+        if args.csv is None or args.pairs is None or args.ground_alt_amsl is None:
+            _err("--photos needs --csv, --pairs MAP:FRAME,... and --ground-alt-amsl")
+            return EXIT_CONFIG
+        pairs = [tuple(p.split(":", 1)) for p in args.pairs.split(",") if ":" in p]
+        figures = run_photos(
+            args.photos,
+            args.csv,
+            [(a, b) for a, b in pairs],
+            args.workdir,
+            ground_alt_amsl_m=args.ground_alt_amsl,
+            image_scale=args.image_scale,
+        )
+    rows = figures["pairs"]
+    wrong = sum(r["wrong_accepted"] for r in rows)
+    print(
+        f"right fixes accepted {sum(r['right_accepted'] for r in rows)} of {sum(r['frames'] for r in rows)}; "
+        f"wrong places accepted {wrong} of {sum(r['wrong_searched'] for r in rows)}"
+    )
+    if args.json is not None:
+        write_json(args.json, figures)
+        print(f"figures written to {args.json}")
+    return EXIT_FAILURE if wrong else EXIT_OK
+
+
+AREA_COMMAND: Final[BenchCommand] = BenchCommand(
+    name="area",
+    help="the area correlation on real imagery: date pairs of one map, or overlapping drone photos",
+    description="Build a cache with its orientation fields from each map (a date of a time series, or a "
+    "drone photo orthorectified with its own pose), search frames from the other dates (or the neighbouring "
+    "photo) with the truth in the disc and outside it, and print right fixes found and accepted, their "
+    "error, and wrong places accepted (exit 1 on any).",
+    add_arguments=_add_area_arguments,
+    run=_run_area,
+)
+
 #: Subcommands of ``gdnav bench``; append a ``BenchCommand`` to add one.
-BENCH_COMMANDS: tuple[BenchCommand, ...] = (MATCHER_COMMAND, VPR_COMMAND, FLIGHTS_COMMAND)
+BENCH_COMMANDS: tuple[BenchCommand, ...] = (MATCHER_COMMAND, VPR_COMMAND, FLIGHTS_COMMAND, AREA_COMMAND)
 
 
 def register(
