@@ -399,3 +399,31 @@ def test_preflight_misspelt_rerank_strategy_fails_the_config_row(tmp_path: Path,
     """A rerank.strategy `run` refuses fails preflight's config row too (exit 3, as `run`)."""
     row = _failure(_preflight(tmp_path, small_cache, "rerank.strategy=inlier"), 3, "config")
     assert "rerank.strategy" in row and "'inlier'" in row
+
+
+def test_preflight_checks_the_area_correlations_fields_where_auto_would_fly_them(
+    tmp_path: Path, small_cache: Path
+) -> None:
+    """auto on a CPU with the cache's calibrated orientation fields flies the area rung: preflight opens and
+    verifies them as the start does and says what the calibration found; fields damaged on disk fail the
+    check naming the file; a cache without fields skips it."""
+    import shutil
+
+    from gps_denied_onboard.components.c10_cache_build.map_fields import build_map_fields, field_file_names
+
+    auto = ("matcher.strategy=auto", "matcher.model_dir=null")
+    rows = _rows(_preflight(tmp_path, small_cache, *auto).stdout)
+    assert rows["map_fields"][0] == "SKIP" and "not used" in rows["map_fields"][1], rows
+    cache = tmp_path / "with_fields"
+    shutil.copytree(small_cache, cache)
+    build_map_fields(cache, progress=False)
+    proc = _preflight(tmp_path, cache, *auto)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    row = _rows(proc.stdout)["map_fields"]
+    assert row[0] == "PASS" and "hashes verified" in row[1] and "level 1" in row[1], row
+    damaged = cache / field_file_names(2)[0]
+    data = bytearray(damaged.read_bytes())
+    data[-10] ^= 0xFF
+    damaged.write_bytes(bytes(data))
+    text = _failure(_preflight(tmp_path, cache, *auto), 3, "map_fields")
+    assert "field_l2.npy" in text and "sha256" in text, text

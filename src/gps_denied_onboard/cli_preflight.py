@@ -50,6 +50,7 @@ CHECKS: Final[tuple[str, ...]] = (
     "models",
     "vpr",
     "tile_features",
+    "map_fields",
     "calibration",
     "signing_key",
     "fdr",
@@ -231,6 +232,28 @@ def _check_tile_features(config: Config, opened: dict[str, Any]) -> str:
         )
     verified = "hashes verified" if config.cache.verify_hashes else "hashes NOT verified"
     return f"{strategy}: {len(feats)} tiles of precomputed features, {verified}, opened in {dt:.2f} s"
+
+
+def _check_map_fields(config: Config, opened: dict[str, Any]) -> str:
+    from gps_denied_onboard.runtime_root.compose import open_map_fields, with_area_rung
+
+    tiles = _opened_tiles(opened)
+    if "matcher_config" not in opened:
+        raise _Skipped("not checked (the matcher's model directory did not verify)")
+    resolved = with_area_rung(config, opened["matcher_config"], tiles)
+    t0 = time.monotonic()
+    fields = open_map_fields(resolved, tiles, _DiscardFdr())
+    dt = time.monotonic() - t0
+    if fields is None:
+        info = tiles.manifest.map_fields
+        has = "the cache has calibrated fields" if info is not None and info.calibrations else "none needed"
+        raise _Skipped(f"not used (no rung runs orientation_corr; {has})")
+    verified = "hashes verified" if config.cache.verify_hashes else "hashes NOT verified"
+    levels = ", ".join(
+        f"level {c.level}: wrong places PSR <= {c.null_psr_max:.1f}, right p5 {c.right_psr_p5:.1f}"
+        for c in fields.info.calibrations.values()
+    )
+    return f"orientation fields {fields.info.version}, {verified}, opened in {dt:.2f} s; {levels}"
 
 
 def _check_calibration(config: Config) -> str:
@@ -482,6 +505,11 @@ def run_checks(config: Config, checked_config: str, *, offline: bool, timeout_s:
             "tile_features",
             f"matcher.tile_features {config.matcher.tile_features}",
             lambda: _check_tile_features(config, opened),
+        ),
+        _run_check(
+            "map_fields",
+            f"matcher.strategy {config.matcher.strategy}",
+            lambda: _check_map_fields(config, opened),
         ),
         _run_check(
             "calibration",
