@@ -109,6 +109,8 @@ def _assess(area: AreaAlignment, cfg: IntegrityConfig = IntegrityConfig()) -> ob
         ({"peak": 0.05}, IntegrityReason.LOW_PEAK),  # below the floor (0.06)
         ({"peak": 0.12, "null_peak": 0.07}, IntegrityReason.LOW_PEAK),  # below 2 x this map's wrong places
         ({"secondary_ratio": 0.85}, IntegrityReason.AMBIGUOUS_PEAK),
+        # close enough to the map for its patches to be tried, but they do not fall into place (a tilt fault)
+        ({"patches_tried": 43, "patches_agreeing": 23}, IntegrityReason.PATCHES_DISAGREE),
     ],
 )
 def test_weak_or_ambiguous_correlation_evidence_refuses_the_fix(changes: dict, reason: str) -> None:

@@ -113,6 +113,7 @@ def _pipeline(
     vo: object | None = None,
     mount: CameraMount | None = None,
     max_delay_s: float = 5.0,
+    clock_unix_usec: object = None,
 ) -> NavigationPipeline:
     calib = CameraCalibration.from_hfov(640, 480, 70.0)
     return NavigationPipeline(
@@ -129,7 +130,7 @@ def _pipeline(
             NavEstimator(EstimatorConfig(), LTP),
             max_delay_s=max_delay_s,
             max_frame_age_s=1.0,
-            clock_unix_usec=lambda: T0,
+            clock_unix_usec=clock_unix_usec or (lambda: T0),  # type: ignore[arg-type]
         ),
         fdr=fdr,
         integrity=FixIntegrity(IntegrityConfig()),
@@ -752,3 +753,89 @@ def test_the_sweep_tries_the_same_ranks_once_more_after_a_solved_pose_that_was_r
     assert _ranks(fdr) == [0, 0, 3, 6, 0, 0]
     reasons = [f["no_fix_reason"] for kind, f in fdr.records if kind == "pipeline.fix"]
     assert reasons[:3] == ["integrity:ambiguous_candidates"] * 2 + ["insufficient_inliers"]
+
+
+@dataclass
+class _AreaMatcher:
+    """An area matcher stand-in: the nadir it reports is the truth plus ``offset_north_m``, with strong
+    correlation evidence and no correspondences (an alignment-only fix)."""
+
+    lat_deg: float
+    lon_deg: float
+    offset_north_m: float = 0.0
+
+    def match(self, frame, rerank_result, calibration):  # type: ignore[no-untyped-def]
+        from gps_denied_onboard.components.c3_matcher.types import AreaAlignment
+
+        area = AreaAlignment(
+            nadir_lat_deg=self.lat_deg + self.offset_north_m / 111_320.0,
+            nadir_lon_deg=self.lon_deg,
+            heading_offset_rad=0.0,
+            heading_step_rad=math.radians(1.0),
+            height_scale=1.0,
+            height_scale_step=0.02,
+            map_gsd_m_px=0.5,
+            peak=0.3,
+            psr=30.0,
+            secondary_ratio=0.2,
+            coverage=1.0,
+            texture=0.2,
+            radius_m=30.0,
+            hypotheses_tried=5,
+            null_psr=5.0,
+            null_peak=0.04,
+        )
+        tile = TileId.of(18, 47.0, 8.0)
+        cand = CandidateMatchSet(tile, 0, np.empty((0, 4), np.float32), 0, math.nan, area=area)
+        return MatchResult(frame.frame_id, [cand], 0, math.nan, 0, "orientation_corr", 1, 0)
+
+
+class _OneTile:
+    def rerank(self, frame, vpr_result):  # type: ignore[no-untyped-def]
+        from gps_denied_onboard.components.c2_5_rerank.types import RerankCandidate
+
+        return RerankResult(frame.frame_id, [RerankCandidate(TileId.of(18, 47.0, 8.0), None, -1, 0.0)], 0)  # type: ignore[arg-type]
+
+
+@dataclass
+class _AnyTile(_Vpr):
+    def retrieve_topk(self, query, k, *, region=None):  # type: ignore[no-untyped-def]
+        return VprResult(query.frame_id, [VprCandidate(TileId.of(18, 47.0, 8.0), 0.0, 0)], 0, "fake")
+
+
+def test_alignment_only_fixes_that_keep_disagreeing_with_the_prior_state_the_disagreement() -> None:
+    """A tilt fault puts every alignment-only fix the same distance off, and nothing in the frame can tell:
+    after three that disagree with the VO-propagated prior, the next state that offset as shared error
+    (honest whichever was wrong), and keep stating it after the estimate has moved towards them."""
+    from gps_denied_onboard.components.c4_pose.area_pose import AreaPoseSolver
+
+    fdr = _Fdr()
+    matcher = _AreaMatcher(47.0, 8.0)
+    now = [T0]
+    p = replace_matcher(_pipeline(_AnyTile(0), fdr, vo=_HoverVo(), clock_unix_usec=lambda: now[0]), matcher)
+    prior = InitialPrior(47.0, 8.0, 2.0, "config", "test")
+    for i in range(20):
+        if i == 6:
+            matcher.offset_north_m = 30.0  # the fault: 30 m north, whatever the prior says
+        now[0] = T0 + i * 333_333 + 50_000
+        p.process(_frame(i, T0 + i * 333_333), prior)
+    fixes = [f for k, f in fdr.records if k == "pipeline.fix"]
+    doubted = [f for f in fixes[6:] if f["area_doubt_m"] is not None]
+    assert doubted and all(f["area_doubt_m"] == pytest.approx(30.0, abs=1.0) for f in doubted), fixes
+    assert all(f["area_doubt_m"] is None for f in fixes[:9])  # three to disagree first
+    for f in fixes:
+        if f["fix_accepted"]:
+            err = haversine_m(f["fix_lat_deg"], f["fix_lon_deg"], 47.0, 8.0)
+            assert err <= 3.0 * f["fix_sigma_m"], f
+    assert any(f["fix_accepted"] for f in doubted), "stated honestly, the doubted fixes are fused"
+    assert isinstance(p._area_pose, AreaPoseSolver)
+
+
+def replace_matcher(p: NavigationPipeline, matcher: object) -> NavigationPipeline:
+    """``p`` with ``matcher`` as its one rung, the one-tile rerank and the real area pose solver."""
+    from gps_denied_onboard.components.c4_pose.area_pose import AreaPoseSolver
+
+    p._ladder = EffortLadder.single("orientation_corr", matcher, MAX_CANDIDATES)  # type: ignore[arg-type]
+    p._rerank = _OneTile()  # type: ignore[assignment]
+    p._area_pose = AreaPoseSolver(PoseConfig(), LTP, 400.0)
+    return p

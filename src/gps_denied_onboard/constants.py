@@ -254,6 +254,9 @@ class IntegrityReason:
     LOW_PSR: Final = "low_psr"
     LOW_PEAK: Final = "low_peak"
     AMBIGUOUS_PEAK: Final = "ambiguous_peak"
+    #: The frame matches the map closely as a whole, but most of its patches do not fall into place: the
+    #: geometry it was rectified with (the autopilot's tilt) is off.
+    PATCHES_DISAGREE: Final = "patches_disagree"
 
 
 class FdrKind:

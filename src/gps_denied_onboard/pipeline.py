@@ -80,6 +80,9 @@ log = structlog.get_logger(__name__)
 FIX_TOO_LATE_REASON: Final = f"gated:{Refusal.TOO_LATE.value}"
 #: A bare matcher's one rung gets every candidate C2.5 hands on (``rerank.top_n`` is at most this).
 MAX_CANDIDATES: Final = 10
+#: Alignment-only fixes in a row that disagree with the VO-propagated prior before the next ones state
+#: that disagreement (``NavigationPipeline._with_area_doubt``).
+AREA_DISAGREEMENT_RUN: Final = 3
 
 
 @dataclass(frozen=True)
@@ -150,6 +153,8 @@ class FixAttempt:
     vpr_first_rank: int | None = None
     #: The effort-ladder rung the attempt was made on (None: it never got to a matcher).
     rung: str | None = None
+    #: An alignment-only fix's stated disagreement with the prior (``_with_area_doubt``), m; else None.
+    area_doubt_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -230,6 +235,13 @@ class NavigationPipeline:
             self._ladder = EffortLadder.single(type(matcher).__name__, matcher, MAX_CANDIDATES)
         self._pose = pose_solver
         self._area_pose = area_pose_solver
+        #: The innovations (fix minus prior, north and east, m) of the latest alignment-only fixes, while
+        #: each disagreed with the VO-propagated prior (``_with_area_doubt``).
+        self._area_disagreements: deque[np.ndarray] = deque(maxlen=AREA_DISAGREEMENT_RUN)
+        #: What alignment-only fixes state they may carry from the autopilot's tilt beyond their own
+        #: sigma, m (``_with_area_doubt``; None: nothing).
+        self._area_doubt_m: float | None = None
+        self._prior_gate_chi2 = integrity.config.prior_gate_chi2
         self._heading_height = heading_height_check
         self._axis = time_axis
         self._fdr = fdr
@@ -492,6 +504,10 @@ class NavigationPipeline:
                 self._axis.note_no_fix(t)
             else:
                 self._sweep_rank, self._sweep_held = 0, False
+                if fix is not None and fix.image_tilt_off_cam_rad is not None:
+                    # a fix that measured its own tilt, and the tilt checks let through: the tilt is right
+                    self._area_doubt_m = None
+                    self._area_disagreements.clear()
             heading_height = None
             evidence = verdict.evidence if verdict is not None else None
             if accepted and self._heading_height is not None and isinstance(evidence, AreaEvidence):
@@ -529,6 +545,7 @@ class NavigationPipeline:
                 "no_fix_reason": reason,
                 "vpr_first_rank": attempt.vpr_first_rank,
                 "rung": attempt.rung,
+                "area_doubt_m": None if attempt.area_doubt_m is None else round(attempt.area_doubt_m, 2),
                 "fused_behind_s": round(behind_s, 4),
                 "fix_lat_deg": fix.lat_deg if fix else None,
                 "fix_lon_deg": fix.lon_deg if fix else None,
@@ -603,9 +620,7 @@ class NavigationPipeline:
         if trusted != self._imu_trusted and self._axis.set_imu_trusted(trusted, t):
             self._imu_trusted = trusted
 
-    def _absolute_fix(
-        self, frame: NavCameraFrame, timings: dict[str, float]
-    ) -> FixAttempt:
+    def _absolute_fix(self, frame: NavCameraFrame, timings: dict[str, float]) -> FixAttempt:
         if self._vpr is None or self._rerank is None or self._ladder is None:
             return FixAttempt(None, 0, None, "no_map")  # a replay without a map cache: VO only, never a fix
         if frame.attitude is None or frame.alt_agl_m is None:
@@ -735,9 +750,61 @@ class NavigationPipeline:
             return FixAttempt(None, 0, None, f"pose_rejected:{exc.reason}")
         t4 = self._clock_ns()
         timings["pose"] = (t4 - t3) / 1e6
-        verdict = self._judge(frame, match, rerank_result, fix, prior_state)
+        stated, doubt_m = self._with_area_doubt(fix)
+        verdict = self._judge(frame, match, rerank_result, stated, prior_state)
+        self._note_area_agreement(fix, prior_state)
         timings["integrity"] = (self._clock_ns() - t4) / 1e6
-        return self._judged(frame, match, best, verdict, None)
+        return replace(self._judged(frame, match, best, verdict, None), area_doubt_m=doubt_m)
+
+    def _with_area_doubt(self, fix: PoseFix) -> tuple[PoseFix, float | None]:
+        """``fix`` (alignment-only) stating the area doubt when there is one (``_note_area_agreement``), as
+        error it shares with its neighbours; and the doubt, m (None: none).
+
+        Such a fix leans wholly on the autopilot's tilt, which the image cannot check: after a tilt fault
+        (3 deg of roll is 63 m at 1200 m AGL) every fix lands the same distance off, and VO's ground tilt,
+        noisy from high up, may take seconds to prove it. A run of ``AREA_DISAGREEMENT_RUN`` fixes that
+        disagree with the VO-propagated prior is that fault's trace, or a wrong prior's: from then on the
+        fixes state the run's offset. It is not dropped when a later fix agrees with the estimate, which
+        the doubted fixes themselves have moved: only what can check the tilt ends it (a fix that measured
+        its own tilt, or VO's ground tilt ruling out a tilt that large at this height)."""
+        doubt = self._area_doubt_m
+        if doubt is None:
+            return fix, None
+        agl_m = self._agl_m(fix)
+        verdict = self._ground_tilt_verdict
+        if (
+            verdict is not None
+            and verdict.refused is None
+            and agl_m * math.tan(math.radians(min(verdict.bias_upper_deg, 45.0))) < doubt
+        ):
+            self._area_doubt_m = None  # VO's ground tilt now rules out a tilt that would make the doubt
+            self._area_disagreements.clear()
+            return fix, None
+        return with_regional_error(fix, doubt), doubt
+
+    def _note_area_agreement(self, fix: PoseFix, prior: EstimatorState) -> None:
+        """Whether this alignment-only fix, as solved, disagrees with the VO-propagated prior (NIS beyond
+        ``integrity.prior_gate_chi2``): a disagreement joins the run, and a run of
+        ``AREA_DISAGREEMENT_RUN`` sets the area doubt (``_with_area_doubt``) to its median offset, or raises
+        it; an agreement ends the run (not the doubt)."""
+        innov = (
+            np.asarray(fix.pos_ned_m, dtype=np.float64)[:2]
+            - np.asarray(prior.pos_ned_m, dtype=np.float64)[:2]
+        )
+        s_mat = prior.map_frame_cov_ne_m2 + np.asarray(fix.cov_ned_m2, dtype=np.float64)[:2, :2]
+        try:
+            nis = float(innov @ np.linalg.solve(s_mat, innov))
+        except np.linalg.LinAlgError:
+            return
+        if not math.isfinite(nis):
+            return
+        if nis <= self._prior_gate_chi2:
+            self._area_disagreements.clear()
+            return
+        self._area_disagreements.append(innov)
+        if len(self._area_disagreements) == AREA_DISAGREEMENT_RUN:
+            offset_m = float(np.hypot(*np.median(np.asarray(self._area_disagreements), axis=0)))
+            self._area_doubt_m = max(offset_m, self._area_doubt_m or 0.0)
 
     def _judged(
         self,

@@ -44,6 +44,7 @@ frame; no disc with the footprint on the map raises ``InsufficientInliersError``
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import uuid
@@ -385,8 +386,11 @@ class OrientationCorrMatcher:
             per_candidate_residual_px=math.nan,
             area=area,
         )
+        if found.patches_tried < PATCH_MIN_INLIERS:
+            return none  # too few patches to judge the frame's parts by
         if found.patches.shape[0] < PATCH_MIN_INLIERS:
-            return none
+            tried_only = dataclasses.replace(area, patches_tried=found.patches_tried)
+            return dataclasses.replace(none, area=tried_only)
         handle = disc.candidate.tile_pixels_handle
         lon_p, lat_p = self._store.mosaic_px_to_lonlat((found.patches[:, 2:4] + 0.5) * 2 ** (level - 1) - 0.5)
         corr = np.hstack(
@@ -394,8 +398,9 @@ class OrientationCorrMatcher:
         ).astype(np.float32)
         result = self._ransac.filter(corr, threshold_px=self._config.ransac_threshold_px)
         n = result.inlier_count
+        area = dataclasses.replace(area, patches_tried=found.patches_tried, patches_agreeing=n)
         if n < PATCH_MIN_INLIERS or n < PATCH_MIN_AGREEMENT * found.patches_tried:
-            return none
+            return dataclasses.replace(none, area=area)
         return CandidateMatchSet(
             tile_id=tile_id,
             inlier_count=n,

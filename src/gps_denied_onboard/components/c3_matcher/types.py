@@ -44,6 +44,10 @@ class AreaAlignment:
     hypotheses_tried: int
     null_psr: float
     null_peak: float
+    #: The footprint's patches tried (0: the peak was too weak to try them) and how many of them agree
+    #: (the shared RANSAC's inliers among those placed).
+    patches_tried: int = 0
+    patches_agreeing: int = 0
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,9 @@ The rule (:meth:`FixIntegrity.assess`; the first failing test refuses; threshold
 1. ``too_few_inliers``, ``low_inlier_ratio``, ``narrow_spread``, ``low_match_confidence`` for a fix from
    point correspondences; for an area alignment (:class:`AreaEvidence`, C3 ``orientation_corr``)
    ``low_psr`` and ``low_peak`` (below the config's floor, or below a margin over what a wrong place
-   scores on this map: the cache's calibration) and ``ambiguous_peak`` (a second place in the disc
-   scores ``max_secondary_ratio`` of the peak or more);
+   scores on this map: the cache's calibration), ``ambiguous_peak`` (a second place in the disc
+   scores ``max_secondary_ratio`` of the peak or more) and ``patches_disagree`` (a frame close enough to
+   the map for its patches to be tried, fewer than ``min_patch_agreement`` of which fall into place);
 2. ``ambiguous_candidates``: another candidate with at least ``ambiguity_inlier_share`` of the best's
    inliers gives a pose more than ``ambiguity_sigma`` combined (solver) sigmas away;
 3. ``prior_disagreement``: a fix whose sigma the evidence scales by ``weak_evidence_scale`` or more must
@@ -104,6 +105,9 @@ class AreaEvidence:
     radius_m: float
     heading_offset_deg: float
     height_scale: float
+    #: The footprint's patches tried, and how many agree (0 and 0: not tried, the peak was too weak).
+    patches_tried: int = 0
+    patches_agreeing: int = 0
 
     @classmethod
     def of_alignment(cls, area: AreaAlignment) -> AreaEvidence:
@@ -118,6 +122,8 @@ class AreaEvidence:
             radius_m=area.radius_m,
             heading_offset_deg=math.degrees(area.heading_offset_rad),
             height_scale=area.height_scale,
+            patches_tried=area.patches_tried,
+            patches_agreeing=area.patches_agreeing,
         )
 
     def fdr_fields(self) -> dict[str, Any]:
@@ -132,6 +138,8 @@ class AreaEvidence:
             "radius_m": round(self.radius_m, 1),
             "heading_offset_deg": round(self.heading_offset_deg, 3),
             "height_scale": round(self.height_scale, 4),
+            "patches_tried": self.patches_tried,
+            "patches_agreeing": self.patches_agreeing,
         }
 
 
@@ -257,6 +265,8 @@ class FixIntegrity:
             return IntegrityReason.LOW_PEAK
         if not ev.secondary_ratio < cfg.max_secondary_ratio:
             return IntegrityReason.AMBIGUOUS_PEAK
+        if ev.patches_tried and ev.patches_agreeing < cfg.min_patch_agreement * ev.patches_tried:
+            return IntegrityReason.PATCHES_DISAGREE
         return None
 
     def sigma_scale(self, ev: MatchEvidence | AreaEvidence) -> float:
