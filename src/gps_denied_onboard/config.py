@@ -589,12 +589,14 @@ class DaemonConfig:
     #: product (mutual NN, RANSAC) runs on the thread that asked for it instead of spreading over both
     #: cores beside the event loop; measured: the xfeat_mnn fix path 0.75x, its matrix product 0.53x.
     blas_threads: PosInt = 1
-    #: The fix thread's nice value above the daemon's (Linux: per thread): when the two cores are short,
-    #: VO and the 10 Hz output (the event loop) run first and the fix path waits. 0 = the same priority.
-    fix_thread_nice: Annotated[int, Strict(), Field(ge=0, le=19)] = 5
-    #: The daemon's own nice value: ahead of a companion's ordinary work (nice 0), so that its fix thread
-    #: (``fix_thread_nice`` above it) shares the CPU with that work as an equal instead of giving way to
-    #: it. The systemd unit sets it (``Nice=-5``); `gdnav run` started otherwise lowers its nice value to
+    #: The fix thread's nice value above the daemon's (Linux: per thread); 0 = the same priority. With two
+    #: busy loops at nice 0 on the 2 cores (AMD EPYC, the daemon at nice -5) 5 made the fix path give way
+    #: to them without helping the output: the area correlation's exposure-to-judged-fix p95 420 ms
+    #: against 176 ms at 0, and XFeat flat out 0.55 attempts/s and GPS_INPUT interval p99 119 ms, max
+    #: 149 ms, against 1.27/s and 103 / 108 ms at 0 (docs/benchmarks.md, "Priorities under load").
+    fix_thread_nice: Annotated[int, Strict(), Field(ge=0, le=19)] = 0
+    #: The daemon's own nice value: ahead of a companion's ordinary work (nice 0), so that its output, VO
+    #: and fix path keep their pace when the computer is busy. The systemd unit sets it (``Nice=-5``); `gdnav run` started otherwise lowers its nice value to
     #: this at start where the process may (root, or CAP_SYS_NICE) and logs what it got (never raises it:
     #: an operator who started it nicer meant it). null = leave it as started.
     process_nice: Annotated[int, Strict(), Field(ge=-20, le=19)] | None = -5
