@@ -207,6 +207,15 @@ class InitConfig:
     #: EKF_STATUS_REPORT, MAV_CMD_REQUEST_MESSAGE) and wait at most this long for it before starting
     #: without it; 0 = do not ask, s.
     autopilot_wait_s: Annotated[float, Strict(), Field(ge=0, le=2)] = 1.0
+    #: A wrong prior is found out (c5_estimator/prior_doubt.py): after this many failed fix attempts in a
+    #: row on frames that should match (texture, the footprint on textured map) while no map fix has
+    #: confirmed the start prior, its sigma grows, and again with each further one; 0 = never.
+    doubt_after_failures: Annotated[int, Strict(), Field(ge=0)] = 2
+    #: Each counted failure from then on multiplies the sigma the failed attempt searched with by this.
+    doubt_growth: Annotated[float, Strict(), Field(gt=1, le=10)] = 2.0
+    #: Least edge share (helpers/texture.py) of the frame, and of the map where the prior puts it, for a
+    #: failed attempt to count against the prior: fog, snow, water or a covered lens measure < 0.01.
+    doubt_min_texture: Annotated[float, Strict(), Field(gt=0, lt=1)] = 0.05
 
 
 @dataclasses.dataclass(frozen=True)
