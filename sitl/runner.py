@@ -64,6 +64,7 @@ from gps_denied_onboard.sitl.scenario import (
     SpoofedSource,
     Trajectory,
     load_scenario,
+    spoofed_start_from_yaml,
 )
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -122,6 +123,8 @@ class SitlOptions:
     #: Where the map caches (one per map, named by its hash) are kept; default: the workdir. Flights over
     #: the same map may share one (``gdnav bench flights``), one flight at a time.
     cache_root: Path | None = None
+    #: The scenario's ``spoofed_start`` replaced by this YAML mapping (``--spoofed-start``); None: as it is.
+    spoofed_start: str | None = None
 
 
 def _send_from_a_fresh_port(packet: bytes, port: int) -> int:
@@ -701,6 +704,10 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
             generate_demo_map(map_path)
     try:
         scenario = load_scenario(opts.scenario)
+        if opts.spoofed_start is not None:
+            scenario = dataclasses.replace(
+                scenario, spoofed_start=spoofed_start_from_yaml(opts.spoofed_start, "--spoofed-start")
+            )
         map_renderer = MapRenderer(map_path)
         renderer = MapRenderer(opts.appearance_path) if opts.appearance_path else map_renderer
     except (ScenarioError, RenderError) as exc:
@@ -908,6 +915,7 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         workdir=args.workdir,
         duration_s=args.duration,
         quiet=args.quiet,
+        spoofed_start=getattr(args, "spoofed_start", None),
     )
     report = run_sitl(opts)
     for line in summary_lines(report):

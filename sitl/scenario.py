@@ -1055,6 +1055,17 @@ def _read_spoofed_start(value: object, source: str | None) -> SpoofedStart | Non
     return SpoofedStart(offset, sigma, frozenset(sources))
 
 
+def spoofed_start_from_yaml(text: str, source: str) -> SpoofedStart | None:
+    """A ``spoofed_start`` mapping given as YAML text (``gdnav sitl run --spoofed-start``); ``null`` is
+    none. Raises ``ScenarioError`` naming ``source`` and the key."""
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        message = f"not valid YAML: {exc}".replace("\n", " ")
+        raise ScenarioError("spoofed_start", message, source=source) from exc
+    return _read_spoofed_start(value, source)
+
+
 def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None) -> Scenario:
     """Build a ``Scenario`` from parsed YAML, strictly (see the module docstring)."""
     root = _Block(data, "", source)

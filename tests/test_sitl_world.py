@@ -28,6 +28,7 @@ from gps_denied_onboard.sitl.scenario import (
     SpoofedSource,
     load_scenario,
     scenario_from_mapping,
+    spoofed_start_from_yaml,
 )
 
 
@@ -124,6 +125,11 @@ def test_scenario_spoofed_start_drags_the_start_points_it_names() -> None:
     assert "spoofed_start.sigma" in str(err)
     for name in ("spoofed_start", "spoofed_home"):
         assert load_scenario(name).spoofed_start is not None
+    given = spoofed_start_from_yaml("{offset_m: [3000, 0], sigma_m: 50}", "--spoofed-start")
+    assert given is not None and (given.offset_ne_m, given.sigma_m) == ((3000.0, 0.0), 50.0)
+    assert spoofed_start_from_yaml("null", "--spoofed-start") is None
+    with pytest.raises(ScenarioError, match="--spoofed-start: spoofed_start: not valid YAML"):
+        spoofed_start_from_yaml("{offset_m: [", "--spoofed-start")
 
 
 def test_scenario_host_faults_parse_and_never_reach_the_camera() -> None:
