@@ -31,7 +31,13 @@ from gps_denied_onboard.components.c5_estimator.prior_doubt import PriorDoubt, i
 from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.components.c8_mavlink.messages import FIX_TYPE_NO_FIX, gps_input_fix_type
 from gps_denied_onboard.config import EstimatorConfig, InitConfig, IntegrityConfig, PoseConfig, VprConfig
-from gps_denied_onboard.constants import FdrKind
+from gps_denied_onboard.constants import (
+    STATUSTEXT_PRIOR_DISPUTED,
+    STATUSTEXT_PRIOR_DOUBTED,
+    STATUSTEXT_PRIOR_REANCHORED,
+    STATUSTEXT_PRIOR_UNCONFIRMED,
+    FdrKind,
+)
 from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
 from gps_denied_onboard.helpers.texture import edge_share
 from gps_denied_onboard.pipeline import InitialPrior, NavigationPipeline
@@ -158,6 +164,17 @@ def test_a_frame_that_could_not_have_matched_does_not_count(kw: dict[str, object
     skipped = _fail(d, 30.0, **kw)
     assert (skipped.counted, skipped.why, skipped.failures, skipped.raise_to_sigma_m) == (False, why, 1, None)
     assert _fail(d, 30.0).raise_to_sigma_m == 60.0
+
+
+def test_what_the_operator_reads_fits_a_statustext() -> None:
+    """STATUSTEXT carries 50 characters: the texts about the prior fit with their longest values."""
+    texts = [
+        STATUSTEXT_PRIOR_DISPUTED.format(99_999.0),
+        STATUSTEXT_PRIOR_UNCONFIRMED.format("home_position"),
+        STATUSTEXT_PRIOR_DOUBTED.format(999, 99_999.0),
+        STATUSTEXT_PRIOR_REANCHORED.format(99_999.0),
+    ]
+    assert all(len(t) <= 50 for t in texts), [(t, len(t)) for t in texts]
 
 
 def test_doubt_after_failures_zero_never_doubts() -> None:

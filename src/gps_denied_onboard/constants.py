@@ -45,8 +45,8 @@ NV_INTEGRITY_REFUSED: Final[str] = "GDN_IREF"
 # STATUSTEXT the operator reads about the start prior (``c5_estimator/prior.py``, ``prior_doubt.py``);
 #: 50 characters at most (MAVLink field size), ``{}`` fields filled by the daemon.
 STATUSTEXT_PRIOR_DISPUTED: Final[str] = "GDN: start points {:.0f} m apart, searching wide"
-STATUSTEXT_PRIOR_UNCONFIRMED: Final[str] = "GDN: start at {}, no 3D fix until map confirms"
-STATUSTEXT_PRIOR_DOUBTED: Final[str] = "GDN: prior doubted, {} fixes failed, search {:.0f} m"
+STATUSTEXT_PRIOR_UNCONFIRMED: Final[str] = "GDN: {} is a claim: no 3D until map fix"
+STATUSTEXT_PRIOR_DOUBTED: Final[str] = "GDN: prior doubted, {} fails, search {:.0f} m"
 STATUSTEXT_PRIOR_REANCHORED: Final[str] = "GDN: re-anchored {:.0f} m from the prior"
 
 # --- SITL transport ---------------------------------------------------------------------------------
