@@ -68,7 +68,7 @@ from gps_denied_onboard.components.c5_estimator.time_axis import Refusal, TimeAx
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import VprConfig
-from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
+from gps_denied_onboard.constants import FdrKind, IntegrityReason, LogEvent, Provenance
 from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
 from gps_denied_onboard.helpers.frame_rectifier import principal_ground_offset_m
 from gps_denied_onboard.helpers.texture import edge_share
@@ -80,6 +80,11 @@ log = structlog.get_logger(__name__)
 FIX_TOO_LATE_REASON: Final = f"gated:{Refusal.TOO_LATE.value}"
 #: A bare matcher's one rung gets every candidate C2.5 hands on (``rerank.top_n`` is at most this).
 MAX_CANDIDATES: Final = 10
+#: Integrity refusals of an area alignment whose peak does not stand out (``c4_pose/integrity.py``): the
+#: map did not answer in the disc, so the sweep does not hold its ranks for them (``_absolute_fix``).
+_NO_PEAK_REASONS: Final = frozenset(
+    {f"integrity:{IntegrityReason.LOW_PSR}", f"integrity:{IntegrityReason.LOW_PEAK}"}
+)
 
 
 @dataclass(frozen=True)
@@ -729,8 +734,11 @@ class NavigationPipeline:
             return attempt
         # The next sweeping attempt goes on past the tiles this one matched (back to the top after a
         # fix), unless it solved a pose there: then once more on the same ranks, so that a fix the
-        # integrity rule or the consistency monitor held back can be confirmed by the next frame's.
-        hold = attempt.fix is not None and not self._sweep_held
+        # integrity rule or the consistency monitor held back can be confirmed by the next frame's. An
+        # area alignment is solved on every attempt: one whose peak does not stand out of its disc is
+        # the map not answering there, not a fix to confirm (holding on it halved the sweep's pace).
+        no_answer = attempt.no_fix_reason in _NO_PEAK_REASONS
+        hold = attempt.fix is not None and not no_answer and not self._sweep_held
         self._sweep_held = hold
         if not hold:
             swept = len(rerank_result.candidates) - (1 if pinned else 0)
