@@ -47,7 +47,16 @@ from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxisStats
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c8_mavlink.messages import Fix3dGate, stated_speed_sigma_m_s
 from gps_denied_onboard.components.c13_fdr import FdrHealth
-from gps_denied_onboard.constants import RESUME_STATE_INTERVAL_S, FdrKind, LogEvent, Provenance
+from gps_denied_onboard.constants import (
+    RESUME_STATE_INTERVAL_S,
+    STATUSTEXT_PRIOR_DISPUTED,
+    STATUSTEXT_PRIOR_DOUBTED,
+    STATUSTEXT_PRIOR_REANCHORED,
+    STATUSTEXT_PRIOR_UNCONFIRMED,
+    FdrKind,
+    LogEvent,
+    Provenance,
+)
 from gps_denied_onboard.daemon.beacon import StartupBeacon
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
@@ -67,6 +76,8 @@ _STOP_GRACE_S = 0.5
 #: ATTITUDE_WAIT_MAX_S.
 ATTITUDE_RATE_HALF_SPAN_S = 0.02
 ATTITUDE_WAIT_MAX_S = 0.3
+#: The operator hears that a doubted prior's search grew at most this often (the first time at once), s.
+PRIOR_DOUBT_TEXT_INTERVAL_S = 5.0
 
 
 @dataclass
@@ -104,6 +115,14 @@ class DaemonCounters:
     height_scale: float | None = None
     #: SIGHUP, SIGUSR1 and SIGUSR2 received and ignored (``daemon.signals``), by name.
     signals_ignored: dict[str, int] = field(default_factory=dict)
+    #: The start prior's doubt (``c5_estimator/prior_doubt.py``): whether a map fix has confirmed it,
+    #: failed attempts counted against it, how often its sigma grew and to what, and how far from it the
+    #: map fix that confirmed it after a doubt was.
+    prior_confirmed: bool = False
+    prior_failures: int = 0
+    prior_widenings: int = 0
+    prior_sigma_m: float | None = None
+    prior_reanchored_m: float | None = None
 
 
 class NavDaemon:
@@ -141,6 +160,8 @@ class NavDaemon:
         self._asked_autopilot_last_s: float | None = None
         #: F8: when the autopilot was last asked for its landed state (daemon clock, s).
         self._asked_phase_s: float | None = None
+        #: When the operator was last told the prior's search grew (daemon clock, s; None: not yet).
+        self._doubt_told_s: float | None = None
         #: F8: the last estimate sent as a 3D fix and its provenance, for the resume state file.
         self._last_3d: tuple[ResumeState, str] | None = None
         #: Worker threads still inside a frame when the daemon stopped (see ``run``).
@@ -312,18 +333,27 @@ class NavDaemon:
         radius_m = float(haversine_m(centre_lat, centre_lon, north, east))
         autopilot = None
         restarted = self._root.previous_run.last_record_unix_s is not None
-        if (restarted or air) and self._cfg.init.autopilot_wait_s > 0:
+        asked_s = self._asked_autopilot_last_s
+        if air is False and tracker.ground_position() is None and (asked_s is None or now_s - asked_s >= 1.0):
+            # On the ground: the autopilot's own position is the start points' witness (``prior``).
+            self._root.link.request_autopilot_estimate()
+            self._asked_autopilot_last_s = now_s
+        # HOME_POSITION is a witness of the start points (``prior``): streamed only every few seconds,
+        # it may not have come yet on a cold start that sees the vehicle in the air at its first frame.
+        need_home = self._cfg.init.use_home_position and home is None and air is not False
+        if (restarted or air or need_home) and self._cfg.init.autopilot_wait_s > 0:
             # A restart or a start in flight: ask the autopilot for its estimate, and wait a little for it.
-            autopilot = tracker.autopilot_position(now_s)
-            if autopilot is None:
+            autopilot = tracker.autopilot_position(now_s) if restarted or air else None
+            if autopilot is None or need_home:
                 if self._asked_autopilot_first_s is None:
                     self._asked_autopilot_first_s = now_s
                 if self._asked_autopilot_last_s is None or now_s - self._asked_autopilot_last_s >= 0.25:
                     self._root.link.request_autopilot_estimate()
                     self._asked_autopilot_last_s = now_s
-                answered = tracker.estimate_answered_since(self._asked_autopilot_first_s)
+                first_s = self._asked_autopilot_first_s
+                answered = autopilot is not None or tracker.estimate_answered_since(first_s)
                 # ... and its home, where the rules may use it (an autopilot without one never answers)
-                answered = answered and (home is not None or not self._cfg.init.use_home_position)
+                answered = answered and not need_home
                 if not answered and now_s - self._asked_autopilot_first_s < self._cfg.init.autopilot_wait_s:
                     return None  # no answer yet (an autopilot that has no position says so: no wait)
         prior = choose_prior(
@@ -336,6 +366,8 @@ class NavDaemon:
             map_radius_m=radius_m,
             autopilot=autopilot,
             phase=phase,
+            autopilot_ground=tracker.ground_position(),
+            home_signed=tracker.home_signed(),
         )
         if prior.source == PriorSource.MAP_EXTENT and not restarted and not air:
             return None  # a cold start not known to be in the air: wait for HOME_POSITION and the ground
@@ -350,6 +382,8 @@ class NavDaemon:
             sigma_m=round(prior.sigma_m, 1),
             lat_deg=prior.lat_deg,
             lon_deg=prior.lon_deg,
+            confirmed=prior.confirmed,
+            spread_m=prior.spread_m,
         )
         self._root.fdr.record(
             FdrKind.PRIOR,
@@ -359,13 +393,17 @@ class NavDaemon:
                 "lat_deg": prior.lat_deg,
                 "lon_deg": prior.lon_deg,
                 "sigma_m": prior.sigma_m,
+                "confirmed": prior.confirmed,
+                "spread_m": prior.spread_m,
             },
         )
+        self.counters.prior_confirmed = prior.confirmed
         text = {
             PriorSource.RESUMED: f"GDN: resumed, sigma {prior.sigma_m:.0f} m",
             PriorSource.MAP_EXTENT: "GDN: no trusted prior, searching map",
             PriorSource.AUTOPILOT: "GDN: no trusted prior, searching map from AP estimate",
-        }.get(prior.source, f"GDN: start at {prior.source}")
+            PriorSource.DISPUTED: STATUSTEXT_PRIOR_DISPUTED.format(prior.spread_m or 0.0),
+        }.get(prior.source, STATUSTEXT_PRIOR_UNCONFIRMED.format(prior.source))
         severity = (
             mavutil.mavlink.MAV_SEVERITY_INFO
             if prior.source in (PriorSource.HOME, PriorSource.CONFIG)
@@ -537,6 +575,7 @@ class NavDaemon:
         if outcome.heading_height is not None:
             self._note_heading_height(outcome.heading_height)
         self._note_too_late(outcome)
+        self._note_prior_doubt(outcome)
         self._last_fix = outcome
         self._last_fix_reason = outcome.no_fix_reason
         log.info(
@@ -550,6 +589,34 @@ class NavDaemon:
             age_ms=round((self._clock.now_unix_usec() - outcome.exposure_time_unix_usec) / 1e3, 1),
             timings_ms={k: round(v, 1) for k, v in outcome.timings_ms.items()},
         )
+
+    def _note_prior_doubt(self, outcome: FixOutcome) -> None:
+        """The start prior's doubt for ``daemon.status``, and for the operator: its search grew (the first
+        time at once, then at most every ``PRIOR_DOUBT_TEXT_INTERVAL_S``), and the map answered."""
+        doubt = outcome.prior_doubt
+        c = self.counters
+        if outcome.fix_accepted:
+            c.prior_confirmed = True
+        if doubt is None:
+            return
+        c.prior_failures = doubt.failures
+        if doubt.raise_to_sigma_m is not None:
+            c.prior_widenings += 1
+            c.prior_sigma_m = round(doubt.raise_to_sigma_m, 1)
+            now_s = self._clock.now_unix_s()
+            told = self._doubt_told_s
+            if told is None or now_s - told >= PRIOR_DOUBT_TEXT_INTERVAL_S:
+                self._doubt_told_s = now_s
+                radius_m = self._cfg.vpr.prior_sigma_scale * doubt.raise_to_sigma_m
+                self._root.link.send_statustext(
+                    mavutil.mavlink.MAV_SEVERITY_WARNING,
+                    STATUSTEXT_PRIOR_DOUBTED.format(doubt.failures, radius_m),
+                )
+        if doubt.reanchored_m is not None:
+            c.prior_reanchored_m = round(doubt.reanchored_m, 1)
+            self._root.link.send_statustext(
+                mavutil.mavlink.MAV_SEVERITY_WARNING, STATUSTEXT_PRIOR_REANCHORED.format(doubt.reanchored_m)
+            )
 
     def _note_too_late(self, outcome: FixOutcome) -> None:
         """Tell the operator, at the first of a run of them, that right fixes are dropped because they

@@ -191,6 +191,34 @@ class SimAutopilot:
             groundspeed_m_s, groundspeed_m_s, int(heading_deg) % 360, 50, alt_amsl_m, climb_m_s
         )
 
+    def send_ground_fix(
+        self, now_unix_s: float, lat_deg: float, lon_deg: float, ground_amsl_m: float, h_acc_m: float
+    ) -> None:
+        """What an autopilot with GNSS sends while the vehicle stands on the ground, before the denial:
+        EKF_STATUS_REPORT (its absolute horizontal position good), GPS_RAW_INT (a 3D fix stating
+        ``h_acc_m``) and GLOBAL_POSITION_INT at (lat, lon) on the ground (relative_alt 0)."""
+        m = mavutil.mavlink
+        flags = (
+            m.EKF_ATTITUDE
+            | m.EKF_VELOCITY_HORIZ
+            | m.EKF_VELOCITY_VERT
+            | m.EKF_POS_HORIZ_REL
+            | m.EKF_POS_HORIZ_ABS
+            | m.EKF_POS_VERT_ABS
+            | m.EKF_PRED_POS_HORIZ_REL
+            | m.EKF_PRED_POS_HORIZ_ABS
+        )
+        self.mav.ekf_status_report_send(flags, 0.1, 0.1, 0.1, 0.1, 0.0)
+        lat_e7, lon_e7, alt_mm = round(lat_deg * 1e7), round(lon_deg * 1e7), round(ground_amsl_m * 1000)
+        eph = min(65534, round(h_acc_m * 100))
+        t_usec = round(now_unix_s * 1e6)
+        base = (t_usec, 3, lat_e7, lon_e7, alt_mm, eph, eph, 0, 0, 12)
+        if m.WIRE_PROTOCOL_VERSION == "1.0":  # MAVLink 1 has no extension fields: no h_acc
+            self.mav.gps_raw_int_send(*base)
+        else:
+            self.mav.gps_raw_int_send(*base, alt_mm, round(h_acc_m * 1000))
+        self.mav.global_position_int_send(self._boot_ms(now_unix_s), lat_e7, lon_e7, alt_mm, 0, 0, 0, 0, 0)
+
     def send_home(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> None:
         self._home = (lat_deg, lon_deg, alt_amsl_m)
         send_home_position(self.mav, lat_deg, lon_deg, alt_amsl_m)

@@ -61,8 +61,10 @@ from gps_denied_onboard.sitl.scenario import (
     FaultKind,
     Scenario,
     ScenarioError,
+    SpoofedSource,
     Trajectory,
     load_scenario,
+    spoofed_start_from_yaml,
 )
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -93,6 +95,10 @@ ATTITUDE_WANDER_RAD = math.radians(0.1)
 ATTITUDE_WANDER_TAU_S = 5.0
 ATTITUDE_NOISE_RAD = math.radians(0.01)
 ALTITUDE_HZ = 10.0
+#: Before the flight the simulated autopilot has GNSS: it sends its position on the ground this often, Hz,
+#: stating this horizontal accuracy, m (GPS_RAW_INT.h_acc), unless a spoofed start says otherwise.
+GROUND_FIX_HZ = 2.0
+GROUND_FIX_H_ACC_M = 1.5
 #: Default seconds between the last frame and the daemon's SIGTERM (its last outputs still arrive).
 TAIL_S = 1.5
 
@@ -117,6 +123,8 @@ class SitlOptions:
     #: Where the map caches (one per map, named by its hash) are kept; default: the workdir. Flights over
     #: the same map may share one (``gdnav bench flights``), one flight at a time.
     cache_root: Path | None = None
+    #: The scenario's ``spoofed_start`` replaced by this YAML mapping (``--spoofed-start``); None: as it is.
+    spoofed_start: str | None = None
 
 
 def _send_from_a_fresh_port(packet: bytes, port: int) -> int:
@@ -220,6 +228,27 @@ class _Flight:
         if not self.opts.quiet:
             print(f"[sitl] {msg}", flush=True)
 
+    def _start_point(self, source: SpoofedSource) -> tuple[float, float]:
+        """Where the flight starts as ``source`` tells it: the truth, or dragged by the spoofed start."""
+        start = self.traj.truth_at(0.0)
+        spoof = self.scenario.spoofed_start
+        if spoof is None or source not in spoof.sources:
+            return start.lat_deg, start.lon_deg
+        ltp = self.traj.origin
+        ned = ltp.to_ned(start.lat_deg, start.lon_deg, self.ground_alt_amsl_m)
+        ned[:2] += np.asarray(spoof.offset_ne_m)
+        lat, lon, _alt = ltp.to_geodetic(ned)
+        return float(lat), float(lon)
+
+    def _spoofed_config(self) -> list[str]:
+        """The daemon's configured start when the spoofed start drags it (before the run's overrides, which
+        may still set their own)."""
+        spoof = self.scenario.spoofed_start
+        if spoof is None or SpoofedSource.CONFIG not in spoof.sources:
+            return []
+        lat, lon = self._start_point(SpoofedSource.CONFIG)
+        return [f"init.lat_deg={lat:.9f}", f"init.lon_deg={lon:.9f}", f"init.sigma_m={spoof.sigma_m:g}"]
+
     def _daemon_cmd(self, mav_port: int, cam_port: int) -> list[str]:
         sets = [
             f"camera.source=tcp://127.0.0.1:{cam_port}",
@@ -232,6 +261,7 @@ class _Flight:
             f"camera.intrinsics.fy_px={self.calib.fy_px}",
             f"camera.intrinsics.cx_px={self.calib.cx_px}",
             f"camera.intrinsics.cy_px={self.calib.cy_px}",
+            *self._spoofed_config(),
             *self.opts.overrides,
             *self.host_setup.overrides,
         ]
@@ -307,7 +337,12 @@ class _Flight:
             ap.send_extended_sys_state(landed)
 
     async def _telemetry(self, ap: SimAutopilot, stop: asyncio.Event) -> None:
-        home = self.traj.truth_at(0.0)
+        start = self.traj.truth_at(0.0)
+        ground_amsl_m = start.alt_amsl_m - start.alt_agl_m  # the true ground: what it measured at home
+        home_lat, home_lon = self._start_point(SpoofedSource.HOME)
+        ap_lat, ap_lon = self._start_point(SpoofedSource.AUTOPILOT)
+        spoof = self.scenario.spoofed_start
+        h_acc_m = spoof.sigma_m if spoof is not None and SpoofedSource.AUTOPILOT in spoof.sources else None
         k = 0
         next_t = time.time()
         while not stop.is_set():
@@ -320,8 +355,11 @@ class _Flight:
                 if k % int(ATTITUDE_HZ) == 0:
                     ap.send_heartbeat(armed=bool(self.t0_unix_s))
                     ap.send_system_time(now)
-                if k % int(2 * ATTITUDE_HZ) == 0:  # the true ground: what the autopilot measured at home
-                    ap.send_home(home.lat_deg, home.lon_deg, home.alt_amsl_m - home.alt_agl_m)
+                if k % int(2 * ATTITUDE_HZ) == 0:
+                    ap.send_home(home_lat, home_lon, ground_amsl_m)
+                if not self.t0_unix_s and k % int(ATTITUDE_HZ / GROUND_FIX_HZ) == 0:
+                    # on the ground, before the denial, the autopilot has its GNSS (maybe spoofed)
+                    ap.send_ground_fix(now, ap_lat, ap_lon, ground_amsl_m, h_acc_m or GROUND_FIX_H_ACC_M)
                 ap.poll()
             k += 1
             next_t += 1.0 / ATTITUDE_HZ
@@ -538,6 +576,30 @@ class _Flight:
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(stop.wait(), RSS_SAMPLE_S)
 
+    def _spoof_resume_state(self, t_kill_unix_s: float) -> None:
+        """With a spoofed start that drags the ``resume`` source: the daemon's resume state file (in its
+        FDR directory) says the killed run's last 3D estimate was the truth at the kill, dragged by the
+        offset, at the stated sigma; newer than anything in the FDR, so the restarted daemon resumes
+        from it (a valid file, checksum included: what a wrong state looks like, not a damaged one)."""
+        spoof = self.scenario.spoofed_start
+        if spoof is None or SpoofedSource.RESUME not in spoof.sources:
+            return
+        from gps_denied_onboard.components.c5_estimator.prior import ResumeState
+        from gps_denied_onboard.components.c5_estimator.resume_state import ResumeStateFile, default_path
+
+        truth = self.traj.truth_at(max(0.0, t_kill_unix_s - self.t0_unix_s))
+        ltp = self.traj.origin
+        ned = ltp.to_ned(truth.lat_deg, truth.lon_deg, self.ground_alt_amsl_m)
+        ned[:2] += np.asarray(spoof.offset_ne_m)
+        lat, lon, _alt = ltp.to_geodetic(ned)
+        state = ResumeState(float(lat), float(lon), spoof.sigma_m, round(t_kill_unix_s * 1e6))
+        ResumeStateFile(default_path(self.workdir / "fdr")).write(
+            state, provenance="satellite_anchored", written_unix_s=t_kill_unix_s
+        )
+        self.faults_injected.append(
+            {"kind": "spoofed_resume_state", "t_s": round(t_kill_unix_s - self.t0_unix_s, 3)}
+        )
+
     async def _restarter(self, cmd: list[str], log_file: Any, procs: list[subprocess.Popen[bytes]]) -> None:
         """SIGKILL the daemon at each scheduled flight time and start the same command again at once."""
         for at_s in self.scenario.daemon_restarts_s:
@@ -548,6 +610,7 @@ class _Flight:
             await asyncio.get_running_loop().run_in_executor(None, old.wait)
             if at_s in self.scenario.daemon_restarts_wipe_fdr:  # a restart with no FDR at all
                 shutil.rmtree(self.workdir / "fdr", ignore_errors=True)
+            self._spoof_resume_state(t_kill)
             procs.append(spawn_daemon(cmd, log_file, self._daemon_env()))
             self.restarts.append({"killed_unix_s": t_kill, "restarted_unix_s": time.time()})
             self._say(f"daemon killed (SIGKILL) at {at_s:.1f} s and restarted: pid {procs[-1].pid}")
@@ -700,6 +763,10 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
             generate_demo_map(map_path)
     try:
         scenario = load_scenario(opts.scenario)
+        if opts.spoofed_start is not None:
+            scenario = dataclasses.replace(
+                scenario, spoofed_start=spoofed_start_from_yaml(opts.spoofed_start, "--spoofed-start")
+            )
         map_renderer = MapRenderer(map_path)
         renderer = MapRenderer(opts.appearance_path) if opts.appearance_path else map_renderer
     except (ScenarioError, RenderError) as exc:
@@ -927,6 +994,7 @@ def run_sitl_cli(args: argparse.Namespace) -> int:
         workdir=args.workdir,
         duration_s=args.duration,
         quiet=args.quiet,
+        spoofed_start=getattr(args, "spoofed_start", None),
     )
     report = run_sitl(opts)
     for line in summary_lines(report):

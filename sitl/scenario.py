@@ -14,7 +14,8 @@ The vocabulary: the flight (``duration_s``, ``frame_rate_hz``, ``speed_m_s``, ``
 ``waypoints`` in ``map_relative`` or ``wgs84`` frames), the clocks (``autopilot_unix_offset_s``,
 ``camera_stamp_offset_s``), the camera (``camera``, ``attitude_wobble``, ``photometric``), and what goes
 wrong (``map_edits``, ``link_drops``, ``map_gaps``, ``daemon_restarts``, ``faults``, including the host
-faults of ``sitl.host_faults``, and ``timestamp_faults``).
+faults of ``sitl.host_faults``, ``timestamp_faults``, and ``spoofed_start``: the start points dragged off
+before the flight).
 
 Every key, its type, default and meaning: docs/sitl.md, "The scenario schema in full".
 """
@@ -190,6 +191,31 @@ class Fault:
     count: int = 0
     #: ``attitude_offset``: (roll, pitch, yaw) added to the autopilot's ATTITUDE, degrees.
     offset_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+class SpoofedSource(str, Enum):
+    """What a spoofed start drags off (``SpoofedStart.sources``)."""
+
+    #: HOME_POSITION, as the autopilot sends it (unsigned: the SITL link has no signing).
+    HOME = "home"
+    #: The autopilot's own position while on the ground (GLOBAL_POSITION_INT, GPS_RAW_INT, EKF_STATUS_REPORT).
+    AUTOPILOT = "autopilot"
+    #: The daemon's configured start (``init.lat_deg``/``lon_deg``, with ``init.sigma_m`` the stated sigma).
+    CONFIG = "config"
+    #: At each of the scenario's ``daemon_restarts``: the resume state file, rewritten after the kill as if
+    #: the killed run's last 3D estimate had been there (the truth then, dragged), stating ``sigma_m``.
+    RESUME = "resume"
+
+
+@dataclass(frozen=True)
+class SpoofedStart:
+    """The start points dragged ``offset_ne_m`` (north, east) off the truth before the flight, each stating
+    ``sigma_m``: a GNSS spoofed before the denial drags the autopilot's position, its HOME and the last
+    fix an operator configures alike; a spoofed HOME_POSITION alone is an injection on the link."""
+
+    offset_ne_m: tuple[float, float]
+    sigma_m: float
+    sources: frozenset[SpoofedSource]
 
 
 @dataclass(frozen=True)
@@ -526,6 +552,8 @@ class Scenario:
     daemon_restarts_s: tuple[float, ...] = ()
     #: The restarts (by time) before which the FDR directory is deleted.
     daemon_restarts_wipe_fdr: frozenset[float] = frozenset()
+    #: The start points dragged off before the flight (None: they are true).
+    spoofed_start: SpoofedStart | None = None
     #: File the scenario was read from (None when built from a mapping).
     source: str | None = field(default=None, compare=False)
 
@@ -1005,6 +1033,45 @@ def _read_gaps(value: object, source: str | None) -> tuple[MapGap, ...]:
     return tuple(gaps)
 
 
+def _read_spoofed_start(value: object, source: str | None) -> SpoofedStart | None:
+    if value is None:
+        return None
+    b = _Block(value, "spoofed_start", source)
+    raw = b.get("offset_m")
+    path = b.key_path("offset_m")
+    if not isinstance(raw, (list, tuple)) or len(raw) != 2:
+        raise ScenarioError(path, f"expected [north_m, east_m], got {raw!r}", source=source)
+    offset = (_check_number(raw[0], f"{path}[0]", source), _check_number(raw[1], f"{path}[1]", source))
+    if math.hypot(*offset) > 100_000.0:
+        raise ScenarioError(path, f"expected an offset of at most 100 km, got {raw!r}", source=source)
+    sigma = b.number("sigma_m", 5.0, gt=0.0, le=1000.0)
+    names = b.get("sources", [s.value for s in SpoofedSource if s is not SpoofedSource.RESUME])
+    path = b.key_path("sources")
+    if not isinstance(names, list) or not names:
+        raise ScenarioError(path, f"expected a non-empty list, got {names!r}", source=source)
+    sources = set()
+    for i, name in enumerate(names):
+        try:
+            sources.add(SpoofedSource(name))
+        except ValueError:
+            valid = ", ".join(s.value for s in SpoofedSource)
+            message = f"expected one of: {valid}; got {name!r}"
+            raise ScenarioError(f"{path}[{i}]", message, source=source) from None
+    b.finish()
+    return SpoofedStart(offset, sigma, frozenset(sources))
+
+
+def spoofed_start_from_yaml(text: str, source: str) -> SpoofedStart | None:
+    """A ``spoofed_start`` mapping given as YAML text (``gdnav sitl run --spoofed-start``); ``null`` is
+    none. Raises ``ScenarioError`` naming ``source`` and the key."""
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        message = f"not valid YAML: {exc}".replace("\n", " ")
+        raise ScenarioError("spoofed_start", message, source=source) from exc
+    return _read_spoofed_start(value, source)
+
+
 def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None) -> Scenario:
     """Build a ``Scenario`` from parsed YAML, strictly (see the module docstring)."""
     root = _Block(data, "", source)
@@ -1057,6 +1124,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     stamp_faults = _read_timestamp_faults(root.get("timestamp_faults", []), source)
     restarts, restart_wipes = _read_restarts(root.get("daemon_restarts", []), source)
     faults = _read_faults(root.get("faults", []), source)
+    spoofed = _read_spoofed_start(root.get("spoofed_start", None), source)
     root.finish()
     scenario = Scenario(
         name=name,
@@ -1083,6 +1151,7 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         daemon_restarts_s=restarts,
         daemon_restarts_wipe_fdr=restart_wipes,
         faults=faults,
+        spoofed_start=spoofed,
         source=source,
     )
     scenario.footprint_radius_m()  # rejects a camera + wobble that would see the horizon

@@ -413,3 +413,21 @@ def test_a_prior_contradicted_while_hovering_is_stated_but_not_given_up() -> Non
         assert not est.update_fix(_fix(np.array([0.0, 0.0, -120.0]), 1.5, t)).accepted
     state = est.state(T0_USEC + 13 * S)
     assert state.pos_ned_m[0] > 100.0 and state.horiz_sigma_m >= 150.0
+
+
+def test_a_start_prior_is_unconfirmed_until_a_map_fix_is_fused() -> None:
+    """Issue 37: the state a start prior gives is a claim (``map_confirmed`` False, so never a 3D fix)
+    until an accepted fix; a gated one does not confirm it; a rewind to before the fix takes it back; a
+    resumed 3D estimate (the previous run's own output) starts confirmed."""
+    est = _estimator()
+    est.initialise(np.array([0.0, 0.0, -100.0]), 5.0, T0_USEC, vel_sigma_m_s=0.5)
+    assert not est.state().map_confirmed
+    cp = est.checkpoint()
+    assert not est.update_fix(_fix(np.array([200.0, 0.0, -100.0]), 3.0, T0_USEC + S // 3)).accepted
+    assert not est.state().map_confirmed
+    assert est.update_fix(_fix(np.array([3.0, -2.5, -100.0]), 3.0, T0_USEC + 2 * S // 3)).accepted
+    assert est.state().map_confirmed and est.state(T0_USEC + 10 * S).map_confirmed
+    est.restore(cp)
+    assert not est.state().map_confirmed
+    est.initialise(np.array([0.0, 0.0, -100.0]), 30.0, T0_USEC + S, map_confirmed=True)
+    assert est.state().map_confirmed

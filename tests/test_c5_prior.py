@@ -20,7 +20,11 @@ from gps_denied_onboard.components.c5_estimator.prior import (
 )
 from gps_denied_onboard.components.c5_estimator.resume_state import ResumeStateFile, read_resume_state
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
-from gps_denied_onboard.components.c8_mavlink.vehicle_state import AutopilotPosition, FlightPhase
+from gps_denied_onboard.components.c8_mavlink.vehicle_state import (
+    AutopilotPosition,
+    FlightPhase,
+    GroundPosition,
+)
 from gps_denied_onboard.components.c13_fdr import FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import InitConfig
 from gps_denied_onboard.geo import haversine_m
@@ -79,10 +83,11 @@ def test_prior_cold_start_and_ground_restart_use_home() -> None:
 
 def test_prior_configured_position_follows_the_same_rules_as_home() -> None:
     """A configured start position wins over home, but only on the ground: in the air, with or without
-    a previous run, it is ignored."""
-    init = InitConfig(lat_deg=46.9, lon_deg=7.9, sigma_m=20.0)
+    a previous run, it is ignored. (Home 27 m away agrees with it: see the cross-checks below.)"""
+    init = InitConfig(lat_deg=47.0002, lon_deg=8.0002, sigma_m=20.0)
     cold = choose_prior(now_unix_usec=NOW, init=init, previous=NO_RUN, home=HOME, alt_agl_m=1.0, **MAP)
-    assert (cold.source, cold.lat_deg, cold.sigma_m) == (PriorSource.CONFIG, 46.9, 20.0)
+    assert (cold.source, cold.lat_deg, cold.sigma_m) == (PriorSource.CONFIG, 47.0002, 20.0)
+    assert "agree" in cold.why and not cold.confirmed
     for previous in (NO_RUN, PreviousRun(None, NOW / 1e6 - 1.0)):
         air = choose_prior(now_unix_usec=NOW, init=init, previous=previous, home=HOME, alt_agl_m=80.0, **MAP)
         assert air.source == PriorSource.MAP_EXTENT and "config ignored: in the air" in air.why
@@ -300,3 +305,86 @@ def test_prior_cold_start_does_not_use_the_autopilot_estimate() -> None:
     """No previous run, on the ground: home, the autopilot's estimate unused."""
     prior = _after_restart(NO_RUN, _autopilot(47.3, 8.3), alt_agl_m=0.0)
     assert prior.source == PriorSource.HOME
+
+
+# --- issue 37: the start points cross-checked ---------------------------------------------------------
+
+#: The autopilot's own position on the ground, 300 m north of HOME.
+FAR_NORTH = (47.0 + 300.0 / 111_195.0, 8.0)
+
+
+def _ground(lat_lon: tuple[float, float], sigma_m: float | None = 2.0) -> GroundPosition:
+    return GroundPosition(lat_lon[0], lat_lon[1], NOW / 1e6 - 5.0, sigma_m)
+
+
+def test_start_points_that_agree_are_picked_as_before_and_say_so() -> None:
+    """Config, HOME and the autopilot's own position on the ground within their sigmas of each other:
+    the configured position, at its sigma; a claim all the same (not confirmed: no 3D before a fix)."""
+    init = InitConfig(lat_deg=47.0001, lon_deg=8.0, sigma_m=20.0)
+    prior = choose_prior(
+        now_unix_usec=NOW, init=init, previous=NO_RUN, home=HOME, alt_agl_m=0.5,
+        autopilot_ground=_ground((47.00005, 8.0)), **MAP,
+    )  # fmt: skip
+    assert (prior.source, prior.lat_deg, prior.sigma_m) == (PriorSource.CONFIG, 47.0001, 20.0)
+    assert "agree (within 11 m)" in prior.why and not prior.confirmed and prior.spread_m is None
+
+
+def test_a_configured_start_300_m_from_home_is_a_wide_prior_not_a_pick() -> None:
+    """The issue's reproduction: a configured start 300 m from HOME at a stated 30 m. Disagreeing beyond
+    3 combined sigmas (127 m), neither is picked: the prior is centred between them and its sigma puts
+    both within one sigma; in the air it grows at top speed since the ground as before."""
+    init = InitConfig(lat_deg=FAR_NORTH[0], lon_deg=FAR_NORTH[1], sigma_m=30.0)
+    prior = choose_prior(now_unix_usec=NOW, init=init, previous=NO_RUN, home=HOME, alt_agl_m=0.5, **MAP)
+    assert prior.source == PriorSource.DISPUTED and not prior.confirmed
+    assert prior.spread_m == pytest.approx(300.0, abs=1.0)
+    assert prior.sigma_m == pytest.approx(150.0 + 30.0, abs=1.0)
+    for point in (HOME[:2], FAR_NORTH):
+        assert float(haversine_m(prior.lat_deg, prior.lon_deg, *point)) <= prior.sigma_m
+    assert "config 300 m from HOME_POSITION (unsigned) (3 sigma 127 m)" in prior.why
+    air = choose_prior(
+        now_unix_usec=NOW, init=init, previous=NO_RUN, home=HOME, alt_agl_m=120.0,
+        phase=_phase(landed=DIALECT.MAV_LANDED_STATE_IN_AIR, ground_ago_s=2.0), **MAP,
+    )  # fmt: skip
+    assert air.source == PriorSource.DISPUTED
+    assert air.sigma_m == pytest.approx(math.hypot(180.0, 50.0), abs=1.0)
+
+
+def test_an_unsigned_home_that_the_autopilot_contradicts_is_not_taken_with_a_small_sigma() -> None:
+    """HOME is a claim: 300 m from the autopilot's own position (GNSS, 2 m stated), it makes a wide
+    prior that covers both; signed, it is named so, and is still only a claim."""
+    unsigned = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(sigma_m=30.0), previous=NO_RUN, home=HOME, alt_agl_m=0.5,
+        autopilot_ground=_ground(FAR_NORTH), **MAP,
+    )  # fmt: skip
+    assert unsigned.source == PriorSource.DISPUTED and unsigned.sigma_m >= 150.0 + 30.0 - 1.0
+    assert "HOME_POSITION (unsigned) 300 m from the autopilot's position (3 sigma 90 m)" in unsigned.why
+    signed = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(sigma_m=30.0), previous=NO_RUN, home=HOME, alt_agl_m=0.5,
+        autopilot_ground=_ground(FAR_NORTH), home_signed=True, **MAP,
+    )  # fmt: skip
+    assert signed.source == PriorSource.DISPUTED and "HOME_POSITION 300 m" in signed.why
+
+
+def test_the_autopilots_stated_accuracy_sets_how_far_it_may_disagree() -> None:
+    """50 m from HOME: within 3 sigma of a 30 m HOME and an autopilot stating 2 m (90 m); an autopilot
+    stating nothing is given init.sigma_m."""
+    near = (47.0 + 50.0 / 111_195.0, 8.0)
+    for sigma in (2.0, None):
+        prior = choose_prior(
+            now_unix_usec=NOW, init=InitConfig(sigma_m=30.0), previous=NO_RUN, home=HOME, alt_agl_m=0.5,
+            autopilot_ground=_ground(near, sigma), **MAP,
+        )  # fmt: skip
+        assert prior.source == PriorSource.HOME and prior.sigma_m == 30.0
+
+
+def test_a_resumed_estimate_is_the_one_prior_confirmed_before_a_fix() -> None:
+    """The previous run's own 3D output may go out as 3D at once after a restart (within its grown sigma);
+    nothing else may before a map fix."""
+    resumed = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(), previous=_resume(1.0), home=HOME, alt_agl_m=120.0, **MAP
+    )
+    assert resumed.source == PriorSource.RESUMED and resumed.confirmed
+    home = choose_prior(
+        now_unix_usec=NOW, init=InitConfig(), previous=NO_RUN, home=HOME, alt_agl_m=0.3, **MAP
+    )
+    assert home.source == PriorSource.HOME and not home.confirmed

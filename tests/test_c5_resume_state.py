@@ -15,6 +15,7 @@ from gps_denied_onboard.components.c5_estimator.prior import ResumeState
 from gps_denied_onboard.components.c5_estimator.resume_state import (
     MAX_BYTES,
     ResumeStateFile,
+    checksum,
     default_path,
     read_resume_state,
 )
@@ -53,7 +54,7 @@ def test_resume_state_write_failure_is_counted_not_raised(tmp_path: Path) -> Non
 
 def _good() -> dict[str, Any]:
     return {
-        "version": 1,
+        "version": 2,
         "lat_deg": STATE.lat_deg,
         "lon_deg": STATE.lon_deg,
         "horiz_sigma_m": STATE.horiz_sigma_m,
@@ -61,6 +62,18 @@ def _good() -> dict[str, Any]:
         "provenance": "satellite_anchored",
         "written_unix_s": NOW_S,
     }
+
+
+def _signed(fields: dict[str, Any]) -> bytes:
+    """``fields`` as the file, with the checksum they give (a well-formed file saying something wrong)."""
+    return json.dumps({**fields, "crc32": checksum(fields)}).encode()
+
+
+def _damaged() -> bytes:
+    """A good file with one digit of the latitude changed: still JSON, still a position on the Earth."""
+    good = _signed(_good()).decode()
+    assert "47.002" in good
+    return good.replace("47.002", "47.012").encode()
 
 
 @pytest.mark.parametrize(
@@ -71,14 +84,17 @@ def _good() -> dict[str, Any]:
         (b"\xff\xfe", "not JSON"),
         (b"[1, 2]", "expected a JSON object"),
         (b" " * (MAX_BYTES + 1), "larger than"),
-        (json.dumps({**_good(), "version": 2}).encode(), "version 2"),
-        (json.dumps({**_good(), "lat_deg": "47"}).encode(), "lat_deg is '47'"),
-        (json.dumps({**_good(), "lat_deg": True}).encode(), "lat_deg is True"),
-        (json.dumps({**_good(), "horiz_sigma_m": 1e999}).encode(), "horiz_sigma_m is inf"),
-        (json.dumps({**_good(), "horiz_sigma_m": 0.0}).encode(), "expected > 0"),
-        (json.dumps({**_good(), "lat_deg": 91.0}).encode(), "not on the Earth"),
-        (json.dumps({**_good(), "time_unix_usec": 1.5}).encode(), "time_unix_usec is 1.5"),
-        (json.dumps({**_good(), "time_unix_usec": int((NOW_S + 60) * 1e6)}).encode(), "in the future"),
+        (_signed({**_good(), "version": 1}), "version 1, expected 2"),
+        (_damaged(), "checksum mismatch"),
+        (json.dumps(_good()).encode(), "crc32 is None"),
+        (json.dumps({**_good(), "crc32": True}).encode(), "crc32 is True"),
+        (_signed({**_good(), "lat_deg": "47"}), "lat_deg is '47'"),
+        (_signed({**_good(), "lat_deg": True}), "lat_deg is True"),
+        (_signed({**_good(), "horiz_sigma_m": float("inf")}), "horiz_sigma_m is inf"),
+        (_signed({**_good(), "horiz_sigma_m": 0.0}), "expected > 0"),
+        (_signed({**_good(), "lat_deg": 91.0}), "not on the Earth"),
+        (_signed({**_good(), "time_unix_usec": 1.5}), "time_unix_usec is 1.5"),
+        (_signed({**_good(), "time_unix_usec": int((NOW_S + 60) * 1e6)}), "in the future"),
     ],
 )
 def test_resume_state_refuses_a_corrupt_or_hostile_file_in_one_line(

@@ -312,13 +312,15 @@ def test_tracker_knows_when_the_autopilot_answered_even_without_a_position() -> 
 
 def test_link_asks_the_autopilot_for_its_estimate_over_udp(udp_pair: tuple) -> None:
     """``request_autopilot_estimate``: MAV_CMD_REQUEST_MESSAGE to the autopilot (sysid 1, comp 1) for
-    GLOBAL_POSITION_INT, EKF_STATUS_REPORT and HOME_POSITION, received by a real pymavlink endpoint."""
+    GPS_RAW_INT, GLOBAL_POSITION_INT, EKF_STATUS_REPORT and HOME_POSITION, received by a real pymavlink
+    endpoint."""
     link, ap, _clock, _ = udp_pair
     ap.mav.send(_ap_heartbeat(ap.mav))
     assert _pump(link, lambda: link.tracker.autopilot_seen)
     assert link.request_autopilot_estimate()
     got = _recv_all(ap, "COMMAND_LONG", wait_s=0.5)
     wanted = {
+        D.MAVLINK_MSG_ID_GPS_RAW_INT,
         D.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
         D.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
         D.MAVLINK_MSG_ID_HOME_POSITION,
@@ -1096,3 +1098,89 @@ def test_tracker_ahrs_doubt_grows_with_the_autopilots_manoeuvres() -> None:
     doubt = tr.ahrs_doubt_rad(T0_UNIX_USEC + 1_180_000)
     assert doubt == pytest.approx(0.1 * math.hypot(roll, pitch), rel=1e-6)
     assert _tracker().ahrs_doubt_rad(T0_UNIX_USEC) is None
+
+
+def test_a_state_no_map_fix_has_confirmed_is_never_a_3d_fix() -> None:
+    """Issue 37: a start prior (configured, HOME_POSITION) stating 5 m is a claim until a map fix
+    confirms it: GPS_INPUT says no fix (1), GLOBAL_POSITION_SENSOR unhealthy, the 3D stream never enters;
+    the same state confirmed is 3D."""
+    from dataclasses import replace
+
+    mav = D.MAVLink(None)
+    claim = replace(_state(Provenance.VISUAL_PROPAGATED), map_confirmed=False)
+    assert m.gps_input(mav, claim, time_unix_usec=T0_UNIX_USEC).fix_type == 1
+    assert m.gps_input(mav, replace(claim, map_confirmed=True), time_unix_usec=T0_UNIX_USEC).fix_type == 3
+    gps = m.global_position_sensor(
+        mav, claim, time_unix_usec=T0_UNIX_USEC, processing_time_usec=0, target_system=1, sensor_id=1
+    )
+    assert gps.flags & D.GLOBAL_POSITION_UNHEALTHY
+    gate = m.Fix3dGate(settle_s=0.0)
+    assert all(
+        gate.fix_type(replace(claim, time_unix_usec=T0_UNIX_USEC + k * 100_000)) == 1 for k in range(20)
+    )
+
+
+def test_link_sends_no_vision_position_for_a_state_no_map_fix_has_confirmed(udp_pair: tuple) -> None:
+    """VISION_POSITION_ESTIMATE has no fix_type to say "not to be trusted": an unconfirmed start prior
+    is not sent at all, and the confirmed state is."""
+    from dataclasses import replace
+
+    link, ap, _clock, _ = udp_pair
+    _seen(link, ap)
+    state = _state_at(T0_UNIX_USEC, (123.25, -456.5, -80.0))
+    link.send_estimate(replace(state, map_confirmed=False), time_unix_usec=T0_UNIX_USEC + 1000)
+    assert _recv_all(ap, "VISION_POSITION_ESTIMATE", 0.3) == []
+    link.send_estimate(state, time_unix_usec=T0_UNIX_USEC + 2000)
+    assert len(_recv_all(ap, "VISION_POSITION_ESTIMATE", 0.3)) == 1
+
+
+def _ground_fix(tr: VehicleStateTracker, recv_s: float, lat_e7: int, lon_e7: int, h_acc_mm: int) -> None:
+    """What an autopilot with GNSS streams on the ground: EKF status, GPS_RAW_INT, GLOBAL_POSITION_INT."""
+    good = D.EKF_ATTITUDE | D.EKF_VELOCITY_HORIZ | D.EKF_POS_HORIZ_ABS
+    tr.handle(_decoded(lambda mav: mav.ekf_status_report_encode(good, 0.1, 0.1, 0.1, 0.1, 0.0)), recv_s)
+    raw = _decoded(
+        lambda mav: mav.gps_raw_int_encode(
+            0, 3, lat_e7, lon_e7, 400_000, 100, 100, 0, 0, 12, 400_000, h_acc_mm
+        )
+    )
+    tr.handle(raw, recv_s)
+    gpi = _decoded(
+        lambda mav: mav.global_position_int_encode(BOOT0_MS, lat_e7, lon_e7, 400_000, 0, 0, 0, 0, 0)
+    )
+    tr.handle(
+        gpi,
+        recv_s,
+    )
+
+
+def test_tracker_keeps_the_autopilots_position_on_the_ground_with_its_stated_accuracy() -> None:
+    """Issue 37: the autopilot's own position while the vehicle stands on the ground (disarmed or
+    landed ON_GROUND), its EKF vouching for it, with GPS_RAW_INT.h_acc as its sigma, is kept for the
+    run: the start points' witness. In the air it is not taken as a ground position."""
+    tr = _tracker()
+    recv_s = T0_UNIX_USEC / 1e6
+    tr.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC, BOOT0_MS)), recv_s)
+    _ground_fix(tr, recv_s, 504501234, 305234567, 2500)
+    assert tr.ground_position() is None  # nothing said it stands on the ground
+    tr.handle(_decoded(lambda mav: mav.extended_sys_state_encode(0, D.MAV_LANDED_STATE_ON_GROUND)), recv_s)
+    _ground_fix(tr, recv_s + 0.5, 504501234, 305234567, 2500)
+    ground = tr.ground_position()
+    assert ground is not None
+    assert (ground.lat_deg, ground.lon_deg, ground.sigma_m) == pytest.approx((50.4501234, 30.5234567, 2.5))
+    tr.handle(_decoded(lambda mav: mav.extended_sys_state_encode(0, D.MAV_LANDED_STATE_IN_AIR)), recv_s + 1)
+    _ground_fix(tr, recv_s + 1.5, 504600000, 305234567, 2500)
+    assert tr.ground_position() == ground  # in the air: the ground position stays the last one
+
+
+def test_tracker_says_whether_home_came_signed() -> None:
+    """An unsigned HOME_POSITION is a claim anyone on the link could have made (``home_signed``)."""
+    tr = _tracker()
+    home = _decoded(
+        lambda mav: mav.home_position_encode(504501234, 305234567, 180_000, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0)
+    )
+    assert not home.get_signed()
+    tr.handle(home, T0_UNIX_USEC / 1e6)
+    assert tr.home() is not None and not tr.home_signed()
+    home._signed = True  # as pymavlink marks a message whose signature it verified
+    tr.handle(home, T0_UNIX_USEC / 1e6)
+    assert tr.home_signed()

@@ -839,3 +839,30 @@ def replace_matcher(p: NavigationPipeline, matcher: object) -> NavigationPipelin
     p._rerank = _OneTile()  # type: ignore[assignment]
     p._area_pose = AreaPoseSolver(PoseConfig(), LTP, 400.0)
     return p
+
+
+@pytest.mark.parametrize(
+    ("reason", "ranks"),
+    [
+        ("integrity:low_psr", [0, 3, 6, 0]),
+        ("integrity:low_peak", [0, 3, 6, 0]),
+        ("gated:gated", [0, 0, 3, 3]),
+    ],
+)
+def test_an_area_alignment_without_a_peak_does_not_hold_the_sweep(reason: str, ranks: list[int]) -> None:
+    """Issue 37: the area correlation solves a pose on every attempt; refused because its peak does not
+    stand out of the disc (low PSR or peak), the map did not answer there and the sweep goes on at once.
+    Holding on it (as on a fix to confirm) halved the sweep's pace over an 8 km map."""
+    fdr = _Fdr()
+    p = _sweeping_pipeline(fdr, [TileId(15, 1, i) for i in range(8)], _OnlyTrueTile(None))
+    matched = p._matched
+
+    def solved_and_refused(*args, **kwargs):  # type: ignore[no-untyped-def]
+        attempt = matched(*args, **kwargs)
+        cand = CandidateMatchSet(TILE_A, 0, np.empty((0, 4), np.float32), 0, float("nan"))
+        fix = _PosePerTile(0.0).solve(args[0], cand, None, None)
+        return replace(attempt, fix=fix, no_fix_reason=reason)
+
+    p._matched = solved_and_refused  # type: ignore[method-assign]
+    assert _fly(p, 4) == [False] * 4
+    assert _ranks(fdr) == ranks

@@ -25,8 +25,10 @@ from gps_denied_onboard.sitl.scenario import (
     FaultKind,
     Scenario,
     ScenarioError,
+    SpoofedSource,
     load_scenario,
     scenario_from_mapping,
+    spoofed_start_from_yaml,
 )
 
 
@@ -104,6 +106,32 @@ def test_scenario_faults_parse_windows_and_instants() -> None:
     assert "faults[0].reconnect" in str(err)
 
 
+def test_scenario_spoofed_start_drags_the_start_points_it_names() -> None:
+    """Issue 37: ``spoofed_start`` drags HOME, the autopilot's ground position and the configured start
+    (all three by default; ``resume`` only when named) by ``offset_m`` stating ``sigma_m``; none by default;
+    a bad source or offset is refused with its key path."""
+    assert _scenario().spoofed_start is None
+    sc = _scenario(spoofed_start={"offset_m": [300, -40.5]})
+    assert sc.spoofed_start is not None
+    assert (sc.spoofed_start.offset_ne_m, sc.spoofed_start.sigma_m) == ((300.0, -40.5), 5.0)
+    assert sc.spoofed_start.sources == {SpoofedSource.HOME, SpoofedSource.AUTOPILOT, SpoofedSource.CONFIG}
+    home = _scenario(spoofed_start={"offset_m": [0, 3000], "sigma_m": 50, "sources": ["home", "resume"]})
+    assert home.spoofed_start is not None
+    assert home.spoofed_start.sources == {SpoofedSource.HOME, SpoofedSource.RESUME}
+    err = _error_for({**BASE, "spoofed_start": {"offset_m": [1, 2], "sources": ["gnss"]}})
+    assert "spoofed_start.sources[0]" in str(err) and "home, autopilot, config, resume" in str(err)
+    assert "spoofed_start.offset_m" in str(_error_for({**BASE, "spoofed_start": {"offset_m": 300}}))
+    err = _error_for({**BASE, "spoofed_start": {"offset_m": [1, 2], "sigma": 5}})
+    assert "spoofed_start.sigma" in str(err)
+    for name in ("spoofed_start", "spoofed_home"):
+        assert load_scenario(name).spoofed_start is not None
+    given = spoofed_start_from_yaml("{offset_m: [3000, 0], sigma_m: 50}", "--spoofed-start")
+    assert given is not None and (given.offset_ne_m, given.sigma_m) == ((3000.0, 0.0), 50.0)
+    assert spoofed_start_from_yaml("null", "--spoofed-start") is None
+    with pytest.raises(ScenarioError, match="--spoofed-start: spoofed_start: not valid YAML"):
+        spoofed_start_from_yaml("{offset_m: [", "--spoofed-start")
+
+
 def test_scenario_host_faults_parse_and_never_reach_the_camera() -> None:
     """clock_jump steps accumulate into the host's wall clock from their instant; ort_fault carries its
     count (3 by default); tile_corrupt and fdr_full are windows; none of them is sent as a bad frame; a
@@ -152,6 +180,8 @@ def test_scenario_builtin_files_load() -> None:
         "restart",
         "smoke",
         "soak",
+        "spoofed_home",
+        "spoofed_start",
         "wrong_tile_trap",
     ]
     demo = load_scenario(BUILTIN_SCENARIOS_DIR / "demo.yaml")

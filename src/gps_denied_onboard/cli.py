@@ -339,6 +339,9 @@ def _cmd_sitl_run(args: argparse.Namespace) -> int:
         if getattr(args, "autopilot", None):
             from gps_denied_onboard.sitl.autopilot_flight import run_autopilot_cli
 
+            if getattr(args, "spoofed_start", None):
+                raise SitlError("--spoofed-start: the scripted autopilot only (not with --autopilot)")
+
             return run_autopilot_cli(args)
         return run_sitl_cli(args)
     except SitlError as exc:
@@ -573,6 +576,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     srun.add_argument("--duration", type=float, default=None, help="cut the flight to this many seconds")
     srun.add_argument("--quiet", action="store_true", help="print only the summary")
+    srun.add_argument(
+        "--spoofed-start",
+        default=None,
+        metavar="YAML",
+        help="drag the start points off the truth before the flight, as the scenario key spoofed_start "
+        "(replacing the scenario's), e.g. '{offset_m: [3000, 0], sigma_m: 50, sources: [home, autopilot, "
+        "config]}' (docs/sitl.md)",
+    )
     srun.add_argument(
         "--autopilot",
         default=None,

@@ -209,6 +209,15 @@ class InitConfig:
     #: EKF_STATUS_REPORT, MAV_CMD_REQUEST_MESSAGE) and wait at most this long for it before starting
     #: without it; 0 = do not ask, s.
     autopilot_wait_s: Annotated[float, Strict(), Field(ge=0, le=2)] = 1.0
+    #: A wrong prior is found out (c5_estimator/prior_doubt.py): after this many failed fix attempts in a
+    #: row on frames that should match (texture, the footprint on textured map) while no map fix has
+    #: confirmed the start prior, its sigma grows, and again with each further one; 0 = never.
+    doubt_after_failures: Annotated[int, Strict(), Field(ge=0)] = 2
+    #: Each counted failure from then on multiplies the sigma the failed attempt searched with by this.
+    doubt_growth: Annotated[float, Strict(), Field(gt=1, le=10)] = 2.0
+    #: Least edge share (helpers/texture.py) of the frame, and of the map where the prior puts it, for a
+    #: failed attempt to count against the prior: fog, snow, water or a covered lens measure < 0.01.
+    doubt_min_texture: Annotated[float, Strict(), Field(gt=0, lt=1)] = 0.05
 
 
 @dataclasses.dataclass(frozen=True)
@@ -596,9 +605,10 @@ class DaemonConfig:
     #: 149 ms, against 1.27/s and 103 / 108 ms at 0 (docs/benchmarks.md, "Priorities under load").
     fix_thread_nice: Annotated[int, Strict(), Field(ge=0, le=19)] = 0
     #: The daemon's own nice value: ahead of a companion's ordinary work (nice 0), so that its output, VO
-    #: and fix path keep their pace when the computer is busy. The systemd unit sets it (``Nice=-5``); `gdnav run` started otherwise lowers its nice value to
-    #: this at start where the process may (root, or CAP_SYS_NICE) and logs what it got (never raises it:
-    #: an operator who started it nicer meant it). null = leave it as started.
+    #: and fix path keep their pace when the computer is busy. The systemd unit sets it (``Nice=-5``);
+    #: `gdnav run` started otherwise lowers its nice value to this at start where the process may (root,
+    #: or CAP_SYS_NICE) and logs what it got (never raises it: an operator who started it nicer meant
+    #: it). null = leave it as started.
     process_nice: Annotated[int, Strict(), Field(ge=-20, le=19)] | None = -5
 
 

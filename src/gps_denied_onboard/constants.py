@@ -53,6 +53,13 @@ NV_FDR_HEALTH: Final[str] = "GDN_FDR"
 #: Solved fixes the fix-integrity rule refused since start (all reasons; by reason in daemon.status).
 NV_INTEGRITY_REFUSED: Final[str] = "GDN_IREF"
 
+# STATUSTEXT the operator reads about the start prior (``c5_estimator/prior.py``, ``prior_doubt.py``);
+#: 50 characters at most (MAVLink field size), ``{}`` fields filled by the daemon.
+STATUSTEXT_PRIOR_DISPUTED: Final[str] = "GDN: start points {:.0f} m apart, searching wide"
+STATUSTEXT_PRIOR_UNCONFIRMED: Final[str] = "GDN: {} is a claim: no 3D until map fix"
+STATUSTEXT_PRIOR_DOUBTED: Final[str] = "GDN: prior doubted, {} fails, search {:.0f} m"
+STATUSTEXT_PRIOR_REANCHORED: Final[str] = "GDN: re-anchored {:.0f} m from the prior"
+
 # --- SITL transport ---------------------------------------------------------------------------------
 #: Magic prefix of a frame message on the SITL camera stream (see camera.stream).
 FRAME_STREAM_MAGIC: Final[bytes] = b"GDNF"
@@ -164,6 +171,11 @@ class LogEvent:
     ESTIMATOR_INITIALISED: Final = "c5.estimator.initialised"
     #: Where the estimator started (F8: resumed, start point, or the whole map) and why.
     ESTIMATOR_PRIOR: Final = "c5.estimator.prior"
+    #: A failed fix attempt counted against a start prior no map fix has confirmed, and the prior's sigma
+    #: grown by it (``c5_estimator/prior_doubt.py``): the search widens until the map answers.
+    PRIOR_DOUBTED: Final = "c5.estimator.prior_doubted"
+    #: The first map fix accepted after the start prior was doubted: how far from the prior it was.
+    PRIOR_REANCHORED: Final = "c5.estimator.prior_reanchored"
     RESUME_STATE_REFUSED: Final = "c5.resume_state.refused"
     RESUME_STATE_WRITE_FAILED: Final = "c5.resume_state.write_failed"
     ESTIMATOR_COVARIANCE_INFLATED: Final = "c5.estimator.covariance_inflated"
@@ -278,6 +290,9 @@ class FdrKind:
     STATUS: Final = "daemon.status"
     #: The start-up prior the estimator was initialised from (source, why, position, sigma).
     PRIOR: Final = "estimator.prior"
+    #: The start prior doubted (its sigma grown by failed attempts on frames that should match) or, once,
+    #: confirmed by the first map fix after that (``c5_estimator/prior_doubt.py``).
+    PRIOR_DOUBT: Final = "estimator.prior_doubt"
     #: One journal unit of the estimator's time axis: the order of the pipeline halves, the clock and the
     #: IMU answers the estimator got (``c5_estimator.journal``; what ``gdnav replay`` plays back).
     ESTIMATOR_INPUT: Final = "estimator.input"

@@ -17,6 +17,9 @@ Every stage's failure has one meaning for the estimator:
   ``c4_pose/integrity.py``) → no fix; a fix it passes states a covariance that reflects its evidence,
   scaled by how consistent the recent fixes were with each other through VO (``c4_pose/consistency.py``);
 - fix outside the estimator's gate → rejected by C5 (a wrong tile cannot teleport the estimate);
+- while no map fix has confirmed the start prior, failed attempts on frames that should match count
+  against it: its sigma grows and the search sweeps outward, the prior's own place kept in each attempt,
+  until the map answers (``c5_estimator/prior_doubt.py``);
 - fix older than the time axis can rewind to → refused as too late (never fused at its arrival time).
 Each half is synchronous and single-threaded by contract (INV-1); the daemon runs them off the loop.
 """
@@ -65,13 +68,15 @@ from gps_denied_onboard.components.c4_pose.integrity import (
 from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
 from gps_denied_onboard.components.c5_estimator.journal import UNIT_FIX, UNIT_FIX_PRIOR, UNIT_TRACK
 from gps_denied_onboard.components.c5_estimator.prior import InitialPrior
+from gps_denied_onboard.components.c5_estimator.prior_doubt import DoubtVerdict, PriorDoubt
 from gps_denied_onboard.components.c5_estimator.time_axis import Refusal, TimeAxis
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c13_fdr.protocol import FdrClient
 from gps_denied_onboard.config import VprConfig
-from gps_denied_onboard.constants import FdrKind, LogEvent, Provenance
-from gps_denied_onboard.geo import LocalTangentPlane
+from gps_denied_onboard.constants import FdrKind, IntegrityReason, LogEvent, Provenance
+from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
 from gps_denied_onboard.helpers.frame_rectifier import principal_ground_offset_m
+from gps_denied_onboard.helpers.texture import edge_share
 
 log = structlog.get_logger(__name__)
 
@@ -83,6 +88,11 @@ MAX_CANDIDATES: Final = 10
 #: Alignment-only fixes in a row that disagree with the VO-propagated prior before the next ones state
 #: that disagreement (``NavigationPipeline._with_area_doubt``).
 AREA_DISAGREEMENT_RUN: Final = 3
+#: Integrity refusals of an area alignment whose peak does not stand out (``c4_pose/integrity.py``): the
+#: map did not answer in the disc, so the sweep does not hold its ranks for them (``_absolute_fix``).
+_NO_PEAK_REASONS: Final = frozenset(
+    {f"integrity:{IntegrityReason.LOW_PSR}", f"integrity:{IntegrityReason.LOW_PEAK}"}
+)
 
 
 @dataclass(frozen=True)
@@ -133,6 +143,8 @@ class FixOutcome:
     #: The autopilot's heading and height against an accepted area fix's (``c4_pose/heading_height_check``;
     #: None: no such fix, or its evidence too weak to count).
     heading_height: HeadingHeightVerdict | None = None
+    #: What the attempt did to the doubt on an unconfirmed start prior (None: the prior is confirmed).
+    prior_doubt: DoubtVerdict | None = None
 
 
 @dataclass(frozen=True)
@@ -155,6 +167,12 @@ class FixAttempt:
     rung: str | None = None
     #: An alignment-only fix's stated disagreement with the prior (``_with_area_doubt``), m; else None.
     area_doubt_m: float | None = None
+    #: While the start prior is unconfirmed (``c5_estimator/prior_doubt.py``): the edge shares of the
+    #: frame and of the map where the search started (None: not measured), and where the attempt searched
+    #: from (lat_deg, lon_deg, the map-frame horizontal sigma m).
+    frame_texture: float | None = None
+    map_texture: float | None = None
+    searched_from: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -216,10 +234,15 @@ class NavigationPipeline:
         ladder: EffortLadder | None = None,
         area_pose_solver: AreaPoseSolver | None = None,
         heading_height_check: HeadingHeightCheck | None = None,
+        prior_doubt: PriorDoubt | None = None,
+        map_extent: tuple[float, float, float] | None = None,
     ) -> None:
         """``matcher``: C3 alone (a one-rung ladder, every candidate); ``ladder``: the effort ladder,
         which then replaces it (``c3_matcher/ladder.py``). ``area_pose_solver``: the pose of an area
-        matcher's alignments (``c4_pose/area_pose.py``; needed when a rung runs ``orientation_corr``)."""
+        matcher's alignments (``c4_pose/area_pose.py``; needed when a rung runs ``orientation_corr``).
+        ``prior_doubt``: the rule that finds a wrong start prior out (None: never doubted);
+        ``map_extent``: the map's centre (lat_deg, lon_deg) and radius, m, that a doubted prior's sigma
+        grows to cover at most."""
         self._calib = calibration
         self._footprint_chips = footprint_chips
         self._mount = mount if mount is not None else CameraMount()
@@ -262,6 +285,12 @@ class NavigationPipeline:
         self._clock_ns = clock_ns
         #: F6 re-localisation (corpus-wide VPR) currently active; logged on transitions only.
         self._corpus_wide = False
+        #: The start prior's doubt (``c5_estimator/prior_doubt.py``) and the map it may grow to cover.
+        self._doubt = prior_doubt
+        self._map_extent = map_extent
+        #: How the newest attempt searched: ``prior`` (the prior's region), ``doubt`` (a doubted prior's
+        #: region, swept outward) or ``corpus`` (F6, corpus-wide, swept down the ranking).
+        self._search_mode = "prior"
         #: The corpus-wide sweep: the VPR rank the next corpus-wide attempt starts at (``_sweep``).
         self._sweep_rank = 0
         #: The last corpus-wide attempt kept its ranks for the next one (at most once in a row).
@@ -287,7 +316,10 @@ class NavigationPipeline:
     def _initialise(self, prior: InitialPrior, frame: NavCameraFrame) -> None:
         alt_agl_m = frame.alt_agl_m if frame.alt_agl_m is not None else 0.0
         pos = self._ltp.to_ned(prior.lat_deg, prior.lon_deg, self._ground_alt_amsl_m + alt_agl_m)
-        self._axis.initialise(pos, prior.sigma_m, frame.exposure_time_unix_usec)
+        t = frame.exposure_time_unix_usec
+        self._axis.initialise(pos, prior.sigma_m, t, map_confirmed=prior.confirmed)
+        if self._doubt is not None:
+            self._doubt.start()
         log.info(
             LogEvent.ESTIMATOR_INITIALISED,
             source=prior.source,
@@ -297,9 +329,13 @@ class NavigationPipeline:
             sigma_m=prior.sigma_m,
         )
 
-    def _search_region(self, state: EstimatorState, frame: NavCameraFrame) -> SearchRegion | None:
-        """The prior's uncertainty region, or None (corpus-wide, F6) once the uncertainty is so large
-        that the region says little and the VPR strategy can search by appearance."""
+    def _search_region(
+        self, state: EstimatorState, frame: NavCameraFrame
+    ) -> tuple[SearchRegion | None, bool]:
+        """(region, sweep): the prior's uncertainty region, or None (corpus-wide, F6) once the uncertainty
+        is so large that the region says little and the VPR strategy can search by appearance; and
+        whether attempts sweep it (corpus-wide, or a doubted prior's region: ``_sweep``). A doubted
+        prior's region is not clamped to ``vpr.prior_radius_max_m``: it grows until the map answers."""
         cfg = self._vpr_cfg
         corpus_wide = (
             state.horiz_sigma_m > cfg.corpus_wide_sigma_m
@@ -308,19 +344,24 @@ class NavigationPipeline:
         )
         if corpus_wide != self._corpus_wide:
             self._corpus_wide = corpus_wide
-            self._sweep_rank, self._sweep_held = 0, False
             log.warning(
                 LogEvent.VPR_CORPUS_WIDE if corpus_wide else LogEvent.VPR_PRIOR_GATED,
                 horiz_sigma_m=round(state.horiz_sigma_m, 1),
                 threshold_m=cfg.corpus_wide_sigma_m,
             )
+        doubted = self._doubt is not None and self._doubt.doubted
+        mode = "corpus" if corpus_wide else "doubt" if doubted else "prior"
+        if mode != self._search_mode:
+            self._search_mode = mode
+            self._sweep_rank, self._sweep_held = 0, False
         if corpus_wide:
-            return None
+            return None, True
         # The tile centre can be up to the frame's half-footprint away from the camera and still overlap.
         half_footprint_m = (frame.alt_agl_m or 0.0) * math.tan(self._calib.hfov_rad / 2.0)
-        radius = cfg.prior_sigma_scale * state.horiz_sigma_m + half_footprint_m
-        radius = min(max(radius, cfg.prior_radius_min_m), cfg.prior_radius_max_m)
-        return SearchRegion(state.lat_deg, state.lon_deg, radius)
+        radius = max(cfg.prior_sigma_scale * state.horiz_sigma_m + half_footprint_m, cfg.prior_radius_min_m)
+        if not doubted:
+            radius = min(radius, cfg.prior_radius_max_m)
+        return SearchRegion(state.lat_deg, state.lon_deg, radius), doubted
 
     def process(self, frame: NavCameraFrame, prior: InitialPrior | None) -> FrameOutcome:
         """Both halves on one frame, in sequence."""
@@ -514,6 +555,7 @@ class NavigationPipeline:
                 heading_height = self._heading_height.note(evidence)
             if attempt.rung is not None and self._ladder is not None:
                 self._ladder.note(attempt.rung, accepted)
+            doubt = self._note_doubt(frame, attempt, fix if accepted else None, reason, t)
             unit["accepted"] = accepted
         timings["estimator_fix"] = (self._clock_ns() - mark) / 1e6
         out = FixOutcome(
@@ -532,6 +574,7 @@ class NavigationPipeline:
             ground_tilt,
             attempt.rung,
             heading_height,
+            doubt,
         )
         self._fdr.record(
             FdrKind.FIX,
@@ -569,10 +612,58 @@ class NavigationPipeline:
                 "integrity": verdict.fdr_fields() if verdict is not None else None,
                 "consistency": consistency.fdr_fields() if consistency is not None else None,
                 "heading_height_check": heading_height.fdr_fields() if heading_height is not None else None,
+                "prior_doubt": (
+                    {
+                        **doubt.fdr_fields(),
+                        "frame_texture": _rounded(attempt.frame_texture),
+                        "map_texture": _rounded(attempt.map_texture),
+                    }
+                    if doubt is not None
+                    else None
+                ),
                 "timings_ms": timings,
             },
         )
         return out
+
+    def _note_doubt(
+        self, frame: NavCameraFrame, attempt: FixAttempt, fused: PoseFix | None, reason: str | None, t: int
+    ) -> DoubtVerdict | None:
+        """The attempt's outcome for the doubt on an unconfirmed start prior, inside the fix's unit of the
+        axis at ``t``: a counted failure may raise the position's sigma (from ``t`` on), and the first
+        fix after the prior was doubted says how far off it was. None once the prior is confirmed."""
+        doubt = self._doubt
+        if doubt is None or not doubt.active or attempt.searched_from is None:
+            return None
+        lat, lon, sigma_m = attempt.searched_from
+        cover_m = math.inf
+        if self._map_extent is not None:
+            c_lat, c_lon, radius_m = self._map_extent
+            cover_m = float(haversine_m(lat, lon, c_lat, c_lon)) + radius_m
+        moved_m = float(haversine_m(lat, lon, fused.lat_deg, fused.lon_deg)) if fused is not None else None
+        verdict = doubt.note(
+            accepted=fused is not None,
+            reason=reason,
+            frame_texture=attempt.frame_texture,
+            map_texture=attempt.map_texture,
+            searched_sigma_m=sigma_m,
+            cover_sigma_m=cover_m,
+            moved_m=moved_m,
+        )
+        raise_to = verdict.raise_to_sigma_m
+        if raise_to is not None and self._axis.raise_position_sigma(raise_to, t):
+            fields = {"frame": frame.seq, "searched_sigma_m": round(sigma_m, 1), **verdict.fdr_fields()}
+            log.warning(LogEvent.PRIOR_DOUBTED, **fields)
+            self._fdr.record(FdrKind.PRIOR_DOUBT, {"event": "doubted", **fields})
+        if verdict.reanchored_m is not None:
+            fields = {
+                "frame": frame.seq,
+                "reanchored_m": round(verdict.reanchored_m, 1),
+                "widenings": doubt.widenings,
+            }
+            log.warning(LogEvent.PRIOR_REANCHORED, **fields)
+            self._fdr.record(FdrKind.PRIOR_DOUBT, {"event": "reanchored", **fields})
+        return verdict
 
     def _agl_m(self, fix: PoseFix) -> float:
         """Height of ``fix`` above the map's ground, m (flat ground; never below it)."""
@@ -627,51 +718,87 @@ class NavigationPipeline:
             return FixAttempt(None, 0, None, "no_attitude_or_altitude")
         with self._axis.unit(UNIT_FIX_PRIOR, frame.exposure_time_unix_usec):
             prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
+        search_prior = _search_prior(prior_state)
+        doubting = self._doubt is not None and self._doubt.active
+        frame_texture = edge_share(frame.image_bgr) if doubting else None
+        # The effort ladder: this attempt's matcher and how many of the candidates it gets.
+        rung = self._ladder.choose(prior_state.horiz_sigma_m)
         t0 = self._clock_ns()
         first_rank: int | None = None
+        pinned = False
         try:
             query = self._vpr.embed_query(frame, self._calib)
-            region = self._search_region(prior_state, frame)
-            if region is None:
-                first_rank, vpr_result = self._sweep(self._vpr, query)
+            region, sweep = self._search_region(prior_state, frame)
+            if sweep:
+                # the prior's own place stays in every attempt of a doubted prior's sweep, while the rung
+                # gets room for more (a right prior the matcher failed on is tried again each time)
+                pinned = region is not None and rung.candidates >= 2
+                first_rank, vpr_result = self._sweep(self._vpr, query, region, pinned)
             else:
                 vpr_result = self._vpr.retrieve_topk(query, self._vpr_cfg.top_k, region=region)
         except VprError as exc:
             log.error(LogEvent.VPR_ERROR, frame=frame.seq, error=str(exc))
-            return FixAttempt(None, 0, None, "vpr_error")
+            return FixAttempt(None, 0, None, "vpr_error", frame_texture=frame_texture)
         t1 = self._clock_ns()
         timings["vpr"] = (t1 - t0) / 1e6
+        searched_from = (prior_state.lat_deg, prior_state.lon_deg, search_prior.sigma_m) if doubting else None
         if not vpr_result.candidates:
-            return FixAttempt(None, 0, None, "no_tiles_in_region")
+            return FixAttempt(
+                None, 0, None, "no_tiles_in_region", frame_texture=frame_texture, searched_from=searched_from
+            )
         rerank_result = self._footprint_first(frame, prior_state, self._rerank.rerank(frame, vpr_result))
-        rerank_result = replace(rerank_result, search=_search_prior(prior_state))
-        # The effort ladder: this attempt's matcher and how many of the candidates it gets.
-        rung = self._ladder.choose(prior_state.horiz_sigma_m)
+        # Corpus-wide, the prior says nothing of where to look: an area matcher searches a disc around
+        # each candidate the sweep hands on (a disc at the prior would take the first one's place).
+        rerank_result = replace(rerank_result, search=None if region is None else search_prior)
         rerank_result = replace(rerank_result, candidates=rerank_result.candidates[: rung.candidates])
-        attempt = replace(self._matched(frame, prior_state, rung, rerank_result, timings, t1), rung=rung.name)
+        map_texture = None
+        if doubting and rerank_result.candidates:
+            map_texture = edge_share(np.asarray(rerank_result.candidates[0].tile_pixels_handle.pixels()))
+        attempt = replace(
+            self._matched(frame, prior_state, rung, rerank_result, timings, t1),
+            rung=rung.name,
+            frame_texture=frame_texture,
+            map_texture=map_texture,
+            searched_from=searched_from,
+        )
         if first_rank is None:
             return attempt
-        # The next corpus-wide attempt goes on past the tiles this one matched (back to the top after a
+        # The next sweeping attempt goes on past the tiles this one matched (back to the top after a
         # fix), unless it solved a pose there: then once more on the same ranks, so that a fix the
-        # integrity rule or the consistency monitor held back can be confirmed by the next frame's.
-        hold = attempt.fix is not None and not self._sweep_held
+        # integrity rule or the consistency monitor held back can be confirmed by the next frame's. An
+        # area alignment is solved on every attempt: one whose peak does not stand out of its disc is
+        # the map not answering there, not a fix to confirm (holding on it halved the sweep's pace).
+        no_answer = attempt.no_fix_reason in _NO_PEAK_REASONS
+        hold = attempt.fix is not None and not no_answer and not self._sweep_held
         self._sweep_held = hold
         if not hold:
-            self._sweep_rank = first_rank + max(1, len(rerank_result.candidates))
+            swept = len(rerank_result.candidates) - (1 if pinned else 0)
+            self._sweep_rank = first_rank + max(1, swept)
         return replace(attempt, vpr_first_rank=first_rank)
 
-    def _sweep(self, vpr: VprStrategy, query: VprQuery) -> tuple[int, VprResult]:
-        """Corpus-wide retrieval (F6) as a sweep: the tiles ranked from ``_sweep_rank`` on (``vpr.top_k``
-        of them, for the rerank to choose from), so that consecutive attempts that fail go down the
-        ranking instead of matching the same top tiles again; past the last tile it starts again at the
-        top. Returns (the first rank handed on, the result). One pass over a cache of N tiles takes
-        ceil(N / ``rerank.top_n``) attempts, at most twice that when poses are solved and refused."""
+    def _sweep(
+        self, vpr: VprStrategy, query: VprQuery, region: SearchRegion | None, pinned: bool
+    ) -> tuple[int, VprResult]:
+        """Retrieval as a sweep: the tiles ranked from ``_sweep_rank`` on (``vpr.top_k`` of them, for the
+        rerank to choose from), so that consecutive attempts that fail go down the ranking instead of
+        matching the same top tiles again; past the last tile it starts again at the top. ``region``:
+        None corpus-wide (F6, ranked by appearance), else a doubted prior's region (ranked by the VPR
+        strategy within it: ``geo_prior`` by distance, so the sweep goes outward). ``pinned``: the
+        region's first tile (the prior's own place) leads every window and the sweep goes on from rank 1.
+        Returns (the first rank swept, the result). One pass over N tiles takes ceil(N / n) attempts
+        with n tiles swept an attempt (``rerank.top_n``, one fewer when pinned), at most twice that when
+        poses are solved and refused."""
         k = self._vpr_cfg.top_k
-        first = self._sweep_rank
-        result = vpr.retrieve_topk(query, first + k, region=None)
-        if first >= len(result.candidates):  # past the corpus: from the top again
-            first = 0
-        return first, replace(result, candidates=result.candidates[first : first + k])
+        lead = 1 if pinned else 0
+        first = max(self._sweep_rank, lead)
+        result = vpr.retrieve_topk(query, first + k - lead, region=region)
+        ranked = result.candidates
+        if first >= len(ranked):  # past the end: from the top again
+            first = lead
+        window = ranked[first : first + k - lead]
+        if pinned and ranked:
+            window = [ranked[0], *window]
+        return first, replace(result, candidates=window)
 
     def _matched(
         self,
@@ -903,6 +1030,10 @@ def _search_prior(state: EstimatorState) -> SearchPrior:
         return SearchPrior(state.lat_deg, state.lon_deg, math.inf)
     sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(cov))), 0.0))
     return SearchPrior(state.lat_deg, state.lon_deg, sigma)
+
+
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else round(value, 4)
 
 
 def _timing_fields(timing: FrameTiming | None) -> dict[str, object] | None:

@@ -73,6 +73,8 @@ def default_flights(shared: Path) -> list[Flight]:
         Flight("restart", "restart", None),
         Flight("clock_faults", "clock_faults", None),
         Flight("faults", "faults", None),
+        Flight("spoofed_start", "spoofed_start", None),
+        Flight("spoofed_home", "spoofed_home", None),
         Flight("nominal_real", "nominal_real", geovision),
         Flight("map_gap", "map_gap", geovision),
         Flight("wrong_tile_trap", "wrong_tile_trap", geovision),

@@ -254,6 +254,7 @@ def _from_fdr(path: Path, *, run: int | None) -> ReplayInput:
             float(prior_rec["sigma_m"]),
             str(prior_rec.get("source", "fdr")),
             str(prior_rec.get("why", "")),
+            confirmed=bool(prior_rec.get("confirmed", False)),  # as the run started (issue 37)
         )
     t_first = frames[0].exposure_time_unix_usec
     first = next(r for r in frames_rec if int(r["exposure_time_unix_usec"]) == t_first)
@@ -275,6 +276,7 @@ def _from_fdr(path: Path, *, run: int | None) -> ReplayInput:
             float(first["horiz_sigma_m"]),
             "fdr_estimate",
             f"the run's estimate at frame {first['frame_seq']}, the first with an image",
+            confirmed=True,  # the run's own estimate, as a resumed one is (c5_estimator/prior.py)
         )
         notes.append(
             f"the replay starts at frame {first['frame_seq']} from the run's estimate there "

@@ -45,6 +45,7 @@ from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c5_estimator.journal import RecordingJournal
 from gps_denied_onboard.components.c5_estimator.prior import PreviousRun, read_previous_run, with_resume_state
+from gps_denied_onboard.components.c5_estimator.prior_doubt import PriorDoubt
 from gps_denied_onboard.components.c5_estimator.resume_state import (
     ResumeStateFile,
     default_path,
@@ -64,7 +65,7 @@ from gps_denied_onboard.components.c8_mavlink import (
 from gps_denied_onboard.components.c13_fdr import FdrClient, FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import Config, LadderRung, MatcherConfig
 from gps_denied_onboard.constants import FdrKind, LogEvent
-from gps_denied_onboard.geo import LocalTangentPlane
+from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
 from gps_denied_onboard.helpers.lightglue_runtime import LightGlueRuntime
 from gps_denied_onboard.helpers.model_manifest import ModelDirError, ModelEntry, verify_model_dir
 from gps_denied_onboard.helpers.ransac_filter import RansacFilter
@@ -721,7 +722,17 @@ def _pipeline(
         ),
         footprint_chips=footprint_chips,
         attitude_sigma_deg=config.pose.attitude_sigma_deg,
+        prior_doubt=PriorDoubt(config.init),
+        map_extent=_map_extent(tiles) if tiles is not None else None,
     )
+
+
+def _map_extent(tiles: TileStore) -> tuple[float, float, float]:
+    """The cache's centre (lat_deg, lon_deg) and the ground distance from it to its farthest corner, m."""
+    west, south, east, north = tiles.bbox_lonlat
+    lon, lat = tiles.center_lonlat
+    radius_m = max(float(haversine_m(lat, lon, y, x)) for x in (west, east) for y in (south, north))
+    return lat, lon, radius_m
 
 
 def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = None) -> RuntimeRoot:

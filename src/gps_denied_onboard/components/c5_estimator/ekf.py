@@ -127,6 +127,7 @@ class EstimatorCheckpoint:
     shared_sigma_m: float
     imu_trusted: bool = True
     prior_conflict: _PriorConflict | None = None
+    map_confirmed: bool = False
 
 
 class NavEstimator:
@@ -164,6 +165,9 @@ class NavEstimator:
         self._consecutive_gated = 0
         #: Gated fixes contradicting a start prior no fix has confirmed (``_note_prior_conflict``).
         self._prior_conflict: _PriorConflict | None = None
+        #: A map fix has confirmed the state since ``initialise`` (or it started from a resumed 3D
+        #: estimate): only then may the output be a 3D fix (``EstimatorState.map_confirmed``).
+        self._map_confirmed = False
         self._last_vo_usec: int | None = None
         self._yaw_rad: float | None = None
         #: Bound on the fixes' common (map) error the position carries, metres per axis (see above).
@@ -203,9 +207,11 @@ class NavEstimator:
         time_unix_usec: int,
         *,
         vel_sigma_m_s: float = 10.0,
+        map_confirmed: bool = False,
     ) -> None:
         """(Re)start at ``pos_ned_m`` (3,) with 1-sigma ``sigma_m`` per axis, at rest with
-        ``vel_sigma_m_s`` per axis. Forgets previous fixes, VO and yaw."""
+        ``vel_sigma_m_s`` per axis. Forgets previous fixes, VO and yaw. ``map_confirmed``: the start is
+        the previous run's own 3D output (resumed), not a claim no map fix has checked."""
         pos = np.asarray(pos_ned_m, dtype=np.float64).reshape(-1)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)):
             raise ValueError(f"pos_ned_m must be 3 finite numbers, got {pos_ned_m!r}")
@@ -219,6 +225,7 @@ class NavEstimator:
         self._last_no_fix_usec = None
         self._consecutive_gated = 0
         self._prior_conflict = None
+        self._map_confirmed = bool(map_confirmed)
         self._last_vo_usec = None
         self._yaw_rad = None
         self._shared_sigma_m = 0.0
@@ -229,6 +236,7 @@ class NavEstimator:
             sigma_m=sigma_m,
             vel_sigma_m_s=vel_sigma_m_s,
             time_unix_usec=self._time_usec,
+            map_confirmed=self._map_confirmed,
         )
         self._refresh_provenance()
 
@@ -246,6 +254,7 @@ class NavEstimator:
             self._shared_sigma_m,
             self._imu_trusted,
             self._prior_conflict,
+            self._map_confirmed,
         )
 
     def restore(self, cp: EstimatorCheckpoint) -> None:
@@ -261,6 +270,7 @@ class NavEstimator:
         self._shared_sigma_m = cp.shared_sigma_m
         self._imu_trusted = cp.imu_trusted
         self._prior_conflict = cp.prior_conflict
+        self._map_confirmed = cp.map_confirmed
 
     # -- prediction ---------------------------------------------------------------------------------------
 
@@ -427,6 +437,7 @@ class NavEstimator:
             reason = FixReason.ACCEPTED
 
         self._prior_conflict = None
+        self._map_confirmed = True
         self._kf.update(pos.reshape(3, 1), R=cov, H=_H_POS)
         gain_ne = self._kf.K[:2, :2]
         self._shared_sigma_m = (
@@ -691,4 +702,5 @@ class NavEstimator:
             yaw_rad=self._yaw_rad,
             last_fix_age_s=fix_age,
             shared_sigma_m=self._shared_sigma_m,
+            map_confirmed=self._map_confirmed,
         )

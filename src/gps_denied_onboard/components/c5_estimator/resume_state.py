@@ -2,10 +2,11 @@
 
 The recorder stops recording on a nearly full disk (``fdr.min_free_bytes``) and its records may be
 deleted, so a restart in flight could find nothing to resume from and had to search the whole map. This
-file keeps one small JSON object (position, 1-sigma, time, provenance), rewritten in place at most once a
-second by the daemon and read by ``prior`` at start beside the FDR. Path: ``init.resume_state_path``,
-by default ``<fdr.dir>/resume_state.json`` (the one directory the shipped unit may write; the recorder
-ignores files it did not name; the writer creates the directory when the recorder has not).
+file keeps one small JSON object (position, 1-sigma, time, provenance, and a CRC-32 of the rest),
+rewritten in place at most once a second by the daemon and read by ``prior`` at start beside the FDR.
+Path: ``init.resume_state_path``, by default ``<fdr.dir>/resume_state.json`` (the one directory the
+shipped unit may write; the recorder ignores files it did not name; the writer creates the directory when
+the recorder has not).
 
 Writes are atomic: a temporary file in the same directory, fsync, rename over the old one, fsync of the
 directory. A kill at any point leaves the old file or the new one, never a torn one. The write does not
@@ -13,8 +14,10 @@ obey the recorder's low-disk policy: it needs a few hundred bytes, and a failure
 outage and counted, never raised.
 
 Reading refuses, in one logged line, and treats as absent: a file larger than ``MAX_BYTES``, not a regular
-file, not UTF-8 JSON (nested too deeply included), another version, a missing or mistyped field, a
-position off the Earth, a sigma not finite and positive, a time in the future.
+file, not UTF-8 JSON (nested too deeply included), another version (version 1 had no checksum), a
+checksum that does not match the fields (``crc32``: CRC-32 of the other fields as canonical JSON, sorted
+keys, no spaces: a bit flipped on the card, an edit by hand), a missing or mistyped field, a position off
+the Earth, a sigma not finite and positive, a time in the future.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import json
 import math
 import os
 import stat
+import zlib
 from pathlib import Path
 from typing import Any, Final
 
@@ -33,8 +37,8 @@ from gps_denied_onboard.constants import RESUME_STATE_FILENAME, LogEvent
 
 _log = structlog.get_logger(__name__)
 
-#: Format version written and accepted.
-VERSION: Final[int] = 1
+#: Format version written and accepted (2: with ``crc32``).
+VERSION: Final[int] = 2
 #: Larger files are refused unread (the file written is about 200 bytes).
 MAX_BYTES: Final[int] = 4096
 #: A state written this far ahead of the reader's clock is refused (clocks of two boots may differ a
@@ -56,6 +60,12 @@ def default_path(fdr_dir: str | Path) -> Path:
     return Path(fdr_dir) / RESUME_STATE_FILENAME
 
 
+def checksum(fields: dict[str, Any]) -> int:
+    """CRC-32 of ``fields`` without ``crc32``, as canonical JSON (sorted keys, no spaces, UTF-8)."""
+    body = {k: v for k, v in fields.items() if k != "crc32"}
+    return zlib.crc32(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
+
+
 def _parse(path: Path, data: bytes, now_unix_s: float) -> ResumeState:
     try:
         obj = json.loads(data)
@@ -67,6 +77,11 @@ def _parse(path: Path, data: bytes, now_unix_s: float) -> ResumeState:
         raise ResumeStateError(path, f"expected a JSON object, got {type(obj).__name__}")
     if obj.get("version") != VERSION:
         raise ResumeStateError(path, f"version {obj.get('version')!r}, expected {VERSION}")
+    crc = obj.get("crc32")
+    if isinstance(crc, bool) or not isinstance(crc, int):
+        raise ResumeStateError(path, f"crc32 is {crc!r}, expected an integer")
+    if crc != checksum(obj):
+        raise ResumeStateError(path, f"checksum mismatch (crc32 {crc}, the fields give {checksum(obj)})")
 
     def number(key: str) -> float:
         value = obj.get(key)
@@ -134,6 +149,7 @@ class ResumeStateFile:
             "provenance": provenance,
             "written_unix_s": written_unix_s,
         }
+        body["crc32"] = checksum(body)
         data = json.dumps(body).encode()
         tmp = self.path.with_name(f".{self.path.name}.tmp")
         try:

@@ -210,10 +210,13 @@ class TimeAxis:
         with self._lock:
             return self._est.time_unix_usec
 
-    def initialise(self, pos_ned_m: np.ndarray, sigma_m: float, time_unix_usec: int) -> None:
-        """(Re)start the filter at ``time_unix_usec``; nothing earlier can be fused afterwards."""
+    def initialise(
+        self, pos_ned_m: np.ndarray, sigma_m: float, time_unix_usec: int, *, map_confirmed: bool = False
+    ) -> None:
+        """(Re)start the filter at ``time_unix_usec``; nothing earlier can be fused afterwards.
+        ``map_confirmed``: see :meth:`NavEstimator.initialise`."""
         with self._lock:
-            self._est.initialise(pos_ned_m, sigma_m, int(time_unix_usec))
+            self._est.initialise(pos_ned_m, sigma_m, int(time_unix_usec), map_confirmed=map_confirmed)
             self._entries.clear()
 
     @contextlib.contextmanager

@@ -34,6 +34,10 @@ class EstimatorState:
     #: (``PoseFix.shared_sigma_m``, see ``ekf.py``). A map fix carries the same error, so a comparison
     #: with one uses :attr:`map_frame_cov_ne_m2`, which leaves it out.
     shared_sigma_m: float
+    #: Whether a map fix has confirmed the state since the estimator started (or it started from the
+    #: previous run's own 3D output, resumed). A start prior nothing has confirmed is a claim: it is never
+    #: sent as a 3D fix (``c8_mavlink/messages.py``, ``c5_estimator/prior_doubt.py``).
+    map_confirmed: bool = True
 
     @property
     def map_frame_cov_ne_m2(self) -> np.ndarray:

@@ -20,7 +20,8 @@ Rules:
 - TIMESYNC: only the autopilot's own requests, from its address, are answered, at most one per
   ``TIMESYNC_ANSWER_MIN_INTERVAL_S``.
 - VISION_POSITION_ESTIMATE goes out only in a frame the autopilot shares (its GPS_GLOBAL_ORIGIN, or ours
-  offered with SET_GPS_GLOBAL_ORIGIN until it reports one).
+  offered with SET_GPS_GLOBAL_ORIGIN until it reports one), and never for a state no map fix has
+  confirmed (it has no fix_type to say so).
 - GPS_INPUT's altitude is flagged as ignored while the ground altitude disagrees (``distrust_altitude``).
 
 The rules in full: docs/design.md, "`c8_mavlink/link.py`: the link".
@@ -691,7 +692,11 @@ class MavlinkLink:
         self._maybe_send_origin(self._clock())
         with self._lock:
             position_ok = bool(np.all(np.isfinite(np.asarray(state.pos_ned_m, dtype=np.float64))))
-            if state.provenance is Provenance.NO_ESTIMATE or not position_ok or self._ltp is None:
+            # VISION_POSITION_ESTIMATE has no fix_type to say "not to be trusted": a state no map fix has
+            # confirmed (a start prior) is not sent at all, as no estimate is not.
+            unconfirmed = not state.map_confirmed
+            no_estimate = state.provenance is Provenance.NO_ESTIMATE
+            if no_estimate or unconfirmed or not position_ok or self._ltp is None:
                 self._last_vision_state = None
                 return 0
             frame = self._vision_frame()
@@ -794,9 +799,10 @@ class MavlinkLink:
         self._record_event("origin_sent", **fields)
 
     def request_autopilot_estimate(self) -> bool:
-        """Ask the autopilot for its position estimate, EKF status and home now (MAV_CMD_REQUEST_MESSAGE
-        for GLOBAL_POSITION_INT, EKF_STATUS_REPORT and HOME_POSITION): the start-up rules in
-        ``c5_estimator.prior`` (HOME_POSITION is otherwise streamed only every few seconds)."""
+        """Ask the autopilot for its position estimate, EKF status, GNSS accuracy and home now
+        (MAV_CMD_REQUEST_MESSAGE for GPS_RAW_INT, GLOBAL_POSITION_INT, EKF_STATUS_REPORT and HOME_POSITION):
+        the start-up rules and cross-checks in ``c5_estimator.prior`` (HOME_POSITION is otherwise streamed
+        only every few seconds)."""
         target = self._config.autopilot_system_id
 
         def request(message_id: int) -> Callable[[Any], Any]:
@@ -807,6 +813,7 @@ class MavlinkLink:
         sent = [
             self._build_and_send(request(message_id))
             for message_id in (
+                DIALECT.MAVLINK_MSG_ID_GPS_RAW_INT,
                 DIALECT.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
                 DIALECT.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
                 DIALECT.MAVLINK_MSG_ID_HOME_POSITION,

@@ -11,6 +11,8 @@ Rule (what the autopilot is told):
   over a stream (``Fix3dGate``, the one stateful piece here), 3D once entered stays 3D up to a speed
   1-sigma of ``FIX_3D_KEEP_SPEED_SIGMA_M_S``, and the stream's first 3D fix waits until the estimate
   has qualified for ``FIX_3D_SETTLE_S``;
+  a state no map fix has confirmed since the estimator started (a start prior, however tight its stated
+  sigma: ``EstimatorState.map_confirmed``) is never a 3D fix (1), in GPS_INPUT and GLOBAL_POSITION_SENSOR;
 - **accuracy** fields are the state's 1-sigma values, never a constant; ``hdop``/``vdop`` are those over
   ``NOMINAL_UERE_M`` (5 m), clamped to [0.01, HDOP_MAX];
 - **ignore_flags** only for fields that are truly unknown (non-finite), sent as 0, never NaN;
@@ -145,7 +147,8 @@ def gps_input_fix_type(
     max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
     max_speed_sigma_m_s: float = FIX_3D_MAX_SPEED_SIGMA_M_S,
 ) -> int:
-    """GPS_INPUT's fix_type for ``state``: ``fix_type_for`` with its position and speed sigmas."""
+    """GPS_INPUT's fix_type for ``state``: ``fix_type_for`` with its position and speed sigmas, and no 3D
+    fix for a state no map fix has confirmed (``EstimatorState.map_confirmed``)."""
     horiz = state.horiz_sigma_m if np.all(np.isfinite(state.cov_pos_ned_m2[:2, :2])) else math.inf
     fix = fix_type_for(
         state.provenance,
@@ -154,7 +157,9 @@ def gps_input_fix_type(
         max_fix_sigma_m=max_fix_sigma_m,
         max_speed_sigma_m_s=max_speed_sigma_m_s,
     )
-    return fix if _position_finite(state) else FIX_TYPE_NO_GPS
+    if not _position_finite(state):
+        return FIX_TYPE_NO_GPS
+    return FIX_TYPE_NO_FIX if fix == FIX_TYPE_3D and not state.map_confirmed else fix
 
 
 #: The stream's first 3D fix is declared only once the estimate has qualified for this long, s
@@ -330,7 +335,7 @@ def global_position_sensor(
     """
     horiz = state.horiz_sigma_m
     usable = fix_type_for(state.provenance, horiz, max_fix_sigma_m=max_fix_sigma_m) >= FIX_TYPE_3D
-    usable = usable and _position_finite(state)
+    usable = usable and _position_finite(state) and state.map_confirmed
     flags = 0 if usable else DIALECT.GLOBAL_POSITION_UNHEALTHY
     lat_e7, lon_e7 = (_e7(state.lat_deg), _e7(state.lon_deg)) if _position_finite(state) else (0, 0)
     return mav.global_position_sensor_encode(

@@ -119,6 +119,27 @@ class AutopilotPosition:
         return bool(good) and not const
 
 
+@dataclass(frozen=True)
+class GroundPosition:
+    """The autopilot's own position while the vehicle stood on the ground in this run (GLOBAL_POSITION_INT
+    with EKF_STATUS_REPORT vouching for it: its GNSS before the denial, which a spoofer may have dragged),
+    for the cross-checks of the start points in ``c5_estimator.prior``."""
+
+    lat_deg: float
+    lon_deg: float
+    #: When it was received, Unix s.
+    recv_unix_s: float
+    #: Its stated horizontal 1-sigma (GPS_RAW_INT.h_acc with a 3D fix, received within
+    #: ``POSITION_MAX_AGE_S``), m; None when the autopilot states none.
+    sigma_m: float | None
+
+
+#: GPS_FIX_TYPE_3D: GPS_RAW_INT's accuracy is taken only with at least a 3D fix.
+_GPS_FIX_3D: Final[int] = 3
+#: MAV_LANDED_STATE values that mean the vehicle is flying.
+_FLYING: Final[frozenset[int]] = frozenset(
+    {DIALECT.MAV_LANDED_STATE_IN_AIR, DIALECT.MAV_LANDED_STATE_TAKEOFF, DIALECT.MAV_LANDED_STATE_LANDING}
+)
 #: MAV_LANDED_STATE values an autopilot may report (UNDEFINED says nothing and is not kept).
 _LANDED_STATES: Final[frozenset[int]] = frozenset(
     {
@@ -263,6 +284,13 @@ class VehicleStateTracker:
         self._attitude = _Series()
         self._alt: dict[AltitudeSource, _Series] = {s: _Series() for s in AltitudeSource}
         self._home: tuple[float, float, float] | None = None
+        #: Whether the newest HOME_POSITION came signed (MAVLink 2 signing): an unsigned one is a claim
+        #: anyone on the link could have made.
+        self._home_signed = False
+        #: GPS_RAW_INT: (receive time as boot usec, fix_type, h_acc m or None).
+        self._gps_raw: tuple[int, int, float | None] | None = None
+        #: The autopilot's own position while on the ground (``ground_position``).
+        self._ground_position: GroundPosition | None = None
         #: The autopilot's local-frame origin from GPS_GLOBAL_ORIGIN (lat_deg, lon_deg, alt_amsl_m).
         self._gps_origin: tuple[float, float, float] | None = None
         self._imu: ImuSample | None = None
@@ -412,6 +440,39 @@ class VehicleStateTracker:
             self._position = (t, lat_deg, lon_deg, int(msg.vx) / 100.0, int(msg.vy) / 100.0)
             # the ground under home, AMSL: only once the EKF has an origin (before it, alt is 0)
             self._ground_alt = (t, (int(msg.alt) - int(msg.relative_alt)) / 1000.0)
+            self._note_ground_position(lat_deg, lon_deg, recv_usec)
+        return True
+
+    def _note_ground_position(self, lat_deg: float, lon_deg: float, recv_usec: int) -> None:
+        """Keep the autopilot's position as the ground position while the vehicle is on the ground (its
+        newest armed or landed state, fresh, says so and nothing says it flies) and its EKF vouches for
+        its absolute horizontal position (flags received within ``POSITION_MAX_AGE_S``)."""
+        recv_s = recv_usec / 1e6
+        boot = self._recv_as_boot(recv_usec)
+        max_age_usec = POSITION_MAX_AGE_S * 1e6
+
+        def fresh(sample: tuple[float, Any] | None) -> Any:
+            if sample is None or not 0.0 <= recv_s - sample[0] <= self._link_timeout_s:
+                return None
+            return sample[1]
+
+        landed, armed = fresh(self._landed_state), fresh(self._armed)
+        on_ground = (landed == DIALECT.MAV_LANDED_STATE_ON_GROUND or armed is False) and landed not in _FLYING
+        flags = self._ekf_flags
+        if not on_ground or flags is None or abs(flags[0] - boot) > max_age_usec:
+            return
+        if not AutopilotPosition(lat_deg, lon_deg, (0.0, 0.0), 0, flags[1]).horizontal_position_valid:
+            return
+        sigma: float | None = None
+        raw = self._gps_raw
+        if raw is not None and abs(raw[0] - boot) <= max_age_usec and raw[1] >= _GPS_FIX_3D:
+            sigma = raw[2]
+        self._ground_position = GroundPosition(lat_deg, lon_deg, recv_s, sigma)
+
+    def _on_gps_raw_int(self, msg: Any, recv_usec: int) -> bool:
+        h_acc_mm = int(getattr(msg, "h_acc", 0) or 0)  # a MAVLink 2 extension: 0 when not stated
+        h_acc_m = h_acc_mm / 1000.0 if h_acc_mm else None
+        self._gps_raw = (self._recv_as_boot(recv_usec), int(msg.fix_type), h_acc_m)
         return True
 
     def _on_ekf_status_report(self, msg: Any, recv_usec: int) -> bool:
@@ -428,6 +489,7 @@ class VehicleStateTracker:
 
     def _on_home_position(self, msg: Any, recv_usec: int) -> bool:
         self._home = (int(msg.latitude) / 1e7, int(msg.longitude) / 1e7, int(msg.altitude) / 1000.0)
+        self._home_signed = bool(msg.get_signed()) if hasattr(msg, "get_signed") else False
         return True
 
     def _on_gps_global_origin(self, msg: Any, recv_usec: int) -> bool:
@@ -603,6 +665,17 @@ class VehicleStateTracker:
         with self._lock:
             return self._home
 
+    def home_signed(self) -> bool:
+        """Whether the newest HOME_POSITION came with a MAVLink 2 signature (False before one came)."""
+        with self._lock:
+            return self._home_signed
+
+    def ground_position(self) -> GroundPosition | None:
+        """The autopilot's own position the last time it said the vehicle was on the ground in this run,
+        with its EKF vouching for it (``_note_ground_position``); None if it never did."""
+        with self._lock:
+            return self._ground_position
+
     def gps_origin(self) -> tuple[float, float, float] | None:
         """(lat_deg, lon_deg, alt_amsl_m) of the autopilot's local NED origin from its latest
         GPS_GLOBAL_ORIGIN, or None before one was received (or since a detected autopilot reboot)."""
@@ -705,6 +778,7 @@ _HANDLERS: Final[dict[str, Callable[[VehicleStateTracker, Any, int], bool]]] = {
     "EKF_STATUS_REPORT": VehicleStateTracker._on_ekf_status_report,
     "VFR_HUD": VehicleStateTracker._on_vfr_hud,
     "HOME_POSITION": VehicleStateTracker._on_home_position,
+    "GPS_RAW_INT": VehicleStateTracker._on_gps_raw_int,
     "GPS_GLOBAL_ORIGIN": VehicleStateTracker._on_gps_global_origin,
     "EXTENDED_SYS_STATE": VehicleStateTracker._on_extended_sys_state,
     "HIGHRES_IMU": VehicleStateTracker._on_highres_imu,
