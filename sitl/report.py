@@ -431,13 +431,15 @@ def analyse(
                 "fixes_to_recover_nominal_p95": recover,
             }
         )
-    times = [float(r["t_unix_s"]) for r in fixes]
+    # The time the fix was judged is its record's own time (the recorder stamps every record).
+    timed = [r for r in fixes if isinstance(r.get("t_unix_s"), (int, float))]
+    times = [float(r["t_unix_s"]) for r in timed]
     span_s = max(times) - min(times) if len(times) > 1 else 0.0
-    judged_ms = [float(r["t_unix_s"]) * 1e3 - r["exposure_time_unix_usec"] / 1e3 for r in fixes]
+    judged_ms = [float(r["t_unix_s"]) * 1e3 - r["exposure_time_unix_usec"] / 1e3 for r in timed]
     return {
         "fdr_frames": len(frames),
         "fdr_fix_attempts": len(fixes),
-        "fix_attempts_per_s": round((len(fixes) - 1) / span_s, 3) if span_s > 0 else None,
+        "fix_attempts_per_s": round((len(timed) - 1) / span_s, 3) if span_s > 0 else None,
         "judged_fix_latency_ms": {
             "p50": _round_or_none(_pct(judged_ms, 50), 1),
             "p95": _round_or_none(_pct(judged_ms, 95), 1),
