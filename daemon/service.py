@@ -25,7 +25,9 @@ import math
 import signal
 import time
 import uuid
+from collections.abc import Coroutine
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import structlog
@@ -46,6 +48,7 @@ from gps_denied_onboard.components.c5_estimator.prior import (
 from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxisStats
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
 from gps_denied_onboard.components.c8_mavlink.messages import Fix3dGate, stated_speed_sigma_m_s
+from gps_denied_onboard.components.c8_mavlink.px4_params import PX4_AGP_PARAMS, px4_agp_problems
 from gps_denied_onboard.components.c13_fdr import FdrHealth
 from gps_denied_onboard.constants import (
     RESUME_STATE_INTERVAL_S,
@@ -78,6 +81,11 @@ ATTITUDE_RATE_HALF_SPAN_S = 0.02
 ATTITUDE_WAIT_MAX_S = 0.3
 #: The operator hears that a doubted prior's search grew at most this often (the first time at once), s.
 PRIOR_DOUBT_TEXT_INTERVAL_S = 5.0
+#: PX4's parameters (``_check_px4_parameters``): how often to look for its HEARTBEAT, how long to wait
+#: for the answers to one round of PARAM_REQUEST_READ, and how many rounds, s.
+PX4_PARAM_POLL_S = 0.2
+PX4_PARAM_WAIT_S = 0.5
+PX4_PARAM_TRIES = 6
 
 
 @dataclass
@@ -198,6 +206,9 @@ class NavDaemon:
         }
         if self._root.resume_state is not None:
             bodies["resume_state"] = self._keep_resume_state()
+        if "global_position_sensor" in self._cfg.mavlink.outputs:
+            self._root.link.hold_global_position_sensor("PX4's EKF2_AGP0 parameters not checked yet")
+            bodies["px4_parameters"] = self._idle_after(self._check_px4_parameters())
         tasks = {name: asyncio.create_task(body, name=name) for name, body in bodies.items()}
         stopper = asyncio.create_task(stop.wait(), name="stop")
         self._notifier.ready(f"matcher={self._cfg.matcher.strategy} tiles={len(self._root.tile_store)}")
@@ -843,6 +854,7 @@ class NavDaemon:
                 "mavlink_send_errors": link.send_errors,
                 "mavlink_reconnects": link.reconnects,
                 "mavlink_impostor_messages": link.impostor_messages,
+                "mavlink_positions_withheld": link.positions_withheld,
                 "mavlink_timesync_answered": link.timesync_answered,
                 "mavlink_timesync_ignored": link.timesync_ignored,
                 "fdr_state": fdr.state.value,
@@ -893,6 +905,47 @@ class NavDaemon:
         self._root.link.send_statustext(
             mavutil.mavlink.MAV_SEVERITY_WARNING, f"GDN: host clock stepped {step.step_s:+.1f} s, ignored"
         )
+
+    @staticmethod
+    async def _idle_after(once: Coroutine[Any, Any, None]) -> None:
+        """Run ``once``, then wait: a task of the service that ends stops the service."""
+        await once
+        await asyncio.Event().wait()
+
+    async def _check_px4_parameters(self) -> None:
+        """Before the first GLOBAL_POSITION_SENSOR, read PX4's ``EKF2_AGP0_*`` back and say what is wrong
+        (``c8_mavlink.px4_params``): log, FDR, STATUSTEXT. The message is held while the check runs and
+        while ``EKF2_AGP0_ID`` is not its id; an autopilot that is not PX4, or parameters PX4 never
+        answers, release it (reported)."""
+        link, tracker = self._root.link, self._root.tracker
+        while tracker.autopilot_kind is None:
+            await asyncio.sleep(PX4_PARAM_POLL_S)
+        if tracker.autopilot_kind != mavutil.mavlink.MAV_AUTOPILOT_PX4:
+            link.hold_global_position_sensor(None)
+            log.warning(
+                LogEvent.PX4_PARAMETERS,
+                autopilot=tracker.autopilot_kind,
+                reason="the autopilot is not PX4: its EKF2_AGP0 parameters are not checked",
+            )
+            return
+        values: dict[str, float | None] = dict.fromkeys(PX4_AGP_PARAMS)
+        for _ in range(PX4_PARAM_TRIES):
+            link.request_params(tuple(name for name, value in values.items() if value is None))
+            await asyncio.sleep(PX4_PARAM_WAIT_S)
+            values = {name: tracker.param(name) for name in PX4_AGP_PARAMS}
+            if all(value is not None for value in values.values()):
+                break
+        problems = px4_agp_problems(values, sensor_id=self._cfg.mavlink.global_position_sensor_id)
+        blocking = [p.detail for p in problems if p.blocks_output]
+        link.hold_global_position_sensor(blocking[0] if blocking else None)
+        fields = {"values": values, "problems": [p.detail for p in problems], "output_held": bool(blocking)}
+        self._root.fdr.record(FdrKind.PX4_PARAMETERS, fields)
+        if not problems:
+            log.info(LogEvent.PX4_PARAMETERS, **fields)
+            return
+        log.error(LogEvent.PX4_PARAMETERS, **fields)
+        for problem in problems:
+            link.send_statustext(mavutil.mavlink.MAV_SEVERITY_ERROR, problem.statustext)
 
     def _check_ground_alt(self) -> None:
         """The autopilot's ground altitude against ``terrain.ground_alt_amsl_m``: beyond

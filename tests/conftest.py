@@ -29,3 +29,19 @@ def _restore_structlog() -> Iterator[None]:
     saved = structlog.get_config()
     yield
     structlog.configure(**saved)
+
+
+class RecordingFdr:
+    """The FDR at a component's boundary: keeps what is recorded, as (kind, fields)."""
+
+    def __init__(self) -> None:
+        self.records: list[tuple[str, dict[str, object]]] = []
+
+    def record(self, kind: str, fields: dict[str, object]) -> None:
+        self.records.append((kind, dict(fields)))
+
+
+@pytest.fixture
+def recording_fdr() -> RecordingFdr:
+    """A fresh :class:`RecordingFdr`."""
+    return RecordingFdr()

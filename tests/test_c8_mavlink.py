@@ -32,6 +32,7 @@ from gps_denied_onboard.constants import (
     GPS_INPUT_GPS_ID,
     SET_GPS_GLOBAL_ORIGIN_INTERVAL_S,
     FdrHealthState,
+    FdrKind,
     LogEvent,
     Provenance,
 )
@@ -541,17 +542,16 @@ def test_link_outputs_decode_on_autopilot_side(udp_pair: tuple) -> None:
     assert link.stats().send_errors == 0
 
 
-def test_link_no_estimate_sends_fix_type_zero_and_unhealthy(udp_pair: tuple) -> None:
-    """no_estimate: GPS_INPUT fix 0, GLOBAL_POSITION_SENSOR flagged unhealthy, no VISION_POSITION_ESTIMATE."""
+def test_link_no_estimate_is_gps_input_fix_zero_and_nothing_else(udp_pair: tuple) -> None:
+    """no_estimate: GPS_INPUT says fix 0 (ArduPilot honours it); GLOBAL_POSITION_SENSOR and
+    VISION_POSITION_ESTIMATE, which have no "do not use" their receivers honour, are not sent, counted."""
     link, ap, _clock, _ = udp_pair
     ap.mav.send(_ap_heartbeat(ap.mav))
     assert _pump(link, lambda: link.tracker.autopilot_seen)
-    link.send_estimate(_state(Provenance.NO_ESTIMATE), time_unix_usec=T0_UNIX_USEC)
+    assert link.send_estimate(_state(Provenance.NO_ESTIMATE), time_unix_usec=T0_UNIX_USEC) == 1
     got = _recv_all(ap, ["GPS_INPUT", "GLOBAL_POSITION_SENSOR", "VISION_POSITION_ESTIMATE"], 0.3)
-    by_type = {x.get_type(): x for x in got}
-    assert by_type["GPS_INPUT"].fix_type == 0
-    assert by_type["GLOBAL_POSITION_SENSOR"].flags & D.GLOBAL_POSITION_UNHEALTHY
-    assert "VISION_POSITION_ESTIMATE" not in by_type
+    assert [x.get_type() for x in got] == ["GPS_INPUT"] and got[0].fix_type == 0
+    assert link.stats().positions_withheld == 2
 
 
 def test_statustext_rate_limited_and_coalesced(udp_pair: tuple) -> None:
@@ -1102,18 +1102,19 @@ def test_tracker_ahrs_doubt_grows_with_the_autopilots_manoeuvres() -> None:
 
 def test_a_state_no_map_fix_has_confirmed_is_never_a_3d_fix() -> None:
     """Issue 37: a start prior (configured, HOME_POSITION) stating 5 m is a claim until a map fix
-    confirms it: GPS_INPUT says no fix (1), GLOBAL_POSITION_SENSOR unhealthy, the 3D stream never enters;
-    the same state confirmed is 3D."""
+    confirms it: GPS_INPUT says no fix (1), GLOBAL_POSITION_SENSOR is not built, the 3D stream never
+    enters; the same state confirmed is 3D."""
     from dataclasses import replace
 
     mav = D.MAVLink(None)
     claim = replace(_state(Provenance.VISUAL_PROPAGATED), map_confirmed=False)
     assert m.gps_input(mav, claim, time_unix_usec=T0_UNIX_USEC).fix_type == 1
     assert m.gps_input(mav, replace(claim, map_confirmed=True), time_unix_usec=T0_UNIX_USEC).fix_type == 3
-    gps = m.global_position_sensor(
-        mav, claim, time_unix_usec=T0_UNIX_USEC, processing_time_usec=0, target_system=1, sensor_id=1
-    )
-    assert gps.flags & D.GLOBAL_POSITION_UNHEALTHY
+    assert m.withheld_reason(claim) == "no map fix has confirmed the start"
+    with pytest.raises(ValueError, match="confirmed the start"):
+        m.global_position_sensor(
+            mav, claim, time_unix_usec=T0_UNIX_USEC, processing_time_usec=0, target_system=1, sensor_id=1
+        )
     gate = m.Fix3dGate(settle_s=0.0)
     assert all(
         gate.fix_type(replace(claim, time_unix_usec=T0_UNIX_USEC + k * 100_000)) == 1 for k in range(20)
@@ -1184,3 +1185,116 @@ def test_tracker_says_whether_home_came_signed() -> None:
     home._signed = True  # as pymavlink marks a message whose signature it verified
     tr.handle(home, T0_UNIX_USEC / 1e6)
     assert tr.home_signed()
+
+
+def test_px4_never_gets_an_origin_or_a_position_from_a_daemon_without_a_backed_fix(
+    recording_fdr: Any,
+) -> None:
+    """Issue 34: PX4 takes its origin from the first GLOBAL_POSITION_SENSOR whatever it says, and resets
+    to messages it does not fuse (the double, ``sitl/px4_rules.py``, measured rules). Over UDP, the real
+    link: no estimate, an unconfirmed start, dead reckoning and a NaN altitude send nothing (the double
+    keeps no origin, nothing at 0,0 arrives); the first backed state sets the origin where it is, with its
+    altitude; dead reckoning after it stops the stream, so PX4 fails safe instead of following it."""
+    from dataclasses import replace
+
+    from gps_denied_onboard.sitl.px4_rules import Origin, Px4AuxGlobalPosition
+
+    port = _free_udp_port()
+    fdr = recording_fdr
+    link = MavlinkLink(
+        MavlinkConfig(url=f"udpin:127.0.0.1:{port}", outputs=("global_position_sensor",)), _tracker()
+    )
+    link.open()
+    link.attach(fdr, None)
+    ap = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    px4 = Px4AuxGlobalPosition({"EKF2_AGP0_ID": 1, "EKF2_AGP0_CTRL": 1})
+    received: list[Any] = []
+
+    def feed(states: list[EstimatorState]) -> None:
+        for k, state in enumerate(states):
+            link.send_estimate(state, time_unix_usec=T0_UNIX_USEC + k * 100_000)
+        for msg in _recv_all(ap, "GLOBAL_POSITION_SENSOR", 0.3):
+            received.append(msg)
+            px4.receive(msg.to_dict(), time.monotonic())
+
+    try:
+        ap.mav.send(_ap_heartbeat(ap.mav))
+        assert _pump(link, lambda: link.tracker.autopilot_seen)
+        good = _state(Provenance.SATELLITE_ANCHORED)
+        unbacked = (
+            [EstimatorState.no_estimate(T0_UNIX_USEC)] * 5
+            + [replace(good, map_confirmed=False)] * 5
+            + [_state(Provenance.DEAD_RECKONING)] * 5
+            + [replace(good, alt_amsl_m=math.nan)] * 5
+        )
+        feed(unbacked)
+        assert received == [] and px4.origin is None and px4.global_position() is None
+        assert link.stats().positions_withheld == 20
+        feed([good] * 5)
+        assert len(received) == 5 and all(msg.flags == 0 and math.isfinite(msg.alt) for msg in received)
+        near = {"abs": 1e-7}
+        assert px4.origin == Origin(
+            pytest.approx(good.lat_deg, **near), pytest.approx(good.lon_deg, **near), good.alt_amsl_m, True
+        )
+        assert px4.global_position() == pytest.approx((good.lat_deg, good.lon_deg), abs=1e-7)
+        feed([_state(Provenance.DEAD_RECKONING)] * 5)
+        assert len(received) == 5
+        assert px4.failsafe(time.monotonic() + 5.3)
+        events = [r["event"] for kind, r in fdr.records if kind == FdrKind.LINK_EVENT]
+        assert events.count("output_withheld") == 5 and events.count("output_resumed") == 1
+    finally:
+        ap.close()
+        link.close()
+
+
+def test_px4_parameters_are_read_back_byte_wise_and_a_wrong_one_named_with_the_fix() -> None:
+    """PX4 answers PARAM_REQUEST_READ with integers byte-wise in PARAM_VALUE's float; the link asks, the
+    tracker decodes, and ``px4_agp_problems`` names each wrong value with the value to set and the reboot
+    (the id and CTRL are read at boot). Preflight's reader does the same over real UDP."""
+    import struct
+
+    from gps_denied_onboard.cli_preflight import _read_px4_params
+    from gps_denied_onboard.components.c8_mavlink.px4_params import PX4_AGP_PARAMS, px4_agp_problems
+    from gps_denied_onboard.config import Config
+
+    port = _free_udp_port()
+    cfg = MavlinkConfig(url=f"udpin:127.0.0.1:{port}", outputs=("global_position_sensor",))
+    link = MavlinkLink(cfg, _tracker())
+    link.open()
+    px4 = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    px4_params = {"EKF2_AGP0_ID": (0, D.MAV_PARAM_TYPE_INT32), "EKF2_AGP0_CTRL": (0, D.MAV_PARAM_TYPE_INT32)}
+    px4_params["EKF2_AGP0_DELAY"] = (200.0, D.MAV_PARAM_TYPE_REAL32)
+    try:
+        px4.mav.heartbeat_send(D.MAV_TYPE_QUADROTOR, D.MAV_AUTOPILOT_PX4, 0, 0, D.MAV_STATE_STANDBY)
+        assert _pump(link, lambda: link.tracker.autopilot_kind == D.MAV_AUTOPILOT_PX4)
+        assert link.request_params(PX4_AGP_PARAMS)
+        for _ in PX4_AGP_PARAMS:
+            ask = px4.recv_match(type="PARAM_REQUEST_READ", blocking=True, timeout=2.0)
+            assert ask is not None and ask.target_system == 1 and ask.target_component == 1
+            name = ask.param_id if isinstance(ask.param_id, str) else ask.param_id.decode()
+            value, kind = px4_params[name]
+            if kind != D.MAV_PARAM_TYPE_REAL32:  # PX4's byte-wise encoding of an integer
+                value = struct.unpack("<f", struct.pack("<i", int(value)))[0]
+            wire = value
+            px4.mav.param_value_send(name.encode(), wire, kind, len(px4_params), 0)
+        assert _pump(link, lambda: link.tracker.param("EKF2_AGP0_DELAY") is not None)
+        values = {name: link.tracker.param(name) for name in PX4_AGP_PARAMS}
+        assert values == {"EKF2_AGP0_ID": 0.0, "EKF2_AGP0_CTRL": 0.0, "EKF2_AGP0_DELAY": 200.0}
+        problems = px4_agp_problems(values, sensor_id=1)
+        assert [p.detail.split(":")[0] for p in problems] == [
+            "EKF2_AGP0_ID is 0",
+            "EKF2_AGP0_CTRL is 0",
+            "EKF2_AGP0_DELAY is 200 ms",
+        ]
+        assert "set it to 1" in problems[0].detail and "reboot PX4" in problems[0].detail
+        assert problems[0].blocks_output and not problems[2].blocks_output
+        assert all(len(p.statustext.encode()) <= m.STATUSTEXT_MAX_BYTES for p in problems)
+        good = {"EKF2_AGP0_ID": 1, "EKF2_AGP0_CTRL": 1, "EKF2_AGP0_DELAY": 0.0}
+        assert px4_agp_problems(good, sensor_id=1) == []
+        unread = px4_agp_problems({}, sensor_id=1)
+        assert len(unread) == 1 and "did not answer" in unread[0].detail and not unread[0].blocks_output
+        config = Config(mavlink=cfg)
+        assert _read_px4_params(config, link, link.tracker, time.monotonic() + 0.3) == values
+    finally:
+        px4.close()
+        link.close()

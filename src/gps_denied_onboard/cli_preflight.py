@@ -3,8 +3,9 @@
 Input: the profile, ``--set`` overrides, ``--offline``, ``--timeout``. Output: one row per check, in
 ``CHECKS`` order, each saying what it checked and what it measured (or ``--json``); exit 0 when no check
 fails (a skipped check is not a failure), 2 when the configuration is refused, 3 when any other check
-fails, with one ``gdnav:`` line on stderr naming the first failure. Nothing is sent to the autopilot and
-nothing is recorded in the FDR.
+fails, with one ``gdnav:`` line on stderr naming the first failure. Nothing is sent to the autopilot but
+requests (TIMESYNC, PARAM_REQUEST_READ for PX4's ``EKF2_AGP0_*`` where GLOBAL_POSITION_SENSOR is an output),
+and nothing is recorded in the FDR.
 
 Rule: the checks call the composition root's own functions (``runtime_root.compose``) and the MAVLink
 link's own port probe, so a pass means ``gdnav run`` gets past the same step: ``config``, ``cache``,
@@ -21,6 +22,7 @@ import asyncio
 import dataclasses
 import errno
 import json
+import math
 import os
 import shutil
 import socket
@@ -34,6 +36,7 @@ from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
+from gps_denied_onboard.components.c8_mavlink.px4_params import PX4_AGP_PARAMS, px4_agp_problems
 from gps_denied_onboard.config import Config, ConfigError, load_config
 from gps_denied_onboard.logging_setup import configure_logging
 
@@ -65,6 +68,8 @@ ONLINE_CHECKS: Final[frozenset[str]] = frozenset({"camera", "autopilot"})
 DEFAULT_TIMEOUT_S: Final[float] = 10.0
 #: How often the autopilot check polls the link, s.
 _POLL_INTERVAL_S: Final[float] = 0.02
+#: PARAM_REQUEST_READ is asked again for the parameters not answered after this long, s.
+_PARAM_RETRY_S: Final[float] = 0.5
 
 
 class Status(str, Enum):
@@ -426,6 +431,30 @@ async def _check_camera(config: Config, timeout_s: float) -> str:
     return f"{w}x{h} px frame decoded after {waited:.2f} s"
 
 
+def _read_px4_params(
+    config: Config, link: Any, tracker: Any, deadline: float
+) -> dict[str, float | None] | None:
+    """PX4's ``EKF2_AGP0_*`` as read back before ``deadline`` (monotonic), or None when there is nothing to
+    check: GLOBAL_POSITION_SENSOR is not among the outputs, or the autopilot is not PX4."""
+    from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
+
+    if (
+        "global_position_sensor" not in config.mavlink.outputs
+        or tracker.autopilot_kind != DIALECT.MAV_AUTOPILOT_PX4
+    ):
+        return None
+    values: dict[str, float | None] = dict.fromkeys(PX4_AGP_PARAMS)
+    asked_at = -math.inf
+    while time.monotonic() < deadline and any(value is None for value in values.values()):
+        if time.monotonic() - asked_at > _PARAM_RETRY_S:
+            link.request_params(tuple(name for name, value in values.items() if value is None))
+            asked_at = time.monotonic()
+        link.poll()
+        values = {name: tracker.param(name) for name in PX4_AGP_PARAMS}
+        time.sleep(_POLL_INTERVAL_S)
+    return values
+
+
 def _check_autopilot(config: Config, timeout_s: float, opened: dict[str, Any] | None = None) -> str:
     from gps_denied_onboard.components.c8_mavlink import MavlinkLink, TimeSource
     from gps_denied_onboard.runtime_root.link_first import make_tracker
@@ -450,6 +479,7 @@ def _check_autopilot(config: Config, timeout_s: float, opened: dict[str, Any] | 
             if heartbeat_s is not None and time_s is not None:
                 break
             time.sleep(_POLL_INTERVAL_S)
+        params = _read_px4_params(config, link, tracker, t0 + timeout_s)
     finally:
         link.close()
     if opened is not None:
@@ -465,7 +495,16 @@ def _check_autopilot(config: Config, timeout_s: float, opened: dict[str, Any] | 
         )
     rtt = tracker.autopilot_clock.rtt_usec
     rtt_txt = f", round trip {rtt / 1000:.1f} ms" if rtt is not None else ""
-    return f"HEARTBEAT from {who} after {heartbeat_s:.2f} s, TIMESYNC answered after {time_s:.2f} s{rtt_txt}"
+    px4_txt = ""
+    if params is not None:
+        problems = px4_agp_problems(params, sensor_id=config.mavlink.global_position_sensor_id)
+        if problems:
+            raise CheckFailed("; ".join(p.detail for p in problems))
+        px4_txt = ", PX4's EKF2_AGP0_ID, _CTRL and _DELAY are set for GLOBAL_POSITION_SENSOR"
+    return (
+        f"HEARTBEAT from {who} after {heartbeat_s:.2f} s, TIMESYNC answered after {time_s:.2f} s{rtt_txt}"
+        f"{px4_txt}"
+    )
 
 
 async def _online(

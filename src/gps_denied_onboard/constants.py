@@ -139,6 +139,8 @@ class LogEvent:
     CAMERA_STAMP_OFFSET: Final = "camera.stamp_offset"
     #: The autopilot's ground altitude at home disagrees with ``terrain.ground_alt_amsl_m`` (or agrees again).
     GROUND_ALT_DISAGREEMENT: Final = "daemon.ground_alt_disagreement"
+    #: PX4's EKF2_AGP0_* parameters checked for GLOBAL_POSITION_SENSOR: the values and any problems.
+    PX4_PARAMETERS: Final = "daemon.px4_parameters"
     PIPELINE_FRAME: Final = "pipeline.frame"
     PIPELINE_FIX: Final = "pipeline.fix"
     PIPELINE_FRAME_ERROR: Final = "pipeline.frame_error"
@@ -158,6 +160,9 @@ class LogEvent:
     MAVLINK_ORIGIN_SENT: Final = "c8.mavlink.origin_sent"
     #: The frame VISION_POSITION_ESTIMATE is sent in changed (the autopilot reported its GPS_GLOBAL_ORIGIN).
     MAVLINK_VISION_FRAME: Final = "c8.mavlink.vision_frame"
+    #: A position message (GLOBAL_POSITION_SENSOR, VISION_POSITION_ESTIMATE) is not sent for a state the
+    #: daemon cannot back (``withheld`` true, with the reason), or is sent again (false). Once per change.
+    MAVLINK_OUTPUT_WITHHELD: Final = "c8.mavlink.output_withheld"
     FDR_WRITE_ERROR: Final = "c13.fdr.write_error"
     FDR_SEGMENT_DELETED: Final = "c13.fdr.segment_deleted"
     #: A file named like a segment or an image that is not a regular file (FIFO, link, device): never opened.
@@ -310,6 +315,8 @@ class FdrKind:
     CAMERA_STAMP_OFFSET: Final = "camera.stamp_offset"
     #: The autopilot's ground altitude started or stopped disagreeing with the daemon's.
     GROUND_ALT_CHECK: Final = "daemon.ground_alt_check"
+    #: PX4's aux-global-position parameters read back and checked (``c8_mavlink.px4_params``).
+    PX4_PARAMETERS: Final = "daemon.px4_parameters"
     #: A map tile failed its digest on read (corrupted after the cache was verified): masked, never used.
     TILE_CORRUPT: Final = "cache.tile_corrupt"
     #: At start: whether the learned matcher uses the cache's precomputed tile features, or why not.

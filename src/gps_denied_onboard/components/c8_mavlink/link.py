@@ -19,9 +19,17 @@ Rules:
   counted, and reported at most once per ``IMPOSTOR_REPORT_INTERVAL_S`` (log, FDR, STATUSTEXT).
 - TIMESYNC: only the autopilot's own requests, from its address, are answered, at most one per
   ``TIMESYNC_ANSWER_MIN_INTERVAL_S``.
+- What leaves as a position follows one rule (``messages.withheld_reason``): GPS_INPUT says "do not use"
+  with its fix_type; GLOBAL_POSITION_SENSOR and VISION_POSITION_ESTIMATE, which have no such form their
+  receiver honours, are not sent at all for a state the daemon cannot back. Each stretch of withheld
+  messages is recorded once when it starts and once when it ends (``mavlink.link_event``
+  ``output_withheld`` / ``output_resumed``) and counted (``LinkStats.positions_withheld``).
+- GLOBAL_POSITION_SENSOR also waits for a finite altitude, and while the altitude is distrusted
+  (``distrust_altitude``) it waits until the autopilot reports an origin: PX4 takes its origin's altitude
+  from the first message it fuses. It waits too while held (``hold_global_position_sensor``: PX4's
+  parameters not yet checked, or a wrong ``EKF2_AGP0_ID``).
 - VISION_POSITION_ESTIMATE goes out only in a frame the autopilot shares (its GPS_GLOBAL_ORIGIN, or ours
-  offered with SET_GPS_GLOBAL_ORIGIN until it reports one), and never for a state no map fix has
-  confirmed (it has no fix_type to say so).
+  offered with SET_GPS_GLOBAL_ORIGIN until it reports one).
 - GPS_INPUT's altitude is flagged as ignored while the ground altitude disagrees (``distrust_altitude``).
 
 The rules in full: docs/design.md, "`c8_mavlink/link.py`: the link".
@@ -212,6 +220,9 @@ class LinkStats:
     global_origin_sent: int = 0
     #: VISION_POSITION_ESTIMATEs not sent because no frame shared with the autopilot was known yet.
     vision_withheld: int = 0
+    #: GLOBAL_POSITION_SENSORs and VISION_POSITION_ESTIMATEs not sent because the daemon could not back
+    #: the state (``messages.withheld_reason``; for GLOBAL_POSITION_SENSOR also its altitude).
+    positions_withheld: int = 0
     #: Messages ignored from an impostor: another address claiming the autopilot's ids.
     impostor_messages: int = 0
     #: The autopilot's TIMESYNC requests answered, and requests not answered (rate limit, another address
@@ -301,6 +312,9 @@ class MavlinkLink:
         self._origin_sent_at: float | None = None
         self._origin_sent = 0
         self._vision_withheld = 0
+        # positions not sent (see the module docstring): the count, and the reason of the current stretch
+        self._positions_withheld = 0
+        self._withheld_now: dict[str, str | None] = {}
         self._ap_origin: tuple[float, float, float] | None = None
         self._ap_frame: LocalTangentPlane | None = None  # the autopilot's frame, or our ltp when they agree
         self._last_vision_frame: LocalTangentPlane | None = None
@@ -308,6 +322,9 @@ class MavlinkLink:
         self._last_timesync_s = -float("inf")
         #: Why the altitude is not given to the autopilot (None: it is); ``distrust_altitude``.
         self._alt_distrust: str | None = None
+        #: Why GLOBAL_POSITION_SENSOR is held back whatever the state (None: it is not);
+        #: ``hold_global_position_sensor``.
+        self._agp_hold: str | None = None
         # the autopilot's address on a listening link (see the module docstring)
         self._ap_address_followed = False  # an address was followed on this transport
         self._ap_heard_s = -float("inf")  # its last valid message with the autopilot's ids (clock)
@@ -450,6 +467,12 @@ class MavlinkLink:
         self._maybe_send_origin(now)
         self._flush_pending_status(now)
         return count
+
+    def hold_global_position_sensor(self, reason: str | None) -> None:
+        """Send no GLOBAL_POSITION_SENSOR while ``reason`` (None: send as the rule allows): PX4's
+        parameters not checked yet, or an ``EKF2_AGP0_ID`` that is not the message's id
+        (``px4_params``)."""
+        self._agp_hold = reason
 
     def distrust_altitude(self, reason: str | None) -> None:
         """Flag GPS_INPUT's altitude as ignored while ``reason`` (None: give it again)."""
@@ -672,6 +695,10 @@ class MavlinkLink:
                     )
                 )
             elif output == "global_position_sensor":
+                reason = self._global_position_sensor_withheld(state)
+                if reason is not None:
+                    self._note_withheld(output, reason)
+                    continue
                 sent += self._build_and_send(
                     lambda mav: messages.global_position_sensor(
                         mav,
@@ -682,9 +709,41 @@ class MavlinkLink:
                         sensor_id=self._config.global_position_sensor_id,
                     )
                 )
+                self._note_withheld(output, None)
             elif output == _VISION_OUTPUT:
+                reason = messages.withheld_reason(state)
+                if reason is not None:
+                    with self._lock:
+                        self._last_vision_state = None
+                    self._note_withheld(output, reason)
+                    continue
                 sent += self._send_vision(state, time_unix_usec)
+                self._note_withheld(output, None)
         return sent
+
+    def _global_position_sensor_withheld(self, state: EstimatorState) -> str | None:
+        """Why GLOBAL_POSITION_SENSOR waits for ``state`` (None: it goes; see the module docstring)."""
+        reason = messages.global_position_sensor_withheld(state)
+        if reason is None and self._agp_hold is not None:
+            reason = self._agp_hold
+        if reason is None and self._alt_distrust is not None and self._tracker.gps_origin() is None:
+            reason = f"altitude distrusted ({self._alt_distrust}) and the autopilot reports no origin yet"
+        return reason
+
+    def _note_withheld(self, output: str, reason: str | None) -> None:
+        """Count a position message not sent (``reason``), and record a stretch's start and end once."""
+        with self._lock:
+            if reason is not None:
+                self._positions_withheld += 1
+            if reason == self._withheld_now.get(output):
+                return
+            self._withheld_now[output] = reason
+        if reason is None:
+            _log.info(LogEvent.MAVLINK_OUTPUT_WITHHELD, output=output, withheld=False)
+            self._record_event("output_resumed", output=output)
+        else:
+            _log.warning(LogEvent.MAVLINK_OUTPUT_WITHHELD, output=output, withheld=True, reason=reason)
+            self._record_event("output_withheld", output=output, reason=reason)
 
     def _send_vision(self, state: EstimatorState, time_unix_usec: int) -> int:
         """One VISION_POSITION_ESTIMATE in the frame shared with the autopilot, or none (see the module
@@ -692,11 +751,7 @@ class MavlinkLink:
         self._maybe_send_origin(self._clock())
         with self._lock:
             position_ok = bool(np.all(np.isfinite(np.asarray(state.pos_ned_m, dtype=np.float64))))
-            # VISION_POSITION_ESTIMATE has no fix_type to say "not to be trusted": a state no map fix has
-            # confirmed (a start prior) is not sent at all, as no estimate is not.
-            unconfirmed = not state.map_confirmed
-            no_estimate = state.provenance is Provenance.NO_ESTIMATE
-            if no_estimate or unconfirmed or not position_ok or self._ltp is None:
+            if not position_ok or self._ltp is None:
                 self._last_vision_state = None
                 return 0
             frame = self._vision_frame()
@@ -821,6 +876,20 @@ class MavlinkLink:
         ]
         return all(sent)
 
+    def request_params(self, names: tuple[str, ...]) -> bool:
+        """Ask the autopilot for each parameter in ``names`` (PARAM_REQUEST_READ); the answers reach the
+        tracker (``VehicleStateTracker.param``)."""
+        target = self._config.autopilot_system_id
+        sent = [
+            self._build_and_send(
+                lambda mav, name=name: mav.param_request_read_encode(
+                    target, AUTOPILOT_COMPONENT_ID, name.encode("ascii"), -1
+                )
+            )
+            for name in names
+        ]
+        return all(sent)
+
     def request_flight_phase(self) -> bool:
         """Ask the autopilot for EXTENDED_SYS_STATE (its landed state) now (MAV_CMD_REQUEST_MESSAGE): the
         start-up rules in ``c5_estimator.prior`` must know whether the vehicle is in the air."""
@@ -930,6 +999,7 @@ class MavlinkLink:
                 statustext_coalesced=self._status_coalesced,
                 global_origin_sent=self._origin_sent,
                 vision_withheld=self._vision_withheld,
+                positions_withheld=self._positions_withheld,
                 impostor_messages=self._impostor_messages,
                 timesync_answered=self._timesync_answered,
                 timesync_ignored=self._timesync_ignored,

@@ -3,6 +3,20 @@
 Input: an ``EstimatorState`` and a pymavlink ``MAVLink`` instance (``connection.mav``, or
 ``MAVLink(None)`` in tests). Output: an encoded-but-unsent message; nothing here touches a socket.
 
+The one rule for every autopilot and every message (``withheld_reason``): a position leaves the daemon
+as one to fuse only when the daemon can back it: finite, anchored or propagated from an anchor (never dead
+reckoning or no estimate), its horizontal 1-sigma finite and at most ``FIX_3D_MAX_HORIZ_SIGMA_M``, and
+its start confirmed by a map fix (``EstimatorState.map_confirmed``). A message that can say "do not use"
+in a way the receiver honours carries an unbacked state with that mark; a message that cannot sends
+nothing:
+- GPS_INPUT says it with fix_type below 3 (the real ArduPilot fuses only fix_type >= 3, DESIGN.md);
+- GLOBAL_POSITION_SENSOR has no such form: PX4 reads only id, source, lat, lon, alt, eph and epv, ignores
+  the GLOBAL_POSITION_UNHEALTHY flag, and resets its position to a message with ``eph`` = inf about every
+  7 s (to 0,0 when lat/lon are 0; a first such message sets its origin there for good: PX4 main of
+  2026-03-02, measured, DESIGN.md). So it is sent only for a backed state whose altitude (AMSL) and
+  vertical sigma are finite too (``global_position_sensor_withheld``), and never flagged;
+- VISION_POSITION_ESTIMATE has no fix_type either: sent only for a backed state.
+
 Rule (what the autopilot is told):
 - **fix_type** (``fix_type_for``): ``satellite_anchored`` and ``visual_propagated`` are 3 while the
   horizontal 1-sigma is at most ``FIX_3D_MAX_HORIZ_SIGMA_M`` and the position is finite (and, in
@@ -12,7 +26,7 @@ Rule (what the autopilot is told):
   1-sigma of ``FIX_3D_KEEP_SPEED_SIGMA_M_S``, and the stream's first 3D fix waits until the estimate
   has qualified for ``FIX_3D_SETTLE_S``;
   a state no map fix has confirmed since the estimator started (a start prior, however tight its stated
-  sigma: ``EstimatorState.map_confirmed``) is never a 3D fix (1), in GPS_INPUT and GLOBAL_POSITION_SENSOR;
+  sigma: ``EstimatorState.map_confirmed``) is never a 3D fix (1);
 - **accuracy** fields are the state's 1-sigma values, never a constant; ``hdop``/``vdop`` are those over
   ``NOMINAL_UERE_M`` (5 m), clamped to [0.01, HDOP_MAX];
 - **ignore_flags** only for fields that are truly unknown (non-finite), sent as 0, never NaN;
@@ -141,25 +155,52 @@ def stated_speed_sigma_m_s(state: EstimatorState) -> float:
     return state.speed_sigma_m_s if np.all(np.isfinite(cov_v[:2, :2])) else math.inf
 
 
+def stated_horiz_sigma_m(state: EstimatorState) -> float:
+    """The horizontal 1-sigma the rule judges, m: inf where its covariance is not finite."""
+    return state.horiz_sigma_m if np.all(np.isfinite(state.cov_pos_ned_m2[:2, :2])) else math.inf
+
+
+def withheld_reason(
+    state: EstimatorState, *, max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M
+) -> str | None:
+    """Why ``state``'s position is not one the daemon can back as a fix to fuse, or None when it is.
+
+    The one rule for every autopilot and every message (module docstring): GPS_INPUT turns a reason into
+    fix_type below 3; GLOBAL_POSITION_SENSOR and VISION_POSITION_ESTIMATE are then not sent at all."""
+    if state.provenance is Provenance.NO_ESTIMATE:
+        return "no estimate"
+    if not _position_finite(state):
+        return "position not finite"
+    if state.provenance is Provenance.DEAD_RECKONING:
+        return "dead reckoning (no map fix or VO to bound it)"
+    horiz = stated_horiz_sigma_m(state)
+    if not (_finite(horiz) and horiz <= max_fix_sigma_m):
+        return f"horizontal sigma {horiz:.1f} m above {max_fix_sigma_m:g} m"
+    if not state.map_confirmed:
+        return "no map fix has confirmed the start"
+    return None
+
+
 def gps_input_fix_type(
     state: EstimatorState,
     *,
     max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
     max_speed_sigma_m_s: float = FIX_3D_MAX_SPEED_SIGMA_M_S,
 ) -> int:
-    """GPS_INPUT's fix_type for ``state``: ``fix_type_for`` with its position and speed sigmas, and no 3D
-    fix for a state no map fix has confirmed (``EstimatorState.map_confirmed``)."""
-    horiz = state.horiz_sigma_m if np.all(np.isfinite(state.cov_pos_ned_m2[:2, :2])) else math.inf
+    """GPS_INPUT's fix_type for ``state``: 0 without a finite position or sigma, 1 where
+    ``withheld_reason`` has a reason or the speed's 1-sigma is above ``max_speed_sigma_m_s``, else 3."""
+    if not _position_finite(state):
+        return FIX_TYPE_NO_GPS
     fix = fix_type_for(
         state.provenance,
-        horiz,
+        stated_horiz_sigma_m(state),
         speed_sigma_m_s=stated_speed_sigma_m_s(state),
         max_fix_sigma_m=max_fix_sigma_m,
         max_speed_sigma_m_s=max_speed_sigma_m_s,
     )
-    if not _position_finite(state):
-        return FIX_TYPE_NO_GPS
-    return FIX_TYPE_NO_FIX if fix == FIX_TYPE_3D and not state.map_confirmed else fix
+    if fix == FIX_TYPE_3D and withheld_reason(state, max_fix_sigma_m=max_fix_sigma_m) is not None:
+        return FIX_TYPE_NO_FIX
+    return fix
 
 
 #: The stream's first 3D fix is declared only once the estimate has qualified for this long, s
@@ -315,6 +356,23 @@ def gps_input(
     )
 
 
+def global_position_sensor_withheld(
+    state: EstimatorState, *, max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M
+) -> str | None:
+    """Why GLOBAL_POSITION_SENSOR is not sent for ``state`` (None: it is): ``withheld_reason``, or an
+    altitude or vertical sigma that is not finite. PX4 sets its origin's altitude from the first message
+    it takes (a NaN ``alt`` left the global altitude invalid for good, DESIGN.md): that message waits."""
+    reason = withheld_reason(state, max_fix_sigma_m=max_fix_sigma_m)
+    if reason is not None:
+        return reason
+    if not _finite(state.alt_amsl_m):
+        return "altitude (AMSL) not finite"
+    vert = state.vert_sigma_m if _finite(state.cov_pos_ned_m2[2, 2]) else math.inf
+    if not _finite(vert):
+        return "vertical sigma not finite"
+    return None
+
+
 def global_position_sensor(
     mav: Any,
     state: EstimatorState,
@@ -325,19 +383,19 @@ def global_position_sensor(
     sensor_id: int,
     max_fix_sigma_m: float = FIX_3D_MAX_HORIZ_SIGMA_M,
 ) -> MavlinkMessage:
-    """GLOBAL_POSITION_SENSOR (PX4 v1.18+; id 296, in pymavlink's common/ardupilotmega dialects).
+    """GLOBAL_POSITION_SENSOR (PX4 main since 2026-02-27; id 296, in pymavlink's common/ardupilotmega
+    dialects) for a backed ``state``; raises ``ValueError`` naming the reason for any other
+    (``global_position_sensor_withheld``): this message has no form PX4 reads as "do not use".
 
     ``sensor_id`` is the message's ``id`` (uint8): PX4 uses it only when an ``EKF2_AGP{i}_ID`` equals it.
-    source = GLOBAL_POSITION_SRC_VISION; the UNHEALTHY flag is set whenever ``fix_type_for`` would not
-    report a 3D fix, so PX4 sees the same validity as ArduPilot. ``alt_ellipsoid`` is NaN (we only know
-    AMSL), which the message defines as "use ``alt``". ``processing_time_usec`` = transmission time minus
-    exposure time (clamped to uint32).
+    source = GLOBAL_POSITION_SRC_VISION; flags 0. ``alt_ellipsoid`` is NaN, MAVLink's "not available" for
+    a float: the daemon knows AMSL only, and any finite ellipsoid height it made up would be wrong by the
+    geoid's undulation (PX4 does not read the field). ``processing_time_usec`` = transmission time minus
+    the time the state is valid for (clamped to uint32; PX4 ignores it and stamps on arrival).
     """
-    horiz = state.horiz_sigma_m
-    usable = fix_type_for(state.provenance, horiz, max_fix_sigma_m=max_fix_sigma_m) >= FIX_TYPE_3D
-    usable = usable and _position_finite(state) and state.map_confirmed
-    flags = 0 if usable else DIALECT.GLOBAL_POSITION_UNHEALTHY
-    lat_e7, lon_e7 = (_e7(state.lat_deg), _e7(state.lon_deg)) if _position_finite(state) else (0, 0)
+    reason = global_position_sensor_withheld(state, max_fix_sigma_m=max_fix_sigma_m)
+    if reason is not None:
+        raise ValueError(f"GLOBAL_POSITION_SENSOR is not sent for this state: {reason}")
     return mav.global_position_sensor_encode(
         int(target_system),
         0,
@@ -345,12 +403,12 @@ def global_position_sensor(
         int(time_unix_usec),
         int(min(max(processing_time_usec, 0), 0xFFFFFFFF)),
         DIALECT.GLOBAL_POSITION_SRC_VISION,
-        flags,
-        lat_e7,
-        lon_e7,
+        0,
+        _e7(state.lat_deg),
+        _e7(state.lon_deg),
         math.nan,
         float(state.alt_amsl_m),
-        float(horiz) if _finite(horiz) else math.inf,
+        float(stated_horiz_sigma_m(state)),
         float(state.vert_sigma_m),
     )
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -67,6 +68,17 @@ POSITION_MAX_AGE_S: Final[float] = 2.0
 #: time_usec values above this are Unix times (after 2001-09-09), below it times since boot.
 _UNIX_USEC_THRESHOLD: Final[int] = 1_000_000_000_000_000
 
+#: MAV_PARAM_TYPE values of integer parameters (PX4 sends these byte-wise in PARAM_VALUE's float).
+_INT_PARAM_TYPES: Final[frozenset[int]] = frozenset(
+    {
+        DIALECT.MAV_PARAM_TYPE_UINT8,
+        DIALECT.MAV_PARAM_TYPE_INT8,
+        DIALECT.MAV_PARAM_TYPE_UINT16,
+        DIALECT.MAV_PARAM_TYPE_INT16,
+        DIALECT.MAV_PARAM_TYPE_UINT32,
+        DIALECT.MAV_PARAM_TYPE_INT32,
+    }
+)
 _NOT_AUTOPILOT_TYPES: Final[frozenset[int]] = frozenset(
     {
         DIALECT.MAV_TYPE_GCS,
@@ -314,6 +326,11 @@ class VehicleStateTracker:
         self._landed_state: tuple[float, int] | None = None
         self._last_on_ground_s: float | None = None
         self._autopilot_seen = False
+        #: HEARTBEAT.autopilot (MAV_AUTOPILOT_*) of the autopilot, once seen.
+        self._autopilot_kind: int | None = None
+        #: PARAM_VALUE answers: name -> (value, receive time Unix s); integers decoded as the autopilot
+        #: encodes them.
+        self._params: dict[str, tuple[float, float]] = {}
         self._used = 0
         self._ignored = 0
 
@@ -346,6 +363,7 @@ class VehicleStateTracker:
         if msg.autopilot == DIALECT.MAV_AUTOPILOT_INVALID or msg.type in _NOT_AUTOPILOT_TYPES:
             return False
         self._last_heartbeat_s = recv_usec / 1e6
+        self._autopilot_kind = int(msg.autopilot)
         self._note_armed(bool(int(msg.base_mode) & DIALECT.MAV_MODE_FLAG_SAFETY_ARMED), recv_usec / 1e6)
         if not self._autopilot_seen:
             self._autopilot_seen = True
@@ -414,6 +432,17 @@ class VehicleStateTracker:
         if int(msg.tc1) == 0:
             return False  # a request (the link answers it), not an answer
         return self._ap_clock.answer(int(msg.tc1), int(msg.ts1), recv_usec)
+
+    def _on_param_value(self, msg: Any, recv_usec: int) -> bool:
+        """PARAM_VALUE: PX4 sends integer parameters byte-wise in the float field
+        (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE); ArduPilot casts them (ENCODE_C_CAST)."""
+        name = msg.param_id.decode("ascii", "replace") if isinstance(msg.param_id, bytes) else msg.param_id
+        name = str(name).rstrip("\x00")
+        value = float(msg.param_value)
+        if self._autopilot_kind == DIALECT.MAV_AUTOPILOT_PX4 and int(msg.param_type) in _INT_PARAM_TYPES:
+            value = float(struct.unpack("<i", struct.pack("<f", value))[0])
+        self._params[name] = (value, recv_usec / 1e6)
+        return True
 
     def _on_attitude(self, msg: Any, recv_usec: int) -> bool:
         vals = (float(msg.roll), float(msg.pitch), float(msg.yaw))
@@ -735,6 +764,18 @@ class VehicleStateTracker:
         with self._lock:
             return self._imu
 
+    @property
+    def autopilot_kind(self) -> int | None:
+        """HEARTBEAT.autopilot of the autopilot (``MAV_AUTOPILOT_PX4``, ...), None before its HEARTBEAT."""
+        with self._lock:
+            return self._autopilot_kind
+
+    def param(self, name: str, since_unix_s: float = -math.inf) -> float | None:
+        """The autopilot's parameter ``name`` as last answered (PARAM_VALUE) at or after ``since_unix_s``."""
+        with self._lock:
+            got = self._params.get(name)
+        return got[0] if got is not None and got[1] >= since_unix_s else None
+
     def link_alive(self, now: float | None = None) -> bool:
         """True when the autopilot's HEARTBEAT was received within link_timeout_s of ``now``."""
         now_s = self._clock() if now is None else now
@@ -782,6 +823,7 @@ _HANDLERS: Final[dict[str, Callable[[VehicleStateTracker, Any, int], bool]]] = {
     "GPS_GLOBAL_ORIGIN": VehicleStateTracker._on_gps_global_origin,
     "EXTENDED_SYS_STATE": VehicleStateTracker._on_extended_sys_state,
     "HIGHRES_IMU": VehicleStateTracker._on_highres_imu,
+    "PARAM_VALUE": VehicleStateTracker._on_param_value,
     "SCALED_IMU": VehicleStateTracker._on_scaled_imu,
     "SCALED_IMU2": VehicleStateTracker._on_scaled_imu,
 }
