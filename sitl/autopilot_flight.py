@@ -34,8 +34,15 @@ from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import ConfigError, load_config
 from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.sitl.frame_server import FrameServer
-from gps_denied_onboard.sitl.mission import AutopilotRelay, MissionDriver, MissionError, MissionPlan
+from gps_denied_onboard.sitl.mission import (
+    TRUTH_TYPES,
+    AutopilotRelay,
+    MissionDriver,
+    MissionError,
+    MissionPlan,
+)
 from gps_denied_onboard.sitl.photometric import PhotometricModel
+from gps_denied_onboard.sitl.px4_mission import Px4MissionDriver, is_px4
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
 from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, restart_recovery, score
 from gps_denied_onboard.sitl.runner import (
@@ -119,6 +126,21 @@ def run_sitl_with_autopilot(opts: SitlOptions, autopilot_url: str) -> dict[str, 
         relay.close()
 
 
+#: How long to wait for the autopilot's first HEARTBEAT, to choose the mission driver, s.
+HEARTBEAT_TIMEOUT_S = 60.0
+
+
+def _autopilot_is_px4(relay: AutopilotRelay, url: str) -> bool:
+    """Whether the autopilot at ``url`` is PX4, from its HEARTBEAT (else it is flown as ArduPilot)."""
+    deadline = time.time() + HEARTBEAT_TIMEOUT_S
+    while time.time() < deadline:
+        hb = relay.last("HEARTBEAT")
+        if hb is not None and hb.get_srcComponent() == 1:
+            return is_px4(hb)
+        time.sleep(0.1)
+    raise SitlError(f"no HEARTBEAT from the autopilot at {url} in {HEARTBEAT_TIMEOUT_S:.0f} s")
+
+
 def _fly(
     opts: SitlOptions,
     url: str,
@@ -139,7 +161,12 @@ def _fly(
         alt_rel_m=scenario.alt_agl_m,
         speed_m_s=scenario.speed_m_s,
     )
-    driver = MissionDriver(relay, plan, say=say)
+    px4 = _autopilot_is_px4(relay, url)
+    if px4:
+        sensor_id = load_config(config_path, opts.overrides).mavlink.global_position_sensor_id
+        driver: MissionDriver = Px4MissionDriver(relay, plan, say=say, sensor_id=sensor_id)
+    else:
+        driver = MissionDriver(relay, plan, say=say)
     driver.prepare()
     deadline = time.time() + TRUTH_TIMEOUT_S
     while (not relay.truth or relay.last("GLOBAL_POSITION_INT") is None) and time.time() < deadline:
@@ -165,11 +192,12 @@ def _fly(
     import shutil
 
     shutil.rmtree(workdir / "fdr", ignore_errors=True)
-    overrides = (
-        f"terrain.ground_alt_amsl_m={ground_alt}",
-        "mavlink.gps_input_gps_id=1",  # GPS 2 = GPS_INPUT (GPS2_TYPE=14), the in-flight switch
-        *opts.overrides,
+    outputs = (
+        ('mavlink.outputs=["global_position_sensor"]',)  # PX4: EKF2_AGP0_ID, checked by the driver
+        if px4
+        else ("mavlink.gps_input_gps_id=1",)  # GPS 2 = GPS_INPUT (GPS2_TYPE=14), the in-flight switch
     )
+    overrides = (f"terrain.ground_alt_amsl_m={ground_alt}", *outputs, *opts.overrides)
     fopts = dataclasses.replace(opts, overrides=overrides)
     flight = _Flight(fopts, scenario, trajectory, renderer, config_path, cache_dir, workdir, ground_alt)
     cmd = flight._daemon_cmd(relay.daemon_port, 0)
@@ -200,6 +228,7 @@ def _fly(
         end_unix_s=end_unix_s,
         gps_types=gps_types,
         relied_on_until_unix_s=times.get("gnss_on"),
+        autopilot="px4" if px4 else "ardupilot",
     )
     # the stretch where the vehicle flew on the daemon alone: GNSS off .. GNSS back on
     if "gnss_off" in times:
@@ -211,6 +240,7 @@ def _fly(
             records,
             end_unix_s=hi,
             gps_types=gps_types,
+            autopilot="px4" if px4 else "ardupilot",
         )
         report["gnss_off"] = {k: v for k, v in off.items() if k not in ("per_frame", "statustext")}
         report["gnss_off"]["window_unix_s"] = [lo, hi]
@@ -233,10 +263,12 @@ def _fly(
             "map": str(opts.map_path),
             "autopilot": {
                 "url": url,
+                "kind": "px4" if px4 else "ardupilot",
                 "truth_source": relay.truth_source,
                 "truth_note": None
-                if relay.truth_source in ("SIMSTATE", "SIM_STATE")
-                else "no SIMSTATE/SIM_STATE: scored against the autopilot's own estimate, not the truth",
+                if relay.truth_source in TRUTH_TYPES
+                else "no SIMSTATE/SIM_STATE/HIL_STATE_QUATERNION: scored against the autopilot's own "
+                "estimate, not the truth",
                 "statustext": [{"t_unix_s": round(t, 3), "text": s} for t, s in relay.statustext],
             },
             "mission": mission,

@@ -53,6 +53,9 @@ STREAM_RATES_HZ: dict[int, float] = {
     mavutil.mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: 2.0,
     mavutil.mavlink.MAVLINK_MSG_ID_HOME_POSITION: 0.5,  # the daemon's starting prior on the ground
 }
+#: The autopilot's true pose, by preference: ArduPilot SITL's SIMSTATE, SIM_STATE, PX4 SIH's
+#: HIL_STATE_QUATERNION (streamed on the onboard link when asked for: measured on PX4 main of 2026-03-02).
+TRUTH_TYPES: tuple[str, ...] = ("SIMSTATE", "SIM_STATE", "HIL_STATE_QUATERNION")
 #: ARMING_CHECK: every check (bits 1..18) but bit 3, "GPS lock".
 ARMING_CHECK_ALL_BUT_GPS = (1 << 19) - 2 - 8
 #: ARMING_SKIPCHK (upstream 4.7, PR #31568, which replaced ARMING_CHECK): a mask of the checks skipped.
@@ -182,14 +185,17 @@ class AutopilotRelay:
             self.clock.note_stamp(int(boot_ms) * 1000, int(now * 1e6))
         if mtype == "TIMESYNC" and int(msg.tc1) != 0:
             self.clock.answer(int(msg.tc1), int(msg.ts1), int(now * 1e6))
-        if mtype in ("SIMSTATE", "SIM_STATE"):
+        if mtype in TRUTH_TYPES:
             now = self._sample_time(now)
             if self.truth and now <= self.truth[-1].t_unix_s:
                 return
             if mtype == "SIMSTATE":
                 pose = TruePose(now, msg.lat / 1e7, msg.lng / 1e7, None, msg.roll, msg.pitch, msg.yaw)
-            else:
+            elif mtype == "SIM_STATE":
                 pose = TruePose(now, msg.lat, msg.lon, float(msg.alt), msg.roll, msg.pitch, msg.yaw)
+            else:  # PX4 SIH's HIL_STATE_QUATERNION (its time_usec is 0: measured)
+                roll, pitch, yaw = _euler_from_quaternion(msg.attitude_quaternion)
+                pose = TruePose(now, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, roll, pitch, yaw)
             if self.truth_source in (None, mtype):
                 self.truth_source = mtype
                 self.truth.append(pose)
@@ -203,7 +209,7 @@ class AutopilotRelay:
         elif mtype == "GLOBAL_POSITION_INT" and self.truth_source in (None, "GLOBAL_POSITION_INT"):
             if (
                 self._att is not None
-                and not any(k in self.latest for k in ("SIMSTATE", "SIM_STATE"))
+                and not any(k in self.latest for k in TRUTH_TYPES)
                 and (now - self.latest.get("_first_t", now) > 3.0)
             ):
                 self.truth_source = "GLOBAL_POSITION_INT"
@@ -373,12 +379,12 @@ class MissionDriver:
         if self._done:
             return
         if self._gnss_off:  # one message, not waited on: the caller is stopping
-            self.link.send(
-                lambda mav: mav.param_set_send(
-                    *self._target(), b"SIM_GPS1_ENABLE", 1.0, mavutil.mavlink.MAV_PARAM_TYPE_REAL32
-                )
-            )
+            self.link.send(self._gnss_on_message)
         self._event("stopped", gnss_restored=self._gnss_off)
+
+    def _gnss_on_message(self, mav: Any) -> None:
+        """Send the one message that switches the simulated GNSS back on (``stop``)."""
+        mav.param_set_send(*self._target(), b"SIM_GPS1_ENABLE", 1.0, mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
 
     def _check(self) -> None:
         if self._stopped.is_set():
@@ -578,6 +584,11 @@ class MissionDriver:
         for lat, lon in self.plan.waypoints_lat_lon_deg:
             items.append((mavutil.mavlink.MAV_CMD_NAV_WAYPOINT, lat, lon, self.plan.alt_rel_m))
         items.append((mavutil.mavlink.MAV_CMD_NAV_LAND, 0, 0, 0))
+        return self._upload(items)
+
+    def _upload(self, items: Sequence[tuple[int, float, float, float]]) -> int:
+        """Upload ``items`` (command, lat, lon, alt above home) with the mission protocol; returns the last
+        item's seq. The yaw of NAV_TAKEOFF and NAV_LAND is NaN: the autopilot keeps its heading."""
         sys_id, comp = self._target()
         for _attempt in range(3):
             mark = self.link.send(lambda mav: mav.mission_count_send(sys_id, comp, len(items), 0))
@@ -609,7 +620,7 @@ class MissionDriver:
                         0,
                         0,
                         0,
-                        math.nan if cmd == mavutil.mavlink.MAV_CMD_NAV_LAND else 0,
+                        math.nan if cmd in _KEEP_YAW_COMMANDS else 0,
                         round(lat * 1e7),
                         round(lon * 1e7),
                         alt,
@@ -706,6 +717,18 @@ class MissionDriver:
         self._event("landed")
         self._done = True
         return {"log": self.log, "land_seq": land_seq}
+
+
+_KEEP_YAW_COMMANDS = (mavutil.mavlink.MAV_CMD_NAV_LAND, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF)
+
+
+def _euler_from_quaternion(q: Sequence[float]) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (rad, ZYX) of a unit quaternion (w, x, y, z), body to NED."""
+    w, x, y, z = (float(v) for v in q)
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return roll, pitch, yaw
 
 
 def _pid(raw: Any) -> str:

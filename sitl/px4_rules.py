@@ -38,7 +38,8 @@ from gps_denied_onboard.geo import LocalTangentPlane
 AGP_CTRL_ENABLE_BIT: Final[int] = 1 << 0
 #: ``EKF2_EV_CTRL`` bit 0: external-vision position fusion, which VISION_POSITION_ESTIMATE feeds.
 EV_CTRL_POSITION_BIT: Final[int] = 1 << 0
-#: Aux global position instances EKF2 has (``EKF2_AGP0_*`` … ``EKF2_AGP3_*``; source, PR #26307).
+#: Aux global position instances EKF2 has (``EKF2_AGP0_*`` … ``EKF2_AGP3_*``; source:
+#: ``src/modules/ekf2/params_aux_global_position.yaml``, ``max_num_agp_instances``).
 AGP_INSTANCES: Final[int] = 4
 #: A stream of messages that are not fused (``eph`` = inf, or rejected by the innovation gate) resets
 #: EKF2's horizontal position to the message about this often, s (measured: "about every 7 s").
@@ -46,9 +47,11 @@ RESET_TO_INPUT_S: Final[float] = 7.0
 #: EKF2's position is invalid this long after its last fusion, and the commander fails safe (descend):
 #: measured 5.3 s after the last message, and ~5 s after a rejected 20 m step.
 POSITION_TIMEOUT_S: Final[float] = 5.3
-#: Innovation gate of the aux global position, in standard deviations (source: ``EKF2_AGP_GATE``'s default).
+#: Innovation gate of the aux global position, in standard deviations (source: ``EKF2_AGP0_GATE``'s default
+#: in ``params_aux_global_position.yaml``).
 AGP_GATE_SIGMAS: Final[float] = 3.0
-#: The noise floor of a fused position, m (source: ``EKF2_AGP0_NOISE``'s default, max(eph, it) is used).
+#: The noise floor of a fused position, m (source: ``EKF2_AGP0_NOISE``'s default in
+#: ``params_aux_global_position.yaml``; max(eph, it) is used).
 AGP_NOISE_FLOOR_M: Final[float] = 1.0
 #: How fast the double's own position variance grows between fusions, m^2/s (an assumption: a hovering
 #: multirotor's EKF2 without GNSS; it only sets how wide the gate opens after a gap).

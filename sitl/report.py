@@ -17,6 +17,12 @@ the time its state was propagated to. Definitions (also in docs/sitl.md, "Report
 - ``stream``: the GPS_INPUT stream replayed through the ArduPilot rules test double
   (``sitl.ardupilot_rules``): intervals, the 215/245 ms health rule, NO_FIX and EKF failsafe.
 - ``fix_age_ms``: for accepted absolute fixes, when the daemon fused them minus their exposure time.
+
+With PX4 (``autopilot="px4"``) the estimate stream is GLOBAL_POSITION_SENSOR: each is read as a 3D fix
+stating ``eph`` as its horizontal accuracy (``position_messages``: the daemon sends it only for a
+position it backs, and PX4 has no "do not use"), and ``stream`` is what the PX4 double
+(``sitl.px4_rules``) predicts of the same messages: intervals, and when the position timed out
+(``POSITION_TIMEOUT_S`` without a message while the vehicle relied on it: PX4's failsafe).
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ from gps_denied_onboard.sitl.ardupilot_rules import (
     gps_input_accepted,
 )
 from gps_denied_onboard.sitl.autopilot import ReceivedMessage
+from gps_denied_onboard.sitl.px4_rules import POSITION_TIMEOUT_S
 
 AVAILABILITY_WINDOW_S = 1.0
 #: GPSn_TYPE parameters of the autopilot the stream is judged against (GPS1_TYPE=14, MAVLink).
@@ -64,6 +71,59 @@ def _of_kind(records: Sequence[Mapping[str, Any]], kind: str) -> list[Mapping[st
     return [r for r in records if r.get("kind") == kind]
 
 
+def position_messages(received: Sequence[ReceivedMessage]) -> list[ReceivedMessage]:
+    """The estimate stream as the report reads it, by receive time: GPS_INPUT as received; where there is
+    none, each GLOBAL_POSITION_SENSOR as a 3D fix whose horizontal accuracy is its ``eph``."""
+    gps = [m for m in received if m.type == "GPS_INPUT"]
+    if not gps:
+        gps = [
+            ReceivedMessage(
+                m.recv_time_unix_s,
+                "GPS_INPUT",
+                {
+                    "time_usec": m.fields["time_usec"],
+                    "lat": m.fields["lat"],
+                    "lon": m.fields["lon"],
+                    "fix_type": 3,
+                    "horiz_accuracy": m.fields["eph"],
+                },
+            )
+            for m in received
+            if m.type == "GLOBAL_POSITION_SENSOR"
+        ]
+    return sorted(gps, key=lambda m: m.recv_time_unix_s)
+
+
+def px4_stream_verdict(
+    recv_s: Sequence[float], *, end_s: float | None, relied_on_until_s: float | None
+) -> dict[str, Any]:
+    """What the PX4 double predicts of a GLOBAL_POSITION_SENSOR stream received at ``recv_s`` (the
+    stream's seconds): the intervals, and each silence longer than ``POSITION_TIMEOUT_S`` before
+    ``relied_on_until_s`` (PX4's failsafe: descend), with when it fired."""
+    intervals = np.diff(np.asarray(recv_s, dtype=float)) * 1000.0
+    edges = [*recv_s, end_s] if end_s is not None and recv_s else list(recv_s)
+    failsafes = [
+        round(a + POSITION_TIMEOUT_S, 3)
+        for a, b in itertools.pairwise(edges)
+        if b - a > POSITION_TIMEOUT_S
+        and (relied_on_until_s is None or a + POSITION_TIMEOUT_S < relied_on_until_s)
+    ]
+    return {
+        "autopilot": "px4",
+        "interval_ms": {
+            "n": len(intervals),
+            "mean_ms": float(intervals.mean()),
+            "p99_ms": float(np.percentile(intervals, 99)),
+            "max_ms": float(intervals.max()),
+        }
+        if len(intervals)
+        else None,
+        "position_timeouts_s": failsafes,
+        "health": {"tripped": bool(failsafes)},
+        "ekf_failsafe_land_s": failsafes[0] if failsafes else None,
+    }
+
+
 def score(
     frames: Sequence[SentFrame],
     received: Sequence[ReceivedMessage],
@@ -73,14 +133,15 @@ def score(
     end_unix_s: float | None = None,
     gps_types: Mapping[int, int] | None = None,
     relied_on_until_unix_s: float | None = None,
+    autopilot: str = "ardupilot",
 ) -> dict[str, Any]:
     """Build the report dict. ``truth_at_unix(t)`` -> (lat_deg, lon_deg) of the truth at Unix time t;
     ``fdr_records``: the daemon's flight data recorder (provenance and per-frame timing);
     ``end_unix_s``: end of the flight, for judging silence after the last message; ``gps_types``: the
     autopilot's GPSn_TYPE by instance the stream is judged with (default STREAM_GPS_TYPES);
     ``relied_on_until_unix_s``: when the autopilot's own GNSS took over again (its silences after that
-    trip nothing)."""
-    gps = sorted((m for m in received if m.type == "GPS_INPUT"), key=lambda m: m.recv_time_unix_s)
+    trip nothing); ``autopilot``: ``ardupilot`` or ``px4`` (module docstring)."""
+    gps = position_messages(received)
     prov_by_time = {
         int(r["time_unix_usec"]): str(r.get("provenance"))
         for r in _of_kind(fdr_records, FdrKind.ESTIMATE_SENT)
@@ -153,12 +214,19 @@ def score(
         if m.type == "STATUSTEXT"
     ]
     t_ref = gps_recv[0] if gps_recv else 0.0
-    stream = evaluate_gps_stream(
-        [t - t_ref for t in gps_recv],
-        [gps_input_accepted(m.fields, STREAM_GPS_TYPES if gps_types is None else gps_types) for m in gps],
-        end_s=None if end_unix_s is None or not gps else max(end_unix_s - t_ref, gps_recv[-1] - t_ref),
-        relied_on_until_s=None if relied_on_until_unix_s is None else relied_on_until_unix_s - t_ref,
-    )
+    end_s = None if end_unix_s is None or not gps else max(end_unix_s - t_ref, gps_recv[-1] - t_ref)
+    relied_s = None if relied_on_until_unix_s is None else relied_on_until_unix_s - t_ref
+    if autopilot == "px4":
+        stream_dict = px4_stream_verdict(
+            [t - t_ref for t in gps_recv], end_s=end_s, relied_on_until_s=relied_s
+        )
+    else:
+        stream_dict = evaluate_gps_stream(
+            [t - t_ref for t in gps_recv],
+            [gps_input_accepted(m.fields, STREAM_GPS_TYPES if gps_types is None else gps_types) for m in gps],
+            end_s=end_s,
+            relied_on_until_s=relied_s,
+        ).to_dict()
     # EKF3's speed-accuracy test over the 3D messages, as the autopilot would run it
     # (a replay's messages may carry no speed accuracy: then there is nothing to judge)
     with_sacc = [m for m in fixes if m.fields.get("speed_accuracy") is not None]
@@ -202,7 +270,7 @@ def score(
         "speed_accuracy_m_s": {"p50": _pct(sacc, 50), "p95": _pct(sacc, 95), "max": max(sacc, default=None)},
         #: When EKF3's speed-accuracy test would call the GPS glitching, s on the stream's clock.
         "glitch_spans_s": glitch_spans,
-        "stream": stream.to_dict(),
+        "stream": stream_dict,
         #: Unix time of the stream's 0 s (its first GPS_INPUT), to place its spans on the flight clock.
         "stream_t0_unix_s": t_ref,
         "statustext": statustexts,
@@ -494,7 +562,7 @@ def restart_recovery(
     started), what the autopilot side heard and what the restarted daemon recorded, until the next kill:
 
     - ``last_before_kill_s``, ``first_after_s``, ``first_3d_after_s``: GPS_INPUT (any fix type, fix_type
-      3) around the kill, s after the kill;
+      3; GLOBAL_POSITION_SENSOR with PX4, ``position_messages``) around the kill, s after the kill;
     - ``first_after_start_s``, ``first_3d_after_start_s``: the same, s after the new process started;
     - ``prior_source``, ``prior_sigma_m``: the start-up prior it chose (FDR ``estimator.prior``);
     - ``first_anchored_after_start_s``: its first accepted absolute fix (FDR ``pipeline.fix``), s after
@@ -503,7 +571,7 @@ def restart_recovery(
       anchoring one (all of them when none anchored).
 
     The FDR fields are None when the FDR holds nothing of that run (a full disk)."""
-    gps = sorted((m.recv_time_unix_s, int(m.fields["fix_type"])) for m in received if m.type == "GPS_INPUT")
+    gps = [(m.recv_time_unix_s, int(m.fields["fix_type"])) for m in position_messages(received)]
     kills = [float(r["killed_unix_s"]) for r in restarts]
     out = []
     for i, r in enumerate(restarts):

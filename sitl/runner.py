@@ -957,7 +957,11 @@ def summary_lines(report: dict[str, Any]) -> list[str]:
         f"{cons['beyond_3sigma']} beyond 3 sigma",
         f"GPS_INPUT     {report['gps_input_received']} msgs, interval mean {f(iv.get('mean_ms'), 'ms')} "
         f"p99 {f(iv.get('p99_ms'), 'ms')} max {f(iv.get('max_ms'), 'ms')}; ArduPilot health tripped: "
-        f"{stream['health']['tripped']}, failsafe: {stream.get('ekf_failsafe_land_s')}",
+        f"{stream['health']['tripped']}, failsafe: {stream.get('ekf_failsafe_land_s')}"
+        if stream.get("autopilot") != "px4"
+        else f"GLOBAL_POS_S  {report['gps_input_received']} msgs, interval mean {f(iv.get('mean_ms'), 'ms')} "
+        f"p99 {f(iv.get('p99_ms'), 'ms')} max {f(iv.get('max_ms'), 'ms')}; PX4 position timeouts "
+        f"{stream.get('position_timeouts_s')}",
         *(
             [
                 f"speed acc     p50 {f(sa.get('p50'), 'm/s')}  p95 {f(sa.get('p95'), 'm/s')}; "
