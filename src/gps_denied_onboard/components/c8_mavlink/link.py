@@ -880,15 +880,13 @@ class MavlinkLink:
         """Ask the autopilot for each parameter in ``names`` (PARAM_REQUEST_READ); the answers reach the
         tracker (``VehicleStateTracker.param``)."""
         target = self._config.autopilot_system_id
-        sent = [
-            self._build_and_send(
-                lambda mav, name=name: mav.param_request_read_encode(
-                    target, AUTOPILOT_COMPONENT_ID, name.encode("ascii"), -1
-                )
+
+        def request(name: str) -> Callable[[Any], Any]:
+            return lambda mav: mav.param_request_read_encode(
+                target, AUTOPILOT_COMPONENT_ID, name.encode("ascii"), -1
             )
-            for name in names
-        ]
-        return all(sent)
+
+        return all([self._build_and_send(request(name)) for name in names])
 
     def request_flight_phase(self) -> bool:
         """Ask the autopilot for EXTENDED_SYS_STATE (its landed state) now (MAV_CMD_REQUEST_MESSAGE): the
