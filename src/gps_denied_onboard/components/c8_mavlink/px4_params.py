@@ -9,9 +9,10 @@ value to set and whether PX4 must reboot; none when all is well. Nothing here ta
   of 2026-03-02, DESIGN.md). A first message with an id that no ``EKF2_AGP{i}_ID`` holds also takes a
   free instance and binds the link to it until reboot, so the daemon checks before it sends.
 - ``EKF2_AGP0_DELAY`` (ms, reboot-required, default 0: PX4's ``params_aux_global_position.yaml``) is how
-  old PX4 takes a message to be on arrival (it stamps on arrival and reads no time field). The daemon's positions are propagated to their send time, so it should be 0 within
-  ``AGP_DELAY_TOLERANCE_MS``: a delay set for a camera's latency would fuse each position as if it were
-  that much older (at 10 m/s, 0.1 s is 1 m along the track).
+  old PX4 takes a message to be on arrival (it stamps on arrival and reads no time field). The daemon's
+  positions are propagated to their send time, so it should be 0 within ``AGP_DELAY_TOLERANCE_MS``: a
+  delay set for a camera's latency would fuse each position as if it were that much older (at 10 m/s,
+  0.1 s is 1 m along the track).
 """
 
 from __future__ import annotations
