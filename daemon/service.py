@@ -83,7 +83,7 @@ ATTITUDE_WAIT_MAX_S = 0.3
 PRIOR_DOUBT_TEXT_INTERVAL_S = 5.0
 #: PX4's parameters (``_check_px4_parameters``): how often to look for its HEARTBEAT, how long to wait
 #: for the answers to one round of PARAM_REQUEST_READ, and how many rounds, s.
-PX4_PARAM_POLL_S = 0.2
+PX4_PARAM_POLL_S = 0.05
 PX4_PARAM_WAIT_S = 0.5
 PX4_PARAM_TRIES = 6
 
@@ -931,8 +931,11 @@ class NavDaemon:
         values: dict[str, float | None] = dict.fromkeys(PX4_AGP_PARAMS)
         for _ in range(PX4_PARAM_TRIES):
             link.request_params(tuple(name for name, value in values.items() if value is None))
-            await asyncio.sleep(PX4_PARAM_WAIT_S)
-            values = {name: tracker.param(name) for name in PX4_AGP_PARAMS}
+            for _ in range(round(PX4_PARAM_WAIT_S / PX4_PARAM_POLL_S)):  # on the critical path of a restart
+                await asyncio.sleep(PX4_PARAM_POLL_S)
+                values = {name: tracker.param(name) for name in PX4_AGP_PARAMS}
+                if all(value is not None for value in values.values()):
+                    break
             if all(value is not None for value in values.values()):
                 break
         problems = px4_agp_problems(values, sensor_id=self._cfg.mavlink.global_position_sensor_id)
