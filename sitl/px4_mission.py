@@ -216,6 +216,17 @@ class Px4MissionDriver(MissionDriver):
             self._sleep(1.0)
         raise MissionError(f"PX4 refused mode {main}.{sub}; last texts: {self._texts()}")
 
+    def _landed(self) -> bool:
+        """Disarmed and on the ground by PX4's own landed state (EXTENDED_SYS_STATE); its relative
+        altitude can read metres after the landing once the GNSS is back ("GPS Vertical Pos Drift too
+        high", measured), so it decides only where PX4 sends no landed state."""
+        if self.armed():
+            return False
+        ext = self.link.last("EXTENDED_SYS_STATE")
+        if ext is not None:
+            return int(ext.landed_state) == mavutil.mavlink.MAV_LANDED_STATE_ON_GROUND
+        return self.rel_alt_m() <= 0.5
+
     def _daemon_streaming_for(self) -> float:
         """How long the daemon's GLOBAL_POSITION_SENSOR has been arriving without a gap, s."""
         times = [m.recv_time_unix_s for m in self.link.received[-200:] if m.type == "GLOBAL_POSITION_SENSOR"]
@@ -252,7 +263,7 @@ class Px4MissionDriver(MissionDriver):
             self._event("gnss_off")
         gnss_back = not gnss_off
         land_mode = px4_mode(PX4_MAIN_AUTO, PX4_SUB_AUTO_LAND)
-        while self.armed() or self.rel_alt_m() > 0.5:
+        while not self._landed():
             if time.time() > t_end:
                 raise MissionError(f"the mission did not finish in {timeout_s:.0f} s: {self._texts()}")
             cur = self.link.last("MISSION_CURRENT")

@@ -866,3 +866,32 @@ def test_an_area_alignment_without_a_peak_does_not_hold_the_sweep(reason: str, r
     p._matched = solved_and_refused  # type: ignore[method-assign]
     assert _fly(p, 4) == [False] * 4
     assert _ranks(fdr) == ranks
+
+
+def test_vo_states_the_tilt_error_the_fixes_measured_through_the_off_nadir_lever() -> None:
+    """PX4 SIH held a 38 deg roll with its attitude 2-5 deg off the truth and no swing to show it: VO,
+    de-rotating with that attitude, was 1 m a frame wrong at 80 m. VO's covariance takes the larger of the
+    autopilot's AHRS doubt and the tilt error accepted fixes measured, through height / cos(off-nadir)^2."""
+    from gps_denied_onboard.pipeline import AHRS_ERROR_CHANGE_TIME_S, _with_attitude_doubt
+
+    motion = VoMotion(uuid.uuid4(), uuid.uuid4(), 0.34, np.array([0.0, 2.4]), np.eye(2) * 0.01, 300, None)
+    level = Attitude(0.0, 0.0, 0.0)
+    rolled = Attitude(math.radians(38.0), 0.0, 0.0)
+    timing = FrameTiming((0.0, 0.0), 0.0, 0.05, ahrs_sigma_rad=math.radians(0.3))
+
+    def frame(att: Attitude) -> NavCameraFrame:
+        image = np.zeros((480, 640, 3), np.uint8)
+        return NavCameraFrame(uuid.uuid4(), 0, T0, image, att, 80.0, 0, timing=timing)
+
+    def sigma(att: Attitude, measured_rad: float) -> float:
+        cov = _with_attitude_doubt(motion, frame(att), measured_rad).cov_ne_m2
+        return math.sqrt(float(cov[0, 0]))
+
+    change = math.radians(4.0) * 0.34 / AHRS_ERROR_CHANGE_TIME_S
+    assert sigma(level, math.radians(4.0)) == pytest.approx(math.hypot(0.1, 80.0 * change), rel=1e-6)
+    assert sigma(rolled, math.radians(4.0)) == pytest.approx(
+        math.hypot(0.1, 80.0 / math.cos(math.radians(38.0)) ** 2 * change), rel=1e-6
+    )
+    assert sigma(rolled, math.radians(4.0)) > 1.05  # the measured error per frame, 1 sigma
+    without = math.hypot(0.1, 80.0 / math.cos(math.radians(38.0)) ** 2 * math.radians(0.3) * 0.17)
+    assert sigma(rolled, 0.0) == pytest.approx(without, rel=1e-6)  # the autopilot's own doubt alone

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 import uuid
 from collections import OrderedDict, deque
@@ -264,6 +265,10 @@ class NavigationPipeline:
         #: What alignment-only fixes state they may carry from the autopilot's tilt beyond their own
         #: sigma, m (``_with_area_doubt``; None: nothing).
         self._area_doubt_m: float | None = None
+        #: How far accepted fixes found the autopilot's tilt from the camera's, with their exposure
+        #: (``measured_ahrs_doubt_rad``): written by the fix thread, read by the track thread.
+        self._tilt_off_seen: deque[tuple[int, float]] = deque(maxlen=TILT_OFF_HISTORY)
+        self._tilt_off_lock = threading.Lock()
         self._prior_gate_chi2 = integrity.config.prior_gate_chi2
         self._heading_height = heading_height_check
         self._axis = time_axis
@@ -381,6 +386,15 @@ class NavigationPipeline:
         ahrs_rad = max(0.0, timing.ahrs_sigma_rad - AHRS_DOUBT_FREE_RAD)
         return math.hypot(timing.tilt_sigma_rad, ahrs_rad) <= limit
 
+    def measured_ahrs_doubt_rad(self, time_unix_usec: int) -> float:
+        """The largest tilt error of the autopilot that accepted fixes measured (each solved from points
+        measures the camera's own tilt) over ``MEASURED_TILT_WINDOW_S`` before ``time_unix_usec``, rad; 0
+        with none there (no fix measured it: area correlation, VO alone)."""
+        lo = time_unix_usec - int(MEASURED_TILT_WINDOW_S * 1e6)
+        with self._tilt_off_lock:
+            seen = [off for t, off in self._tilt_off_seen if lo <= t <= time_unix_usec]
+        return max(seen, default=0.0)
+
     def _note_camera_tilt(
         self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, timing: FrameTiming | None
     ) -> None:
@@ -439,7 +453,7 @@ class NavigationPipeline:
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
                 if motion is not None:
-                    motion = _with_attitude_doubt(motion, frame)
+                    motion = _with_attitude_doubt(motion, frame, self.measured_ahrs_doubt_rad(t))
                     decision = self._axis.fuse_vo(motion, t)
                     if decision.accepted:
                         fused = motion
@@ -549,6 +563,8 @@ class NavigationPipeline:
                     # a fix that measured its own tilt, and the tilt checks let through: the tilt is right
                     self._area_doubt_m = None
                     self._area_disagreements.clear()
+                    with self._tilt_off_lock:
+                        self._tilt_off_seen.append((t, math.hypot(*fix.image_tilt_off_cam_rad)))
             heading_height = None
             evidence = verdict.evidence if verdict is not None else None
             if accepted and self._heading_height is not None and isinstance(evidence, AreaEvidence):
@@ -1050,17 +1066,29 @@ def _timing_fields(timing: FrameTiming | None) -> dict[str, object] | None:
 #: The AHRS doubt (``FrameTiming.ahrs_sigma_rad``) a gentle manoeuvre gives, up to a 10 deg swing, which
 #: still leaves a tilt comparable with the autopilot's: it states error, it does not stop the checks.
 AHRS_DOUBT_FREE_RAD: Final[float] = math.radians(1.0)
+#: Accepted fixes' tilt errors kept for ``measured_ahrs_doubt_rad`` (3 Hz over its window), and the
+#: window, s (as the autopilot's swing window, ``vehicle_state.AHRS_SWING_WINDOW_S``).
+TILT_OFF_HISTORY: Final[int] = 32
+MEASURED_TILT_WINDOW_S: Final[float] = 8.0
+#: The camera's axis is taken at most this far from nadir for VO's lever (cos 60 deg).
+MIN_COS_OFF_NADIR: Final[float] = 0.5
 #: How fast the autopilot's attitude error changes, as a share of its size per second: it built up and
 #: decayed over 2-10 s on ArduPilot SITL (``VehicleStateTracker.ahrs_doubt_rad``), so take 2 s.
 AHRS_ERROR_CHANGE_TIME_S: Final[float] = 2.0
 
 
-def _with_attitude_doubt(motion: VoMotion, frame: NavCameraFrame) -> VoMotion:
+def _with_attitude_doubt(motion: VoMotion, frame: NavCameraFrame, measured_rad: float = 0.0) -> VoMotion:
     """``motion`` stating the displacement error a drifting autopilot attitude makes: VO de-rotates the
-    frames with it, so a tilt error that changed by ``d`` between them moves the ground by height x d."""
+    frames with it, so a tilt error that changed by ``d`` between them moves the ground under the camera's
+    axis by ``height / cos(off-nadir)^2 x d``. The error is the larger of the autopilot's AHRS doubt after
+    its manoeuvres (``FrameTiming.ahrs_sigma_rad``) and ``measured_rad``, the tilt error the fixes found
+    (``NavigationPipeline.measured_ahrs_doubt_rad``): on PX4 SIH, 2-5 deg through a sustained 38 deg roll
+    with no swing to show it, which made VO 1 m a frame wrong at 80 m."""
     timing = frame.timing
-    if timing is None or timing.ahrs_sigma_rad <= 0.0 or frame.alt_agl_m is None:
+    doubt_rad = max(timing.ahrs_sigma_rad if timing is not None else 0.0, measured_rad)
+    if doubt_rad <= 0.0 or frame.alt_agl_m is None or frame.attitude is None:
         return motion
-    change_rad = timing.ahrs_sigma_rad * min(1.0, motion.dt_s / AHRS_ERROR_CHANGE_TIME_S)
-    extra_m = frame.alt_agl_m * change_rad
+    change_rad = doubt_rad * min(1.0, motion.dt_s / AHRS_ERROR_CHANGE_TIME_S)
+    cos_off_nadir = max(float(frame.attitude.R_ned_cam()[2, 2]), MIN_COS_OFF_NADIR)
+    extra_m = frame.alt_agl_m / cos_off_nadir**2 * change_rad
     return replace(motion, cov_ne_m2=np.asarray(motion.cov_ne_m2) + np.eye(2) * extra_m**2)
