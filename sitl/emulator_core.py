@@ -1,0 +1,299 @@
+"""What the CI autopilot emulators share: the UDP MAVLink server loop and the point-mass vehicle.
+
+Both emulators (:mod:`~gps_denied_onboard.sitl.ap_emulator` for ArduPilot,
+:mod:`~gps_denied_onboard.sitl.px4_emulator` for PX4) are test doubles of an autopilot's MAVLink side,
+not autopilots. What they have in common is no autopilot's rule, only the plumbing of a double:
+
+- :class:`UdpEmulator`: one MAVLink channel per UDP port on loopback, each answering the last address
+  that sent it a datagram (like a serial port), broadcasts forwarded between channels, a handler per
+  message type, and a fixed-rate loop in which the vehicle moves with the wall clock;
+- :class:`PointMassVehicle`: a point mass with speed and acceleration limits whose tilt follows the
+  commanded horizontal acceleration with a first-order lag, flat ground, no wind. Roll and pitch are the
+  tilt that gives that acceleration; HIGHRES_IMU's specific force follows from it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import select
+import socket
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Final
+
+import numpy as np
+
+GRAVITY_M_S2: Final[float] = 9.80665
+#: Physics and fast-telemetry rate, Hz.
+PHYSICS_HZ: Final[float] = 50.0
+#: Time constant of the tilt (and so the acceleration) following the commanded acceleration, s
+#: (ArduCopter ATC_INPUT_TC default; used for both doubles: nothing was measured on PX4's).
+TILT_TAU_S: Final[float] = 0.15
+#: Yaw rate towards the next target, rad/s.
+YAW_RATE_RAD_S: Final[float] = math.radians(90.0)
+#: Closer than this to its target, the vehicle keeps its heading, m.
+YAW_HOLD_DISTANCE_M: Final[float] = 2.0
+
+
+def wrap_pi(a: float) -> float:
+    """``a`` in (-pi, pi]."""
+    return math.atan2(math.sin(a), math.cos(a))
+
+
+def param_id(raw: Any) -> str:
+    """A MAVLink ``param_id`` (bytes or str, NUL-padded) as a str."""
+    s = raw.decode("ascii", "replace") if isinstance(raw, bytes) else str(raw)
+    return s.split("\x00", 1)[0]
+
+
+def parse_home(text: str) -> tuple[float, float, float, float]:
+    """``LAT,LON,ALT,HEADING`` as ArduPilot SITL's ``--home`` takes it."""
+    parts = text.split(",")
+    if len(parts) != 4:
+        raise ValueError(f"--home {text!r}: expected LAT,LON,ALT_AMSL_M,HEADING_DEG (4 numbers)")
+    try:
+        lat, lon, alt, hdg = (float(p) for p in parts)
+    except ValueError as exc:
+        raise ValueError(f"--home {text!r}: expected 4 numbers") from exc
+    if not (abs(lat) <= 90 and abs(lon) <= 180 and all(map(math.isfinite, (alt, hdg)))):
+        raise ValueError(f"--home {text!r}: latitude/longitude out of range")
+    return lat, lon, alt, hdg
+
+
+def approach_velocity_ne(d_ne: np.ndarray, vmax_m_s: float, accel_m_s2: float) -> np.ndarray:
+    """The horizontal velocity towards a target ``d_ne`` (north, east m) away: at most ``vmax_m_s``,
+    slowing so that ``accel_m_s2`` stops it there, and at most 1.5 x the distance per second near it."""
+    dist = float(np.hypot(*d_ne))
+    if dist <= 1e-6:
+        return np.zeros(2)
+    speed = min(vmax_m_s, math.sqrt(2.0 * accel_m_s2 * dist), 1.5 * dist)
+    return np.asarray(d_ne, dtype=float) / dist * speed
+
+
+@dataclass
+class Channel:
+    """One MAVLink channel: a UDP socket and the last address that sent it a datagram."""
+
+    sock: socket.socket
+    port: int
+    peer: tuple[str, int] | None = None
+    parser: Any = None
+
+
+class PointMassVehicle:
+    """The vehicle's truth (module docstring): NED at home, down = -height. Mixed into an emulator."""
+
+    def _reset_vehicle(self, heading_deg: float) -> None:
+        self.pos_ned = np.zeros(3)
+        self.vel_ned = np.zeros(3)
+        self.accel_ned = np.zeros(3)
+        self.tilt_accel_ne = np.zeros(2)  # horizontal acceleration the current tilt gives, m/s^2
+        self.yaw_rad = math.radians(heading_deg)
+        self.roll_rad = self.pitch_rad = 0.0
+
+    @property
+    def on_ground(self) -> bool:
+        return bool(self.pos_ned[2] >= -1e-3)
+
+    def _turn_toward(self, d_ne: np.ndarray, dt: float) -> None:
+        """Yaw towards ``d_ne`` at ``YAW_RATE_RAD_S`` while farther than ``YAW_HOLD_DISTANCE_M``."""
+        if float(np.hypot(*d_ne)) > YAW_HOLD_DISTANCE_M:
+            step = YAW_RATE_RAD_S * dt
+            self.yaw_rad += float(np.clip(wrap_pi(math.atan2(d_ne[1], d_ne[0]) - self.yaw_rad), -step, step))
+
+    def _integrate(
+        self, want_v: np.ndarray, dt: float, accel_h_m_s2: float, accel_v_m_s2: float
+    ) -> np.ndarray:
+        """Move the vehicle ``dt`` s towards the velocity ``want_v`` (NED, m/s); returns the change of
+        (roll, pitch) it made, rad.
+
+        The commanded horizontal acceleration closes the velocity error in two tilt time constants (a
+        damping of 0.7 with the tilt's lag), at most ``accel_h_m_s2``; the tilt, and with it the
+        acceleration, follows it with a first-order lag. The vertical acceleration is at most
+        ``accel_v_m_s2``. On the ground the vehicle stands still."""
+        dv = want_v - self.vel_ned
+        cmd_h = dv[:2] / max(2.0 * TILT_TAU_S, dt)
+        n = float(np.hypot(*cmd_h))
+        if n > accel_h_m_s2:
+            cmd_h = cmd_h / n * accel_h_m_s2
+        self.tilt_accel_ne = self.tilt_accel_ne + (cmd_h - self.tilt_accel_ne) * min(1.0, dt / TILT_TAU_S)
+        dv_h = self.tilt_accel_ne * dt
+        dv_z = float(np.clip(dv[2], -accel_v_m_s2 * dt, accel_v_m_s2 * dt))
+        self.accel_ned = np.array([dv_h[0], dv_h[1], dv_z]) / dt
+        self.vel_ned = self.vel_ned + self.accel_ned * dt
+        self.pos_ned = self.pos_ned + self.vel_ned * dt
+        if self.pos_ned[2] > 0.0:  # the ground
+            self.pos_ned[2] = 0.0
+            self.vel_ned[2] = min(self.vel_ned[2], 0.0)
+            self.vel_ned[:2] = 0.0
+            self.accel_ned[:] = 0.0
+            self.tilt_accel_ne[:] = 0.0
+        # roll/pitch from the horizontal acceleration, in the body frame
+        cy, sy = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        a_fwd = cy * self.accel_ned[0] + sy * self.accel_ned[1]
+        a_right = -sy * self.accel_ned[0] + cy * self.accel_ned[1]
+        prev = np.array([self.roll_rad, self.pitch_rad])
+        self.pitch_rad = -math.atan2(a_fwd, GRAVITY_M_S2)
+        self.roll_rad = math.atan2(a_right, GRAVITY_M_S2)
+        return np.array([self.roll_rad, self.pitch_rad]) - prev
+
+    def _specific_force_body(self) -> np.ndarray:
+        """What an accelerometer on the vehicle reads (body FRD, m/s^2): acceleration minus gravity."""
+        from gps_denied_onboard.camera.types import Attitude
+
+        r = Attitude(self.roll_rad, self.pitch_rad, self.yaw_rad).R_ned_body()
+        return np.asarray(r.T @ (self.accel_ned - np.array([0.0, 0.0, GRAVITY_M_S2])))
+
+
+class UdpEmulator:
+    """The server side of a double (module docstring). Subclasses set ``_handlers`` (message type ->
+    ``handler(self, msg, now_s)``) and implement :meth:`_before_physics`, :meth:`_step`, :meth:`_send_tick`
+    and :meth:`_write_events`; :meth:`run` serves until :meth:`stop` or the duration."""
+
+    _handlers: ClassVar[dict[str, Callable[[Any, Any, float], None]]] = {}
+
+    def __init__(self, dialect: Any, ports: Sequence[int], *, quiet: bool) -> None:
+        self._quiet = quiet
+        self.events: list[dict[str, Any]] = []
+        self._mav = dialect.MAVLink(self, srcSystem=1, srcComponent=1)
+        self._mav.robust_parsing = True
+        self._channels: list[Channel] = []
+        for port in ports:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            sock.bind(("127.0.0.1", port))
+            sock.setblocking(False)
+            parser = dialect.MAVLink(None, srcSystem=1, srcComponent=1)
+            parser.robust_parsing = True
+            self._channels.append(Channel(sock, int(sock.getsockname()[1]), parser=parser))
+        self._out: Channel | None = None  # None = all channels
+        self._running = True
+        self.boot_unix_s = time.time()
+
+    # --- transport ------------------------------------------------------------------------------
+    def write(self, buf: bytes) -> None:
+        """pymavlink's file interface: send to one channel (a reply) or to every channel with a peer."""
+        targets = [self._out] if self._out is not None else self._channels
+        for ch in targets:
+            if ch.peer is not None:
+                with contextlib.suppress(OSError):
+                    ch.sock.sendto(buf, ch.peer)
+
+    @property
+    def ports(self) -> list[int]:
+        return [c.port for c in self._channels]
+
+    def stop(self) -> None:
+        self._running = False
+
+    def close(self) -> None:
+        for c in self._channels:
+            c.sock.close()
+
+    # --- time, events, texts --------------------------------------------------------------------
+    def now_s(self) -> float:
+        """Seconds since boot."""
+        return time.time() - self.boot_unix_s
+
+    def _boot_ms(self) -> int:
+        return int(self.now_s() * 1000) & 0xFFFFFFFF
+
+    def _event(self, kind: str, **data: Any) -> None:
+        ev = {"t_unix_s": round(time.time(), 3), "kind": kind, **data}
+        self.events.append(ev)
+        if not self._quiet:
+            print(json.dumps(ev), flush=True)
+
+    def _text(self, severity: int, text: str) -> None:
+        """STATUSTEXT to every channel, also while answering one."""
+        out, self._out = self._out, None
+        try:
+            self._mav.statustext_send(severity, text.encode()[:50])
+        finally:
+            self._out = out
+        self._event("statustext", text=text)
+
+    # --- the loop -------------------------------------------------------------------------------
+    def _dispatch(self, ch: Channel, data: bytes, now: float) -> None:
+        try:
+            msgs = ch.parser.parse_buffer(data) or []
+        except Exception:
+            return
+        for msg in msgs:
+            mtype = msg.get_type()
+            if mtype == "BAD_DATA":
+                continue
+            # MAVLink routing: a broadcast from one channel goes on to the others
+            if getattr(msg, "target_system", 0) in (0, None) and len(self._channels) > 1:
+                for other in self._channels:
+                    if other is not ch and other.peer is not None:
+                        with contextlib.suppress(OSError):
+                            other.sock.sendto(msg.get_msgbuf(), other.peer)
+            target = getattr(msg, "target_system", 0)
+            if target not in (0, 1, None):
+                continue
+            handler = self._handlers.get(mtype)
+            if handler is None:
+                continue
+            self._out = ch
+            try:
+                handler(self, msg, now)
+            finally:
+                self._out = None
+
+    def _before_physics(self, now: float) -> None:
+        """Once a tick, before the vehicle moves."""
+
+    def _step(self, dt: float, now: float) -> None:
+        """Move the vehicle ``dt`` s."""
+        raise NotImplementedError
+
+    def _send_tick(self, k: int, now: float) -> None:
+        """Once a tick (``k`` counts them at ``PHYSICS_HZ``), after the vehicle moved: the telemetry."""
+        raise NotImplementedError
+
+    def _write_events(self) -> None:
+        """On exit."""
+
+    def run(self, duration_s: float | None = None) -> None:
+        dt = 1.0 / PHYSICS_HZ
+        next_t = time.time()
+        k = 0
+        end = None if duration_s is None else time.time() + duration_s
+        socks = {c.sock: c for c in self._channels}
+        last_step = time.time()
+        while self._running and (end is None or time.time() < end):
+            timeout = max(0.0, next_t - time.time())
+            ready, _, _ = select.select(list(socks), [], [], timeout)
+            now = self.now_s()
+            for s in ready:
+                ch = socks[s]
+                while True:
+                    try:
+                        data, addr = s.recvfrom(65535)
+                    except (BlockingIOError, InterruptedError):
+                        break
+                    except OSError:
+                        break
+                    ch.peer = addr
+                    self._dispatch(ch, data, now)
+            if time.time() < next_t:
+                continue
+            # The vehicle moves with the wall clock: after a stall of this process (a loaded machine) it
+            # is where its velocity took it, in sub-steps, so that the truth and the IMU stay consistent;
+            # one catch-up burst of fixed steps would move it without any acceleration the IMU reported.
+            wall = time.time()
+            elapsed = min(max(wall - last_step, 0.0), 1.0)
+            last_step = wall
+            next_t += dt
+            if next_t < wall:
+                next_t = wall + dt  # behind: the next tick a full period from now, not a burst
+            self._before_physics(now)
+            n_sub = math.ceil(elapsed / dt - 1e-9)
+            for _ in range(n_sub):
+                self._step(elapsed / n_sub, now)
+            self._send_tick(k, now)
+            k += 1
+        self._write_events()
