@@ -60,8 +60,11 @@ from gps_denied_onboard.sitl.autopilot import send_home_position
 from gps_denied_onboard.sitl.emulator_core import (
     PointMassVehicle,
     UdpEmulator,
+    add_common_arguments,
     approach_velocity_ne,
     parse_home,
+    parse_params,
+    serve,
 )
 from gps_denied_onboard.sitl.emulator_core import param_id as _param_id
 from gps_denied_onboard.sitl.emulator_core import wrap_pi as _wrap_pi
@@ -542,39 +545,10 @@ class ArduPilotEmulator(PointMassVehicle, UdpEmulator):
         self.target_ned = np.array([ne[0], ne[1], -float(msg.alt)])
 
     # --- mission protocol -----------------------------------------------------------------------
-    def _on_mission_count(self, msg: Any) -> None:
-        if int(getattr(msg, "mission_type", 0)) != 0:
-            self._mav.mission_ack_send(msg.get_srcSystem(), msg.get_srcComponent(), 1, msg.mission_type)
-            return
-        self._upload = {
-            "count": int(msg.count),
-            "items": [],
-            "sys": msg.get_srcSystem(),
-            "comp": msg.get_srcComponent(),
-        }
-        self._request_next()
-
-    def _request_next(self) -> None:
-        assert self._upload is not None
-        seq = len(self._upload["items"])
-        self._upload["asked_s"] = time.time()
-        self._mav.mission_request_int_send(self._upload["sys"], self._upload["comp"], seq, 0)
-
-    def _on_mission_item(self, msg: Any) -> None:
-        up = self._upload
-        if up is None or int(msg.seq) != len(up["items"]):
-            return
-        up["items"].append(msg)
-        if len(up["items"]) < up["count"]:
-            self._request_next()
-            return
-        self.mission = list(up["items"])
+    def _mission_uploaded(self, items: list[Any]) -> None:
+        """ArduPilot's mission: seq 0 is home, so the mission starts at 1."""
+        self.mission = items
         self.mission_current = 1 if len(self.mission) > 1 else 0
-        self._upload = None
-        self._mav.mission_ack_send(
-            msg.get_srcSystem(), msg.get_srcComponent(), mavutil.mavlink.MAV_MISSION_ACCEPTED, 0
-        )
-        self._event("mission_uploaded", items=len(self.mission))
 
     def _on_mission_request_list(self, msg: Any) -> None:
         self._mav.mission_count_send(msg.get_srcSystem(), msg.get_srcComponent(), len(self.mission), 0)
@@ -830,10 +804,6 @@ class ArduPilotEmulator(PointMassVehicle, UdpEmulator):
         if k % 100 == 0 and self.home_set:
             self._send_home()
 
-    def _upload_retry(self) -> None:
-        if self._upload is not None and time.time() - self._upload.get("asked_s", 0.0) > 1.0:
-            self._request_next()
-
     def _write_events(self) -> None:
         if self.opts.events_path is None:
             return
@@ -891,17 +861,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The emulator's command line (``gdnav sitl emulate`` and ``python -m``)."""
-    ap.add_argument(
-        "--home", required=True, help="LAT,LON,ALT_AMSL_M,HEADING_DEG (as ArduPilot SITL's --home)"
-    )
-    ap.add_argument("--port", type=int, action="append", help="UDP port of one MAVLink channel (repeatable)")
-    ap.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="a parameter as stored before boot (e.g. GPS2_TYPE=14)",
-    )
+    add_common_arguments(ap)
     ap.add_argument("--ekf-origin-delay-s", type=float, default=EKF_ORIGIN_DELAY_S)
     ap.add_argument("--ekf-using-gps-delay-s", type=float, default=EKF_USING_GPS_DELAY_S)
     ap.add_argument(
@@ -913,23 +873,13 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--arming-skipchk", action="store_true", help="upstream 4.7's ARMING_SKIPCHK instead of ARMING_CHECK"
     )
-    ap.add_argument("--events", type=Path, default=None, help="write the events (JSON) here on exit")
-    ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    ap.add_argument("--quiet", action="store_true")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
     """Serve until SIGTERM/SIGINT or ``--duration``; 2 on a bad argument."""
     try:
         lat, lon, alt, hdg = parse_home(args.home)
-        params = {}
-        for p in args.param:
-            name, _, value = p.partition("=")
-            if name not in DEFAULT_PARAMS and name != "ARMING_SKIPCHK":
-                raise ValueError(
-                    f"--param {p!r}: unknown parameter; known: {', '.join(sorted(DEFAULT_PARAMS))}"
-                )
-            params[name] = float(value)
+        params = parse_params(args.param, {*DEFAULT_PARAMS, "ARMING_SKIPCHK"})
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -949,16 +899,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             quiet=args.quiet,
         )
     )
-    import signal
-
-    signal.signal(signal.SIGTERM, lambda *_: emu.stop())
-    signal.signal(signal.SIGINT, lambda *_: emu.stop())
-    print(json.dumps({"kind": "listening", "ports": emu.ports}), flush=True)
-    try:
-        emu.run(args.duration)
-    finally:
-        emu.close()
-    return 0
+    return serve(emu, args.duration)
 
 
 if __name__ == "__main__":

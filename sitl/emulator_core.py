@@ -14,14 +14,17 @@ not autopilots. What they have in common is no autopilot's rule, only the plumbi
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 import math
 import select
+import signal
 import socket
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar, Final
 
 import numpy as np
@@ -61,6 +64,50 @@ def parse_home(text: str) -> tuple[float, float, float, float]:
     if not (abs(lat) <= 90 and abs(lon) <= 180 and all(map(math.isfinite, (alt, hdg)))):
         raise ValueError(f"--home {text!r}: latitude/longitude out of range")
     return lat, lon, alt, hdg
+
+
+def add_common_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options every emulator takes: where it stands, its channels, its boot parameters, its events."""
+    ap.add_argument(
+        "--home", required=True, help="LAT,LON,ALT_AMSL_M,HEADING_DEG (as ArduPilot SITL's --home)"
+    )
+    ap.add_argument("--port", type=int, action="append", help="UDP port of one MAVLink channel (repeatable)")
+    ap.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a parameter as stored before boot (e.g. GPS2_TYPE=14; PX4: EKF2_AGP0_ID=1)",
+    )
+    ap.add_argument("--events", type=Path, default=None, help="write the events (JSON) here on exit")
+    ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    ap.add_argument("--quiet", action="store_true")
+
+
+def parse_params(texts: Sequence[str], known: Collection[str]) -> dict[str, float]:
+    """``--param NAME=VALUE`` options as a mapping; ValueError names an unknown or malformed one."""
+    params = {}
+    for p in texts:
+        name, _, value = p.partition("=")
+        if name not in known:
+            raise ValueError(f"--param {p!r}: unknown parameter; known: {', '.join(sorted(known))}")
+        try:
+            params[name] = float(value)
+        except ValueError as exc:
+            raise ValueError(f"--param {p!r}: the value is not a number") from exc
+    return params
+
+
+def serve(emu: UdpEmulator, duration_s: float | None, **announce: Any) -> int:
+    """Run ``emu`` until SIGTERM/SIGINT or ``duration_s``, after one JSON line with its ports."""
+    signal.signal(signal.SIGTERM, lambda *_: emu.stop())
+    signal.signal(signal.SIGINT, lambda *_: emu.stop())
+    print(json.dumps({"kind": "listening", "ports": emu.ports, **announce}), flush=True)
+    try:
+        emu.run(duration_s)
+    finally:
+        emu.close()
+    return 0
 
 
 def approach_velocity_ne(d_ne: np.ndarray, vmax_m_s: float, accel_m_s2: float) -> np.ndarray:
@@ -170,6 +217,9 @@ class UdpEmulator:
             self._channels.append(Channel(sock, int(sock.getsockname()[1]), parser=parser))
         self._out: Channel | None = None  # None = all channels
         self._running = True
+        self._upload: dict[str, Any] | None = None
+        #: Messages received that this double has no handler for, by type (PX4's GPS_INPUT, e.g.).
+        self.unhandled: dict[str, int] = {}
         self.boot_unix_s = time.time()
 
     # --- transport ------------------------------------------------------------------------------
@@ -215,6 +265,49 @@ class UdpEmulator:
             self._out = out
         self._event("statustext", text=text)
 
+    # --- the mission protocol: upload ------------------------------------------------------------
+    def _on_mission_count(self, msg: Any) -> None:
+        """MISSION_COUNT: ask for each item in turn (MISSION_REQUEST_INT); another mission type is refused."""
+        if int(getattr(msg, "mission_type", 0)) != 0:
+            self._mav.mission_ack_send(msg.get_srcSystem(), msg.get_srcComponent(), 1, msg.mission_type)
+            return
+        self._upload = {
+            "count": int(msg.count),
+            "items": [],
+            "sys": msg.get_srcSystem(),
+            "comp": msg.get_srcComponent(),
+        }
+        self._request_next()
+
+    def _request_next(self) -> None:
+        assert self._upload is not None
+        seq = len(self._upload["items"])
+        self._upload["asked_s"] = time.time()
+        self._mav.mission_request_int_send(self._upload["sys"], self._upload["comp"], seq, 0)
+
+    def _on_mission_item(self, msg: Any) -> None:
+        """MISSION_ITEM_INT: the next item, or the last one (then MISSION_ACK accepted)."""
+        up = self._upload
+        if up is None or int(msg.seq) != len(up["items"]):
+            return
+        up["items"].append(msg)
+        if len(up["items"]) < up["count"]:
+            self._request_next()
+            return
+        self._upload = None
+        self._mission_uploaded(list(up["items"]))
+        self._mav.mission_ack_send(msg.get_srcSystem(), msg.get_srcComponent(), 0, 0)  # MAV_MISSION_ACCEPTED
+        self._event("mission_uploaded", items=up["count"])
+
+    def _upload_retry(self) -> None:
+        """Ask again for an item not received within 1 s."""
+        if self._upload is not None and time.time() - self._upload.get("asked_s", 0.0) > 1.0:
+            self._request_next()
+
+    def _mission_uploaded(self, items: list[Any]) -> None:
+        """The whole mission has arrived (MISSION_ITEM_INT messages, by seq)."""
+        raise NotImplementedError
+
     # --- the loop -------------------------------------------------------------------------------
     def _dispatch(self, ch: Channel, data: bytes, now: float) -> None:
         try:
@@ -236,6 +329,7 @@ class UdpEmulator:
                 continue
             handler = self._handlers.get(mtype)
             if handler is None:
+                self.unhandled[mtype] = self.unhandled.get(mtype, 0) + 1
                 continue
             self._out = ch
             try:
