@@ -1,4 +1,4 @@
-"""The PX4 emulator's protocol and rules, over real UDP on loopback (the emulator in a thread of this process).
+"""The PX4 emulator's protocol and rules over real UDP on loopback (the emulator in a thread of this process).
 
 Each test drives the emulator as a companion computer and a ground station would and checks one fact
 measured on PX4 SITL with SIH that it must reproduce (sitl/px4_emulator.py; docs/px4.md, "The PX4 emulator
