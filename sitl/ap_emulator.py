@@ -62,8 +62,11 @@ from gps_denied_onboard.sitl.emulator_core import (
     UdpEmulator,
     add_common_arguments,
     approach_velocity_ne,
+    geodetic,
     parse_home,
     parse_params,
+    send_global_position_int,
+    send_highres_imu,
     serve,
 )
 from gps_denied_onboard.sitl.emulator_core import param_id as _param_id
@@ -662,8 +665,7 @@ class ArduPilotEmulator(PointMassVehicle, UdpEmulator):
 
     # --- telemetry ------------------------------------------------------------------------------
     def _geodetic(self, ned: np.ndarray) -> tuple[float, float, float]:
-        lat, lon, alt = self.origin.to_geodetic(np.asarray(ned, dtype=float))
-        return float(lat), float(lon), float(alt)
+        return geodetic(self.origin, ned)
 
     def _send_home(self) -> None:
         o = self.opts
@@ -681,40 +683,12 @@ class ArduPilotEmulator(PointMassVehicle, UdpEmulator):
             0,
             0,
         )
-        f = self._specific_force_body()
-        self._mav.highres_imu_send(
-            int(self.now_s() * 1e6),
-            float(f[0]),
-            float(f[1]),
-            float(f[2]),
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            1013.25,
-            0,
-            0,
-            20.0,
-            0b111111,
-        )
+        send_highres_imu(self._mav, int(self.now_s() * 1e6), self._specific_force_body())
 
     def _send_position(self) -> None:
         est = self._est_ned()
-        lat, lon, alt = self._geodetic(est) if self.origin_set else (0.0, 0.0, 0.0)
-        v = self.vel_ned
-        self._mav.global_position_int_send(
-            self._boot_ms(),
-            round(lat * 1e7),
-            round(lon * 1e7),
-            round(alt * 1000),
-            round(-est[2] * 1000),
-            round(v[0] * 100),
-            round(v[1] * 100),
-            round(v[2] * 100),
-            round(math.degrees(self.yaw_rad) % 360.0 * 100),
-        )
+        here = self._geodetic(est) if self.origin_set else (0.0, 0.0, 0.0)
+        send_global_position_int(self._mav, self._boot_ms(), here, -float(est[2]), self.vel_ned, self.yaw_rad)
 
     def _send_simstate(self) -> None:
         """SIMSTATE: the truth, at the physics rate (the scorer renders and scores against it)."""

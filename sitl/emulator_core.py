@@ -120,6 +120,43 @@ def approach_velocity_ne(d_ne: np.ndarray, vmax_m_s: float, accel_m_s2: float) -
     return np.asarray(d_ne, dtype=float) / dist * speed
 
 
+def geodetic(ltp: Any, ned: np.ndarray) -> tuple[float, float, float]:
+    """(lat_deg, lon_deg, alt_m) of a NED point of ``ltp`` (a ``geo.LocalTangentPlane``)."""
+    lat, lon, alt = ltp.to_geodetic(np.asarray(ned, dtype=float))
+    return float(lat), float(lon), float(alt)
+
+
+def send_highres_imu(mav: Any, time_usec: int, f_body: np.ndarray) -> None:
+    """HIGHRES_IMU with the specific force ``f_body`` (m/s^2, FRD), no rates, standard pressure."""
+    mav.highres_imu_send(
+        time_usec, *(float(x) for x in f_body), 0, 0, 0, 0, 0, 0, 1013.25, 0, 0, 20.0, 0b111111
+    )
+
+
+def send_global_position_int(
+    mav: Any,
+    time_boot_ms: int,
+    lat_lon_alt: tuple[float, float, float],
+    height_m: float,
+    vel_ned_m_s: np.ndarray,
+    yaw_rad: float,
+) -> None:
+    """GLOBAL_POSITION_INT of a position (deg, deg, m AMSL), its height above home and velocity."""
+    lat, lon, alt = lat_lon_alt
+    v = vel_ned_m_s
+    mav.global_position_int_send(
+        time_boot_ms,
+        round(lat * 1e7),
+        round(lon * 1e7),
+        round(alt * 1000),
+        round(height_m * 1000),
+        round(v[0] * 100),
+        round(v[1] * 100),
+        round(v[2] * 100),
+        round(math.degrees(yaw_rad) % 360.0 * 100),
+    )
+
+
 @dataclass
 class Channel:
     """One MAVLink channel: a UDP socket and the last address that sent it a datagram."""

@@ -52,9 +52,12 @@ from gps_denied_onboard.sitl.emulator_core import (
     UdpEmulator,
     add_common_arguments,
     approach_velocity_ne,
+    geodetic,
     param_id,
     parse_home,
     parse_params,
+    send_global_position_int,
+    send_highres_imu,
     serve,
     wrap_pi,
 )
@@ -224,8 +227,7 @@ class Px4Emulator(PointMassVehicle, UdpEmulator):
         return np.array([*(self.pos_ned[:2] + self.est_err_ne), self.pos_ned[2]])
 
     def _geodetic(self, ned: np.ndarray) -> tuple[float, float, float]:
-        lat, lon, alt = self.home_ltp.to_geodetic(np.asarray(ned, dtype=float))
-        return float(lat), float(lon), float(alt)
+        return geodetic(self.home_ltp, ned)
 
     # --- EKF2 -----------------------------------------------------------------------------------
     def _on_global_position_sensor(self, msg: Any, now: float) -> None:
@@ -559,29 +561,15 @@ class Px4Emulator(PointMassVehicle, UdpEmulator):
         )
 
     def _send_imu(self) -> None:
-        f = self._specific_force_body()
-        t_us = int(self.now_s() * 1e6)
-        self._mav.highres_imu_send(
-            t_us, *(float(x) for x in f), 0, 0, 0, 0, 0, 0, 1013.25, 0, 0, 20.0, 0b111111
-        )
+        send_highres_imu(self._mav, int(self.now_s() * 1e6), self._specific_force_body())
 
     def _send_global_position(self, now: float) -> bool:
         """GLOBAL_POSITION_INT only while EKF2 has a valid global position (measured)."""
         if not self.position_valid(now):
             return False
         est = self._est_ned()
-        lat, lon, alt = self._geodetic(est)
-        v = self.vel_ned
-        self._mav.global_position_int_send(
-            self._boot_ms(),
-            round(lat * 1e7),
-            round(lon * 1e7),
-            round(alt * 1000),
-            round(-est[2] * 1000),
-            round(v[0] * 100),
-            round(v[1] * 100),
-            round(v[2] * 100),
-            round(math.degrees(self.yaw_rad) % 360.0 * 100),
+        send_global_position_int(
+            self._mav, self._boot_ms(), self._geodetic(est), -float(est[2]), self.vel_ned, self.yaw_rad
         )
         return True
 
