@@ -28,18 +28,15 @@ Every rule and its source in full: docs/ardupilot.md, "The emulator and its rule
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import os
-import select
-import socket
 import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Final
+from typing import Any, Final
 
 import numpy as np
 
@@ -60,10 +57,21 @@ from gps_denied_onboard.sitl.ardupilot_rules import (
     prearm_gps_failures,
 )
 from gps_denied_onboard.sitl.autopilot import send_home_position
+from gps_denied_onboard.sitl.emulator_core import (
+    PointMassVehicle,
+    UdpEmulator,
+    add_common_arguments,
+    approach_velocity_ne,
+    geodetic,
+    parse_home,
+    parse_params,
+    send_global_position_int,
+    send_highres_imu,
+    serve,
+)
+from gps_denied_onboard.sitl.emulator_core import param_id as _param_id
+from gps_denied_onboard.sitl.emulator_core import wrap_pi as _wrap_pi
 
-GRAVITY_M_S2: Final[float] = 9.80665
-#: Physics and ATTITUDE/HIGHRES_IMU rate, Hz.
-PHYSICS_HZ: Final[float] = 50.0
 #: Copter custom modes (ArduCopter ``Mode::Number``).
 MODE_STABILIZE: Final[int] = 0
 MODE_AUTO: Final[int] = 3
@@ -81,9 +89,6 @@ EKF_USING_GPS_DELAY_S: Final[float] = 28.0
 #: Measured on SITL 4.7.0-dev: SYSTEM_TIME's Unix time 2.0 s behind the host (its clock stood still while
 #: it waited for a client on SERIAL0).
 SYSTEM_TIME_OFFSET_S: Final[float] = -2.0
-#: Time constant of the tilt (and so the acceleration) following the commanded acceleration, s
-#: (ArduCopter ATC_INPUT_TC default).
-TILT_TAU_S: Final[float] = 0.15
 #: The reported attitude's error (ATTITUDE minus SIMSTATE): each change of the true roll and pitch adds
 #: AHRS_GAIN of it, and it decays with AHRS_DECAY_S. Measured on ArduPilot copter SITL 4.7.0-dev flying
 #: autopilot_square on GPS_INPUT: 2.5-3.4 deg while roll and pitch swung through 30-50 deg, decaying over
@@ -131,15 +136,6 @@ DEFAULT_PARAMS: Final[dict[str, float]] = {
 LAND_HIGH_ALT_M: Final[float] = 10.0
 
 
-def _wrap_pi(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))
-
-
-def _param_id(raw: Any) -> str:
-    s = raw.decode("ascii", "replace") if isinstance(raw, bytes) else str(raw)
-    return s.split("\x00", 1)[0]
-
-
 # ------------------------------------------------------------------------------------------------------
 # GPS instances and the position source
 
@@ -180,14 +176,6 @@ def select_primary(auto_switch: int, current: int, has_fix: Sequence[bool]) -> i
 
 
 @dataclass
-class _Channel:
-    sock: socket.socket
-    port: int
-    peer: tuple[str, int] | None = None
-    parser: Any = None
-
-
-@dataclass
 class EmulatorOptions:
     home_lat_deg: float
     home_lon_deg: float
@@ -204,46 +192,18 @@ class EmulatorOptions:
     quiet: bool = False
 
 
-class ArduPilotEmulator:
+class ArduPilotEmulator(PointMassVehicle, UdpEmulator):
     """The double itself; :meth:`run` serves until :meth:`stop` or SIGTERM/SIGINT."""
 
     def __init__(self, opts: EmulatorOptions) -> None:
+        super().__init__(apm, opts.ports, quiet=opts.quiet)
         self.opts = opts
         self.origin = LocalTangentPlane(opts.home_lat_deg, opts.home_lon_deg, opts.home_alt_amsl_m)
         self.params: dict[str, float] = {**DEFAULT_PARAMS, **opts.params}
         if opts.arming_skipchk:
             del self.params["ARMING_CHECK"]
             self.params["ARMING_SKIPCHK"] = 0.0  # a mask of the checks skipped: none
-        self.events: list[dict[str, Any]] = []
-        self._mav = apm.MAVLink(self, srcSystem=1, srcComponent=1)
-        self._mav.robust_parsing = True
-        self._channels: list[_Channel] = []
-        for port in opts.ports:
-            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            sock.bind(("127.0.0.1", port))
-            sock.setblocking(False)
-            parser = apm.MAVLink(None, srcSystem=1, srcComponent=1)
-            parser.robust_parsing = True
-            self._channels.append(_Channel(sock, int(sock.getsockname()[1]), parser=parser))
-        self._out: _Channel | None = None  # None = all channels
-        self._running = True
         self._boot()
-
-    # --- transport ------------------------------------------------------------------------------
-    def write(self, buf: bytes) -> None:
-        """pymavlink's file interface: send to one channel (a reply) or to every channel with a peer."""
-        targets = [self._out] if self._out is not None else self._channels
-        for ch in targets:
-            if ch.peer is not None:
-                with contextlib.suppress(OSError):
-                    ch.sock.sendto(buf, ch.peer)
-
-    @property
-    def ports(self) -> list[int]:
-        return [c.port for c in self._channels]
-
-    def stop(self) -> None:
-        self._running = False
 
     # --- state ----------------------------------------------------------------------------------
     def _boot(self) -> None:
@@ -259,12 +219,7 @@ class ArduPilotEmulator:
         self.gps_lag_s = {i: gps_lag_s(self.params[f"GPS{i + 1}_DELAY_MS"]) for i in (0, 1)}
         self.sacc_glitch = SpeedAccuracyGlitch()
         self.truth_history: list[tuple[float, float, float]] = []  # (now_s, north_m, east_m)
-        self.pos_ned = np.zeros(3)  # truth, NED at home (down = -height)
-        self.vel_ned = np.zeros(3)
-        self.accel_ned = np.zeros(3)
-        self.tilt_accel_ne = np.zeros(2)  # horizontal acceleration the current tilt gives, m/s^2
-        self.yaw_rad = math.radians(self.opts.home_heading_deg)
-        self.roll_rad = self.pitch_rad = 0.0
+        self._reset_vehicle(self.opts.home_heading_deg)  # truth, NED at home (down = -height)
         self.ahrs_err_rad = np.zeros(2)  # reported minus true roll and pitch (the AHRS's own error)
         self.est_err_ne = np.zeros(2)  # EKF horizontal position minus truth
         self.armed = False
@@ -287,25 +242,6 @@ class ArduPilotEmulator:
         self._unhealthy: dict[int, bool] = {}
         self._last_prearm_text_s = -1e9
         self._event("boot", gps_types=self.gps_types.in_effect)
-
-    def now_s(self) -> float:
-        """Seconds since boot."""
-        return time.time() - self.boot_unix_s
-
-    def _event(self, kind: str, **data: Any) -> None:
-        ev = {"t_unix_s": round(time.time(), 3), "kind": kind, **data}
-        self.events.append(ev)
-        if not self.opts.quiet:
-            print(json.dumps(ev), flush=True)
-
-    def _text(self, severity: int, text: str) -> None:
-        """STATUSTEXT to every channel, as ArduPilot sends it, also while answering one."""
-        out, self._out = self._out, None
-        try:
-            self._mav.statustext_send(severity, text.encode()[:50])
-        finally:
-            self._out = out
-        self._event("statustext", text=text)
 
     # --- GPS ------------------------------------------------------------------------------------
     def _sim_gps_fix(self) -> bool:
@@ -612,39 +548,10 @@ class ArduPilotEmulator:
         self.target_ned = np.array([ne[0], ne[1], -float(msg.alt)])
 
     # --- mission protocol -----------------------------------------------------------------------
-    def _on_mission_count(self, msg: Any) -> None:
-        if int(getattr(msg, "mission_type", 0)) != 0:
-            self._mav.mission_ack_send(msg.get_srcSystem(), msg.get_srcComponent(), 1, msg.mission_type)
-            return
-        self._upload = {
-            "count": int(msg.count),
-            "items": [],
-            "sys": msg.get_srcSystem(),
-            "comp": msg.get_srcComponent(),
-        }
-        self._request_next()
-
-    def _request_next(self) -> None:
-        assert self._upload is not None
-        seq = len(self._upload["items"])
-        self._upload["asked_s"] = time.time()
-        self._mav.mission_request_int_send(self._upload["sys"], self._upload["comp"], seq, 0)
-
-    def _on_mission_item(self, msg: Any) -> None:
-        up = self._upload
-        if up is None or int(msg.seq) != len(up["items"]):
-            return
-        up["items"].append(msg)
-        if len(up["items"]) < up["count"]:
-            self._request_next()
-            return
-        self.mission = list(up["items"])
+    def _mission_uploaded(self, items: list[Any]) -> None:
+        """ArduPilot's mission: seq 0 is home, so the mission starts at 1."""
+        self.mission = items
         self.mission_current = 1 if len(self.mission) > 1 else 0
-        self._upload = None
-        self._mav.mission_ack_send(
-            msg.get_srcSystem(), msg.get_srcComponent(), mavutil.mavlink.MAV_MISSION_ACCEPTED, 0
-        )
-        self._event("mission_uploaded", items=len(self.mission))
 
     def _on_mission_request_list(self, msg: Any) -> None:
         self._mav.mission_count_send(msg.get_srcSystem(), msg.get_srcComponent(), len(self.mission), 0)
@@ -710,17 +617,14 @@ class ArduPilotEmulator:
 
     def _step(self, dt: float, now: float) -> None:
         p = self.params
-        on_ground = self.pos_ned[2] >= -1e-3
+        on_ground = self.on_ground
         want_v = np.zeros(3)
         if self.armed and self.target_ned is not None and (self.mode in POSITION_MODES or self.landing):
             est = self._est_ned()
             d_ne = self.target_ned[:2] - est[:2]
             dist = float(np.hypot(*d_ne))
-            vmax = p["WPNAV_SPEED"] / 100.0
-            acc = max(p["WPNAV_ACCEL"] / 100.0, 0.5)
-            speed = min(vmax, math.sqrt(2.0 * acc * dist), 1.5 * dist)
-            if dist > 1e-6:
-                want_v[:2] = d_ne / dist * speed
+            accel = max(p["WPNAV_ACCEL"] / 100.0, 0.5)
+            want_v[:2] = approach_velocity_ne(d_ne, p["WPNAV_SPEED"] / 100.0, accel)
             height = -self.pos_ned[2]
             if self.landing:
                 if height > LAND_HIGH_ALT_M:
@@ -733,14 +637,7 @@ class ArduPilotEmulator:
                 dz = self.target_ned[2] - self.pos_ned[2]  # + = descend
                 rate = (p["WPNAV_SPEED_DN"] if dz > 0 else p["WPNAV_SPEED_UP"]) / 100.0
                 want_v[2] = math.copysign(min(rate, 1.5 * abs(dz)), dz)
-            if dist > 2.0:
-                self.yaw_rad += float(
-                    np.clip(
-                        _wrap_pi(math.atan2(d_ne[1], d_ne[0]) - self.yaw_rad),
-                        -math.radians(90) * dt,
-                        math.radians(90) * dt,
-                    )
-                )
+            self._turn_toward(d_ne, dt)
             # reached?
             if (
                 self.mode == MODE_AUTO
@@ -749,39 +646,11 @@ class ArduPilotEmulator:
                 and abs(self.target_ned[2] - self.pos_ned[2]) < 1.0
             ):
                 self._advance_mission()
-        acc_max = max(p["WPNAV_ACCEL"] / 100.0, 0.5)
-        dv = want_v - self.vel_ned
-        # the commanded acceleration: close the velocity error in two tilt time constants (a damping of
-        # 0.7 with the tilt's lag), at most WPNAV_ACCEL; the tilt, and with it the acceleration, follows
-        # it with a first-order lag
-        cmd_h = dv[:2] / max(2.0 * TILT_TAU_S, dt)
-        n = float(np.hypot(*cmd_h))
-        if n > acc_max:
-            cmd_h = cmd_h / n * acc_max
-        self.tilt_accel_ne = self.tilt_accel_ne + (cmd_h - self.tilt_accel_ne) * min(1.0, dt / TILT_TAU_S)
-        dv_h = self.tilt_accel_ne * dt
-        dv_z = float(np.clip(dv[2], -2.5 * dt, 2.5 * dt))
-        self.accel_ned = np.array([dv_h[0], dv_h[1], dv_z]) / dt
-        self.vel_ned = self.vel_ned + self.accel_ned * dt
-        self.pos_ned = self.pos_ned + self.vel_ned * dt
-        if self.pos_ned[2] > 0.0:  # the ground
-            self.pos_ned[2] = 0.0
-            self.vel_ned[2] = min(self.vel_ned[2], 0.0)
-            self.vel_ned[:2] = 0.0
-            self.accel_ned[:] = 0.0
-            self.tilt_accel_ne[:] = 0.0
+        swing = self._integrate(want_v, dt, max(p["WPNAV_ACCEL"] / 100.0, 0.5), 2.5)
         self.truth_history.append((now, float(self.pos_ned[0]), float(self.pos_ned[1])))
         while self.truth_history and self.truth_history[0][0] < now - TRUTH_HISTORY_S:
             self.truth_history.pop(0)
-        # roll/pitch from the horizontal acceleration, in the body frame
-        cy, sy = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        a_fwd = cy * self.accel_ned[0] + sy * self.accel_ned[1]
-        a_right = -sy * self.accel_ned[0] + cy * self.accel_ned[1]
-        prev = np.array([self.roll_rad, self.pitch_rad])
-        self.pitch_rad = -math.atan2(a_fwd, GRAVITY_M_S2)
-        self.roll_rad = math.atan2(a_right, GRAVITY_M_S2)
         # the AHRS's error: driven by the tilt's changes, decaying once they stop (AHRS_GAIN)
-        swing = np.array([self.roll_rad, self.pitch_rad]) - prev
         self.ahrs_err_rad = self.ahrs_err_rad * (1.0 - min(1.0, dt / AHRS_DECAY_S)) + AHRS_GAIN * swing
         # landing complete: disarm after 1 s on the ground (ArduCopter's land detector, simplified)
         if self.armed and self.landing and self.pos_ned[2] >= -1e-3:
@@ -795,12 +664,8 @@ class ArduPilotEmulator:
             self.landed_since_s = None
 
     # --- telemetry ------------------------------------------------------------------------------
-    def _boot_ms(self) -> int:
-        return int(self.now_s() * 1000) & 0xFFFFFFFF
-
     def _geodetic(self, ned: np.ndarray) -> tuple[float, float, float]:
-        lat, lon, alt = self.origin.to_geodetic(np.asarray(ned, dtype=float))
-        return float(lat), float(lon), float(alt)
+        return geodetic(self.origin, ned)
 
     def _send_home(self) -> None:
         o = self.opts
@@ -818,43 +683,12 @@ class ArduPilotEmulator:
             0,
             0,
         )
-        from gps_denied_onboard.camera.types import Attitude
-
-        r = Attitude(self.roll_rad, self.pitch_rad, self.yaw_rad).R_ned_body()
-        f = r.T @ (self.accel_ned - np.array([0.0, 0.0, GRAVITY_M_S2]))
-        self._mav.highres_imu_send(
-            int(self.now_s() * 1e6),
-            float(f[0]),
-            float(f[1]),
-            float(f[2]),
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            1013.25,
-            0,
-            0,
-            20.0,
-            0b111111,
-        )
+        send_highres_imu(self._mav, int(self.now_s() * 1e6), self._specific_force_body())
 
     def _send_position(self) -> None:
         est = self._est_ned()
-        lat, lon, alt = self._geodetic(est) if self.origin_set else (0.0, 0.0, 0.0)
-        v = self.vel_ned
-        self._mav.global_position_int_send(
-            self._boot_ms(),
-            round(lat * 1e7),
-            round(lon * 1e7),
-            round(alt * 1000),
-            round(-est[2] * 1000),
-            round(v[0] * 100),
-            round(v[1] * 100),
-            round(v[2] * 100),
-            round(math.degrees(self.yaw_rad) % 360.0 * 100),
-        )
+        here = self._geodetic(est) if self.origin_set else (0.0, 0.0, 0.0)
+        send_global_position_int(self._mav, self._boot_ms(), here, -float(est[2]), self.vel_ned, self.yaw_rad)
 
     def _send_simstate(self) -> None:
         """SIMSTATE: the truth, at the physics rate (the scorer renders and scores against it)."""
@@ -915,9 +749,7 @@ class ArduPilotEmulator:
             self.mode,
             mavutil.mavlink.MAV_STATE_ACTIVE if self.armed else mavutil.mavlink.MAV_STATE_STANDBY,
         )
-        self._mav.system_time_send(
-            int((time.time() + self.opts.system_time_offset_s) * 1e6), self._boot_ms()
-        )
+        self._mav.system_time_send(int((time.time() + self.opts.system_time_offset_s) * 1e6), self._boot_ms())
         if self.mission:
             self._mav.mission_current_send(self.mission_current)
 
@@ -927,92 +759,24 @@ class ArduPilotEmulator:
             flags |= apm.EKF_POS_HORIZ_REL
         self._mav.ekf_status_report_send(flags, 0.1, 0.1, 0.1, 0.1, 0.0)
 
-    # --- the loop -------------------------------------------------------------------------------
-    def _dispatch(self, ch: _Channel, data: bytes, now: float) -> None:
-        try:
-            msgs = ch.parser.parse_buffer(data) or []
-        except Exception:
-            return
-        for msg in msgs:
-            mtype = msg.get_type()
-            if mtype == "BAD_DATA":
-                continue
-            # MAVLink routing: a broadcast from one channel goes on to the others
-            if getattr(msg, "target_system", 0) in (0, None) and len(self._channels) > 1:
-                for other in self._channels:
-                    if other is not ch and other.peer is not None:
-                        with contextlib.suppress(OSError):
-                            other.sock.sendto(msg.get_msgbuf(), other.peer)
-            target = getattr(msg, "target_system", 0)
-            if target not in (0, 1, None):
-                continue
-            handler = self._handlers.get(mtype)
-            if handler is None:
-                continue
-            self._out = ch
-            try:
-                handler(self, msg, now)
-            finally:
-                self._out = None
+    # --- the loop (emulator_core.UdpEmulator) --------------------------------------------------
+    def _before_physics(self, now: float) -> None:
+        self._update_gps(now)
 
-    _handlers: ClassVar[dict[str, Callable[[ArduPilotEmulator, Any, float], None]]] = {}
-
-    def run(self, duration_s: float | None = None) -> None:
-        dt = 1.0 / PHYSICS_HZ
-        next_t = time.time()
-        k = 0
-        end = None if duration_s is None else time.time() + duration_s
-        socks = {c.sock: c for c in self._channels}
-        last_step = time.time()
-        while self._running and (end is None or time.time() < end):
-            timeout = max(0.0, next_t - time.time())
-            ready, _, _ = select.select(list(socks), [], [], timeout)
-            now = self.now_s()
-            for s in ready:
-                ch = socks[s]
-                while True:
-                    try:
-                        data, addr = s.recvfrom(65535)
-                    except (BlockingIOError, InterruptedError):
-                        break
-                    except OSError:
-                        break
-                    ch.peer = addr
-                    self._dispatch(ch, data, now)
-            if time.time() < next_t:
-                continue
-            # The vehicle moves with the wall clock: after a stall of this process (a loaded machine) it
-            # is where its velocity took it, in sub-steps, so that the truth and the IMU stay consistent;
-            # one catch-up burst of fixed steps would move it without any acceleration the IMU reported.
-            wall = time.time()
-            elapsed = min(max(wall - last_step, 0.0), 1.0)
-            last_step = wall
-            next_t += dt
-            if next_t < wall:
-                next_t = wall + dt  # behind: the next tick a full period from now, not a burst
-            self._update_gps(now)
-            n_sub = math.ceil(elapsed / dt - 1e-9)
-            for _ in range(n_sub):
-                self._step(elapsed / n_sub, now)
-            self._send_fast()
-            self._send_simstate()
-            if k % 5 == 0:
-                self._send_position()
-            if k % 10 == 0:
-                self._send_gps(now)
-            if k % 25 == 0:
-                self._send_ekf()
-                self._upload_retry()
-            if k % 50 == 0:
-                self._send_slow(now)
-            if k % 100 == 0 and self.home_set:
-                self._send_home()
-            k += 1
-        self._write_events()
-
-    def _upload_retry(self) -> None:
-        if self._upload is not None and time.time() - self._upload.get("asked_s", 0.0) > 1.0:
-            self._request_next()
+    def _send_tick(self, k: int, now: float) -> None:
+        self._send_fast()
+        self._send_simstate()
+        if k % 5 == 0:
+            self._send_position()
+        if k % 10 == 0:
+            self._send_gps(now)
+        if k % 25 == 0:
+            self._send_ekf()
+            self._upload_retry()
+        if k % 50 == 0:
+            self._send_slow(now)
+        if k % 100 == 0 and self.home_set:
+            self._send_home()
 
     def _write_events(self) -> None:
         if self.opts.events_path is None:
@@ -1024,10 +788,6 @@ class ArduPilotEmulator:
             "gps_input_rejected": {i + 1: g.rejected for i, g in self.mav_gps.items()},
         }
         self.opts.events_path.write_text(json.dumps(summary, indent=1))
-
-    def close(self) -> None:
-        for c in self._channels:
-            c.sock.close()
 
 
 def _h(fn: Callable[..., None], with_now: bool = False) -> Callable[[ArduPilotEmulator, Any, float], None]:
@@ -1059,20 +819,6 @@ ArduPilotEmulator._handlers = {
 }
 
 
-def parse_home(text: str) -> tuple[float, float, float, float]:
-    """``LAT,LON,ALT,HEADING`` as ArduPilot SITL's ``--home`` takes it."""
-    parts = text.split(",")
-    if len(parts) != 4:
-        raise ValueError(f"--home {text!r}: expected LAT,LON,ALT_AMSL_M,HEADING_DEG (4 numbers)")
-    try:
-        lat, lon, alt, hdg = (float(p) for p in parts)
-    except ValueError as exc:
-        raise ValueError(f"--home {text!r}: expected 4 numbers") from exc
-    if not (abs(lat) <= 90 and abs(lon) <= 180 and all(map(math.isfinite, (alt, hdg)))):
-        raise ValueError(f"--home {text!r}: latitude/longitude out of range")
-    return lat, lon, alt, hdg
-
-
 DESCRIPTION = (
     "ArduPilot copter EMULATOR (a test double of measured behaviour, not ArduPilot): MAVLink over UDP on "
     "loopback, one channel per --port."
@@ -1089,17 +835,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The emulator's command line (``gdnav sitl emulate`` and ``python -m``)."""
-    ap.add_argument(
-        "--home", required=True, help="LAT,LON,ALT_AMSL_M,HEADING_DEG (as ArduPilot SITL's --home)"
-    )
-    ap.add_argument("--port", type=int, action="append", help="UDP port of one MAVLink channel (repeatable)")
-    ap.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="a parameter as stored before boot (e.g. GPS2_TYPE=14)",
-    )
+    add_common_arguments(ap)
     ap.add_argument("--ekf-origin-delay-s", type=float, default=EKF_ORIGIN_DELAY_S)
     ap.add_argument("--ekf-using-gps-delay-s", type=float, default=EKF_USING_GPS_DELAY_S)
     ap.add_argument(
@@ -1111,23 +847,13 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--arming-skipchk", action="store_true", help="upstream 4.7's ARMING_SKIPCHK instead of ARMING_CHECK"
     )
-    ap.add_argument("--events", type=Path, default=None, help="write the events (JSON) here on exit")
-    ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    ap.add_argument("--quiet", action="store_true")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
     """Serve until SIGTERM/SIGINT or ``--duration``; 2 on a bad argument."""
     try:
         lat, lon, alt, hdg = parse_home(args.home)
-        params = {}
-        for p in args.param:
-            name, _, value = p.partition("=")
-            if name not in DEFAULT_PARAMS and name != "ARMING_SKIPCHK":
-                raise ValueError(
-                    f"--param {p!r}: unknown parameter; known: {', '.join(sorted(DEFAULT_PARAMS))}"
-                )
-            params[name] = float(value)
+        params = parse_params(args.param, {*DEFAULT_PARAMS, "ARMING_SKIPCHK"})
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -1147,16 +873,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             quiet=args.quiet,
         )
     )
-    import signal
-
-    signal.signal(signal.SIGTERM, lambda *_: emu.stop())
-    signal.signal(signal.SIGINT, lambda *_: emu.stop())
-    print(json.dumps({"kind": "listening", "ports": emu.ports}), flush=True)
-    try:
-        emu.run(args.duration)
-    finally:
-        emu.close()
-    return 0
+    return serve(emu, args.duration)
 
 
 if __name__ == "__main__":

@@ -36,13 +36,19 @@ def _free_port() -> int:
 
 
 def _sitl_against_emulator(
-    root: Path, scenario: Path, home: str, emulator_args: list[str], timeout_s: float
+    root: Path,
+    scenario: Path,
+    home: str,
+    emulator_args: list[str],
+    timeout_s: float,
+    emulator_module: str = "ap_emulator",
 ) -> subprocess.CompletedProcess[str]:
-    """The emulator (its own process, home ``home`` as lat,lon,alt,yaw) and `gdnav sitl run --autopilot`
-    against it over loopback UDP, over GeoVision; the emulator is stopped afterwards."""
+    """The emulator ``sitl.<emulator_module>`` (its own process, home ``home`` as lat,lon,alt,yaw) and
+    `gdnav sitl run --autopilot` against it over loopback UDP, over GeoVision; the emulator is stopped
+    afterwards."""
     ortho = shared_path("data", "geovision_india", "geovision_india_z18.tif")
     port = _free_port()
-    emulator = [sys.executable, "-m", "gps_denied_onboard.sitl.ap_emulator", "--home", home]
+    emulator = [sys.executable, "-m", f"gps_denied_onboard.sitl.{emulator_module}", "--home", home]
     emu = subprocess.Popen([*emulator, "--port", str(port), *emulator_args, "--quiet"])
     try:
         return subprocess.run(

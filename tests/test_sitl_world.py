@@ -177,6 +177,8 @@ def test_scenario_builtin_files_load() -> None:
         "naip_cross_date",
         "naip_cross_date_attitude",
         "nominal_real",
+        "px4_restart",
+        "px4_square",
         "restart",
         "smoke",
         "soak",

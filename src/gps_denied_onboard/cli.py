@@ -350,6 +350,10 @@ def _cmd_sitl_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_sitl_emulate(args: argparse.Namespace) -> int:
+    if args.px4:
+        from gps_denied_onboard.sitl import px4_emulator
+
+        return px4_emulator.run_from_args(args)
     from gps_denied_onboard.sitl.ap_emulator import run_from_args
 
     return run_from_args(args)
@@ -595,13 +599,21 @@ def build_parser() -> argparse.ArgumentParser:
     srun.set_defaults(func=_cmd_sitl_run)
     from gps_denied_onboard.sitl.ap_emulator import DESCRIPTION as EMULATOR_DESCRIPTION
     from gps_denied_onboard.sitl.ap_emulator import add_arguments as emulator_arguments
+    from gps_denied_onboard.sitl.px4_emulator import add_arguments as px4_emulator_arguments
 
     semu = sitl_sub.add_parser(
         "emulate",
-        help="the ArduPilot copter emulator (a test double, not ArduPilot) on loopback UDP",
-        description=EMULATOR_DESCRIPTION,
+        help="the ArduPilot copter emulator, or with --px4 the PX4 one (test doubles, not the autopilots) "
+        "on loopback UDP",
+        description=f"{EMULATOR_DESCRIPTION} With --px4: the PX4 multicopter emulator (SITL with SIH), "
+        "whose --param takes PX4's names (EKF2_AGP0_ID=1); the --ekf-*, --system-time-offset-s and "
+        "--arming-skipchk options are ArduPilot's.",
     )
     emulator_arguments(semu)
+    semu.add_argument(
+        "--px4", action="store_true", help="emulate PX4 (SITL with SIH) instead of ArduPilot (docs/px4.md)"
+    )
+    px4_emulator_arguments(semu)
     semu.set_defaults(func=_cmd_sitl_emulate)
 
     from gps_denied_onboard import cli_bench, cli_match, cli_models
