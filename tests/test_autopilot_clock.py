@@ -202,3 +202,36 @@ def test_camera_stamp_offset_beyond_the_bound_is_reported_and_clamped() -> None:
     _camera_samples(cam, 0.3, 160, rng=random.Random(4))
     assert cam.applied_s == pytest.approx(0.1)
     assert cam.out_of_bounds
+
+
+def test_camera_offset_fits_that_scatter_are_not_applied_and_state_their_scatter() -> None:
+    """An autopilot whose attitude error follows its manoeuvres reads as camera lateness: on PX4 SITL an
+    on-time camera's fits went -0.03 to +0.34 s within a minute, each stating 0.01-0.02 s. A fit is not
+    applied within the scatter of the recent fits, and the stamps' doubt is at least that scatter; fits
+    that agree (a camera truly 0.2 s late) are still applied."""
+    from gps_denied_onboard.clock import CAMERA_OFFSET_MIN_SAMPLES, CameraOffsetFit, CameraStampOffset
+
+    class Scripted(CameraStampOffset):
+        def __init__(self, fits: list[float]) -> None:
+            super().__init__(max_offset_s=0.3, prior_sigma_s=0.1)
+            self._script = iter(fits)
+
+        def _fit_locked(self) -> CameraOffsetFit | None:
+            n = CAMERA_OFFSET_MIN_SAMPLES
+            return CameraOffsetFit(next(self._script), 0.012, (0.0, 0.0), n, n)
+
+    px4 = [0.11, 0.15, 0.06, 0.01, 0.16, -0.03, 0.12, 0.02, 0.34, 0.08, 0.30, -0.02]
+    wandering = Scripted(px4)
+    stated = []
+    for _ in px4:
+        with wandering._lock:
+            wandering._refit_locked()
+        stated.append((wandering.applied_s, wandering.sigma_s))
+    # the camera is on time: once the fits scatter, the correction's error is within 3 of its stated sigmas
+    assert all(abs(applied) <= 3.0 * sigma for applied, sigma in stated[4:]), stated
+    assert wandering.sigma_s >= float(np.std(px4[-10:])) - 1e-9
+    late = Scripted([0.2, 0.21, 0.19, 0.2, 0.22, 0.2, 0.21])
+    for _ in range(7):
+        with late._lock:
+            late._refit_locked()
+    assert late.applied_s == pytest.approx(0.2, abs=0.02) and late.sigma_s < 0.05
