@@ -387,13 +387,14 @@ class NavigationPipeline:
         return math.hypot(timing.tilt_sigma_rad, ahrs_rad) <= limit
 
     def measured_ahrs_doubt_rad(self, time_unix_usec: int) -> float:
-        """The largest tilt error of the autopilot that accepted fixes measured (each solved from points
+        """The median tilt error of the autopilot that accepted fixes measured (each solved from points
         measures the camera's own tilt) over ``MEASURED_TILT_WINDOW_S`` before ``time_unix_usec``, rad; 0
-        with none there (no fix measured it: area correlation, VO alone)."""
+        with none there (no fix measured it: area correlation, VO alone). The median: one fix made with a
+        stale attitude (6.3 deg at a link cut, in the emulator) must not hold VO's doubt up for 8 s."""
         lo = time_unix_usec - int(MEASURED_TILT_WINDOW_S * 1e6)
         with self._tilt_off_lock:
             seen = [off for t, off in self._tilt_off_seen if lo <= t <= time_unix_usec]
-        return max(seen, default=0.0)
+        return float(np.median(seen)) if seen else 0.0
 
     def _note_camera_tilt(
         self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, timing: FrameTiming | None
