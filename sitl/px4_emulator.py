@@ -31,7 +31,6 @@ import argparse
 import json
 import math
 import os
-import struct
 import sys
 import time
 from collections.abc import Sequence
@@ -44,6 +43,7 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mav
 
+from gps_denied_onboard.components.c8_mavlink.px4_params import bytewise_to_value, value_to_bytewise
 from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.sitl.autopilot import send_home_position
 from gps_denied_onboard.sitl.emulator_core import (
@@ -65,7 +65,6 @@ from gps_denied_onboard.sitl.px4_mission import (
     PX4_MAIN_AUTO,
     PX4_SUB_AUTO_LAND,
     PX4_SUB_AUTO_MISSION,
-    _wire_value,
     px4_mode,
 )
 from gps_denied_onboard.sitl.px4_rules import POSITION_TIMEOUT_S, Px4AuxGlobalPosition
@@ -399,7 +398,7 @@ class Px4Emulator(PointMassVehicle, UdpEmulator):
     def _send_param(self, name: str) -> None:
         names = sorted(self.params)
         kind = DEFAULT_PARAMS[name][1]
-        wire = _wire_value(self._param_value(name), kind)
+        wire = value_to_bytewise(self._param_value(name), kind)
         self._mav.param_value_send(name.encode(), wire, kind, len(names), names.index(name))
 
     def _on_param_read(self, msg: Any, now: float) -> None:
@@ -422,8 +421,8 @@ class Px4Emulator(PointMassVehicle, UdpEmulator):
             self._event("param_unknown", name=name)
             return
         value = float(msg.param_value)
-        if DEFAULT_PARAMS[name][1] == INT32:  # the float's bytes are the integer's, whatever param_type says
-            value = float(struct.unpack("<i", struct.pack("<f", value))[0])
+        # the float's bytes are the integer's, whatever param_type says
+        value = bytewise_to_value(value, DEFAULT_PARAMS[name][1])
         self.params[name] = value
         if name.startswith("EKF2_AGP"):
             self.agp.set_param(name, value)

@@ -24,11 +24,11 @@ PX4 sends integer parameters byte-wise in PARAM_VALUE's float and expects PARAM_
 
 from __future__ import annotations
 
-import struct
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from gps_denied_onboard.components.c8_mavlink.px4_params import bytewise_to_value, value_to_bytewise
 from gps_denied_onboard.sitl.mission import MissionDriver, MissionError, _pid, mavutil
 
 #: PX4's custom_mode: main mode in bits 16-23, sub mode in bits 24-31 (px4_custom_mode.h).
@@ -54,16 +54,6 @@ DAEMON_STREAM_SETTLE_S = 3.0
 DAEMON_STREAM_MAX_GAP_S = 0.5
 #: SIH's GNSS switch, and the value that switches it off.
 SIM_GPS_USED = "SIM_GPS_USED"
-_INT_TYPES = frozenset(
-    {
-        mavutil.mavlink.MAV_PARAM_TYPE_UINT8,
-        mavutil.mavlink.MAV_PARAM_TYPE_INT8,
-        mavutil.mavlink.MAV_PARAM_TYPE_UINT16,
-        mavutil.mavlink.MAV_PARAM_TYPE_INT16,
-        mavutil.mavlink.MAV_PARAM_TYPE_UINT32,
-        mavutil.mavlink.MAV_PARAM_TYPE_INT32,
-    }
-)
 
 
 def px4_mode(main: int, sub: int = 0) -> int:
@@ -71,18 +61,9 @@ def px4_mode(main: int, sub: int = 0) -> int:
     return (main << 16) | (sub << 24)
 
 
-def _wire_value(value: float, param_type: int) -> float:
-    """The float PX4 expects in PARAM_SET for ``value`` of ``param_type`` (integers byte-wise)."""
-    if param_type in _INT_TYPES:
-        return float(struct.unpack("<f", struct.pack("<i", round(value)))[0])
-    return float(value)
-
-
 def _decoded(msg: Any) -> float:
     """PARAM_VALUE's value, integers decoded byte-wise as PX4 sends them."""
-    if int(msg.param_type) in _INT_TYPES:
-        return float(struct.unpack("<i", struct.pack("<f", float(msg.param_value)))[0])
-    return float(msg.param_value)
+    return bytewise_to_value(float(msg.param_value), int(msg.param_type))
 
 
 @dataclass
@@ -110,7 +91,9 @@ class Px4MissionDriver(MissionDriver):
         for _ in range(3):
             self._check()
             sent = self.link.send(
-                lambda mav: mav.param_set_send(*self._target(), name.encode(), _wire_value(value, kind), kind)
+                lambda mav: mav.param_set_send(
+                    *self._target(), name.encode(), value_to_bytewise(value, kind), kind
+                )
             )
             msg = self._wait(lambda m: _pid(m.param_id) == name, ["PARAM_VALUE"], 3.0, since=sent)
             if msg is not None and abs(_decoded(msg) - value) < 1e-3:
@@ -120,7 +103,9 @@ class Px4MissionDriver(MissionDriver):
 
     def _gnss_on_message(self, mav: Any) -> None:
         kind = self._types.get(SIM_GPS_USED, mavutil.mavlink.MAV_PARAM_TYPE_INT32)
-        mav.param_set_send(*self._target(), SIM_GPS_USED.encode(), _wire_value(self._gnss_used, kind), kind)
+        mav.param_set_send(
+            *self._target(), SIM_GPS_USED.encode(), value_to_bytewise(self._gnss_used, kind), kind
+        )
 
     # --- the mission ----------------------------------------------------------------------------
     def prepare(self, timeout_s: float = 60.0) -> bool:

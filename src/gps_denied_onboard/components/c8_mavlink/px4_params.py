@@ -17,12 +17,43 @@ value to set and whether PX4 must reboot; none when all is well. Nothing here ta
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Final
 
+from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
+
 #: The parameters read from PX4, in the order they are asked for.
 PX4_AGP_PARAMS: Final[tuple[str, ...]] = ("EKF2_AGP0_ID", "EKF2_AGP0_CTRL", "EKF2_AGP0_DELAY")
+#: MAV_PARAM_TYPE values of integer parameters: PX4 sends and expects these byte-wise in the float of
+#: PARAM_VALUE and PARAM_SET (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE); ArduPilot casts them.
+INT_PARAM_TYPES: Final[frozenset[int]] = frozenset(
+    {
+        DIALECT.MAV_PARAM_TYPE_UINT8,
+        DIALECT.MAV_PARAM_TYPE_INT8,
+        DIALECT.MAV_PARAM_TYPE_UINT16,
+        DIALECT.MAV_PARAM_TYPE_INT16,
+        DIALECT.MAV_PARAM_TYPE_UINT32,
+        DIALECT.MAV_PARAM_TYPE_INT32,
+    }
+)
+
+
+def bytewise_to_value(wire: float, param_type: int) -> float:
+    """The value a byte-wise PARAM_VALUE/PARAM_SET float carries for ``param_type`` (integers decoded)."""
+    if int(param_type) in INT_PARAM_TYPES:
+        return float(struct.unpack("<i", struct.pack("<f", float(wire)))[0])
+    return float(wire)
+
+
+def value_to_bytewise(value: float, param_type: int) -> float:
+    """The float that carries ``value`` of ``param_type`` byte-wise (integers encoded)."""
+    if int(param_type) in INT_PARAM_TYPES:
+        return float(struct.unpack("<f", struct.pack("<i", round(value)))[0])
+    return float(value)
+
+
 #: ``EKF2_AGP0_DELAY`` may differ from 0 by this much before it is reported, ms.
 AGP_DELAY_TOLERANCE_MS: Final[float] = 20.0
 

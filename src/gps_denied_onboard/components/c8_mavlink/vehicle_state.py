@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import bisect
 import math
-import struct
 import threading
 import time
 from collections.abc import Callable
@@ -40,6 +39,7 @@ import structlog
 from gps_denied_onboard.camera.types import Attitude
 from gps_denied_onboard.clock import AutopilotClock, TimeSource
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
+from gps_denied_onboard.components.c8_mavlink.px4_params import bytewise_to_value
 from gps_denied_onboard.constants import LogEvent
 
 _log = structlog.get_logger(__name__)
@@ -68,17 +68,6 @@ POSITION_MAX_AGE_S: Final[float] = 2.0
 #: time_usec values above this are Unix times (after 2001-09-09), below it times since boot.
 _UNIX_USEC_THRESHOLD: Final[int] = 1_000_000_000_000_000
 
-#: MAV_PARAM_TYPE values of integer parameters (PX4 sends these byte-wise in PARAM_VALUE's float).
-_INT_PARAM_TYPES: Final[frozenset[int]] = frozenset(
-    {
-        DIALECT.MAV_PARAM_TYPE_UINT8,
-        DIALECT.MAV_PARAM_TYPE_INT8,
-        DIALECT.MAV_PARAM_TYPE_UINT16,
-        DIALECT.MAV_PARAM_TYPE_INT16,
-        DIALECT.MAV_PARAM_TYPE_UINT32,
-        DIALECT.MAV_PARAM_TYPE_INT32,
-    }
-)
 _NOT_AUTOPILOT_TYPES: Final[frozenset[int]] = frozenset(
     {
         DIALECT.MAV_TYPE_GCS,
@@ -439,8 +428,8 @@ class VehicleStateTracker:
         name = msg.param_id.decode("ascii", "replace") if isinstance(msg.param_id, bytes) else msg.param_id
         name = str(name).rstrip("\x00")
         value = float(msg.param_value)
-        if self._autopilot_kind == DIALECT.MAV_AUTOPILOT_PX4 and int(msg.param_type) in _INT_PARAM_TYPES:
-            value = float(struct.unpack("<i", struct.pack("<f", value))[0])
+        if self._autopilot_kind == DIALECT.MAV_AUTOPILOT_PX4:
+            value = bytewise_to_value(value, int(msg.param_type))
         self._params[name] = (value, recv_usec / 1e6)
         return True
 
