@@ -260,7 +260,7 @@ class _OnlyTheTruth:
 class _PoseAtTheTile:
     """C4 double: a fix at the matched tile's centre, 1 m sigma, the image's tilt the autopilot's."""
 
-    def solve(self, frame, candidate, handle, calibration):  # type: ignore[no-untyped-def]
+    def solve(self, frame, candidate, handle, calibration, *, attitude_doubt_rad=0.0):  # type: ignore[no-untyped-def]
         ned = np.array([_north_of(candidate.tile_id), 0.0, -120.0])
         lat, lon, _ = LTP.to_geodetic(ned)
         return PoseFix(

@@ -29,7 +29,7 @@ from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, Ma
 from gps_denied_onboard.components.c4_pose.attitude_check import MIN_FIXES, AttitudeCheck
 from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
-from gps_denied_onboard.components.c4_pose.types import PoseFix
+from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.config import EstimatorConfig, IntegrityConfig, PoseConfig, VprConfig
@@ -240,17 +240,39 @@ class _TwoTiles:
 
 class _PosePerTile:
     """C4 double: tile A solves to the prior's position, tile B 80 m north of it (1 m sigma); the
-    image-only tilt is ``tilt_off_rad`` (camera x) from the autopilot's."""
+    image-only tilt is ``tilt_off_rad`` (camera x) from the autopilot's. A solve that allows the
+    autopilot's tilt an error (``attitude_doubt_rad`` > 0) stands on the image's own tilt, which pins
+    it here: tile A then solves to the truth (0 m north) however wrong the autopilot's tilt is."""
 
     def __init__(self, tilt_off_rad: float = 0.02) -> None:
         self.tilt_off_rad = tilt_off_rad
-        self.north_m = 0.0  # where tile A solves to (a fix leaning on a wrong tilt is off by it)
+        self.north_m = 0.0  # where tile A solves to leaning on the autopilot's tilt (off by a wrong one)
+        self.solvable = True  # False: every solve fails (no pose from this frame)
+        self.doubts_rad: list[float] = []  # what each solve was asked to allow the autopilot's tilt
 
-    def solve(self, frame, candidate, handle, calibration):  # type: ignore[no-untyped-def]
-        north = self.north_m if candidate.tile_id == TILE_A else 80.0
-        return PoseFix(frame.frame_id, frame.exposure_time_unix_usec, np.array([north, 0.0, -120.0]),
-                       np.eye(3), 47.0, 8.0, 520.0, 0.0, 0.01, abs(self.tilt_off_rad),
-                       (self.tilt_off_rad, 0.0), candidate.inlier_count, 0.8, candidate.tile_id, 1.0)
+    def solve(self, frame, candidate, handle, calibration, *, attitude_doubt_rad=0.0):  # type: ignore[no-untyped-def]
+        self.doubts_rad.append(attitude_doubt_rad)
+        if not self.solvable:
+            raise PoseError("no pose", reason="degenerate_geometry", frame_id=frame.frame_id)
+        north = (0.0 if attitude_doubt_rad > 0.0 else self.north_m) if candidate.tile_id == TILE_A else 80.0
+        return PoseFix(
+            frame.frame_id,
+            frame.exposure_time_unix_usec,
+            np.array([north, 0.0, -120.0]),
+            np.eye(3),
+            47.0,
+            8.0,
+            520.0,
+            0.0,
+            0.01,
+            abs(self.tilt_off_rad),
+            (self.tilt_off_rad, 0.0),
+            candidate.inlier_count,
+            0.8,
+            candidate.tile_id,
+            1.0,
+            attitude_doubt_rad,
+        )
 
 
 TILE_A, TILE_B = TileId(18, 1, 1), TileId(18, 1, 2)
@@ -296,64 +318,90 @@ def test_pipeline_refuses_an_ambiguous_fix_and_records_the_evidence(
 
 
 @pytest.mark.parametrize(
-    ("timing", "refused"),
+    ("timing", "proven"),
     [
         (FrameTiming((0.0, 0.0), 0.0, 0.01, math.radians(3.0)), False),  # just after a manoeuvre
         (FrameTiming((math.radians(40.0), 0.0), 0.0, 0.1, 0.0), False),  # pitching over, timing unsure
         (FrameTiming((0.0, 0.0), 0.0, 0.01, 0.0), True),  # steady: the check judges
     ],
 )
-def test_pipeline_compares_tilts_only_when_the_frame_can_tell(timing: FrameTiming, refused: bool) -> None:
+def test_pipeline_compares_tilts_only_when_the_frame_can_tell(timing: FrameTiming, proven: bool) -> None:
     """Every fix's image-only tilt is 3 deg from the autopilot's. While the frame's own doubt of the
     autopilot's tilt (its AHRS after a manoeuvre, timing at a fast pitch-over) is beyond half the
-    attitude's sigma, the tilt is no evidence: the right fixes are fused (issue 26: a real copter's
-    AHRS strayed 2.5-3.4 deg at the legs' ends and right fixes were refused until the EKF failed safe).
-    In steady flight the same 3 deg is proven off as before."""
+    attitude's sigma, the tilt is no evidence: the fixes are solved and fused as usual (issue 26: a real
+    copter's AHRS strayed 2.5-3.4 deg at the legs' ends and right fixes were refused until the EKF
+    failed safe). In steady flight the same 3 deg is proven off, and each fix from then on is solved
+    again allowing the autopilot's tilt that error (1.5 x the bound shown): it stands on the image."""
     fdr = _Fdr()
-    p = _two_tile_pipeline(fdr, _HoverVo(), _PosePerTile(tilt_off_rad=math.radians(3.0)))
+    pose = _PosePerTile(tilt_off_rad=math.radians(3.0))
+    p = _two_tile_pipeline(fdr, _HoverVo(), pose)
     outs = []
     for k in range(6):
         frame = replace(_frame(k, T0 - (5 - k) * 333_333), timing=timing)
         p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None)
         outs.append(p.localise(frame))
-    reasons = {o.no_fix_reason for o in outs[MIN_FIXES - 1 :]}
-    assert reasons == ({"attitude_off"} if refused else {None}), [o.no_fix_reason for o in outs]
+    assert [o.no_fix_reason for o in outs] == [None] * 6
+    shown = [o.attitude is not None and o.attitude.off for o in outs[MIN_FIXES - 1 :]]
+    assert shown == [proven] * len(shown)
+    doubts = [o.fix.attitude_doubt_rad for o in outs[MIN_FIXES - 1 :] if o.fix is not None]
+    if proven:
+        assert len(doubts) == len(shown) and min(doubts) >= math.radians(1.5 * 3.0)
+    else:
+        assert doubts == [0.0] * len(shown) and max(pose.doubts_rad) == 0.0
     records = [r for kind, r in fdr.records if kind == "pipeline.fix"]
     assert records[-1]["timing"]["sigma_s"] == pytest.approx(timing.sigma_s)
 
 
-def test_pipeline_refuses_fixes_while_the_autopilot_tilt_is_off_and_widens_what_was_fused() -> None:
-    """Every solved fix's image-only tilt is 3 deg from the autopilot's: the first MIN_FIXES - 1 fixes are
-    fused (the check cannot tell yet), then each is refused as ``attitude_off`` with the check's numbers
-    in the FDR, the estimate states the error what it fused may carry (the fixes and VO both turned the
-    camera's rays with that attitude: 2 x 120 m x tan 3 deg = 12.6 m)."""
+def test_while_the_autopilot_tilt_is_off_fixes_stand_on_the_image_and_what_was_fused_is_widened() -> None:
+    """Every solved fix's image-only tilt is 3 deg from the autopilot's, and leaning on it puts tile A's
+    fix 6.3 m north of the truth (120 m AGL). The first MIN_FIXES - 1 fixes are fused (the check cannot
+    tell yet); then the check proves it off, with its numbers in the FDR: the estimate states the error
+    what it fused may carry (the fixes and VO both turned the camera's rays with that attitude:
+    2 x 120 m x tan 3 deg = 12.6 m), and each fix is solved again allowing the autopilot's tilt 1.5 x the
+    error shown. Standing on the image, it lands at the truth, 6.3 m from the state: the raised sigma
+    lets it through the gate, and the fixes after it pull the state back, each stating what a ground
+    sloping by the error shown would make of it (6.3 m, shared with the fixes around it)."""
     fdr = _Fdr()
-    p = _two_tile_pipeline(fdr, _HoverVo(), _PosePerTile(tilt_off_rad=math.radians(3.0)))
+    pose = _PosePerTile(tilt_off_rad=math.radians(3.0))
+    pose.north_m = 120.0 * math.tan(math.radians(3.0))
+    p = _two_tile_pipeline(fdr, _HoverVo(), pose)
     outs = []
-    for k in range(6):
-        frame = _frame(k, T0 - (5 - k) * 333_333)  # the test clock stands at T0
+    for k in range(8):
+        frame = _frame(k, T0 - (7 - k) * 333_333)  # the test clock stands at T0
         p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None)
         outs.append(p.localise(frame))
+    assert [o.fix_accepted for o in outs] == [True] * 8, [o.no_fix_reason for o in outs]
+    assert [o.fix.attitude_doubt_rad if o.fix else None for o in outs[: MIN_FIXES - 1]] == [0.0] * (
+        MIN_FIXES - 1
+    )
+    stood = [o for o in outs[MIN_FIXES - 1 :] if o.attitude is not None and o.attitude.off]
+    assert len(stood) == 9 - MIN_FIXES
+    assert all(o.fix is not None and o.fix.attitude_doubt_rad >= math.radians(4.5) for o in stood)
     records = [r for kind, r in fdr.records if "attitude_check" in r]
-    assert [o.fix_accepted for o in outs] == [True] * (MIN_FIXES - 1) + [False] * (7 - MIN_FIXES)
-    assert {o.no_fix_reason for o in outs[MIN_FIXES - 1 :]} == {"attitude_off"}
     check = records[-1]["attitude_check"]
     assert check["off"] is True and check["bias_lower_deg"] > check["allowed_deg"] == pytest.approx(1.5)
     assert check["bias_deg"][0] == pytest.approx(3.0, abs=1e-3)
+    assert records[-1]["fix_attitude_doubt_deg"] >= 4.5
     state = p.time_axis.state_at(T0)
-    widened = 2 * 120.0 * math.tan(math.radians(3.0))
-    assert np.sqrt(np.linalg.eigvalsh(state.map_frame_cov_ne_m2)).min() >= widened * 0.99
+    # Standing on the image, the fixes state what a ground sloping by the error shown would make of
+    # them (a wrong attitude and a slope look the same): 120 m x tan 3 deg, shared, not averaged away.
+    slope_m = 120.0 * math.tan(math.radians(3.0))
+    assert abs(float(state.pos_ned_m[0])) < 0.5 * slope_m <= 0.5 * state.horiz_sigma_m
+    assert records[-1]["fix_shared_sigma_m"] >= slope_m
 
 
-def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_off() -> None:
-    """VO's ground tilt is 3 deg from the autopilot's on every frame, the fixes' image-only tilt agrees
-    with it (their check alone would pass them): once VO's check has proven it off (4 tilts with no
-    scatter), every fix is refused as ``vo_attitude_off``, the IMU is left out and the estimate states
-    the error what it fused may carry. When VO's tilt agrees again, its check clears once no window's
-    bias is beyond the bound and the IMU comes back."""
+def test_while_vo_ground_tilt_shows_the_autopilot_tilt_off_fixes_are_solved_allowing_it() -> None:
+    """VO's ground tilt is 3 deg from the autopilot's on every frame, and leaning on that tilt puts tile
+    A's fix 6.3 m north of the truth; the fixes' own check passes them. Once VO's check has proven it off
+    (4 tilts with no scatter), every fix is solved allowing the autopilot's tilt 1.5 x the error shown
+    and fused at the truth, the IMU is left out and the estimate states the error what it fused before
+    may carry. When VO's tilt agrees again, its check clears once no window's bias is beyond the bound,
+    the IMU comes back and the fixes lean on the autopilot's tilt as before."""
     fdr = _Fdr()
     vo = _TiltedVo(math.radians(3.0))
-    p = _two_tile_pipeline(fdr, vo, _PosePerTile(tilt_off_rad=0.0))
+    pose = _PosePerTile(tilt_off_rad=0.0)
+    pose.north_m = 120.0 * math.tan(math.radians(3.0))
+    p = _two_tile_pipeline(fdr, vo, pose)
     t0 = T0 - 40 * 333_333
     tracks, fixes = [], []
     for k in range(8):
@@ -361,18 +409,21 @@ def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_of
         tracks.append(p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None))
         fixes.append(p.localise(frame))
     assert [t.ground_tilt.off for t in tracks if t.ground_tilt] == [False] * (MIN_FIXES - 1) + [True] * 5
-    assert [f.no_fix_reason for f in fixes[MIN_FIXES:]] == ["vo_attitude_off"] * 4
+    assert all(f.fix_accepted for f in fixes), [f.no_fix_reason for f in fixes]
+    assert all(f.fix is not None and f.fix.attitude_doubt_rad >= math.radians(4.5) for f in fixes[MIN_FIXES:])
     assert all(f.attitude is not None and not f.attitude.off for f in fixes)  # the fixes' check passed them
     frame_records = [r for kind, r in fdr.records if kind == "pipeline.frame"]
     fix_records = [r for kind, r in fdr.records if kind == "pipeline.fix"]
     assert frame_records[-1]["ground_tilt_check"]["bias_deg"][0] == pytest.approx(3.0, abs=1e-3)
     assert fix_records[-1]["ground_tilt_check"]["off"] is True
     state = p.time_axis.state_at(t0 + 7 * 333_333)
-    widened = 2 * 120.0 * math.tan(math.radians(3.0))
-    assert np.sqrt(np.linalg.eigvalsh(state.map_frame_cov_ne_m2)).min() >= widened
+    slope_m = 120.0 * math.tan(math.radians(3.0))  # what a slope as steep would make of them, shared
+    assert abs(float(state.pos_ned_m[0])) < 0.5 * slope_m <= 0.5 * state.horiz_sigma_m
+    assert fix_records[-1]["fix_shared_sigma_m"] >= slope_m
     assert p._imu_trusted is False
 
     vo.tilt_off_rad = 0.0  # the attitude is right again
+    pose.north_m = 0.0
     for k in range(8, 40):
         frame = _frame(k, t0 + k * 333_333)
         tracks.append(p.track(frame, None))
@@ -381,23 +432,28 @@ def test_pipeline_refuses_fixes_while_vo_ground_tilt_shows_the_autopilot_tilt_of
     assert 8 < cleared < 40 and all(t.ground_tilt and not t.ground_tilt.off for t in tracks[cleared:])
     assert p._imu_trusted is True
     assert fixes[-1].no_fix_reason is None and fixes[-1].fix_accepted
+    assert fixes[-1].fix is not None and fixes[-1].fix.attitude_doubt_rad == 0.0
 
 
 def test_fixes_pull_back_the_state_vo_carried_off_while_the_autopilot_tilt_was_wrong() -> None:
-    """The vehicle hovers over tile A. For 40 frames the autopilot's roll is 3 deg off: VO's ground tilt
-    shows it, and the same wrong tilt makes VO measure 0.5 m of northward motion a frame, 20 m in all.
-    What leaves stays within its stated sigma, and once the attitude is right the first fixes (at the
-    true position, 20 m from the state) are fused and pull the state back. Measured before: the error was
-    raised as the map's shared error, which the gates leave out, so every right fix after the offset was
-    refused as too far from the state (a cross-date GPU flight at 1200 m AGL, to its end)."""
+    """The vehicle hovers over tile A. For 40 frames the autopilot's roll is 3 deg off and no pose can be
+    solved: VO's ground tilt shows it, and the same wrong tilt makes VO measure 0.5 m of northward motion
+    a frame, 20 m in all. What leaves stays within its stated sigma, and once the attitude is right the
+    first fixes (at the true position, 20 m from the state) are fused and pull the state back. Measured
+    before: the error was raised as the map's shared error, which the gates leave out, so every right fix
+    after the offset was refused as too far from the state (a cross-date GPU flight at 1200 m AGL, to
+    its end)."""
     fdr = _Fdr()
     vo = _TiltedVo(0.0)
-    # Tile A solves to the true position, whatever the autopilot says.
-    p = _two_tile_pipeline(fdr, vo, _PosePerTile(tilt_off_rad=0.0))
+    # Tile A solves to the true position, whatever the autopilot says; while the tilt is wrong no pose
+    # can be solved (a featureless stretch), so VO alone carries the state.
+    pose = _PosePerTile(tilt_off_rad=0.0)
+    p = _two_tile_pipeline(fdr, vo, pose)
     t0 = T0 - 80 * 333_333
     outs: list[tuple[int, object, object]] = []
     for k in range(80):
         vo.tilt_off_rad, vo.north_m_per_frame = (math.radians(3.0), 0.5) if 5 <= k < 45 else (0.0, 0.0)
+        pose.solvable = not 5 <= k < 45
         frame = _frame(k, t0 + k * 333_333)
         track = p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None)
         outs.append((k, track, p.localise(frame)))
@@ -413,12 +469,14 @@ def test_fixes_pull_back_the_state_vo_carried_off_while_the_autopilot_tilt_was_w
     assert abs(float(final.pos_ned_m[0])) < 1.0 and final.horiz_sigma_m < 5.0
 
 
-def test_while_vo_shows_the_attitude_off_a_frame_without_a_tilt_of_its_own_gives_no_fix() -> None:
-    """The autopilot's roll is 3 deg off from frame 5 to 30 and the fixes lean on it (6.3 m off at
-    120 m AGL); every third frame's pair gives no ground tilt, so it has no verdict of its own. Once VO's
-    check has shown the attitude off, no fix is fused until its tilt agrees again, those frames'
-    included: the estimate's raised sigma would let such a fix through every gate (measured on a GPU
-    across dates at 1200 m AGL: one in about 15, 64 m off at a stated 4 m)."""
+def test_while_vo_shows_the_attitude_off_a_frame_without_a_tilt_of_its_own_allows_it_too() -> None:
+    """The autopilot's roll is 3 deg off from frame 5 to 30 and a fix leaning on it is 6.3 m off at
+    120 m AGL; every third frame's pair gives no ground tilt, so it has no verdict of its own. Once VO's
+    check has shown the attitude off, no fix is fused leaning on the autopilot's tilt until its tilt
+    agrees again, those frames' included: each is solved allowing the error shown, and stands on the
+    image (the estimate's raised sigma would let a leaning one through every gate: measured on a GPU
+    across dates at 1200 m AGL, one in about 15, 64 m off at a stated 4 m). What leaves stays within 3
+    sigma of the truth throughout."""
     fdr = _Fdr()
     vo = _TiltedVo(0.0)
     pose = _PosePerTile(tilt_off_rad=0.0)
@@ -435,17 +493,23 @@ def test_while_vo_shows_the_attitude_off_a_frame_without_a_tilt_of_its_own_gives
     shown = next(k for k, t in enumerate(tracks) if t.ground_tilt and t.ground_tilt.off)
     cleared = next(k for k, t in enumerate(tracks) if k > shown and t.ground_tilt and not t.ground_tilt.off)
     assert 5 < shown < 12 and 30 < cleared < 60, (shown, cleared)
-    assert [k for k in range(shown, cleared) if fixes[k].fix_accepted] == []
-    assert {fixes[k].no_fix_reason for k in range(shown, cleared) if k % 3 == 0} == {"vo_attitude_off"}
+    fused = [k for k in range(shown, cleared) if fixes[k].fix_accepted]
+    assert fused == list(range(shown, cleared)), [fixes[k].no_fix_reason for k in range(shown, cleared)]
+    assert all((fixes[k].fix.attitude_doubt_rad if fixes[k].fix else 0.0) >= math.radians(4.5) for k in fused)
+    for k, track in enumerate(tracks):
+        north_m = float(track.state.pos_ned_m[0])  # the truth is 0 m north
+        assert abs(north_m) <= 3.0 * np.sqrt(track.state.cov_pos_ned_m2[0, 0]), (k, north_m)
     assert all(f.fix_accepted for f in fixes[cleared + 1 :]), [f.no_fix_reason for f in fixes[cleared:]]
 
 
-def test_a_slow_fix_exposed_before_vo_lets_go_of_a_wrong_attitude_is_refused() -> None:
+def test_a_slow_fix_exposed_before_vo_lets_go_of_a_wrong_attitude_is_judged_by_what_it_allowed() -> None:
     """VO's check shows the roll off (frames 5-29), then its pairs give no tilt for 12 s (frames 30-65)
     while the attitude comes right at frame 33; tilts come back right and the check lets go. A slow
-    matcher's fix of frame 31, still leaning on the wrong roll, arrives after that: its exposure lies
-    between the last verdict that refused and the first that did not, where the attitude was never
-    shown right, so it is refused however late (the estimate's raised sigma would let it through)."""
+    matcher's fix of frame 31 arrives after that: its exposure lies between the last verdict that
+    refused and the first that did not, where the attitude was never shown right. Started while VO
+    showed the roll off, it was solved allowing that error, stands on the image and is fused however
+    late; the same fix leaning on the autopilot's tilt (a matcher started before any check said
+    anything) is refused however late (the estimate's raised sigma would let it through)."""
     fdr = _Fdr()
     vo = _TiltedVo(0.0)
     pose = _PosePerTile(tilt_off_rad=0.0)
@@ -465,34 +529,49 @@ def test_a_slow_fix_exposed_before_vo_lets_go_of_a_wrong_attitude_is_refused() -
             p.localise(frames[k])
     assert tracks[29].ground_tilt is not None and tracks[29].ground_tilt.off
     cleared = next(k for k in range(66, 90) if tracks[k].ground_tilt and not tracks[k].ground_tilt.off)
+    assert slow.fix is not None and slow.fix.attitude_doubt_rad >= math.radians(4.5)
+    assert abs(float(slow.fix.pos_ned_m[0])) < 1e-9  # it stood on the image
+    leaning = replace(
+        slow, fix=replace(slow.fix, attitude_doubt_rad=0.0, pos_ned_m=np.array([6.3, 0.0, -120.0]))
+    )
+    refused = p.fuse_attempt(frames[31], leaning)
+    assert not refused.fix_accepted and refused.no_fix_reason == "vo_attitude_off", (
+        cleared,
+        refused.no_fix_reason,
+    )
     late = p.fuse_attempt(frames[31], slow)
-    assert not late.fix_accepted and late.no_fix_reason == "vo_attitude_off", (cleared, late.no_fix_reason)
+    assert late.fix_accepted, late.no_fix_reason
 
 
 def test_a_slow_fix_exposed_where_vo_later_shows_the_attitude_off_is_refused() -> None:
     """A slow matcher starts on a frame exposed just after the attitude went wrong, before VO's ground
-    tilt can tell (2 tilts); by the time the fix is fused VO has proven it off: the fix leans on the
-    wrong tilt and is refused as ``vo_attitude_off`` however late it comes. A fix exposed and fused
-    before the attitude went wrong is not touched."""
+    tilt has seen that frame: it leans on the autopilot's tilt (nothing told it otherwise). By the time
+    the fix is fused VO has proven it off: the fix leans on the wrong tilt and is refused as
+    ``vo_attitude_off`` however late it comes. A fix exposed and fused before the attitude went wrong is
+    not touched; one started once VO showed the tilt jump allows the error and is fused."""
     fdr = _Fdr()
     vo = _TiltedVo(0.0)
-    p = _two_tile_pipeline(fdr, vo, _PosePerTile(tilt_off_rad=0.0))  # the fixes' own check: nothing wrong
+    pose = _PosePerTile(tilt_off_rad=0.0)  # the fixes' own check: nothing wrong
+    p = _two_tile_pipeline(fdr, vo, pose)
     t0 = T0 - 20 * 333_333
     frames = [_frame(k, t0 + k * 333_333) for k in range(12)]
     for k in range(5):
         p.track(frames[k], InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None)
     assert p.localise(frames[4]).fix_accepted
     vo.tilt_off_rad = math.radians(3.0)  # from frame 5 on
+    slow = p.attempt_fix(frames[5])  # started before VO has seen frame 5
+    assert slow.no_fix_reason is None and slow.fix is not None and slow.fix.attitude_doubt_rad == 0.0
     p.track(frames[5], None)
     p.track(frames[6], None)
-    slow = p.attempt_fix(frames[6])  # started before VO can tell
-    assert slow.no_fix_reason is None and slow.fix is not None
+    told = p.attempt_fix(frames[6])  # VO's tilt jumped at frame 5: the error is allowed
+    assert told.fix is not None and told.fix.attitude_doubt_rad >= math.radians(4.5)
     outcomes = [p.track(frames[k], None) for k in range(7, 12)]
     assert outcomes[-1].ground_tilt is not None and outcomes[-1].ground_tilt.off
-    late = p.fuse_attempt(frames[6], slow)
+    late = p.fuse_attempt(frames[5], slow)
     assert not late.fix_accepted and late.no_fix_reason == "vo_attitude_off"
     assert late.ground_tilt is not None and late.ground_tilt.off
     assert [r for kind, r in fdr.records if kind == "pipeline.fix"][-1]["no_fix_reason"] == "vo_attitude_off"
+    assert p.fuse_attempt(frames[6], told).fix_accepted
 
 
 @dataclass
@@ -650,7 +729,7 @@ def test_pipeline_cuts_the_first_chip_around_the_ground_under_the_camera(
     if not cut:
         assert spy.asked == []
         return
-    (lat, lon), = spy.asked
+    ((lat, lon),) = spy.asked
     assert haversine_m(47.0, 8.0, lat, lon) == pytest.approx(120.0 * math.tan(math.radians(5.0)), abs=0.05)
     assert abs(lat - 47.0) * 111_320.0 < 0.05  # no north component: the lean is across a north heading
 
@@ -693,9 +772,7 @@ class _OnlyTrueTile:
         return MatchResult(frame.frame_id, sets, 0, 0.8, 0, "fake")
 
 
-def _sweeping_pipeline(
-    fdr: _Fdr, tiles: list[TileId], fakes: _OnlyTrueTile
-) -> NavigationPipeline:
+def _sweeping_pipeline(fdr: _Fdr, tiles: list[TileId], fakes: _OnlyTrueTile) -> NavigationPipeline:
     """A pipeline over ``tiles`` (ranked in that order for every frame), matched by ``fakes``."""
     p = _pipeline(_RankedVpr(dim=256, tiles=tiles), fdr, _HoverVo())
     p._rerank = fakes  # type: ignore[assignment]

@@ -8,11 +8,14 @@ Every stage's failure has one meaning for the estimator:
 - no attitude/altitude at exposure → no absolute fix from this frame (never reuse stale data);
 - VPR/rerank/matcher error or too few inliers → no fix; C5 propagates on VO (``visual_propagated``);
 - pose rejected (degenerate, implausible) → no fix;
-- the autopilot's tilt shown off by the image-only tilts of the recent fixes, or this fix's tilt a jump
-  from theirs → no fix (``c4_pose/attitude_check.py``: every fix leans on that tilt); the same from the
-  ground tilt VO sees between frames (``c1_vio/ground_tilt.py``, at the camera rate) → no fix exposed
-  where it has shown it, however late the fix arrives (``vo_attitude_off``); while either has shown a
-  tilt error the estimate states what the fixes and VO fused may carry from it, and the IMU is left out;
+- the autopilot's tilt shown off by the image-only tilts of the recent fixes, or by the ground tilt VO
+  sees between frames (``c1_vio/ground_tilt.py``, at the camera rate; ``c4_pose/attitude_check.py``):
+  a fix solved from points is solved again with its attitude prior widened by the tilt error shown
+  (it then leans on the image's own tilt, and states what it may carry); a fix that measured no tilt
+  of its own (an area alignment) is refused (``attitude_off``, ``vo_attitude_off``: wherever VO has
+  shown it, however late the fix arrives), and so is a fix whose tilt jumped from the recent ones
+  (``attitude_jump``); when a check first shows a tilt error (or a larger one) the estimate states
+  what the fixes and VO fused before may carry from it, and while either shows one the IMU is left out;
 - fix refused by the integrity rule (weak evidence, ambiguous candidates, disagrees with the prior; see
   ``c4_pose/integrity.py``) → no fix; a fix it passes states a covariance that reflects its evidence,
   scaled by how consistent the recent fixes were with each other through VO (``c4_pose/consistency.py``);
@@ -177,6 +180,16 @@ class FixAttempt:
 
 
 @dataclass(frozen=True)
+class _OffSpan:
+    """Exposures (us, Unix) over which the ground-tilt check showed the autopilot's tilt off (its
+    evidence since, its newest tilt), and the largest error it showed there, deg."""
+
+    since_usec: int
+    until_usec: int
+    suspect_deg: float
+
+
+@dataclass(frozen=True)
 class FrameOutcome:
     """Both halves run one after the other on one frame (:meth:`NavigationPipeline.process`)."""
 
@@ -282,7 +295,12 @@ class NavigationPipeline:
         self._ground_tilt_verdict: AttitudeVerdict | None = None
         #: Exposure spans (us, Unix) the ground-tilt check has shown the attitude off over (evidence
         #: since, newest tilt), merged, newest last: a fix exposed inside one is refused however late.
-        self._vo_off_spans: deque[tuple[int, int]] = deque(maxlen=64)
+        self._vo_off_spans: deque[_OffSpan] = deque(maxlen=64)
+        #: The fixes' attitude check's newest verdict (the fix half's own).
+        self._fix_tilt_verdict: AttitudeVerdict | None = None
+        #: The largest tilt error (deg) each check has shown in its current refusal, and answered by
+        #: raising the position's sigma (``_answer_tilt``); 0 while it refuses nothing.
+        self._tilt_answered_deg = {"fixes": 0.0, "vo": 0.0}
         #: Which tilt checks last refused (``_answer_tilt``): the IMU is trusted while neither does.
         self._tilt_refused = {"fixes": False, "vo": False}
         #: What this pipeline last told the time axis about the IMU (``c4_pose/attitude_check.py``).
@@ -447,9 +465,10 @@ class NavigationPipeline:
                     )
                 self._ground_tilt_verdict = ground_tilt
                 if ground_tilt.refused is not None:
-                    self._note_vo_off(ground_tilt.since_unix_usec, t)
+                    self._note_vo_off(ground_tilt.since_unix_usec, t, ground_tilt.suspect_deg or 0.0)
                 elif before is not None and before.refused is not None and self._vo_off_spans:
-                    self._note_vo_off(self._vo_off_spans[-1][1], t - 1)  # never shown right before t
+                    last = self._vo_off_spans[-1]  # never shown right before t
+                    self._note_vo_off(last.until_usec, t - 1, last.suspect_deg)
                 self._answer_tilt("vo", ground_tilt, frame.alt_agl_m, t)
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
@@ -535,9 +554,16 @@ class NavigationPipeline:
             if attempt.attitude is not None and fix is not None:
                 self._answer_tilt("fixes", attempt.attitude, self._agl_m(fix), t)
             ground_tilt = self._ground_tilt_verdict
-            if fix is not None and reason is None and self._vo_off_at(t):
-                # VO's ground tilt has shown the autopilot's tilt off over this exposure: however late
-                # the fix comes (a slow matcher's was started before the check could tell), it leans on it.
+            vo_suspect_deg = self._vo_suspect_deg_at(t)
+            if (
+                fix is not None
+                and reason is None
+                and vo_suspect_deg is not None
+                and fix.attitude_doubt_rad < math.radians(vo_suspect_deg)
+            ):
+                # VO's ground tilt has shown the autopilot's tilt off over this exposure by more than
+                # the fix was solved to allow: however late the fix comes (a slow matcher's was started
+                # before the check could tell), it leans on it.
                 reason = "vo_attitude_off"
                 log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, reason=reason)
             head = self._axis.head_unix_usec
@@ -621,6 +647,7 @@ class NavigationPipeline:
                     if fix and fix.image_tilt_off_cam_rad is not None
                     else None
                 ),
+                "fix_attitude_doubt_deg": round(math.degrees(fix.attitude_doubt_rad), 3) if fix else None,
                 "fix_yaw_deg": round(math.degrees(fix.yaw_rad), 3) if fix else None,
                 "fix_alt_amsl_m": round(fix.alt_amsl_m, 2) if fix else None,
                 "timing": _timing_fields(frame.timing),
@@ -686,43 +713,80 @@ class NavigationPipeline:
         """Height of ``fix`` above the map's ground, m (flat ground; never below it)."""
         return max(0.0, fix.alt_amsl_m - self._ground_alt_amsl_m)
 
+    def _with_slope_doubt(self, fix: PoseFix) -> PoseFix:
+        """``fix``, where it was solved allowing the autopilot's tilt an error (``attitude_doubt_rad``),
+        stating the ground distance the error shown makes at its height as error it shares with the
+        fixes around it. The image's tilt to the ground and the autopilot's tilt to gravity differ by
+        that much, and a wrong attitude and a ground sloping as much look the same: the pose is solved
+        against flat ground, so on such a slope the fix that stands on the image is off by it, as one
+        leaning on the autopilot is under a wrong attitude. Fusing more fixes over the same slope does
+        not average it away."""
+        if fix.attitude_doubt_rad <= 0.0:
+            return fix
+        shown_rad = fix.attitude_doubt_rad / TILT_DOUBT_MARGIN
+        return with_regional_error(fix, self._agl_m(fix) * math.tan(shown_rad))
+
     def _footprint_m(self, fix: PoseFix) -> float:
         """Ground the frame of ``fix`` covers across, m (nadir, flat ground)."""
         return 2.0 * self._agl_m(fix) * math.tan(self._calib.hfov_rad / 2.0)
 
-    def _note_vo_off(self, since_usec: int, t: int) -> None:
-        """The ground-tilt check shows the attitude off at ``t`` on evidence since ``since_usec``."""
+    def _note_vo_off(self, since_usec: int, t: int, suspect_deg: float) -> None:
+        """The ground-tilt check shows the attitude off at ``t`` on evidence since ``since_usec``, by up
+        to ``suspect_deg``."""
         spans = self._vo_off_spans
-        if spans and since_usec <= spans[-1][1]:
-            spans[-1] = (min(spans[-1][0], since_usec), max(spans[-1][1], t))
+        if spans and since_usec <= spans[-1].until_usec:
+            last = spans[-1]
+            spans[-1] = _OffSpan(
+                min(last.since_usec, since_usec), max(last.until_usec, t), max(last.suspect_deg, suspect_deg)
+            )
         else:
-            spans.append((since_usec, t))
+            spans.append(_OffSpan(since_usec, t, suspect_deg))
 
-    def _vo_off_at(self, t: int) -> bool:
-        """Whether an exposure at ``t`` lies where the ground-tilt check has shown the attitude off, or
-        after its newest verdict while that verdict is off: until a tilt says otherwise the attitude is
-        still off. A span runs on to just before the first verdict that lets go, so a slow fix exposed
-        between the last verdict that refused and that one is refused however late. A frame whose pair
-        gave no tilt, or a fix fused before its own frame's VO, has no verdict of its own; measured
-        without this rule on a GPU (3 deg of roll at 1200 m AGL across dates), one such fix in about 15
-        slipped through, 64 m off at a stated 4 m."""
+    def _vo_suspect_deg_at(self, t: int) -> float | None:
+        """The tilt error (deg) the ground-tilt check has shown over an exposure at ``t``, or None where
+        it has shown none. Shown: ``t`` lies in a span where it refused, or after its newest verdict
+        while that verdict refuses (until a tilt says otherwise the attitude is still off). A span runs
+        on to just before the first verdict that lets go, so a slow fix exposed between the last verdict
+        that refused and that one is judged by it however late. A frame whose pair gave no tilt, or a
+        fix fused before its own frame's VO, has no verdict of its own; measured without this rule on a
+        GPU (3 deg of roll at 1200 m AGL across dates), one such fix in about 15 slipped through, 64 m
+        off at a stated 4 m."""
         spans = self._vo_off_spans
-        if any(lo <= t <= hi for lo, hi in spans):
-            return True
+        shown = [span.suspect_deg for span in spans if span.since_usec <= t <= span.until_usec]
+        if shown:
+            return max(shown)
         newest = self._ground_tilt_verdict
-        return newest is not None and newest.refused is not None and bool(spans) and t > spans[-1][1]
+        if newest is not None and newest.refused is not None and spans and t > spans[-1].until_usec:
+            return max(spans[-1].suspect_deg, newest.suspect_deg or 0.0)
+        return None
+
+    def _tilt_doubt_rad(self, t: int) -> float:
+        """What a fix exposed at ``t`` must allow the autopilot's tilt beyond its sigma, rad: the larger
+        tilt error either check has shown (VO over ``t``, the fixes' check in its newest verdict while it
+        finds the attitude off) times ``TILT_DOUBT_MARGIN``; 0 where neither shows one."""
+        shown_deg = self._vo_suspect_deg_at(t) or 0.0
+        fixes = self._fix_tilt_verdict
+        if fixes is not None and fixes.off and fixes.suspect_deg is not None:
+            shown_deg = max(shown_deg, fixes.suspect_deg)
+        return math.radians(TILT_DOUBT_MARGIN * min(shown_deg, MAX_TILT_DOUBT_DEG))
 
     def _answer_tilt(self, source: str, verdict: AttitudeVerdict, agl_m: float, t: int) -> None:
         """What the estimate does with a tilt check's verdict (``source``: ``fixes`` or ``vo``), inside
-        a unit of the axis at ``t``. While the check has shown a tilt error, the fixes fused before it
-        saw it, and VO, leaned on the same wrong tilt: the position's sigma is raised to twice the
-        ground distance it makes from ``agl_m`` (m), in the filter's covariance, so a fix solved once
-        the attitude is right may pull the state back by that much. The IMU's accelerations are
+        a unit of the axis at ``t``. When the check first shows a tilt error, or a larger one than it
+        has shown since it last refused nothing, the fixes fused before it saw it, and VO, leaned on the
+        same wrong tilt: the position's sigma is raised to twice the ground distance it makes from
+        ``agl_m`` (m), in the filter's covariance, so a fix solved without leaning on it may pull the
+        state back by that much. Raised once per error, not on every verdict: the fixes fused since are
+        solved with the error allowed (``_tilt_doubt_rad``), and VO states its own
+        (``measured_ahrs_doubt_rad``). The IMU's accelerations are
         rotated with the same attitude (gravity leaks in): it is left out while either check refuses,
         and said again on the next verdict when the axis could not take it (not yet initialised)."""
-        if verdict.suspect_deg is not None:
+        if verdict.suspect_deg is not None and verdict.suspect_deg > self._tilt_answered_deg[source]:
             tilt_m = agl_m * math.tan(math.radians(min(verdict.suspect_deg, 45.0)))
-            self._axis.raise_position_sigma(2.0 * tilt_m, t)
+            if self._axis.raise_position_sigma(2.0 * tilt_m, t):
+                self._tilt_answered_deg[source] = verdict.suspect_deg
+        elif verdict.refused is None:
+            self._tilt_answered_deg[source] = 0.0
         self._tilt_refused[source] = verdict.refused is not None
         trusted = not any(self._tilt_refused.values())
         if trusted != self._imu_trusted and self._axis.set_imu_trusted(trusted, t):
@@ -735,6 +799,7 @@ class NavigationPipeline:
             return FixAttempt(None, 0, None, "no_attitude_or_altitude")
         with self._axis.unit(UNIT_FIX_PRIOR, frame.exposure_time_unix_usec):
             prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
+            doubt_rad = self._tilt_doubt_rad(frame.exposure_time_unix_usec)
         search_prior = _search_prior(prior_state)
         doubting = self._doubt is not None and self._doubt.active
         frame_texture = edge_share(frame.image_bgr) if doubting else None
@@ -772,7 +837,7 @@ class NavigationPipeline:
         if doubting and rerank_result.candidates:
             map_texture = edge_share(np.asarray(rerank_result.candidates[0].tile_pixels_handle.pixels()))
         attempt = replace(
-            self._matched(frame, prior_state, rung, rerank_result, timings, t1),
+            self._matched(frame, prior_state, rung, rerank_result, timings, t1, doubt_rad),
             rung=rung.name,
             frame_texture=frame_texture,
             map_texture=map_texture,
@@ -825,8 +890,10 @@ class NavigationPipeline:
         rerank_result: RerankResult,
         timings: dict[str, float],
         t1: int,
+        doubt_rad: float,
     ) -> FixAttempt:
-        """C3 -> C4 on the reranked candidates (``t1``: when retrieval ended, for ``timings``)."""
+        """C3 -> C4 on the reranked candidates (``t1``: when retrieval ended, for ``timings``;
+        ``doubt_rad``: the tilt error the checks have shown, ``_tilt_doubt_rad``)."""
         t2 = self._clock_ns()
         timings["rerank"] = (t2 - t1) / 1e6
         try:
@@ -845,7 +912,9 @@ class NavigationPipeline:
             return self._area_matched(frame, match, rerank_result, prior_state, timings, t3)
         handle = next(c.tile_pixels_handle for c in rerank_result.candidates if c.tile_id == best.tile_id)
         try:
-            fix = self._pose.solve(frame, best, handle, self._calib)
+            fix = self._with_slope_doubt(
+                self._pose.solve(frame, best, handle, self._calib, attitude_doubt_rad=doubt_rad)
+            )
         except PoseError as exc:
             timings["pose"] = (self._clock_ns() - t3) / 1e6
             return FixAttempt(
@@ -862,7 +931,27 @@ class NavigationPipeline:
             timings["integrity"] = (self._clock_ns() - t4) / 1e6
             return self._judged(frame, match, best, verdict, None)
         attitude = self._attitude.note(fix, self._footprint_m(fix))
-        if attitude.refused is not None:
+        self._fix_tilt_verdict = attitude
+        if attitude.off:
+            # The fix measured its own tilt: solved again leaning on the autopilot's no more than the
+            # error shown allows, it stands on the image's (and states what that leaves).
+            shown_deg = min(attitude.suspect_deg or 0.0, MAX_TILT_DOUBT_DEG)
+            wider_rad = max(doubt_rad, math.radians(TILT_DOUBT_MARGIN * shown_deg))
+            if wider_rad > fix.attitude_doubt_rad:
+                try:
+                    fix = self._with_slope_doubt(
+                        self._pose.solve(frame, best, handle, self._calib, attitude_doubt_rad=wider_rad)
+                    )
+                except PoseError:
+                    log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, **attitude.fdr_fields())
+                    return FixAttempt(
+                        fix,
+                        best.inlier_count,
+                        match.reprojection_residual_px,
+                        attitude.refused,
+                        attitude=attitude,
+                    )
+        elif attitude.refused is not None:
             log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, **attitude.fdr_fields())
             return FixAttempt(
                 fix, best.inlier_count, match.reprojection_residual_px, attitude.refused, attitude=attitude
@@ -1026,7 +1115,13 @@ class NavigationPipeline:
                 if cand.area is not None and cand.inlier_count == 0 and self._area_pose is not None:
                     rival_fix = self._area_pose.solve(frame, cand)
                 else:
-                    rival_fix = self._pose.solve(frame, cand, handles[cand.tile_id], self._calib)
+                    rival_fix = self._pose.solve(
+                        frame,
+                        cand,
+                        handles[cand.tile_id],
+                        self._calib,
+                        attitude_doubt_rad=fix.attitude_doubt_rad,
+                    )
             except PoseError:
                 continue
             rivals.append(CandidateFix(rival_fix, rival_ev))
@@ -1070,6 +1165,14 @@ AHRS_DOUBT_FREE_RAD: Final[float] = math.radians(1.0)
 #: Accepted fixes' tilt errors kept for ``measured_ahrs_doubt_rad`` (3 Hz over its window), and the
 #: window, s (as the autopilot's swing window, ``vehicle_state.AHRS_SWING_WINDOW_S``).
 TILT_OFF_HISTORY: Final[int] = 32
+#: A fix solved while a tilt check shows the autopilot's tilt off widens its attitude prior by this
+#: times the error shown (``NavigationPipeline._tilt_doubt_rad``): the check's bound moves from verdict
+#: to verdict, and a fix solved with less than the error shown at its exposure when it is fused is
+#: refused.
+TILT_DOUBT_MARGIN: Final[float] = 1.5
+#: The most tilt error, deg, a fix's attitude prior is widened by (the solver's own gate on the image's
+#: tilt against the autopilot's, ``pose.max_attitude_disagreement_deg``, refuses beyond).
+MAX_TILT_DOUBT_DEG: Final[float] = 15.0
 MEASURED_TILT_WINDOW_S: Final[float] = 8.0
 #: The camera's axis is taken at most this far from nadir for VO's lever (cos 60 deg).
 MIN_COS_OFF_NADIR: Final[float] = 0.5

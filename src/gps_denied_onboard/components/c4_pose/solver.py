@@ -116,14 +116,19 @@ class PoseSolver:
         candidate: CandidateMatchSet,
         tile: TilePixelsHandle,
         calibration: CameraCalibration,
+        *,
+        attitude_doubt_rad: float = 0.0,
     ) -> PoseFix:
         """Solve the camera pose for ``frame`` from ``candidate``'s inliers on ``tile``.
+        ``attitude_doubt_rad``: a tilt error the autopilot's attitude may carry beyond
+        ``PoseConfig.attitude_sigma_deg`` (a tilt check has shown one): the attitude prior is widened by
+        it, so that the fix leans on the autopilot's tilt no more than that allows.
 
         Raises :class:`PoseError` (``reason`` from :class:`PoseRejectReason`) when the pose cannot be
         solved or is implausible; the rejection is logged as ``c4.pose.rejected``.
         """
         try:
-            return self._solve(frame, candidate, tile, calibration)
+            return self._solve(frame, candidate, tile, calibration, attitude_doubt_rad)
         except PoseError as exc:
             _log.warning(
                 LogEvent.POSE_REJECTED,
@@ -146,6 +151,7 @@ class PoseSolver:
         candidate: CandidateMatchSet,
         tile: TilePixelsHandle,
         calibration: CameraCalibration,
+        attitude_doubt_rad: float,
     ) -> PoseFix:
         cfg = self._config
         corr = np.asarray(candidate.inlier_correspondences, dtype=np.float64)
@@ -212,10 +218,11 @@ class PoseSolver:
         dependence = math.sqrt(max(1.0, n_pts / cfg.max_independent_matches))
         sigma_px = _image_sigma_px(obs, rvec0, tvec0) * dependence
         # the autopilot's tilt, as well as the timing doubt at this attitude rate and its own recent
-        # manoeuvres let it be known
+        # manoeuvres let it be known, and as far as a tilt check has shown it off
         timing_rad = frame.timing.attitude_sigma_rad if frame.timing is not None else 0.0
         prior = _TiltPrior(
-            frame.attitude.R_ned_cam()[2, :], math.hypot(math.radians(cfg.attitude_sigma_deg), timing_rad)
+            frame.attitude.R_ned_cam()[2, :],
+            math.hypot(math.radians(cfg.attitude_sigma_deg), timing_rad, attitude_doubt_rad),
         )
         rvec, tvec = self._with_attitude_prior(obs, rvec0, tvec0, sigma_px, prior, frame)
         rot, _ = cv2.Rodrigues(rvec)
@@ -262,6 +269,7 @@ class PoseSolver:
             residual_px=residual_med_px,
             tile_id=candidate.tile_id,
             shared_sigma_m=math.hypot(self._config.min_sigma_m, prior_sigma_m),
+            attitude_doubt_rad=float(attitude_doubt_rad),
         )
 
     @staticmethod

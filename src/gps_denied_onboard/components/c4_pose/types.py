@@ -42,6 +42,10 @@ class PoseFix:
     #: It is inside ``cov_ned_m2`` too; it is carried apart because fusing more fixes does not average
     #: it away, so the estimator keeps it out of the reduction (see ``c5_estimator/ekf.py``).
     shared_sigma_m: float
+    #: The tilt error, radians, beyond ``PoseConfig.attitude_sigma_deg`` that the solve allowed the
+    #: autopilot's attitude (a tilt check had shown one; ``NavigationPipeline``): 0 for a fix that leans
+    #: on it as usual, and for one that measured no tilt of its own.
+    attitude_doubt_rad: float = 0.0
 
     @property
     def horiz_sigma_m(self) -> float:
