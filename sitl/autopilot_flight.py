@@ -34,6 +34,7 @@ from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import ConfigError, load_config
 from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.sitl.frame_server import FrameServer
+from gps_denied_onboard.sitl.host_faults import CpuHogs
 from gps_denied_onboard.sitl.mission import (
     TRUTH_TYPES,
     AutopilotRelay,
@@ -57,7 +58,7 @@ from gps_denied_onboard.sitl.runner import (
     daemon_ready,
     spawn_daemon,
 )
-from gps_denied_onboard.sitl.scenario import ScenarioError, load_scenario
+from gps_denied_onboard.sitl.scenario import FaultKind, ScenarioError, load_scenario
 
 #: The camera's height above the ground when the vehicle stands on it, m (the renderer needs > 0).
 CAMERA_GROUND_HEIGHT_M = 0.3
@@ -204,9 +205,22 @@ def _fly(
     frames: list[SentFrame] = []
     mission: dict[str, Any] = {}
     restarts: list[dict[str, float]] = []
+    injected: list[dict[str, Any]] = []
     result = asyncio.run(
         _run_flight(
-            flight, cmd, relay, driver, scenario, renderer, ground_alt, frames, t0, say, mission, restarts
+            flight,
+            cmd,
+            relay,
+            driver,
+            scenario,
+            renderer,
+            ground_alt,
+            frames,
+            t0,
+            say,
+            mission,
+            restarts,
+            injected,
         )
     )
     end_unix_s, exit_code, stop_s = result
@@ -265,6 +279,7 @@ def _fly(
                 "url": url,
                 "kind": "px4" if px4 else "ardupilot",
                 "truth_source": relay.truth_source,
+                "truth_stamp_lead_s": _percentiles(relay.truth_stamp_lead_s),
                 "truth_note": None
                 if relay.truth_source in TRUTH_TYPES
                 else "no SIMSTATE/SIM_STATE/HIL_STATE_QUATERNION: scored against the autopilot's own "
@@ -278,6 +293,7 @@ def _fly(
             "daemon_exit_code": exit_code,
             "daemon_stop_s": stop_s,
             "daemon_restarts": restart_recovery(restarts, relay.received, records),
+            "faults_injected": injected,
             "t0_unix_s": t0[0] if t0 else None,
             "daemon_log": str(workdir / "daemon.log"),
             "fdr_dir": str(workdir / "fdr"),
@@ -302,6 +318,7 @@ async def _run_flight(
     say: Any,
     mission: dict[str, Any],
     restarts: list[dict[str, float]],
+    injected: list[dict[str, Any]],
 ) -> tuple[float, int | None, float | None]:
     server = FrameServer()
     cam_port = await server.start()
@@ -377,11 +394,32 @@ async def _run_flight(
             restarts.append({"killed_unix_s": t_kill, "restarted_unix_s": time.time()})
             say(f"daemon killed (SIGKILL) at {at_s:.1f} s and restarted: pid {procs[-1].pid}")
 
+    hogs = CpuHogs()
+
+    async def host_load() -> None:
+        """The scenario's ``cpu_hogs`` windows (s after the take-off): the one fault of the daemon's host
+        a flight against an external autopilot injects (``sitl.host_faults``)."""
+        events = sorted(
+            [(f.from_s, True, f) for f in scenario.faults if f.kind is FaultKind.CPU_HOGS]
+            + [(f.to_s, False, f) for f in scenario.faults if f.kind is FaultKind.CPU_HOGS],
+            key=lambda e: (e[0], e[1]),
+        )
+        for at_s, start, fault in events:
+            while not t0:
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(max(0.0, t0[0] + at_s - time.time()))
+            entry = hogs.start(fault.processes) if start else hogs.stop()
+            injected.append(
+                {"kind": fault.kind.value, "t_s": at_s, "phase": "start" if start else "end", **entry}
+            )
+            say(f"{fault.kind.value} {'on' if start else 'off'} at {at_s:.1f} s: {entry}")
+
     with log_path.open("wb") as log_file:
         procs = [spawn_daemon(cmd, log_file, env)]
         proc = procs[0]
         cam_task = asyncio.create_task(camera())
         restart_task = asyncio.create_task(restarter(procs, log_file))
+        load_task = asyncio.create_task(host_load())
         exit_code: int | None = None
         stop_s: float | None = None
         try:
@@ -407,6 +445,8 @@ async def _run_flight(
             stop.set()
             restart_task.cancel()  # no new daemon from here on
             cam_task.cancel()
+            load_task.cancel()
+            hogs.stop()
             proc = procs[-1]
             t_term = time.monotonic()
             if proc.poll() is None:
@@ -450,3 +490,16 @@ def run_autopilot_cli(args: Any) -> int:
     print(f"autopilot     {args.autopilot}, truth from {report['autopilot']['truth_source']}")
     print(f"report        {opts.report_path}")
     return 0 if report["daemon_exit_code"] == 0 else 1
+
+
+def _percentiles(values: list[float]) -> dict[str, float] | None:
+    """p5, p50, p95 and max of ``values`` (None for none)."""
+    if not values:
+        return None
+    arr = np.asarray(values, dtype=np.float64)
+    return {
+        "p5": round(float(np.percentile(arr, 5)), 4),
+        "p50": round(float(np.percentile(arr, 50)), 4),
+        "p95": round(float(np.percentile(arr, 95)), 4),
+        "max": round(float(arr.max()), 4),
+    }

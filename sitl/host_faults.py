@@ -1,8 +1,8 @@
 """Faults of the companion computer the daemon runs on, injected for real during a SITL flight.
 
-The scenario's ``clock_jump``, ``ort_fault``, ``tile_corrupt`` and ``fdr_full`` faults (``sitl.scenario``)
-are not messages the simulator sends but things that happen to the daemon's host. Each is made to happen
-for real, to the unmodified daemon process, without touching the machine itself:
+The scenario's ``clock_jump``, ``ort_fault``, ``tile_corrupt``, ``fdr_full`` and ``cpu_hogs`` faults
+(``sitl.scenario``) are not messages the simulator sends but things that happen to the daemon's host.
+Each is made to happen for real, to the unmodified daemon process, without touching the machine itself:
 - ``clock_jump``: the host's wall clock steps for the daemon through libfaketime (preloaded, its offset
   read from a file this module rewrites ``CLOCK_STEP_LEAD_S`` before a whole second, re-read once per
   wall second; the monotonic clock is not faked); the SITL camera stamps with the stepped clock
@@ -13,7 +13,9 @@ for real, to the unmodified daemon process, without touching the machine itself:
   run's own copy of the cache, in place, and put back at the window's end;
 - ``fdr_full``: the FDR's directory is a tmpfs mounted for the run, filled to its last byte by a ballast
   file during the window; the records are copied to ``<workdir>/fdr`` afterwards. Mounting needs root;
-  without it the run is refused with a message naming the fault.
+  without it the run is refused with a message naming the fault;
+- ``cpu_hogs``: ``processes`` busy processes (each a Python interpreter spinning) at nice 0 for the
+  window, each in its own session, killed at the window's end or when the flight ends (``CpuHogs``).
 
 Why libfaketime is re-read only once a second, and the rest in full: docs/design.md,
 "`sitl/host_faults.py`: host faults".
@@ -28,6 +30,7 @@ import importlib.util
 import os
 import shutil
 import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -99,6 +102,52 @@ class HostSetup:
     cache_dir: Path | None = None
 
 
+#: What each busy process runs: nothing but the CPU.
+_BUSY_LOOP = "while True:\n    pass\n"
+
+
+class CpuHogs:
+    """The ``cpu_hogs`` fault: busy processes on the daemon's host while it is on."""
+
+    def __init__(self) -> None:
+        self._procs: list[subprocess.Popen[bytes]] = []
+
+    def start(self, processes: int) -> dict[str, Any]:
+        """Start ``processes`` busy processes (more, if some already run); their pids and nice values."""
+        started = [
+            subprocess.Popen(
+                [sys.executable, "-c", _BUSY_LOOP],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                start_new_session=True,
+            )
+            for _ in range(processes)
+        ]
+        self._procs += started
+        nice: list[int | None] = []
+        for proc in started:
+            # nice 0, as ordinary load is, whatever the runner's: lowering a nice value needs
+            # CAP_SYS_NICE; without it the process keeps the runner's, and the report says which
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, proc.pid, 0)
+            try:
+                nice.append(os.getpriority(os.PRIO_PROCESS, proc.pid))
+            except OSError:
+                nice.append(None)
+        return {"processes": len(started), "pids": [p.pid for p in started], "nice": nice}
+
+    def stop(self) -> dict[str, Any]:
+        """Kill every busy process and wait for them."""
+        procs, self._procs = self._procs, []
+        for proc in procs:
+            with contextlib.suppress(ProcessLookupError):
+                proc.kill()
+        for proc in procs:
+            proc.wait()
+        return {"stopped": len(procs)}
+
+
 class HostFaults:
     """Prepares, injects and cleans up the host faults of one flight (see the module docstring)."""
 
@@ -122,6 +171,7 @@ class HostFaults:
         self._mounted = False
         self._store: TileStore | None = None
         self._restore: dict[tuple[int, int], np.ndarray] = {}
+        self._hogs = CpuHogs()
 
     @property
     def kinds(self) -> set[FaultKind]:
@@ -182,7 +232,7 @@ class HostFaults:
                 events.append((f.from_s - CLOCK_STEP_LEAD_S, i, f, True))
             elif f.kind is FaultKind.ORT_FAULT:
                 events.append((f.from_s, i, f, True))
-            elif f.kind in (FaultKind.TILE_CORRUPT, FaultKind.FDR_FULL):
+            elif f.kind in (FaultKind.TILE_CORRUPT, FaultKind.FDR_FULL, FaultKind.CPU_HOGS):
                 events.append((f.from_s, i, f, True))
                 events.append((f.to_s, i, f, False))
         for at_s, _, fault, start in sorted(events, key=lambda e: (e[0], e[1])):
@@ -206,6 +256,9 @@ class HostFaults:
             entry["phase"] = "start" if start else "end"
         elif fault.kind is FaultKind.FDR_FULL:
             entry.update(self._fill_fdr_fs() if start else self._empty_fdr_fs())
+            entry["phase"] = "start" if start else "end"
+        elif fault.kind is FaultKind.CPU_HOGS:
+            entry.update(self._hogs.start(fault.processes) if start else self._hogs.stop())
             entry["phase"] = "start" if start else "end"
         self.injected.append(entry)
 
@@ -284,7 +337,8 @@ class HostFaults:
 
     def finish(self, fdr_dir: Path) -> None:
         """Put everything back: tiles restored, the FDR copied to ``fdr_dir`` and its tmpfs unmounted;
-        note how much of the ORT fault's count was not consumed."""
+        note how much of the ORT fault's count was not consumed; no busy process outlives the flight."""
+        self._hogs.stop()
         with contextlib.suppress(OSError, HostFaultError):
             self._restore_tiles()
         if self._ort_file.exists():

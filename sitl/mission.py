@@ -113,6 +113,9 @@ class AutopilotRelay:
             source_component=GCS_COMPONENT_ID,
         )
         self.truth: list[TruePose] = []
+        #: Per truth sample: its receive time minus the sample time it was given, s (how far the
+        #: autopilot's boot-time mapping puts it before it arrived).
+        self.truth_stamp_lead_s: list[float] = []
         #: The autopilot's GLOBAL_POSITION_INT: (host time, lat_deg, lon_deg).
         self.autopilot_track: list[tuple[float, float, float]] = []
         self.latest: dict[str, Any] = {}
@@ -186,7 +189,9 @@ class AutopilotRelay:
         if mtype == "TIMESYNC" and int(msg.tc1) != 0:
             self.clock.answer(int(msg.tc1), int(msg.ts1), int(now * 1e6))
         if mtype in TRUTH_TYPES:
+            received = now
             now = self._sample_time(now)
+            self.truth_stamp_lead_s.append(received - now)
             if self.truth and now <= self.truth[-1].t_unix_s:
                 return
             if mtype == "SIMSTATE":

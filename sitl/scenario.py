@@ -27,7 +27,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 import yaml
@@ -143,6 +143,10 @@ class LinkDrop:
     to_s: float
 
 
+#: The most busy processes a ``cpu_hogs`` fault may start (a typo must not fork-bomb the host).
+MAX_CPU_HOGS: Final = 64
+
+
 class FaultKind(str, Enum):
     CAMERA_STALL = "camera_stall"
     ATTITUDE_NAN = "attitude_nan"
@@ -161,6 +165,9 @@ class FaultKind(str, Enum):
     TILE_CORRUPT = "tile_corrupt"
     FDR_FULL = "fdr_full"
     ATTITUDE_OFFSET = "attitude_offset"
+    #: ``processes`` busy processes at nice 0 on the daemon's host for the window (``sitl.host_faults``):
+    #: a companion computer is rarely idle.
+    CPU_HOGS = "cpu_hogs"
 
     @property
     def instant(self) -> bool:
@@ -191,6 +198,8 @@ class Fault:
     count: int = 0
     #: ``attitude_offset``: (roll, pitch, yaw) added to the autopilot's ATTITUDE, degrees.
     offset_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: ``cpu_hogs``: busy processes.
+    processes: int = 0
 
 
 class SpoofedSource(str, Enum):
@@ -990,7 +999,10 @@ def _read_faults(value: object, source: str | None) -> tuple[Fault, ...]:
                     raise b.error(
                         "roll_deg", "expected a non-zero roll_deg, pitch_deg or yaw_deg, got all three 0"
                     )
-            faults.append(Fault(kind, start, end, reconnect, rate, offset_deg=offset))
+            processes = b.integer("processes", 2, ge=1) if kind is FaultKind.CPU_HOGS else 0
+            if processes > MAX_CPU_HOGS:
+                raise b.error("processes", f"expected at most {MAX_CPU_HOGS} busy processes, got {processes}")
+            faults.append(Fault(kind, start, end, reconnect, rate, offset_deg=offset, processes=processes))
         b.finish()
     return tuple(faults)
 

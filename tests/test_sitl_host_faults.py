@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from daemon_harness import build_small_cache
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.sitl.host_faults import TILE_CORRUPT_LEAD_S, HostFaults
 from gps_denied_onboard.sitl.render import MapRenderer
-from gps_denied_onboard.sitl.scenario import Scenario, scenario_from_mapping
+from gps_denied_onboard.sitl.scenario import Scenario, ScenarioError, scenario_from_mapping
 
 
 def _sha(path: Path) -> str:
@@ -147,3 +148,55 @@ def test_a_clock_step_reaches_a_process_reading_the_clock_from_many_threads(tmp_
     assert proc.returncode == 0, err
     start, end = (float(v) for v in out.split())
     assert abs(start) < 0.5 and end == pytest.approx(40.0, abs=0.5), out
+
+
+def _cpu_ticks(pid: int) -> int:
+    """User + system CPU time the process has used, clock ticks (/proc/<pid>/stat fields 14 and 15)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return int(fields[11]) + int(fields[12])
+
+
+def test_cpu_hogs_run_busy_processes_at_nice_zero_for_the_window(tmp_path: Path) -> None:
+    """The window's start starts ``processes`` processes that burn CPU, at nice 0 where the runner may
+    set it (the report says which nice they got); its end kills them all, and so does the flight's end."""
+    scenario = _scenario([{"kind": "cpu_hogs", "from_s": 5.0, "to_s": 6.0, "processes": 2}])
+    traj = scenario.resolve((8.0, 47.0, 8.01, 47.01), 400.0)
+    injected: list[dict] = []
+    (tmp_path / "work").mkdir()
+    host = HostFaults(scenario, traj, tmp_path / "work", tmp_path, injected)
+    fault = scenario.faults[0]
+    assert fault.processes == 2
+    host._inject(fault, True, 5.0)
+    started = injected[-1]
+    assert started["kind"] == "cpu_hogs" and started["phase"] == "start" and len(started["pids"]) == 2
+    before = [_cpu_ticks(pid) for pid in started["pids"]]
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and not all(
+        _cpu_ticks(pid) - b >= 10 for pid, b in zip(started["pids"], before, strict=True)
+    ):
+        time.sleep(0.05)
+    assert all(_cpu_ticks(pid) - b >= 10 for pid, b in zip(started["pids"], before, strict=True))
+    if os.geteuid() == 0:
+        assert started["nice"] == [0, 0]
+    else:
+        assert started["nice"] == [os.getpriority(os.PRIO_PROCESS, 0)] * 2
+    host._inject(fault, False, 6.0)
+    assert injected[-1] == {"kind": "cpu_hogs", "t_s": 6.0, "stopped": 2, "phase": "end"}
+    assert not any(Path(f"/proc/{pid}").exists() for pid in started["pids"])
+    host._inject(fault, True, 5.0)
+    again = injected[-1]["pids"]
+    host.finish(tmp_path / "fdr")  # the flight ends inside the window
+    assert not any(Path(f"/proc/{pid}").exists() for pid in again)
+
+
+@pytest.mark.parametrize(
+    ("fault", "message"),
+    [
+        ({"kind": "cpu_hogs", "from_s": 1.0, "to_s": 2.0, "processes": 0}, "expected an integer >= 1"),
+        ({"kind": "cpu_hogs", "from_s": 1.0, "to_s": 2.0, "processes": 65}, "at most 64 busy processes"),
+        ({"kind": "camera_stall", "from_s": 1.0, "to_s": 2.0, "processes": 2}, "processes"),
+    ],
+)
+def test_a_cpu_hogs_fault_that_cannot_be_right_is_refused_by_name(fault: dict, message: str) -> None:
+    with pytest.raises(ScenarioError, match=message):
+        _scenario([fault])
