@@ -431,3 +431,40 @@ def test_a_start_prior_is_unconfirmed_until_a_map_fix_is_fused() -> None:
     assert not est.state().map_confirmed
     est.initialise(np.array([0.0, 0.0, -100.0]), 30.0, T0_USEC + S, map_confirmed=True)
     assert est.state().map_confirmed
+
+
+class _HoverImu:
+    """The autopilot's IMU of a hovering vehicle: no acceleration."""
+
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray:
+        return np.zeros(3)
+
+
+def test_vo_noisier_than_it_states_is_weighed_as_it_shows_not_fused_on_one_side() -> None:
+    """A hovering vehicle whose VO alternates +0.6 and -0.7 m east a frame (3 Hz) stating 0.15 m (a PX4
+    SIH landing at 30 m AGL over weak texture), the IMU keeping the velocity known. Gated on one side and
+    fused on the other, such VO carried the state 17 m off in 10 s at a stated 1.5 m. Once its
+    innovations show it noisier than it states, its covariance is scaled by what they show: both sides
+    are fused and the state stays within 3 sigma of the truth."""
+    est = NavEstimator(EstimatorConfig(), LTP, accel_source=_HoverImu())
+    est.initialise(np.zeros(3), 1.0, T0_USEC, vel_sigma_m_s=0.3)
+    accepted, ratios = [], []
+    for k in range(1, 31):
+        east = 0.6 if k % 2 else -0.7
+        decision = est.update_vo(_vo(np.array([0.0, east]), 0.15, 1 / 3), time_unix_usec=T0_USEC + k * S // 3)
+        st = est.state()
+        accepted.append(decision.accepted)
+        ratios.append(abs(float(st.pos_ned_m[1])) / float(np.sqrt(st.cov_pos_ned_m2[1, 1])))
+    assert all(accepted[4:]), accepted
+    assert max(ratios) <= 3.0, ratios
+
+
+def test_one_vo_blunder_among_consistent_updates_is_still_gated() -> None:
+    """The noise factor is a median over the newest updates: one blunder among consistent ones leaves
+    it at 1, and the blunder is gated as before."""
+    est = _estimator()
+    est.initialise(np.zeros(3), 5.0, T0_USEC, vel_sigma_m_s=0.5)
+    for k in range(1, 8):
+        assert est.update_vo(_vo(np.zeros(2), 0.3, 1 / 3), time_unix_usec=T0_USEC + k * S // 3).accepted
+    decision = est.update_vo(_vo(np.array([6.0, 0.0]), 0.3, 1 / 3), time_unix_usec=T0_USEC + 8 * S // 3)
+    assert not decision.accepted and decision.reason == FixReason.GATED
