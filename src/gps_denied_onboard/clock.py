@@ -195,8 +195,19 @@ TIMESYNC_MAX_DRIFT_PPM: Final[float] = 20_000.0
 TIMESYNC_JUMP_SAMPLES: Final[int] = 3
 TIMESYNC_JUMP_TOLERANCE_S: Final[float] = 0.05
 #: Receive-time bound: the smallest (receive - boot) per bucket of this length, over this window, s.
-RECEIVE_BOUND_BUCKET_S: Final[float] = 1.0
-RECEIVE_BOUND_WINDOW_S: Final[float] = 6.0
+RECEIVE_BOUND_BUCKET_S: Final[float] = 0.25
+RECEIVE_BOUND_WINDOW_S: Final[float] = 1.0
+#: The receive-time envelope (``AutopilotClock._envelope``) is a line fitted over this window once it
+#: holds ``RECEIVE_DRIFT_MIN_BUCKETS`` buckets spanning ``RECEIVE_DRIFT_MIN_SPAN_S``, s; buckets further
+#: above the first line than ``RECEIVE_DRIFT_OUTLIER_S`` (every message of that bucket delayed) are left
+#: out of the second.
+RECEIVE_DRIFT_WINDOW_S: Final[float] = 3.0
+RECEIVE_DRIFT_MIN_BUCKETS: Final[int] = 8
+RECEIVE_DRIFT_MIN_SPAN_S: Final[float] = 2.0
+RECEIVE_DRIFT_OUTLIER_S: Final[float] = 0.002
+#: The TIMESYNC mapping may lie this far below the receive-time envelope at least (and half the best
+#: round trip where that is more: what the answers can tell), s.
+TIMESYNC_ALLOWANCE_MIN_S: Final[float] = 0.001
 #: Requests whose answers are still awaited (older ones are forgotten).
 TIMESYNC_PENDING: Final[int] = 16
 #: The doubt of a mapping on receive times alone: the link's smallest latency, which it leaves in, s.
@@ -243,12 +254,23 @@ class AutopilotClock:
     (offset <= receive - boot, the lower envelope of every timestamped message). Without answers the
     receive-time bound is the mapping (late by the link's smallest latency). A reboot (boot time going
     back) or answers that exclude the mapping ``TIMESYNC_JUMP_SAMPLES`` times in a row restart it.
+
+    The lower envelope is a line, not a constant: the smallest (receive - boot) of each quarter second
+    over the last ``RECEIVE_DRIFT_WINDOW_S`` is fitted with its drift and read at ``now``, and the
+    TIMESYNC mapping is kept within half the best round trip (at least ``TIMESYNC_ALLOWANCE_MIN_S``)
+    below it: what the answers can tell.
+    An autopilot clock is not always a crystal: PX4's SITL (SIH, lockstep) ran 1.5-2.1 % slower than the
+    host and unevenly (0.07-0.4 s lost per 10 s with two busy loops), and under load its round trips
+    scatter by tens of milliseconds, so the answers fitted no drift; the mapping then put every boot
+    time 40-120 ms early (measured), up to 0.6 s over a flight: at a 30 deg/s roll, degrees of attitude
+    from the wrong moment.
     """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._samples: deque[TimesyncSample] = deque(maxlen=TIMESYNC_MAX_SAMPLES)
-        self._rx_min: dict[int, float] = {}  # bucket -> smallest (receive - boot), us
+        #: bucket -> (smallest receive - boot, its receive time), us
+        self._rx_min: dict[int, tuple[float, int]] = {}
         self._last_boot_usec: int | None = None
         self._fit: tuple[float, float, float] | None = None  # (t_ref_usec, offset_usec, drift)
         self._excluded = 0
@@ -266,9 +288,9 @@ class AutopilotClock:
             bucket = int(recv_usec // (RECEIVE_BOUND_BUCKET_S * 1e6))
             d = float(recv_usec - boot_usec)
             cur = self._rx_min.get(bucket)
-            if cur is None or d < cur:
-                self._rx_min[bucket] = d
-            oldest = bucket - int(RECEIVE_BOUND_WINDOW_S / RECEIVE_BOUND_BUCKET_S)
+            if cur is None or d < cur[0]:
+                self._rx_min[bucket] = (d, int(recv_usec))
+            oldest = bucket - int(RECEIVE_DRIFT_WINDOW_S / RECEIVE_BOUND_BUCKET_S)
             for b in [b for b in self._rx_min if b < oldest]:
                 del self._rx_min[b]
             return rebooted
@@ -346,18 +368,50 @@ class AutopilotClock:
 
     # -- queries -------------------------------------------------------------------------------------
 
-    def _rx_bound(self) -> float | None:
-        return min(self._rx_min.values()) if self._rx_min else None
+    def _envelope(self) -> tuple[float, float, float] | None:
+        """The receive-time lower envelope as a line (t_ref us, receive - boot there us, drift), or None
+        while it holds too few seconds (class docstring)."""
+        if len(self._rx_min) < RECEIVE_DRIFT_MIN_BUCKETS:
+            return None
+        pts = np.array([(t, d) for d, t in self._rx_min.values()], dtype=np.float64)
+        t, d = pts[:, 0], pts[:, 1]
+        if t.max() - t.min() < RECEIVE_DRIFT_MIN_SPAN_S * 1e6:
+            return None
+        t_ref = float(t.max())
+        slope, icpt = np.polyfit(t - t_ref, d, 1)
+        keep = d - (icpt + slope * (t - t_ref)) <= RECEIVE_DRIFT_OUTLIER_S * 1e6
+        if keep.sum() >= RECEIVE_DRIFT_MIN_BUCKETS // 2:
+            slope, icpt = np.polyfit(t[keep] - t_ref, d[keep], 1)
+        limit = TIMESYNC_MAX_DRIFT_PPM * 1e-6
+        return t_ref, float(icpt), float(np.clip(slope, -limit, limit))
+
+    def _rx_bound(self, now_usec: float) -> float | None:
+        """offset <= receive - boot: the envelope's line at ``now_usec``, or (before it can be fitted)
+        the smallest of the last ``RECEIVE_BOUND_WINDOW_S`` of buckets."""
+        if not self._rx_min:
+            return None
+        envelope = self._envelope()
+        if envelope is not None:
+            t_ref, d_ref, drift = envelope
+            return d_ref + drift * (now_usec - t_ref)
+        recent = max(self._rx_min) - int(RECEIVE_BOUND_WINDOW_S / RECEIVE_BOUND_BUCKET_S)
+        return min(d for b, (d, _) in self._rx_min.items() if b >= recent)
 
     def offset_usec(self, now_usec: float) -> float | None:
         """Daemon clock minus autopilot boot time at ``now_usec`` (daemon clock), us; None before any
         TIMESYNC answer or timestamped message."""
         with self._lock:
-            bound = self._rx_bound()
+            bound = self._rx_bound(now_usec)
             if self._fit is None:
                 return bound
             offset = _offset_at(self._fit, now_usec)
-            return offset if bound is None else min(offset, bound)
+            if bound is None:
+                return offset
+            # the answers say where within the link's latency below the envelope; a clock whose rate
+            # changed since they were fitted is read from the envelope
+            best_rtt = min((s.rtt_usec for s in self._samples), default=0)
+            allowance = max(TIMESYNC_ALLOWANCE_MIN_S * 1e6, best_rtt / 2.0)
+            return min(max(offset, bound - allowance), bound)
 
     @property
     def source(self) -> TimeSource:
