@@ -62,6 +62,7 @@ from gps_denied_onboard.components.c8_mavlink import (
     MavlinkLink,
     VehicleStateTracker,
 )
+from gps_denied_onboard.components.c10_cache_build.manifest import Verification
 from gps_denied_onboard.components.c13_fdr import FdrClient, FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import Config, LadderRung, MatcherConfig
 from gps_denied_onboard.constants import FdrKind, LogEvent
@@ -480,7 +481,7 @@ def open_map_fields(config: Config, tiles: TileStore, fdr: FdrClient) -> MapFiel
     if not _uses_area_matcher(config):
         return None
     try:
-        fields = MapFields.open(tiles, verify_hashes=config.cache.verify_hashes)
+        fields = MapFields.open(tiles)
         if not fields.calibrated_levels:
             raise MapFieldsRefused(
                 f"{tiles.cache_dir}: the orientation fields are not calibrated (gdnav cache fields --cache "
@@ -506,7 +507,8 @@ def open_tile_store(config: Config) -> TileStore:
     """Open the map cache, verifying its manifest hashes when ``cache.verify_hashes`` (seconds for a
     large cache). Raises ``StartupError("cache", ...)``."""
     try:
-        tiles = TileStore.open(Path(config.cache.dir), verify_hashes=config.cache.verify_hashes)
+        level = Verification.FULL if config.cache.verify_hashes else Verification.LIGHT
+        tiles = TileStore.open(Path(config.cache.dir), level)
     except TileStoreError as exc:
         log.error(LogEvent.CACHE_REFUSED, dir=config.cache.dir, error=str(exc))
         raise StartupError("cache", str(exc)) from exc
@@ -548,7 +550,7 @@ def open_tile_features(
     if identity is None:
         return None
     try:
-        feats = PrecomputedTileFeatures.open(tiles, identity, verify_hashes=config.cache.verify_hashes)
+        feats = PrecomputedTileFeatures.open(tiles, identity)
     except TileFeaturesRefused as exc:
         fields = {"strategy": m.strategy, "used": False, "reason": str(exc), "mode": m.tile_features}
         if exc.absent:
