@@ -196,7 +196,7 @@ def test_compose_builds_vlad_xfeat_from_the_matcher_model_dir(xfeat_cache: Path,
         None,
         [f"cache.dir={xfeat_cache}", "vpr.strategy=vlad_xfeat", f"matcher.model_dir={xfeat_onnx.parent}"],
     )
-    tiles = open_tile_store(config)
+    tiles = open_tile_store(config, Verification.FULL)
     vpr = create_vpr(tiles, config)
     assert isinstance(vpr, VladVpr) and vpr.label == "vlad_xfeat"
     (query,) = render_queries(
