@@ -40,6 +40,7 @@ import numpy as np
 
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c7_inference.onnx_runtime import ORT_FAULT_FILE_ENV
+from gps_denied_onboard.components.c10_cache_build.manifest import Verification
 from gps_denied_onboard.sitl.scenario import Fault, FaultKind, Scenario, Trajectory
 
 #: How far ahead of the aircraft the corrupted cell lies, s (the fix path reads it when it gets there).
@@ -201,7 +202,7 @@ class HostFaults:
             shutil.copytree(self.cache_dir, run_cache)
             self.cache_dir = run_cache
             setup.cache_dir = run_cache
-            self._store = TileStore.open(run_cache, verify_hashes=False)
+            self._store = TileStore.open(run_cache, Verification.LIGHT)
         if FaultKind.FDR_FULL in kinds:
             self._mount_fdr_fs()
             setup.overrides.append(f"fdr.dir={self._fdr_fs / 'fdr'}")

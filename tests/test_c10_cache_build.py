@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +23,8 @@ from gps_denied_onboard.components.c10_cache_build import (
     build_cache_from_geotiff,
     choose_zoom,
 )
-from gps_denied_onboard.components.c10_cache_build.manifest import sha256_file
+from gps_denied_onboard.components.c10_cache_build.cell_crc import cell_crc32_table
+from gps_denied_onboard.components.c10_cache_build.manifest import Verification, content_sha256, sha256_file
 
 #: A known point (Vienna): the bright square of the synthetic sources is centred on it.
 P_LON, P_LAT = 16.3, 48.2
@@ -111,13 +115,26 @@ def test_build_manifest_records_every_artifact_hash(tmp_path: Path) -> None:
     assert raw["format_version"] == 1
     assert raw["source"]["kind"] == "geotiff" and raw["source"]["sha256"] == sha256_file(src)
     assert raw["vpr"] == {"backbone": "geo_prior", "model_sha256": None}
-    assert set(raw["artifacts"]) == {"mosaic_z16.npy", "tiles.json", "tile_valid_fraction.npy"}
+    assert set(raw["artifacts"]) == {
+        "mosaic_z16.npy",
+        "mosaic_z16_cell_crc32.npy",
+        "tiles.json",
+        "tile_valid_fraction.npy",
+    }
     for name, info in raw["artifacts"].items():
         path = tmp_path / "cache" / name
         assert info == {"sha256": sha256_file(path), "bytes": path.stat().st_size}
     assert CacheManifest.load(tmp_path / "cache") == manifest
     tr = manifest.tile_range
     assert manifest.mosaic_shape == (tr.n_rows * 256, tr.n_cols * 256, 3)
+    # The cells' CRC table is the CRC-32 of each tile's bytes of the mosaic as written.
+    mosaic = np.load(tmp_path / "cache" / "mosaic_z16.npy", mmap_mode="r")
+    table = np.load(tmp_path / "cache" / "mosaic_z16_cell_crc32.npy")
+    assert table.dtype == np.uint32 and table.shape == (tr.n_rows, tr.n_cols)
+    assert int(table[0, 1]) == zlib.crc32(np.ascontiguousarray(mosaic[:256, 256:512]).tobytes())
+    np.testing.assert_array_equal(table, cell_crc32_table(mosaic, 256))
+    # The manifest records the sha256 of its own content.
+    assert raw["content_sha256"] == content_sha256(raw)
 
 
 def test_build_rerun_same_inputs_is_idempotent(tmp_path: Path) -> None:
@@ -132,13 +149,14 @@ def test_build_rerun_same_inputs_is_idempotent(tmp_path: Path) -> None:
 
 
 def test_build_other_zoom_into_same_dir_replaces_old_mosaic(tmp_path: Path) -> None:
-    """Rebuilding at another zoom leaves exactly one mosaic and a consistent cache."""
+    """Rebuilding at another zoom leaves exactly one mosaic (and its cell CRC table) and a consistent
+    cache."""
     src = _square_source(tmp_path / "src.tif", "EPSG:32633", size_px=300)
     out = tmp_path / "cache"
     build_cache_from_geotiff(src, out, zoom=16, progress=False)
     manifest = build_cache_from_geotiff(src, out, zoom=15, progress=False)
     assert manifest.zoom == 15
-    assert sorted(p.name for p in out.glob("mosaic_z*")) == ["mosaic_z15.npy"]
+    assert sorted(p.name for p in out.glob("mosaic_z*")) == ["mosaic_z15.npy", "mosaic_z15_cell_crc32.npy"]
     assert sorted(p.name for p in out.iterdir()) == sorted([*manifest.artifacts, "manifest.json"])
     assert TileStore.open(out).zoom == 15
 
@@ -300,3 +318,26 @@ def test_build_naip_real_geotiff_matches_source_colours(tmp_path: Path) -> None:
     # Bilinear at 3.3 m from 5 m source differs per pixel on texture; the bulk must agree closely.
     assert np.median(diff) < 12.0, np.median(diff)
     assert np.corrcoef(mosaic_rgb.ravel(), src_rgb.ravel())[0, 1] > 0.9
+
+
+def test_cli_build_ends_with_the_full_check_and_rebuilds_a_damaged_cache(tmp_path: Path) -> None:
+    """`gdnav cache build` verifies every file's sha256 at its end; run again on a cache whose mosaic lost
+    a byte in the middle (same size: a light check passes it), it rebuilds instead of calling it up to
+    date, and the rebuilt cache verifies."""
+    src = _square_source(tmp_path / "src.tif", "EPSG:32633", size_px=300)
+    out = tmp_path / "cache"
+    cmd = [sys.executable, "-m", "gps_denied_onboard.cli", "cache", "build", "--source", str(src)]
+    cmd += ["--out", str(out), "--zoom", "16", "--no-fields", "--quiet"]
+    first = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    assert first.returncode == 0, first.stderr
+    assert "sha256 of every file verified" in first.stdout
+    mosaic = out / "mosaic_z16.npy"
+    good = mosaic.read_bytes()
+    data = bytearray(good)
+    data[len(data) // 2] ^= 0xFF
+    mosaic.write_bytes(bytes(data))
+    TileStore.open(out, Verification.LIGHT)  # the light check does not read the mosaic
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    assert again.returncode == 0, again.stderr
+    assert "sha256 of every file verified" in again.stdout
+    assert mosaic.read_bytes() == good

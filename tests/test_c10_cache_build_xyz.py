@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import zlib
 from pathlib import Path
 
 import cv2
@@ -77,6 +78,10 @@ def test_xyz_build_mosaic_equals_tiles_and_store_serves_chips(tmp_path: Path) ->
     assert manifest.source.kind == "xyz_dir"
     store = TileStore.open(tmp_path / "cache")
     np.testing.assert_array_equal(np.asarray(store.mosaic), image)
+    # The XYZ path records the cells' CRC table like the GeoTIFF path: one entry per tile, its bytes.
+    table = np.load(tmp_path / "cache" / manifest.cell_crc_name)
+    assert manifest.has_cell_crc and table.shape == (N_ROWS, N_COLS)
+    assert int(table[1, 2]) == zlib.crc32(image[TS : 2 * TS, 2 * TS : 3 * TS].tobytes())
     lon, lat = _tile_centre(X0 + 2, Y0 + 1)
     nearest, dist_m = store.tiles_near(lat, lon, radius_m=5000.0, k=3)[0]
     assert store.tile_xyz(nearest)[:2] == (X0 + 2, Y0 + 1)

@@ -37,7 +37,7 @@ from gps_denied_onboard.components.c2_vpr.vlad import (
 )
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
-from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest, sha256_file
+from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest, Verification, sha256_file
 from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
 from gps_denied_onboard.helpers.model_manifest import ModelDirError
 from registry_models_fixture import registry_models  # noqa: F401 - session fixture
@@ -148,7 +148,7 @@ def test_vlad_xfeat_cache_records_the_model_and_refuses_another(
     XFeat model, or the weights-free vlad, refuses the cache instead of mixing descriptors."""
     manifest = CacheManifest.load(xfeat_cache)
     assert (manifest.vpr.backbone, manifest.vpr.model_sha256) == ("vlad_xfeat", sha256_file(xfeat_onnx))
-    manifest.verify_artifacts(xfeat_cache, verify_hashes=True)
+    manifest.verify_artifacts(xfeat_cache, Verification.FULL)
     meta = json.loads((xfeat_cache / "vpr_meta.json").read_text())
     assert meta["model_sha256"] == sha256_file(xfeat_onnx) and meta["params"]["descriptor"] == "xfeat"
     store = TileStore.open(xfeat_cache)
@@ -196,7 +196,7 @@ def test_compose_builds_vlad_xfeat_from_the_matcher_model_dir(xfeat_cache: Path,
         None,
         [f"cache.dir={xfeat_cache}", "vpr.strategy=vlad_xfeat", f"matcher.model_dir={xfeat_onnx.parent}"],
     )
-    tiles = open_tile_store(config)
+    tiles = open_tile_store(config, Verification.FULL)
     vpr = create_vpr(tiles, config)
     assert isinstance(vpr, VladVpr) and vpr.label == "vlad_xfeat"
     (query,) = render_queries(

@@ -35,7 +35,7 @@ from gps_denied_onboard.components.c2_vpr.vlad import (
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
 from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
-from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest, sha256_file
+from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest, Verification, sha256_file
 from gps_denied_onboard.components.c10_cache_build.vpr_index import build_encoder_index, build_vlad_index
 from gps_denied_onboard.constants import LogEvent
 
@@ -99,7 +99,7 @@ def test_build_vlad_index_records_backbone_and_hashes(vlad_cache: Path) -> None:
     assert manifest.vpr.model_sha256 == sha256_file(vlad_cache / VLAD_VOCABULARY_NAME)
     for name in (VPR_INDEX_NAME, VPR_DESCRIPTORS_NAME, VPR_META_NAME, VLAD_VOCABULARY_NAME):
         assert manifest.artifacts[name].sha256 == sha256_file(vlad_cache / name)
-    manifest.verify_artifacts(vlad_cache, verify_hashes=True)
+    manifest.verify_artifacts(vlad_cache, Verification.FULL)
     desc = np.load(vlad_cache / VPR_DESCRIPTORS_NAME)
     assert desc.shape == (manifest.tile_count, PARAMS.vlad_dim) and desc.dtype == np.float32
     np.testing.assert_allclose(np.linalg.norm(desc, axis=1), 1.0, atol=1e-4)

@@ -32,6 +32,7 @@ from gps_denied_onboard.components.c4_pose.integrity import CandidateFix, FixInt
 from gps_denied_onboard.components.c6_tiles.map_fields import MapFields
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c10_cache_build import build_cache_from_geotiff
+from gps_denied_onboard.components.c10_cache_build.manifest import Verification
 from gps_denied_onboard.components.c10_cache_build.map_fields import CALIBRATION_RADIUS_PX, build_map_fields
 from gps_denied_onboard.config import CorrelationConfig, IntegrityConfig, MatcherConfig, PoseConfig
 from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
@@ -205,7 +206,7 @@ def test_a_frame_that_cannot_be_rectified_fails_as_a_backbone_error(naip: World)
 @pytest.mark.realdata
 def test_uncalibrated_fields_refuse_the_strategy(naip: World) -> None:
     info = dataclasses.replace(naip.fields.info, calibrations={})
-    fields = MapFields.open(naip.store, info, verify_hashes=False)
+    fields = MapFields.open(naip.store, info, Verification.LIGHT)
     with pytest.raises(ValueError, match="gdnav cache fields"):
         OrientationCorrMatcher(
             config=MatcherConfig(),

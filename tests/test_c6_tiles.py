@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+import structlog
 from rasterio.transform import from_origin
 from rasterio.warp import transform as warp_transform
 
@@ -23,17 +24,20 @@ from gps_denied_onboard.components.c6_tiles import (
     TileStoreError,
 )
 from gps_denied_onboard.components.c10_cache_build import build_cache_from_geotiff
-from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest
+from gps_denied_onboard.components.c10_cache_build.manifest import (
+    CacheManifest,
+    Verification,
+    read_by_window,
+)
+from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.geo import haversine_m
 
 P_LON, P_LAT = 16.3, 48.2
 ZOOM = 16
 
 
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A zoom-16 cache built from a textured 4 m UTM source whose western strip is nodata."""
-    root = tmp_path_factory.mktemp("c6")
+def _write_source(root: Path) -> Path:
+    """A textured 4 m UTM GeoTIFF around (P_LAT, P_LON) whose western strip is nodata."""
     x, y = warp_transform("EPSG:4326", "EPSG:32633", [P_LON], [P_LAT])
     width, height = 900, 600
     data = (60 + np.random.default_rng(1).integers(0, 150, size=(3, height, width))).astype(np.uint8)
@@ -52,7 +56,14 @@ def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
         nodata=0,
     ) as dst:
         dst.write(data)
-    build_cache_from_geotiff(src, root / "cache", zoom=ZOOM, progress=False)
+    return src
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A zoom-16 cache built from a textured 4 m UTM source whose western strip is nodata."""
+    root = tmp_path_factory.mktemp("c6")
+    build_cache_from_geotiff(_write_source(root), root / "cache", zoom=ZOOM, progress=False)
     return root / "cache"
 
 
@@ -79,25 +90,152 @@ def test_open_valid_cache_exposes_geometry(store: TileStore) -> None:
     assert store.gsd_m_px == pytest.approx(156_543.034 / 2**ZOOM * math.cos(math.radians(lat_c)), rel=1e-6)
 
 
-def test_open_tampered_mosaic_byte_raises_naming_artifact(cache_dir: Path, tmp_path: Path) -> None:
-    """One flipped mosaic byte fails the sha256 gate, naming the mosaic; skipping hashes lets it open."""
+def _flip_middle_byte(cache_dir: Path) -> tuple[int, int]:
+    """Flip one byte in the middle of the mosaic file (in place); return the (row, col) of its cell."""
+    path, offset, shape = _mosaic_offset(cache_dir)
+    ts = CacheManifest.load(cache_dir).tile_size_px
+    row_px, col_px = shape[0] // 2, shape[1] // 2
+    at = offset + (row_px * shape[1] + col_px) * 3 + 1
+    with path.open("r+b") as f:
+        f.seek(at)
+        byte = f.read(1)[0]
+        f.seek(at)
+        f.write(bytes([byte ^ 0xFF]))
+    return row_px // ts, col_px // ts
+
+
+def test_full_open_refuses_a_corrupt_mosaic_byte_light_open_finds_it_on_read(
+    cache_dir: Path, tmp_path: Path
+) -> None:
+    """One flipped byte in the middle of the mosaic: the full check refuses the cache naming the mosaic's
+    sha256; the light check opens it without reading the mosaic (the byte is not found at open), and
+    the first read of that cell finds it against the CRC the build recorded: nodata, counted, reported."""
     out = _copy(cache_dir, tmp_path)
-    mosaic = out / f"mosaic_z{ZOOM}.npy"
-    raw = bytearray(mosaic.read_bytes())
-    raw[-1000] ^= 0xFF
-    mosaic.write_bytes(bytes(raw))
-    with pytest.raises(TileStoreError, match=rf"mosaic_z{ZOOM}\.npy.*sha256"):
-        TileStore.open(out)
-    assert len(TileStore.open(out, verify_hashes=False)) > 0
+    row, col = _flip_middle_byte(out)
+    with pytest.raises(TileStoreError, match=rf"mosaic_z{ZOOM}\.npy.*sha256 mismatch"):
+        TileStore.open(out, Verification.FULL)
+    store = TileStore.open(out, Verification.LIGHT)
+    assert store.verification is Verification.LIGHT
+    seen: list[dict] = []
+    store.on_corrupt = seen.append
+    assert store.corrupt_cells == 0, "the light open looked at the mosaic's cells"
+    ts, tr = store.tile_size_px, store.manifest.tile_range
+    tile_id = next(t for t in store.tile_ids if store.tile_xyz(t)[:2] == (tr.x0 + col, tr.y0 + row))
+    chip = store.chip(tile_id, ts)
+    assert not chip.pixels().any(), "the corrupt cell reached the matcher"
+    assert store.corrupt_cells == 1
+    assert len(seen) == 1 and (seen[0]["x"], seen[0]["y"]) == (tr.x0 + col, tr.y0 + row)
+    assert seen[0]["crc32_verified"] == int(np.load(out / store.manifest.cell_crc_name)[row, col])
 
 
 def test_open_truncated_artifact_raises_even_without_hashes(cache_dir: Path, tmp_path: Path) -> None:
-    """A truncated artifact is refused by its recorded size, with or without hash checks."""
+    """A truncated artifact is refused by its recorded size, by the light check too."""
     out = _copy(cache_dir, tmp_path)
     tiles = out / "tiles.json"
     tiles.write_bytes(tiles.read_bytes()[:-10])
     with pytest.raises(TileStoreError, match=r"tiles\.json.*bytes"):
-        TileStore.open(out, verify_hashes=False)
+        TileStore.open(out, Verification.LIGHT)
+
+
+def test_light_open_refuses_a_mosaic_of_another_size(cache_dir: Path, tmp_path: Path) -> None:
+    """A mosaic grown by a few bytes (same header) is refused by the light check, naming the file and
+    both sizes, though it does not read the mosaic."""
+    out = _copy(cache_dir, tmp_path)
+    mosaic = out / f"mosaic_z{ZOOM}.npy"
+    recorded = mosaic.stat().st_size
+    with mosaic.open("ab") as f:
+        f.write(b"\0" * 7)
+    with pytest.raises(
+        TileStoreError, match=rf"mosaic_z{ZOOM}\.npy.*{recorded + 7} bytes.*records {recorded}"
+    ):
+        TileStore.open(out, Verification.LIGHT)
+
+
+def test_light_open_hashes_the_cell_crc_table(cache_dir: Path, tmp_path: Path) -> None:
+    """The cell CRC table is small and read whole: the light check takes its sha256, so a table changed
+    in place (same size) is refused, not trusted to check the mosaic."""
+    out = _copy(cache_dir, tmp_path)
+    name = CacheManifest.load(out).cell_crc_name
+    table = np.load(out / name)
+    table[0, 0] ^= 1
+    np.save(out / name, table)
+    with pytest.raises(TileStoreError, match=rf"{name}.*sha256 mismatch"):
+        TileStore.open(out, Verification.LIGHT)
+
+
+def test_tampered_manifest_is_refused_naming_the_file_and_its_hash(cache_dir: Path, tmp_path: Path) -> None:
+    """A manifest edited after its build (one value changed, still valid JSON) fails its own content
+    hash, at both levels, with an error naming manifest.json and the hash it records."""
+    out = _copy(cache_dir, tmp_path)
+    raw = json.loads((out / "manifest.json").read_text())
+    raw["min_tile_valid_fraction"] = 0.25
+    (out / "manifest.json").write_text(json.dumps(raw))
+    for level in Verification:
+        with pytest.raises(TileStoreError, match=r"content sha256 mismatch.*records .*manifest\.json"):
+            TileStore.open(out, level)
+
+
+def _make_old_cache(cache_dir: Path, tmp_path: Path) -> Path:
+    """A copy of ``cache_dir`` as a build before the cell CRC table wrote it: no table, no manifest hash."""
+    out = _copy(cache_dir, tmp_path)
+    raw = json.loads((out / "manifest.json").read_text())
+    name = f"mosaic_z{ZOOM}_cell_crc32.npy"
+    del raw["artifacts"][name], raw["content_sha256"]
+    (out / name).unlink()
+    (out / "manifest.json").write_text(json.dumps(raw))
+    return out
+
+
+def test_old_cache_opens_with_a_warning_and_cache_build_adds_the_table(
+    cache_dir: Path, tmp_path: Path
+) -> None:
+    """A cache built before the table opens: the table is computed at open (cells corrupted later are
+    still found on read) and a warning names `gdnav cache build`; building again with the same source
+    adds the table and the manifest's hash without rebuilding the mosaic."""
+    out = _make_old_cache(cache_dir, tmp_path / "old")
+    with structlog.testing.capture_logs() as logs:
+        store = TileStore.open(out, Verification.LIGHT)
+    warned = [e for e in logs if e["event"] == LogEvent.CACHE_OLD_FORMAT]
+    assert len(warned) == 1 and "gdnav cache build" in warned[0]["action"]
+    assert warned[0]["log_level"] == "warning"
+    ts = store.tile_size_px
+    tile_id = store.tiles_near(P_LAT, P_LON, 500.0, k=1)[0][0]
+    x, y, _ = store.tile_xyz(tile_id)
+    _overwrite_cell(out, y - store.manifest.tile_range.y0, x - store.manifest.tile_range.x0, ts, 0x5A)
+    assert not store.chip(tile_id, ts).pixels().any() and store.corrupt_cells == 1
+
+    out = _make_old_cache(cache_dir, tmp_path / "upgrade")
+    mosaic = out / f"mosaic_z{ZOOM}.npy"
+    mtime = mosaic.stat().st_mtime_ns
+    manifest = build_cache_from_geotiff(_write_source(tmp_path), out, zoom=ZOOM, progress=False)
+    assert mosaic.stat().st_mtime_ns == mtime, "the mosaic was rebuilt"
+    assert manifest.has_cell_crc
+    loaded = CacheManifest.load(out)
+    assert loaded.has_cell_crc and loaded.content_sha256 is not None
+    with structlog.testing.capture_logs() as logs:
+        TileStore.open(out, Verification.LIGHT)
+    assert not [e for e in logs if e["event"] == LogEvent.CACHE_OLD_FORMAT]
+
+
+def test_read_by_window_names_the_windowed_artifacts() -> None:
+    """The light check skips the sha256 of exactly the files read by window (the VPR names are
+    c2_vpr's); the tables read whole at open are hashed."""
+    from gps_denied_onboard.components.c2_vpr.retrieval import (
+        VPR_DESCRIPTORS_NAME,
+        VPR_INDEX_NAME,
+        VPR_META_NAME,
+    )
+    from gps_denied_onboard.components.c2_vpr.vlad import VLAD_VOCABULARY_NAME
+    from gps_denied_onboard.components.c3_matcher.tile_features import file_names
+    from gps_denied_onboard.components.c10_cache_build.map_fields import field_file_names
+
+    keypoints, descriptors, table = file_names("xfeat")
+    field, field_crc = field_file_names(2)
+    windowed = {f"mosaic_z{ZOOM}.npy", VPR_INDEX_NAME, VPR_DESCRIPTORS_NAME, keypoints, descriptors, field}
+    whole = {f"mosaic_z{ZOOM}_cell_crc32.npy", "tiles.json", "tile_valid_fraction.npy", VPR_META_NAME}
+    whole |= {VLAD_VOCABULARY_NAME, table, field_crc}
+    assert all(read_by_window(n) for n in windowed)
+    assert not any(read_by_window(n) for n in whole)
 
 
 def test_open_missing_artifact_raises(cache_dir: Path, tmp_path: Path) -> None:
@@ -252,11 +390,14 @@ def test_chip_masks_a_cell_corrupted_after_open_and_reports_it_once(cache_dir: P
     assert np.array_equal(far_chip.pixels(), store.mosaic[fr * ts : (fr + 1) * ts, fc * ts : (fc + 1) * ts])
 
 
-def test_open_and_chip_measure_the_digest_cost(store: TileStore, cache_dir: Path) -> None:
-    """The digest table costs one read of the mosaic at open, a verified chip one copy and a CRC of the
-    cells it covers (prints the figures for docs/benchmarks.md)."""
+def test_open_and_chip_measure_the_check_cost(store: TileStore, cache_dir: Path) -> None:
+    """The light open reads the manifest and the small tables, the full one every byte; a verified chip
+    costs one copy and a CRC of the cells it covers (prints the figures for docs/benchmarks.md)."""
     t0 = time.perf_counter()
-    TileStore.open(cache_dir, verify_hashes=False)
+    TileStore.open(cache_dir, Verification.FULL)
+    full_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    TileStore.open(cache_dir, Verification.LIGHT)
     elapsed = time.perf_counter() - t0
     mib = store.mosaic.nbytes / 2**20
     tile_id = store.tiles_near(P_LAT, P_LON, 500.0, k=1)[0][0]
@@ -265,7 +406,7 @@ def test_open_and_chip_measure_the_digest_cost(store: TileStore, cache_dir: Path
         store.chip(tile_id, 512)
     chip_ms = (time.perf_counter() - t0) / 50 * 1e3
     print(
-        f"\nopen without sha256 (cell digests only): {elapsed * 1e3:.1f} ms for {mib:.1f} MiB; "
+        f"\nlight open: {elapsed * 1e3:.1f} ms, full open: {full_s * 1e3:.1f} ms for {mib:.1f} MiB; "
         f"verified 512 px chip: {chip_ms:.2f} ms"
     )
     assert store.corrupt_cells == 0

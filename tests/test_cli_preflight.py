@@ -95,7 +95,7 @@ def test_preflight_offline_passes_without_camera_or_autopilot(tmp_path: Path, sm
     rows = _rows(proc.stdout)
     for name in ("config", "cache", "calibration", "fdr", "mavlink_port"):
         assert rows[name][0] == "PASS", proc.stdout
-    assert "35 tiles" in rows["cache"][1] and "hashes verified" in rows["cache"][1]
+    assert "35 tiles" in rows["cache"][1] and "sha256 of every artifact verified" in rows["cache"][1]
     assert rows["models"][0] == "SKIP" and rows["models"][1].endswith("not needed (classical)")
     assert rows["vpr"][0] == "PASS" and "geo_prior" in rows["vpr"][1]
     assert rows["tile_features"][0] == "SKIP" and "classical extracts chips live" in rows["tile_features"][1]
@@ -190,16 +190,19 @@ def test_preflight_online_without_camera_or_autopilot_exits_3(tmp_path: Path, sm
 
 
 def test_preflight_tampered_cache_exits_3(tmp_path: Path, small_cache: Path) -> None:
-    """One flipped byte in the cache's mosaic fails the cache row (hash mismatch) with exit 3; the other
-    checks still run."""
+    """One flipped byte in the middle of the cache's mosaic fails the cache row (sha256 mismatch) with
+    exit 3, though cache.verify_hashes is off (preflight reads every byte whatever the profile says: the
+    daemon's start does not); the other checks still run."""
+    from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest
+
     cache = tmp_path / "cache"
     shutil.copytree(small_cache, cache)
-    mosaic = next(cache.glob("mosaic_*.npy"))
+    mosaic = cache / CacheManifest.load(cache).mosaic_name
     data = bytearray(mosaic.read_bytes())
-    data[-1] ^= 0xFF
+    data[len(data) // 2] ^= 0xFF
     mosaic.write_bytes(bytes(data))
-    row = _failure(_preflight(tmp_path, cache), 3, "cache")
-    assert str(cache) in row and mosaic.name in row
+    row = _failure(_preflight(tmp_path, cache, "cache.verify_hashes=false"), 3, "cache")
+    assert str(cache) in row and mosaic.name in row and "sha256 mismatch" in row, row
     assert _rows(_preflight(tmp_path, cache).stdout)["fdr"][0] == "PASS"
 
 
@@ -297,7 +300,7 @@ def test_preflight_reports_xfeat_tile_features_absent_then_built(
     assert proc.returncode == 0, proc.stdout + proc.stderr
     rows = _rows(proc.stdout)
     assert rows["tile_features"][0] == "PASS", rows
-    assert "35 tiles of precomputed features, hashes verified" in rows["tile_features"][1], rows
+    assert "35 tiles of precomputed features, sha256 verified" in rows["tile_features"][1], rows
 
 
 def test_preflight_bad_config_exits_2(tmp_path: Path, small_cache: Path) -> None:
@@ -420,7 +423,7 @@ def test_preflight_checks_the_area_correlations_fields_where_auto_would_fly_them
     proc = _preflight(tmp_path, cache, *auto)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     row = _rows(proc.stdout)["map_fields"]
-    assert row[0] == "PASS" and "hashes verified" in row[1] and "level 1" in row[1], row
+    assert row[0] == "PASS" and "sha256 verified" in row[1] and "level 1" in row[1], row
     damaged = cache / field_file_names(2)[0]
     data = bytearray(damaged.read_bytes())
     data[-10] ^= 0xFF

@@ -2,17 +2,25 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 import structlog
+from pymavlink.dialects.v20 import ardupilotmega as D
 
 from aliked_fixture import aliked_t16_onnx  # noqa: F401 - session fixture
-from daemon_harness import build_small_cache
+from daemon_harness import build_small_cache, free_udp_port
+from gps_denied_onboard.clock import DaemonClock
 from gps_denied_onboard.components.c3_matcher.aliked_lightglue import AlikedLightGlueMatcher
 from gps_denied_onboard.components.c3_matcher.classical import ClassicalMatcher
+from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest, Verification
 from gps_denied_onboard.config import load_config
 from gps_denied_onboard.runtime_root import StartupError, compose_root
+from gps_denied_onboard.runtime_root.compose import cache_verification
+from gps_denied_onboard.runtime_root.link_first import open_link_first
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -168,3 +176,72 @@ def test_compose_orientation_corr_without_fields_refuses_start_naming_the_comman
 ) -> None:
     with pytest.raises(StartupError, match="gdnav cache fields"):
         compose_root(_config(tmp_path, cache_dir, "matcher.strategy=orientation_corr"))
+
+
+def _decoded(msg: Any) -> Any:
+    """``msg`` as the autopilot (system 1, component 1) sends it, packed and decoded."""
+    tx = D.MAVLink(None, srcSystem=1, srcComponent=1)
+    return D.MAVLink(None).decode(bytearray(msg.pack(tx)))
+
+
+def _flip_middle_mosaic_byte(cache: Path) -> None:
+    mosaic = np.load(cache / CacheManifest.load(cache).mosaic_name, mmap_mode="r")
+    height, width = mosaic.shape[:2]
+    at = int(mosaic.offset) + ((height // 2) * width + width // 2) * 3
+    del mosaic
+    with (cache / CacheManifest.load(cache).mosaic_name).open("r+b") as f:
+        f.seek(at)
+        byte = f.read(1)[0]
+        f.seek(at)
+        f.write(bytes([byte ^ 0xFF]))
+
+
+def test_cache_verification_is_full_only_when_asked_and_on_the_ground(tmp_path: Path) -> None:
+    """The daemon's level: light unless cache.verify_hashes asks for full and the autopilot says the
+    vehicle is on the ground; in the air, or with nothing known, light whatever the config says."""
+    off = _config(tmp_path, tmp_path)
+    on = _config(tmp_path, tmp_path, "cache.verify_hashes=true")
+    assert off.cache.verify_hashes is False, "the shipped profile's default"
+    assert [cache_verification(off, air)[0] for air in (False, True, None)] == [Verification.LIGHT] * 3
+    assert cache_verification(on, False)[0] is Verification.FULL
+    assert cache_verification(on, True) == (
+        Verification.LIGHT,
+        "cache.verify_hashes set aside: in the air (never re-hashed in flight)",
+    )
+    assert cache_verification(on, None)[0] is Verification.LIGHT
+
+
+def test_compose_never_rehashes_the_map_in_the_air_whatever_the_config(
+    tmp_path: Path, cache_dir: Path
+) -> None:
+    """cache.verify_hashes: true on a cache with one corrupt byte in the middle of its mosaic. The
+    autopilot says flying (a restart in the air): the daemon starts on the light check, which does not
+    read the mosaic; it says on the ground: the full check reads it and refuses the cache, naming it."""
+    cache = tmp_path / "cache"
+    shutil.copytree(cache_dir, cache)
+    _flip_middle_mosaic_byte(cache)
+    for landed, armed in ((D.MAV_LANDED_STATE_IN_AIR, True), (D.MAV_LANDED_STATE_ON_GROUND, False)):
+        run = tmp_path / f"run{landed}"
+        config = _config(
+            run, cache, "cache.verify_hashes=true", f"mavlink.url=udpin:127.0.0.1:{free_udp_port()}"
+        )
+        clock = DaemonClock()
+        link = open_link_first(config, clock)
+        mode = D.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (D.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+        heartbeat = D.MAVLink_heartbeat_message(D.MAV_TYPE_QUADROTOR, D.MAV_AUTOPILOT_PX4, mode, 0, 4, 3)
+        state = D.MAVLink_extended_sys_state_message(D.MAV_VTOL_STATE_UNDEFINED, landed)
+        now_s = clock.now_unix_s()
+        for msg in (heartbeat, state):
+            assert link.tracker.handle(_decoded(msg), now_s)
+        with structlog.testing.capture_logs() as logs:
+            if landed == D.MAV_LANDED_STATE_IN_AIR:
+                root = compose_root(config, pre_constructed={"clock": clock, "link": link})
+                root.close()
+                assert root.tile_store.verification is Verification.LIGHT
+            else:
+                with pytest.raises(StartupError, match=r"mosaic_z\d+\.npy.*sha256 mismatch"):
+                    compose_root(config, pre_constructed={"clock": clock, "link": link})
+                link.close()
+        opened = [e for e in logs if e["event"] == "c6.cache.opened" and "why" in e]
+        if landed == D.MAV_LANDED_STATE_IN_AIR:
+            assert opened and "in the air" in opened[0]["why"]

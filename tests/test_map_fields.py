@@ -14,7 +14,7 @@ import gps_denied_onboard.components.c10_cache_build.map_fields as builder
 from gps_denied_onboard.components.c6_tiles.map_fields import FIELD_LEVELS, MapFields, MapFieldsRefused
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c10_cache_build import build_cache_from_geotiff
-from gps_denied_onboard.components.c10_cache_build.manifest import MANIFEST_NAME
+from gps_denied_onboard.components.c10_cache_build.manifest import MANIFEST_NAME, Verification, content_sha256
 from gps_denied_onboard.components.c10_cache_build.map_fields import (
     LEVELS,
     build_map_fields,
@@ -129,19 +129,26 @@ def test_a_cell_corrupted_after_open_reads_as_nodata_and_is_reported_once(
 
 
 def test_fields_of_another_mosaic_or_definition_or_none_are_refused(demo_cache: Path, tmp_path: Path) -> None:
+    # Each manifest below is hashed afresh, as a build that wrote it would (an edit alone fails the
+    # manifest's own hash before the fields are looked at).
     cache = _copy(demo_cache, tmp_path / "cache")
     manifest_path = cache / MANIFEST_NAME
+
+    def write(payload: dict) -> None:
+        payload["content_sha256"] = content_sha256(payload)
+        manifest_path.write_text(json.dumps(payload))
+
     payload = json.loads(manifest_path.read_text())
     payload["map_fields"]["mosaic_sha256"] = "0" * 64
-    manifest_path.write_text(json.dumps(payload))
+    write(payload)
     with pytest.raises(MapFieldsRefused, match="another mosaic"):
         MapFields.open(TileStore.open(cache))
     payload["map_fields"]["version"] = "orientation-v0"
-    manifest_path.write_text(json.dumps(payload))
+    write(payload)
     with pytest.raises(MapFieldsRefused, match="definition 'orientation-v0'"):
         MapFields.open(TileStore.open(cache))
     payload["map_fields"] = None
-    manifest_path.write_text(json.dumps(payload))
+    write(payload)
     with pytest.raises(MapFieldsRefused, match="gdnav cache fields") as excinfo:
         MapFields.open(TileStore.open(cache))
     assert excinfo.value.absent
@@ -152,7 +159,7 @@ def test_a_truncated_field_file_is_refused_by_its_recorded_size(demo_cache: Path
     path = cache / field_file_names(3)[0]
     path.write_bytes(path.read_bytes()[:-100])
     with pytest.raises(MapFieldsRefused, match="truncated or replaced"):
-        MapFields.open(TileStore.open(cache), verify_hashes=False)
+        MapFields.open(TileStore.open(cache), verification=Verification.LIGHT)
 
 
 def test_a_map_too_small_for_a_calibration_gets_fields_but_no_calibration(tmp_path: Path) -> None:

@@ -42,7 +42,7 @@ from gps_denied_onboard.components.c3_matcher.xfeat import XFeatMatcher, create
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
 from gps_denied_onboard.components.c10_cache_build import build_cache
-from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest
+from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifest, Verification
 from gps_denied_onboard.components.c10_cache_build.tile_features import build_tile_features
 from gps_denied_onboard.config import Config, MatcherConfig, load_config
 from gps_denied_onboard.constants import FdrKind
@@ -263,8 +263,9 @@ def test_tile_features_of_another_model_are_refused_and_rebuilt(
 def test_tampered_tile_features_refused_at_open_and_on_read(
     cache: Path, stand_in_models: dict[str, Path]
 ) -> None:
-    """A changed byte in the descriptors: refused at open with verify_hashes (the cache itself still
-    opens); without the sha256 check the tile's CRC-32 refuses it on read, once, and it is extracted live."""
+    """A changed byte in the descriptors: refused at open by the full check (the cache itself still
+    opens); the light check (no sha256 of the descriptors) opens it and the tile's CRC-32 refuses it on
+    read, once, and it is extracted live."""
     config = _matcher_config(stand_in_models["a"], stand_in_models["lightglue"])
     matcher, _ = _xfeat(config)
     build_tile_features(cache, matcher, progress=False)
@@ -280,12 +281,12 @@ def test_tampered_tile_features_refused_at_open_and_on_read(
     desc_path.write_bytes(bytes(data))
 
     with pytest.raises(TileFeaturesRefused, match="sha256 mismatch"):
-        PrecomputedTileFeatures.open(store, identity, verify_hashes=True)
+        PrecomputedTileFeatures.open(store, identity, Verification.FULL)
     fdr = FakeFdrClient()
     assert open_tile_features(_daemon_config(cache, config), TileStore.open(cache), fdr) is None  # type: ignore[arg-type]
     assert "sha256 mismatch" in str(fdr.of(FdrKind.TILE_FEATURES)[0]["reason"])
 
-    feats = PrecomputedTileFeatures.open(store, identity, verify_hashes=False)
+    feats = PrecomputedTileFeatures.open(store, identity, Verification.LIGHT)
     seen: list[dict[str, object]] = []
     feats.on_corrupt = seen.append
     bad = store.chip(store.tile_ids[row], CHIP_PX)
@@ -301,19 +302,21 @@ def test_tampered_tile_features_refused_at_open_and_on_read(
     assert result.best.tile_id == store.tile_ids[row]
     assert rt.extractor_calls == 2  # the query + the damaged tile, extracted live
 
-    # A truncated file is refused even without the sha256 check.
+    # A truncated file is refused by the light check too.
     desc_path.write_bytes(bytes(data[:-64]))
     with pytest.raises(TileFeaturesRefused, match="bytes"):
-        PrecomputedTileFeatures.open(store, identity, verify_hashes=False)
+        PrecomputedTileFeatures.open(store, identity, Verification.LIGHT)
 
 
 def test_old_manifest_without_tile_features_still_loads(cache: Path) -> None:
-    """A manifest written before tile features existed (no key) loads with none."""
+    """A manifest written before tile features existed (no key, and no hash of its content, which came
+    later) loads with none."""
     import json
 
     path = cache / "manifest.json"
     payload = json.loads(path.read_text())
     payload.pop("tile_features", None)
+    payload.pop("content_sha256", None)
     path.write_text(json.dumps(payload))
     assert CacheManifest.load(cache).tile_features == {}
 
@@ -366,7 +369,7 @@ def test_cli_cache_features_progress_quiet_and_refusals(
     code, out, _ = _cli([*base, *sets, "--quiet"], tty=False)
     assert code == 0 and "up to date" in out
 
-    mosaic = next(cache.glob("mosaic_z*.npy"))
+    mosaic = cache / CacheManifest.load(cache).mosaic_name
     raw = bytearray(mosaic.read_bytes())
     raw[-1] ^= 0xFF
     mosaic.write_bytes(bytes(raw))

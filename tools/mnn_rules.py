@@ -49,6 +49,7 @@ from gps_denied_onboard.components.c3_matcher.tile_features import PrecomputedTi
 from gps_denied_onboard.components.c4_pose.integrity import hull_share
 from gps_denied_onboard.components.c6_tiles.store import TileStore
 from gps_denied_onboard.components.c7_inference.onnx_runtime import OnnxInferenceRuntime
+from gps_denied_onboard.components.c10_cache_build.manifest import Verification
 from gps_denied_onboard.config import IntegrityConfig, MatcherConfig
 from gps_denied_onboard.helpers.frame_rectifier import RectificationError, rectify_to_map_frame
 from gps_denied_onboard.helpers.lightglue_runtime import mutual_nearest_neighbours
@@ -192,8 +193,8 @@ def main() -> int:
         fdr_client=None,
     )
     assert isinstance(matcher, xfeat_mnn.XFeatMnnMatcher)
-    store = TileStore.open(args.cache, verify_hashes=True)
-    pre = PrecomputedTileFeatures.open(store, matcher.extractor_identity, verify_hashes=True)
+    store = TileStore.open(args.cache, Verification.FULL)
+    pre = PrecomputedTileFeatures.open(store, matcher.extractor_identity, Verification.FULL)
     chosen = rules()
     if args.only:
         chosen = {k: v for k, v in chosen.items() if k in args.only.split(",")}

@@ -13,6 +13,7 @@ import asyncio
 import os
 import signal
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -202,9 +203,28 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
         _err(str(exc))
         return EXIT_CONFIG
     print(f"cache: {args.out}: zoom {manifest.zoom}, {manifest.tile_count} tiles")
-    if args.no_fields:
-        return EXIT_OK
-    return _map_fields(Path(args.out), force=False, quiet=args.quiet)
+    code = EXIT_OK if args.no_fields else _map_fields(Path(args.out), force=False, quiet=args.quiet)
+    if code != EXIT_OK:
+        return code
+    return _verify_built_cache(Path(args.out))
+
+
+def _verify_built_cache(cache_dir: Path) -> int:
+    """The full check at the end of ``gdnav cache build`` (the manifest's hash, every file's sha256), so
+    that what the daemon's light check at start trusts was verified where the bytes were written."""
+    from gps_denied_onboard.components.c10_cache_build.manifest import CacheManifestError, verify_cache
+
+    t0 = time.monotonic()
+    try:
+        manifest = verify_cache(cache_dir)
+    except CacheManifestError as exc:
+        _err(f"the cache does not verify after its build: {exc}")
+        return EXIT_RESOURCE
+    print(
+        f"cache: {cache_dir}: sha256 of every file verified in {time.monotonic() - t0:.1f} s "
+        f"({len(manifest.artifacts)} artifacts, the fields and tile features included)"
+    )
+    return EXIT_OK
 
 
 def _map_fields(cache_dir: Path, *, force: bool, quiet: bool) -> int:

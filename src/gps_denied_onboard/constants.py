@@ -194,7 +194,7 @@ class LogEvent:
     #: Solved fixes arrive later than the time axis can still fuse them (``estimator.max_fix_delay_s``):
     #: logged (and sent as a STATUSTEXT) at the first of a run of them, with how late it was.
     FIXES_TOO_LATE: Final = "daemon.fixes_too_late"
-    #: A map tile's pixels no longer match the digest taken when the cache was verified: never used.
+    #: A map cell's pixels no longer match the CRC-32 the cache build recorded for it: never used.
     CACHE_TILE_CORRUPT: Final = "c6.cache.tile_corrupt"
     POSE_REJECTED: Final = "c4.pose.rejected"
     #: The fix-integrity rule refused a solved fix (reason, evidence).
@@ -231,6 +231,8 @@ class LogEvent:
     RERANK_DONE: Final = "c2_5.rerank.done"
     CACHE_OPENED: Final = "c6.cache.opened"
     CACHE_REFUSED: Final = "c6.cache.refused"
+    #: A cache built before the mosaic's cell CRC table was recorded: computed at open, with the fix.
+    CACHE_OLD_FORMAT: Final = "c6.cache.old_format"
     CACHE_BUILT: Final = "c10.cache.built"
     CACHE_UP_TO_DATE: Final = "c10.cache.up_to_date"
     TILE_DOWNLOAD_STARTED: Final = "c11.download.started"

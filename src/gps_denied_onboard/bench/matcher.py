@@ -43,6 +43,7 @@ from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersE
 from gps_denied_onboard.components.c3_matcher.health import RollingHealthWindow
 from gps_denied_onboard.components.c3_matcher.registry import available_strategies, create_matcher, takes
 from gps_denied_onboard.components.c6_tiles.types import TileId, TilePixelsHandle
+from gps_denied_onboard.components.c10_cache_build.manifest import Verification
 from gps_denied_onboard.config import MatcherConfig
 from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.helpers.frame_rectifier import (
@@ -503,7 +504,7 @@ def _with_tile_features(
 
     try:
         identity = matcher.extractor_identity  # type: ignore[attr-defined]
-        feats = PrecomputedTileFeatures.open(store, identity, verify_hashes=True)
+        feats = PrecomputedTileFeatures.open(store, identity, Verification.FULL)
     except TileFeaturesRefused as exc:
         if notes is not None:
             notes[name] = f"no precomputed tile features: {exc}"
@@ -745,7 +746,7 @@ def run_matcher_benchmark(
         from gps_denied_onboard.components.c6_tiles.types import TileStoreError
 
         try:
-            store = TileStore.open(Path(cache_dir), verify_hashes=True)
+            store = TileStore.open(Path(cache_dir), Verification.FULL)
         except TileStoreError as exc:
             raise BenchmarkError(f"cannot use the benchmark cache: {exc}") from exc
         frames = with_cache_candidates(

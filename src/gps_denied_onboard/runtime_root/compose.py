@@ -44,7 +44,12 @@ from gps_denied_onboard.components.c4_pose.heading_height_check import HeadingHe
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
 from gps_denied_onboard.components.c5_estimator.journal import RecordingJournal
-from gps_denied_onboard.components.c5_estimator.prior import PreviousRun, read_previous_run, with_resume_state
+from gps_denied_onboard.components.c5_estimator.prior import (
+    PreviousRun,
+    in_the_air,
+    read_previous_run,
+    with_resume_state,
+)
 from gps_denied_onboard.components.c5_estimator.prior_doubt import PriorDoubt
 from gps_denied_onboard.components.c5_estimator.resume_state import (
     ResumeStateFile,
@@ -62,6 +67,7 @@ from gps_denied_onboard.components.c8_mavlink import (
     MavlinkLink,
     VehicleStateTracker,
 )
+from gps_denied_onboard.components.c10_cache_build.manifest import Verification
 from gps_denied_onboard.components.c13_fdr import FdrClient, FlightDataRecorder, read_records_newest_first
 from gps_denied_onboard.config import Config, LadderRung, MatcherConfig
 from gps_denied_onboard.constants import FdrKind, LogEvent
@@ -473,14 +479,14 @@ AUTO_HEAVY_GIVE_UP = 2
 
 
 def open_map_fields(config: Config, tiles: TileStore, fdr: FdrClient) -> MapFields | None:
-    """The cache's orientation fields when a rung runs an area matcher (``orientation_corr``), verified
-    (``cache.verify_hashes``) and calibrated; None when none does. What was decided is logged and
-    recorded (``cache.map_fields``). Raises ``StartupError("cache", ...)`` when the fields are needed and
-    absent, damaged or not calibrated."""
+    """The cache's orientation fields when a rung runs an area matcher (``orientation_corr``), checked at
+    the level the cache was opened at (``cache_verification``) and calibrated; None when none does. What
+    was decided is logged and recorded (``cache.map_fields``). Raises ``StartupError("cache", ...)`` when
+    the fields are needed and absent, damaged or not calibrated."""
     if not _uses_area_matcher(config):
         return None
     try:
-        fields = MapFields.open(tiles, verify_hashes=config.cache.verify_hashes)
+        fields = MapFields.open(tiles)
         if not fields.calibrated_levels:
             raise MapFieldsRefused(
                 f"{tiles.cache_dir}: the orientation fields are not calibrated (gdnav cache fields --cache "
@@ -494,7 +500,7 @@ def open_map_fields(config: Config, tiles: TileStore, fdr: FdrClient) -> MapFiel
     fields_rec = {
         "used": True,
         "version": fields.info.version,
-        "verified_hashes": config.cache.verify_hashes,
+        "verified_hashes": tiles.verification is Verification.FULL,
         "calibrations": [c.to_json() for c in fields.info.calibrations.values()],
     }
     log.info(LogEvent.MAP_FIELDS_READY, **fields_rec)
@@ -502,11 +508,32 @@ def open_map_fields(config: Config, tiles: TileStore, fdr: FdrClient) -> MapFiel
     return fields
 
 
-def open_tile_store(config: Config) -> TileStore:
-    """Open the map cache, verifying its manifest hashes when ``cache.verify_hashes`` (seconds for a
-    large cache). Raises ``StartupError("cache", ...)``."""
+def cache_verification(config: Config, air: bool | None) -> tuple[Verification, str]:
+    """The level the daemon checks its map cache at when it starts, and why (the levels:
+    ``c10_cache_build.manifest``; the reasons: docs/design.md, "Opening the cache in constant time").
+
+    ``air``: whether the autopilot says the vehicle is flying (``prior.in_the_air``; None: nothing known
+    yet). Full only when ``cache.verify_hashes`` asks for it and the autopilot says the vehicle is on the
+    ground; light otherwise, whatever the config says: a full check reads every byte of the map (seconds
+    to minutes on a mission's map) and a restart in the air must be back before the autopilot gives up
+    on it (ArduPilot lands after 8 s without a fix). ``gdnav cache build`` and ``gdnav preflight`` check
+    in full before the flight; every read is checked against its cell's CRC in flight."""
+    if not config.cache.verify_hashes:
+        return Verification.LIGHT, (
+            "cache.verify_hashes is false (gdnav cache build and gdnav preflight verify every byte)"
+        )
+    if air is None:
+        return Verification.LIGHT, "cache.verify_hashes set aside: not known to be on the ground"
+    if air:
+        return Verification.LIGHT, "cache.verify_hashes set aside: in the air (never re-hashed in flight)"
+    return Verification.FULL, "cache.verify_hashes, on the ground"
+
+
+def open_tile_store(config: Config, verification: Verification, why: str = "") -> TileStore:
+    """Open the map cache, checked at ``verification`` (full: seconds for a large cache; light: the same
+    on any map). Raises ``StartupError("cache", ...)``."""
     try:
-        tiles = TileStore.open(Path(config.cache.dir), verify_hashes=config.cache.verify_hashes)
+        tiles = TileStore.open(Path(config.cache.dir), verification)
     except TileStoreError as exc:
         log.error(LogEvent.CACHE_REFUSED, dir=config.cache.dir, error=str(exc))
         raise StartupError("cache", str(exc)) from exc
@@ -516,6 +543,8 @@ def open_tile_store(config: Config) -> TileStore:
         tiles=len(tiles),
         zoom=tiles.zoom,
         gsd_m_px=round(tiles.gsd_m_px, 3),
+        verification=verification.value,
+        why=why,
     )
     return tiles
 
@@ -548,7 +577,7 @@ def open_tile_features(
     if identity is None:
         return None
     try:
-        feats = PrecomputedTileFeatures.open(tiles, identity, verify_hashes=config.cache.verify_hashes)
+        feats = PrecomputedTileFeatures.open(tiles, identity)
     except TileFeaturesRefused as exc:
         fields = {"strategy": m.strategy, "used": False, "reason": str(exc), "mode": m.tile_features}
         if exc.absent:
@@ -566,7 +595,7 @@ def open_tile_features(
         "model_sha256": identity.model_sha256,
         "chip_size_px": identity.chip_size_px,
         "tiles": len(feats),
-        "verified_hashes": config.cache.verify_hashes,
+        "verified_hashes": tiles.verification is Verification.FULL,
     }
     log.info(LogEvent.TILE_FEATURES_READY, **fields)
     fdr.record(FdrKind.TILE_FEATURES, fields)
@@ -750,7 +779,12 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
     check_signing_key(config)
     _check_fdr_dir(config)
     _check_strategy_names(config)
-    tiles = open_tile_store(config)
+    early_link: MavlinkLink | None = pre.get("link")
+    tracker = early_link.tracker if early_link is not None else make_tracker(config, clock)
+    # The start-up beacon has been reading the autopilot on the early link since it opened.
+    now_s = clock.now_unix_s()
+    air = in_the_air(config.init, tracker.alt_agl_at(int(now_s * 1e6)), tracker.flight_phase(now_s))
+    tiles = open_tile_store(config, *cache_verification(config, air))
     center_lon, center_lat = tiles.center_lonlat
     ltp = LocalTangentPlane(center_lat, center_lon, config.terrain.ground_alt_amsl_m)
 
@@ -781,8 +815,6 @@ def compose_root(config: Config, *, pre_constructed: Mapping[str, Any] | None = 
 
     vpr = create_vpr(tiles, config)
     rerank = _pick("rerank", RERANK_STRATEGIES, config.rerank.strategy)(tiles, config)
-    early_link: MavlinkLink | None = pre.get("link")
-    tracker = early_link.tracker if early_link is not None else make_tracker(config, clock)
     # Every unit of the time axis and the IMU answers inside it go to the FDR (``gdnav replay``).
     journal = RecordingJournal(tracker, lambda fields: fdr.record(FdrKind.ESTIMATOR_INPUT, fields))
     time_axis = _time_axis(config, ltp, journal, clock=clock)
@@ -857,7 +889,8 @@ def compose_replay(
     rerank: RerankStrategy | None = None
     ladder: EffortLadder | None = None
     if with_map:
-        tiles = open_tile_store(config)
+        # A replay runs on the ground: the configured full check is taken as asked.
+        tiles = open_tile_store(config, *cache_verification(config, air=False))
         lon, lat = tiles.center_lonlat
         ltp = LocalTangentPlane(lat, lon, config.terrain.ground_alt_amsl_m)
         config = with_area_rung(unresolved, config, tiles)

@@ -10,6 +10,7 @@ all-zero pixel.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import shutil
@@ -31,6 +32,7 @@ from tqdm import tqdm
 
 from gps_denied_onboard.components.c6_tiles.georef import WebMercatorGrid
 from gps_denied_onboard.components.c6_tiles.types import TileId
+from gps_denied_onboard.components.c10_cache_build.cell_crc import cell_crc32_table, write_cell_crc_table
 from gps_denied_onboard.components.c10_cache_build.manifest import (
     CACHE_FORMAT_VERSION,
     MANIFEST_NAME,
@@ -42,7 +44,9 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     CacheManifestError,
     SourceInfo,
     TileRange,
+    Verification,
     VprInfo,
+    cell_crc_name,
     mosaic_name,
     sha256_file,
     write_json_atomic,
@@ -257,15 +261,17 @@ def up_to_date_manifest(
     min_tile_valid_fraction: float,
     resampling: str,
 ) -> CacheManifest | None:
-    """The existing manifest when it describes exactly this build and its artifacts are intact (sizes).
+    """The existing manifest when it describes exactly this build and every artifact verifies in full
+    (sha256: a damaged cache is rebuilt, not declared up to date).
 
-    Logs ``CACHE_UP_TO_DATE`` when it returns one.
+    A cache built before the mosaic's cell CRC table was recorded gets it here and keeps everything else
+    (VPR, fields, tile features). Logs ``CACHE_UP_TO_DATE`` when it returns one.
     """
     if not (out_dir / MANIFEST_NAME).is_file():
         return None
     try:
         existing = CacheManifest.load(out_dir)
-        existing.verify_artifacts(out_dir, verify_hashes=False)
+        existing.verify_artifacts(out_dir, Verification.LIGHT)  # sizes first: cheap
     except CacheManifestError:
         return None
     same = (
@@ -280,10 +286,39 @@ def up_to_date_manifest(
     )
     if not same:
         return None
+    try:
+        existing.verify_artifacts(out_dir, Verification.FULL)
+    except CacheManifestError:
+        return None
+    added = not existing.has_cell_crc
+    if added:
+        existing = _with_cell_crc_table(out_dir, existing)
     _log.info(
-        LogEvent.CACHE_UP_TO_DATE, cache_dir=str(out_dir), zoom=existing.zoom, tile_count=existing.tile_count
+        LogEvent.CACHE_UP_TO_DATE,
+        cache_dir=str(out_dir),
+        zoom=existing.zoom,
+        tile_count=existing.tile_count,
+        cell_crc_added=added,
     )
     return existing
+
+
+def _with_cell_crc_table(out_dir: Path, manifest: CacheManifest) -> CacheManifest:
+    """Write the mosaic's cell CRC table (``cell_crc``) beside it, and the manifest listing it (with its
+    content hash); return that manifest."""
+    name = cell_crc_name(manifest.zoom)
+    path = out_dir / name
+    try:
+        mosaic = np.load(out_dir / manifest.mosaic_name, mmap_mode="r", allow_pickle=False)
+        write_cell_crc_table(path, cell_crc32_table(mosaic, manifest.tile_size_px))
+        del mosaic
+        artifacts = dict(manifest.artifacts)
+        artifacts[name] = ArtifactInfo(sha256=sha256_file(path), bytes=path.stat().st_size)
+        updated = dataclasses.replace(manifest, artifacts=artifacts)
+        updated.save(out_dir)
+    except OSError as exc:
+        raise CacheBuildError(f"cannot add the cell CRC table: {exc}", path=str(path)) from exc
+    return updated
 
 
 def _band_plan(dataset: rasterio.io.DatasetReader) -> tuple[tuple[int, ...], np.ndarray | None]:
@@ -429,7 +464,8 @@ def finalize_cache(
     resampling: str,
     t_start: float,
 ) -> CacheManifest:
-    """Publish a filled mosaic: tile list, valid fractions, artifact hashes and, last, the manifest.
+    """Publish a filled mosaic: tile list, valid fractions, the cells' CRC table (``cell_crc``), artifact
+    hashes and, last, the manifest.
 
     ``fractions`` is float32 (n_rows, n_cols): the valid-pixel fraction of every tile of ``tile_range``.
     Raises CacheBuildError when no tile reaches ``min_tile_valid_fraction`` (the temporary mosaic is
@@ -472,9 +508,12 @@ def finalize_cache(
         with open(fractions_tmp, "wb") as fh:
             np.save(fh, fractions.astype(np.float32, copy=False))
         os.replace(fractions_tmp, out_dir / TILE_VALID_FRACTION_NAME)
+        mosaic = np.load(out_dir / mosaic_file, mmap_mode="r", allow_pickle=False)
+        write_cell_crc_table(out_dir / cell_crc_name(zoom), cell_crc32_table(mosaic, ts))
+        del mosaic
         artifacts = {
             name: ArtifactInfo(sha256=sha256_file(out_dir / name), bytes=(out_dir / name).stat().st_size)
-            for name in (mosaic_file, TILES_NAME, TILE_VALID_FRACTION_NAME)
+            for name in (mosaic_file, cell_crc_name(zoom), TILES_NAME, TILE_VALID_FRACTION_NAME)
         }
         manifest = CacheManifest(
             format_version=CACHE_FORMAT_VERSION,

@@ -1,27 +1,44 @@
-"""C10 contract: the map cache's on-disk layout and its manifest.
+"""C10 contract: the map cache's on-disk layout, its manifest, and how much of it is checked at open.
 
 A cache is a directory::
 
-    manifest.json              written last, atomically: its presence means "complete"
-    mosaic_z{Z}.npy            uint8 (H, W, 3) BGR Web-Mercator mosaic, opened with np.load(mmap_mode="r")
-    tiles.json                 valid XYZ tiles: x, y, TileId (zoom, lat, lon of the centre), valid fraction
-    tile_valid_fraction.npy    float32 (rows, cols): valid-pixel fraction of every tile in the range
+    manifest.json               written last, atomically: its presence means "complete"
+    mosaic_z{Z}.npy             uint8 (H, W, 3) BGR Web-Mercator mosaic, opened with np.load(mmap_mode="r")
+    mosaic_z{Z}_cell_crc32.npy  uint32 (rows, cols): CRC-32 of every grid cell (one tile) of the mosaic,
+                                taken at build (``cell_crc``); C6 checks each cell it reads against it
+    tiles.json                  valid XYZ tiles: x, y, TileId (zoom, lat, lon of the centre), valid fraction
+    tile_valid_fraction.npy     float32 (rows, cols): valid-pixel fraction of every tile in the range
 
 Every artifact is listed in ``manifest.artifacts`` with its size and sha256; C6 refuses a cache whose
 artifacts do not match (D-C10-3). The map's orientation fields for the area correlation
 (``c10_cache_build/map_fields.py``) are listed apart, in ``map_fields``, with their calibration, and so
-are precomputed tile features (``gdnav cache features``) are an optional
-accelerator listed apart, in ``tile_features`` (one set per C3 strategy, with the identity of the
-extractor that made it and its own files' sizes and sha256): the matcher verifies and uses a set, or
-refuses it and extracts live; a damaged set never refuses the cache itself. This module is deliberately
-light (json + hashlib) because the daemon imports it at start-up.
+are precomputed tile features (``gdnav cache features``), an optional accelerator listed in
+``tile_features`` (one set per C3 strategy, with the identity of the extractor that made it and its own
+files' sizes and sha256): the matcher verifies and uses a set, or refuses it and extracts live; a damaged
+set never refuses the cache itself. The manifest carries the sha256 of its own content
+(``content_sha256``: canonical JSON of every other key), so an edited or corrupted manifest is refused.
+
+Two levels of checking (``Verification``; the daemon's is chosen by ``runtime_root.cache_check``):
+
+- **full**: the manifest's own hash and the sha256 of every artifact. ``gdnav cache build`` runs it at its
+  end and ``gdnav preflight`` before a flight; it reads every byte, so its cost grows with the map.
+- **light** (the daemon's start): the manifest's own hash, every artifact present with its recorded size,
+  and the sha256 of the artifacts read whole at open (the tile list, the cell CRC tables, the tile
+  feature tables, the VPR vocabulary and metadata). What is read by window and never whole
+  (``read_by_window``: the mosaic, the orientation fields, the tile features' keypoints and descriptors,
+  the VPR index and descriptors) is checked by size here, and then on every read against the CRC of
+  the cell or entry read, where a reader keeps one. Its cost does not grow with the mosaic.
+
+This module is deliberately light (json + hashlib) because the daemon imports it at start-up.
 """
 
 from __future__ import annotations
 
+import enum
 import hashlib
 import json
 import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,9 +56,46 @@ TILE_VALID_FRACTION_NAME = "tile_valid_fraction.npy"
 _HASH_CHUNK_BYTES = 8 << 20
 
 
+#: The manifest's key holding the sha256 of its other keys (``content_sha256``).
+CONTENT_SHA256_KEY = "content_sha256"
+#: Artifacts read by window, never whole, in flight (see the module docstring): the light check takes
+#: their size only. The VPR names are ``c2_vpr.retrieval``'s (a test keeps them equal).
+_READ_BY_WINDOW = re.compile(
+    r"^(mosaic_z\d+\.npy|field_l\d+\.npy|tilefeat_.+_(keypoints|descriptors)\.npy"
+    r"|vpr_index\.faiss|vpr_descriptors\.npy)$"
+)
+
+
+class Verification(str, enum.Enum):
+    """How much of a cache is checked when it is opened (module docstring)."""
+
+    #: sha256 of every artifact: ``gdnav cache build``, ``gdnav preflight``, an explicit request.
+    FULL = "full"
+    #: The manifest's own hash, every size, the sha256 of what is read whole: the daemon's start.
+    LIGHT = "light"
+
+
+def read_by_window(name: str) -> bool:
+    """Whether the artifact ``name`` is read by window and never whole (the light check takes its size)."""
+    return _READ_BY_WINDOW.match(name) is not None
+
+
 def mosaic_name(zoom: int) -> str:
     """File name of the mosaic at ``zoom``."""
     return f"mosaic_z{zoom}.npy"
+
+
+def cell_crc_name(zoom: int) -> str:
+    """File name of the CRC-32 table of the mosaic's cells at ``zoom``."""
+    return f"mosaic_z{zoom}_cell_crc32.npy"
+
+
+def content_sha256(payload: Mapping[str, Any]) -> str:
+    """sha256 of a manifest object without its ``content_sha256`` key, as canonical JSON (sorted keys,
+    no spaces, ASCII): what ``CacheManifest.save`` records and ``CacheManifest.load`` checks."""
+    body = {k: v for k, v in payload.items() if k != CONTENT_SHA256_KEY}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=True)
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
 
 
 def sha256_file(path: Path) -> str:
@@ -168,10 +222,10 @@ class TileFeatureSetInfo:
             stats=dict(payload.get("stats", {})),
         )
 
-    def verify_files(self, cache_dir: Path, *, verify_hashes: bool = True) -> None:
-        """Every file present with its recorded size and (optionally) sha256; CacheManifestError names
-        the first that is not."""
-        _verify_files(Path(cache_dir), self.files, verify_hashes=verify_hashes)
+    def verify_files(self, cache_dir: Path, verification: Verification = Verification.FULL) -> None:
+        """Every file present with its recorded size and, as ``verification`` says, sha256;
+        CacheManifestError names the first that is not."""
+        _verify_files(Path(cache_dir), self.files, verification)
 
 
 @dataclass(frozen=True)
@@ -270,10 +324,10 @@ class MapFieldsInfo:
             stats=dict(payload.get("stats", {})),
         )
 
-    def verify_files(self, cache_dir: Path, *, verify_hashes: bool = True) -> None:
-        """Every file present with its recorded size and (optionally) sha256; CacheManifestError names
-        the first that is not."""
-        _verify_files(Path(cache_dir), self.files, verify_hashes=verify_hashes)
+    def verify_files(self, cache_dir: Path, verification: Verification = Verification.FULL) -> None:
+        """Every file present with its recorded size and, as ``verification`` says, sha256;
+        CacheManifestError names the first that is not."""
+        _verify_files(Path(cache_dir), self.files, verification)
 
 
 @dataclass(frozen=True)
@@ -303,13 +357,32 @@ class CacheManifest:
     tile_features: Mapping[str, TileFeatureSetInfo] = field(default_factory=dict)
     #: The orientation fields of the area correlation (optional; absent in caches made before them).
     map_fields: MapFieldsInfo | None = None
+    #: The sha256 of the manifest's content as read (``content_sha256``; checked by ``load``); None for a
+    #: manifest written before it was recorded, or not read from a file. Derived from the other fields, so
+    #: not compared; ``to_json`` computes it afresh.
+    content_sha256: str | None = field(default=None, compare=False)
 
     @property
     def mosaic_name(self) -> str:
         return mosaic_name(self.zoom)
 
+    @property
+    def cell_crc_name(self) -> str:
+        return cell_crc_name(self.zoom)
+
+    @property
+    def has_cell_crc(self) -> bool:
+        """Whether the build recorded the mosaic's cell CRC table (caches built before it did not)."""
+        return self.cell_crc_name in self.artifacts
+
     def to_json(self) -> dict[str, Any]:
-        """The JSON object written to ``manifest.json``."""
+        """The JSON object written to ``manifest.json``, with the sha256 of its content."""
+        body = self._body()
+        # Hashed as it will read back (tuples become lists, keys strings), so ``load`` computes the same.
+        body[CONTENT_SHA256_KEY] = content_sha256(json.loads(json.dumps(body)))
+        return body
+
+    def _body(self) -> dict[str, Any]:
         return {
             "format_version": self.format_version,
             "created_utc": self.created_utc,
@@ -330,7 +403,8 @@ class CacheManifest:
 
     @classmethod
     def from_json(cls, payload: Mapping[str, Any], *, path: str | None = None) -> CacheManifest:
-        """Parse a manifest object; a wrong version or a missing/mistyped key raises CacheManifestError."""
+        """Parse a manifest object; a wrong version, a missing/mistyped key or a content that does not
+        hash to its recorded ``content_sha256`` raises CacheManifestError."""
         version = payload.get("format_version") if isinstance(payload, Mapping) else None
         if version != CACHE_FORMAT_VERSION:
             raise CacheManifestError(
@@ -338,6 +412,16 @@ class CacheManifest:
                 "rebuild the cache",
                 path=path,
             )
+        recorded = payload.get(CONTENT_SHA256_KEY)
+        if recorded is not None:
+            actual = content_sha256(payload)
+            if recorded != actual:
+                raise CacheManifestError(
+                    f"cache manifest content sha256 mismatch: its content hashes to {actual[:16]}..., "
+                    f"{CONTENT_SHA256_KEY} records {str(recorded)[:16]}... (edited or corrupted; rebuild "
+                    "with gdnav cache build)",
+                    path=path,
+                )
         try:
             bbox = tuple(float(v) for v in payload["bbox_lonlat"])
             shape = tuple(int(v) for v in payload["mosaic_shape"])
@@ -370,6 +454,7 @@ class CacheManifest:
                     if payload.get("map_fields") is not None
                     else None
                 ),
+                content_sha256=None if recorded is None else str(recorded),
             )
         except (KeyError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as exc:
             raise CacheManifestError(f"malformed cache manifest: {exc!r}"[:500], path=path) from exc
@@ -406,8 +491,9 @@ class CacheManifest:
         """Write ``manifest.json`` atomically (the last step of a build)."""
         write_json_atomic(Path(cache_dir) / MANIFEST_NAME, self.to_json())
 
-    def verify_artifacts(self, cache_dir: Path, *, verify_hashes: bool = True) -> None:
-        """Check that every artifact exists with its recorded size and (optionally) sha256.
+    def verify_artifacts(self, cache_dir: Path, verification: Verification = Verification.FULL) -> None:
+        """Check that every artifact exists with its recorded size and the sha256 ``verification`` asks
+        for (every artifact's when full; only those not ``read_by_window`` when light).
 
         Raises CacheManifestError naming the first artifact that is missing, truncated/grown or altered.
         """
@@ -417,10 +503,11 @@ class CacheManifest:
                 raise CacheManifestError(
                     f"manifest does not list required artifact {name!r}", path=str(cache_dir)
                 )
-        _verify_files(cache_dir, self.artifacts, verify_hashes=verify_hashes)
+        _verify_files(cache_dir, self.artifacts, verification)
 
 
-def _verify_files(cache_dir: Path, files: Mapping[str, ArtifactInfo], *, verify_hashes: bool) -> None:
+def _verify_files(cache_dir: Path, files: Mapping[str, ArtifactInfo], verification: Verification) -> None:
+    """Sizes first, of every file (cheap), then the sha256 ``verification`` asks for."""
     for name, info in sorted(files.items()):
         path = cache_dir / name
         try:
@@ -433,11 +520,28 @@ def _verify_files(cache_dir: Path, files: Mapping[str, ArtifactInfo], *, verify_
                 "(truncated or replaced)",
                 path=str(path),
             )
-        if verify_hashes:
-            actual = sha256_file(path)
-            if actual != info.sha256:
-                raise CacheManifestError(
-                    f"cache artifact {name!r} sha256 mismatch: {actual[:16]}..., "
-                    f"manifest records {info.sha256[:16]}... (tampered or corrupted)",
-                    path=str(path),
-                )
+    for name, info in sorted(files.items()):
+        if verification is Verification.LIGHT and read_by_window(name):
+            continue
+        path = cache_dir / name
+        actual = sha256_file(path)
+        if actual != info.sha256:
+            raise CacheManifestError(
+                f"cache artifact {name!r} sha256 mismatch: {actual[:16]}..., "
+                f"manifest records {info.sha256[:16]}... (tampered or corrupted)",
+                path=str(path),
+            )
+
+
+def verify_cache(cache_dir: Path, verification: Verification = Verification.FULL) -> CacheManifest:
+    """Load the manifest of ``cache_dir`` (its own hash checked) and check, at ``verification``, its
+    artifacts, its orientation fields' files and every tile feature set's files; return the manifest.
+    Raises CacheManifestError naming the first file that fails."""
+    cache_dir = Path(cache_dir)
+    manifest = CacheManifest.load(cache_dir)
+    manifest.verify_artifacts(cache_dir, verification)
+    if manifest.map_fields is not None:
+        manifest.map_fields.verify_files(cache_dir, verification)
+    for info in manifest.tile_features.values():
+        info.verify_files(cache_dir, verification)
+    return manifest

@@ -65,6 +65,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     CacheManifestError,
     FieldCalibration,
     MapFieldsInfo,
+    Verification,
 )
 from gps_denied_onboard.components.c10_cache_build.npy_stream import NpyStream
 from gps_denied_onboard.constants import LogEvent
@@ -115,7 +116,7 @@ def build_map_fields(cache_dir: Path, *, force: bool = False, progress: bool = T
     ``cache_dir``. Raises ``CacheBuildError`` for a cache that does not verify or a write that fails."""
     cache_dir = Path(cache_dir)
     try:
-        store = TileStore.open(cache_dir, verify_hashes=True)
+        store = TileStore.open(cache_dir, Verification.FULL)
     except TileStoreError as exc:
         raise CacheBuildError(f"cache does not verify: {exc}", path=str(cache_dir)) from exc
     manifest = store.manifest
@@ -138,7 +139,7 @@ def build_map_fields(cache_dir: Path, *, force: bool = False, progress: bool = T
     if not info.calibrated:
         from gps_denied_onboard.components.c6_tiles.map_fields import MapFields
 
-        fields = MapFields.open(store, info, verify_hashes=False)  # hashed just above or in _intact
+        fields = MapFields.open(store, info, Verification.LIGHT)  # hashed just above or in _intact
         found = {level: calibrate(store, fields, level) for level in WORKING_LEVELS}
         calibrations = {level: c for level, c in found.items() if c is not None}
         info = dataclasses.replace(info, calibrations=calibrations, calibrated=True)
@@ -168,7 +169,7 @@ def _intact(info: MapFieldsInfo, cache_dir: Path, mosaic_sha: str) -> bool:
     if set(info.levels) != set(LEVELS):
         return False
     try:
-        info.verify_files(cache_dir, verify_hashes=True)
+        info.verify_files(cache_dir, Verification.FULL)
     except CacheManifestError:
         return False
     return True

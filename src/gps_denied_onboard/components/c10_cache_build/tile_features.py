@@ -45,6 +45,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     CacheManifest,
     CacheManifestError,
     TileFeatureSetInfo,
+    Verification,
 )
 from gps_denied_onboard.components.c10_cache_build.npy_stream import NpyStream
 from gps_denied_onboard.constants import LogEvent
@@ -84,7 +85,7 @@ def build_tile_features(
     label = identity.strategy
     extract_fn = extract if extract is not None else matcher.extract_tile
     try:
-        store = TileStore.open(cache_dir, verify_hashes=True)
+        store = TileStore.open(cache_dir, Verification.FULL)
     except TileStoreError as exc:
         raise CacheBuildError(f"cache does not verify: {exc}", path=str(cache_dir)) from exc
     manifest = store.manifest
@@ -232,7 +233,7 @@ def _intact(
     if info.tiles_sha256 != tiles_sha or info.mosaic_sha256 != mosaic_sha or info.tile_count != n_tiles:
         return False
     try:
-        info.verify_files(cache_dir, verify_hashes=True)
+        info.verify_files(cache_dir, Verification.FULL)
     except CacheManifestError:
         return False
     return True

@@ -56,6 +56,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     CacheBuildError,
     CacheManifest,
     CacheManifestError,
+    Verification,
     VprInfo,
     sha256_file,
     write_json_atomic,
@@ -176,14 +177,14 @@ def _up_to_date(cache_dir: Path, wanted: dict[str, Any]) -> CacheManifest | None
     """The manifest when it already records VPR artifacts made with exactly ``wanted``, intact in size."""
     try:
         manifest = CacheManifest.load(cache_dir)
-        _without_vpr(manifest).verify_artifacts(cache_dir, verify_hashes=False)
+        _without_vpr(manifest).verify_artifacts(cache_dir, Verification.LIGHT)
     except CacheManifestError as exc:
         raise CacheBuildError(f"not a usable cache: {exc.message}", path=str(cache_dir)) from exc
     if manifest.vpr.backbone != wanted["backbone"] or VPR_META_NAME not in manifest.artifacts:
         return None
     try:
         # Damaged VPR artifacts (an interrupted or tampered earlier run) just mean "rebuild them".
-        manifest.verify_artifacts(cache_dir, verify_hashes=False)
+        manifest.verify_artifacts(cache_dir, Verification.LIGHT)
     except CacheManifestError:
         return None
     try:
@@ -214,7 +215,7 @@ def _open_base(cache_dir: Path) -> TileStore:
     if base != manifest:
         base.save(cache_dir)
     try:
-        return TileStore.open(cache_dir, verify_hashes=True)
+        return TileStore.open(cache_dir, Verification.FULL)
     except TileStoreError as exc:
         raise CacheBuildError(f"cache does not verify: {exc}", path=str(cache_dir)) from exc
 

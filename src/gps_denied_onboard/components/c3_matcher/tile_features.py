@@ -16,11 +16,13 @@ and records them in the manifest's ``tile_features[<label>]`` with the extractor
 
 ``PrecomputedTileFeatures.open`` refuses a set (``TileFeaturesRefused``, with the reason) that was made by
 another extractor (any identity field differs: a different model file, chip size, keypoint cap or input
-size), for other tiles or another mosaic, or whose files do not match their size or (with
-``verify_hashes``) sha256; it never hands out features of another model. ``lookup`` returns a tile's
-features only for exactly the chip they were extracted from, copied out of the mapping and checked
-against their CRC-32 (the bytes checked are the bytes used, as in ``TileStore.chip``); an entry that fails
-is never used again in this run and the matcher extracts that tile live.
+size), for other tiles or another mosaic, or whose files do not match their size or the sha256 its
+``Verification`` asks for (full: every file; light, the daemon's start: the tile table, read whole, while
+the keypoints and descriptors are checked per tile on read); it never hands out features of another
+model. ``lookup`` returns a tile's features only for exactly the chip they were extracted from, copied out
+of the mapping and checked against their CRC-32 (the bytes checked are the bytes used, as in
+``TileStore.chip``); an entry that fails is never used again in this run and the matcher extracts that
+tile live.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     TILES_NAME,
     CacheManifestError,
     TileFeatureSetInfo,
+    Verification,
     sha256_file,
 )
 from gps_denied_onboard.config import MatcherConfig
@@ -198,12 +201,13 @@ class PrecomputedTileFeatures:
 
     @classmethod
     def open(
-        cls, store: TileStore, identity: ExtractorIdentity, *, verify_hashes: bool = True
+        cls, store: TileStore, identity: ExtractorIdentity, verification: Verification | None = None
     ) -> PrecomputedTileFeatures:
-        """The cache's set for ``identity.strategy``, verified; ``TileFeaturesRefused`` otherwise.
+        """The cache's set for ``identity.strategy``, checked at ``verification`` (None: the level
+        ``store`` was opened at); ``TileFeaturesRefused`` otherwise.
 
         Refused: no set; a set made with another identity (every differing field named); for another
-        tile list or mosaic; files missing, of another size or (``verify_hashes``) sha256; arrays whose
+        tile list or mosaic; files missing, of another size or sha256 (module docstring); arrays whose
         shapes or dtypes disagree with each other or with the cache.
         """
         label = identity.strategy
@@ -242,7 +246,7 @@ class PrecomputedTileFeatures:
                 path=str(cache_dir),
             )
         try:
-            info.verify_files(cache_dir, verify_hashes=verify_hashes)
+            info.verify_files(cache_dir, store.verification if verification is None else verification)
         except CacheManifestError as exc:
             raise TileFeaturesRefused(exc.message, label=label, path=exc.path) from exc
         try:

@@ -4,9 +4,10 @@ What the area correlation (C3 ``orientation_corr``) reads instead of pixels. ``M
 grid cells a window covers, checks each copy against the CRC-32 recorded when the field was written, and
 cuts the window from the copy, so the bytes checked are the bytes matched. A cell that fails is nodata for
 the rest of the run (never trusted again), logged (``c6.map_fields.cell_corrupt``), counted and reported
-to the listener (the daemon records it in the FDR): no fix is ever made from it. Opening reads the
-manifest's block and the small CRC tables, not the fields: the open costs the same on any map (with
-``cache.verify_hashes`` the files' sha256 are checked first, which does read them).
+to the listener (the daemon records it in the FDR): no fix is ever made from it. Opening checks the files
+at the level the tile store was opened at (``Verification``): light (the daemon's start) reads the
+manifest's block, the fields' sizes and the small CRC tables (their sha256), never the fields, so the
+open costs the same on any map; full (``gdnav preflight``, the builds) hashes every file.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     CacheManifestError,
     FieldCalibration,
     MapFieldsInfo,
+    Verification,
 )
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.helpers.orientation_field import FIELD_VERSION, NODATA, dequantise
@@ -68,9 +70,10 @@ class MapFields:
 
     @classmethod
     def open(
-        cls, store: TileStore, info: MapFieldsInfo | None = None, *, verify_hashes: bool = True
+        cls, store: TileStore, info: MapFieldsInfo | None = None, verification: Verification | None = None
     ) -> MapFields:
-        """The fields of ``store``'s cache (its manifest's block unless ``info`` is given). Raises
+        """The fields of ``store``'s cache (its manifest's block unless ``info`` is given), their files
+        checked at ``verification`` (None: the level ``store`` was opened at). Raises
         ``MapFieldsRefused`` saying why they cannot be used."""
         cache_dir = store.cache_dir
         info = info if info is not None else store.manifest.map_fields
@@ -89,7 +92,7 @@ class MapFields:
         if info.mosaic_sha256 != mosaic_sha:
             raise MapFieldsRefused(f"{cache_dir}: the orientation fields were made from another mosaic")
         try:
-            info.verify_files(cache_dir, verify_hashes=verify_hashes)
+            info.verify_files(cache_dir, store.verification if verification is None else verification)
         except CacheManifestError as exc:
             raise MapFieldsRefused(f"orientation fields: {exc.message} ({exc.path})") from exc
         height, width = store.mosaic.shape[:2]

@@ -1,19 +1,28 @@
-"""C6 tile store: opens a verified map cache and serves tiles and page-cache-backed chips.
+"""C6 tile store: opens a checked map cache and serves tiles and page-cache-backed chips.
 
 The mosaic is memory-mapped read-only, so pixels are paged in by the kernel on first touch and shared
 with every other consumer.
 
-Verified on read. The whole mosaic's sha256 is checked at open (``cache.verify_hashes``); the map is then
-read for the whole flight, and bytes can change under a mapping after that (flash wear, a failing SD card
-or eMMC page re-read after eviction, another process writing the file). At open the store therefore
-takes a CRC-32 of every grid cell (one tile, ``tile_size_px`` square) of the bytes it just verified, and
-``chip`` copies the cells a chip covers, checks each copy against its digest and cuts the chip from the
-copy: the bytes checked are the bytes the matcher gets. A cell that fails is corrupt for the rest of the
-run (never trusted again, even if its bytes come back): its pixels read as nodata (zero, as off the map),
-so no fix is ever made from them, and it is logged (``c6.cache.tile_corrupt``), counted
-(``corrupt_cells``) and reported to the listener (the daemon records it in the FDR). CRC-32 detects
-corruption, not an adversary who can write the cache while the daemon runs (who could as well change the
-daemon).
+Checked at open, then on read. ``TileStore.open`` checks the cache at the level it is given
+(``Verification``, see ``c10_cache_build.manifest``): full (sha256 of every artifact, the mosaic
+included: ``gdnav cache build``, ``gdnav preflight``) or light (the daemon's start: the manifest's own
+hash, every artifact's size, the sha256 of the small tables, the mosaic's shape; it never reads the
+mosaic, so it costs the same on any map). Either way the map is then read for the whole flight, and
+bytes can change under a mapping after any check (flash wear, a failing SD card or eMMC page re-read
+after eviction, another process writing the file). ``chip`` therefore copies the cells a chip covers,
+checks each copy against the CRC-32 the build recorded for that cell (``c10_cache_build.cell_crc``) and
+cuts the chip from the copy: the bytes checked are the bytes the matcher gets. A cell that fails is
+corrupt for the rest of the run (never trusted again, even if its bytes come back): its pixels read as
+nodata (zero, as off the map), so no fix is ever made from them, and it is logged
+(``c6.cache.tile_corrupt``), counted (``corrupt_cells``) and reported to the listener (the daemon records
+it in the FDR). CRC-32 detects corruption, not an adversary who can write the cache while the daemon runs
+(who could as well change the daemon).
+
+A cache built before the table was recorded still opens: the store computes the table at open from the
+mosaic as it then reads (one pass over the whole mosaic, seconds for a large map) and logs a warning
+naming the command that adds it (``gdnav cache build`` with the same source and directory adds the table
+without rebuilding). Refusing it would ground a fleet's prepared caches on a software update; its open
+costs what it cost before, no more, and the operator is told.
 
 Pixel convention (chips and mosaic): OpenCV's, ``(x, y)`` with ``(0, 0)`` at the *centre* of the
 top-left pixel, x east, y south. The Web-Mercator grid is corner-based, hence the 0.5 px offsets below.
@@ -25,7 +34,6 @@ import json
 import math
 import threading
 import time
-import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,10 +44,12 @@ import structlog
 
 from gps_denied_onboard.components.c6_tiles.georef import WebMercatorGrid
 from gps_denied_onboard.components.c6_tiles.types import TileId, TileStoreError
+from gps_denied_onboard.components.c10_cache_build.cell_crc import cell_crc32, cell_crc32_table
 from gps_denied_onboard.components.c10_cache_build.manifest import (
     TILES_NAME,
     CacheManifest,
     CacheManifestError,
+    Verification,
 )
 from gps_denied_onboard.constants import LogEvent
 
@@ -157,10 +167,10 @@ class TileCentreIndex:
 
 
 class TileStore:
-    """Read-only view of a verified map cache (see ``c10_cache_build.manifest`` for the layout).
+    """Read-only view of a checked map cache (see ``c10_cache_build.manifest`` for the layout).
 
     Build with ``TileStore.open``; the daemon does so once at start-up and refuses to fly on a cache
-    that fails verification (D-C10-3).
+    that fails its check (D-C10-3).
     """
 
     def __init__(
@@ -170,8 +180,12 @@ class TileStore:
         mosaic: np.ndarray,
         tile_ids: tuple[TileId, ...],
         tile_xy: np.ndarray,
+        cell_crc: np.ndarray,
+        verification: Verification = Verification.FULL,
     ) -> None:
-        """Prefer ``TileStore.open``. ``tile_xy`` is int64 (N, 2) XYZ (x, y) of ``tile_ids``."""
+        """Prefer ``TileStore.open``. ``tile_xy`` is int64 (N, 2) XYZ (x, y) of ``tile_ids``; ``cell_crc``
+        uint32 (rows, cols) the CRC-32 of every grid cell of ``mosaic``; ``verification`` the level the
+        cache was checked at (the fields and tile features of this cache are opened at the same)."""
         self._cache_dir = cache_dir
         self._manifest = manifest
         self._grid = WebMercatorGrid(manifest.zoom, manifest.tile_size_px)
@@ -183,41 +197,62 @@ class TileStore:
         tr = manifest.tile_range
         #: Global px of the mosaic's top-left corner.
         self._mosaic_origin_px = (tr.x0 * manifest.tile_size_px, tr.y0 * manifest.tile_size_px)
-        #: CRC-32 of every grid cell as verified at open, (rows, cols) uint32 (see the module docstring).
-        self._cell_crc = _cell_digests(mosaic, manifest.tile_size_px)
+        #: CRC-32 of every grid cell, (rows, cols) uint32 (see the module docstring).
+        self._cell_crc = cell_crc
+        self._verification = verification
         self._corrupt: set[tuple[int, int]] = set()
         self._corrupt_lock = threading.Lock()
         #: Called once per newly corrupt cell with its description (the daemon records it in the FDR).
         self.on_corrupt: Callable[[dict[str, Any]], None] | None = None
 
     @classmethod
-    def open(cls, cache_dir: Path, *, verify_hashes: bool = True) -> TileStore:
-        """Open and verify a cache directory; raise TileStoreError naming what is wrong.
+    def open(cls, cache_dir: Path, verification: Verification = Verification.FULL) -> TileStore:
+        """Open and check a cache directory at ``verification``; raise TileStoreError naming what is wrong.
 
-        Checks the format version, that every artifact exists with its recorded size and (when
-        ``verify_hashes``) sha256, that the mosaic has the recorded shape, and that the tile list agrees.
+        Checks the format version and the manifest's own hash, that every artifact exists with its
+        recorded size and the sha256 ``verification`` asks for (``CacheManifest.verify_artifacts``), that
+        the mosaic has the recorded shape, the cell CRC table the mosaic's grid, and that the tile list
+        agrees. A cache without a cell CRC table (built before it was recorded) has it computed here, with
+        a warning (module docstring).
         """
         cache_dir = Path(cache_dir)
+        verification = Verification(verification)
         t0 = time.monotonic()
         try:
             try:
                 manifest = CacheManifest.load(cache_dir)
-                manifest.verify_artifacts(cache_dir, verify_hashes=verify_hashes)
+                manifest.verify_artifacts(cache_dir, verification)
             except CacheManifestError as exc:
                 raise TileStoreError(exc.message, path=exc.path) from exc
             mosaic = _open_mosaic(cache_dir / manifest.mosaic_name, manifest)
             tile_ids, tile_xy = _load_tiles(cache_dir / TILES_NAME, manifest)
+            if manifest.has_cell_crc:
+                cell_crc = _load_cell_crc(cache_dir / manifest.cell_crc_name, manifest)
         except TileStoreError as exc:
             _log.error(LogEvent.CACHE_REFUSED, cache_dir=str(cache_dir), reason=str(exc))
             raise
-        store = cls(cache_dir, manifest, mosaic, tile_ids, tile_xy)
+        if not manifest.has_cell_crc:
+            t_crc = time.monotonic()
+            cell_crc = cell_crc32_table(mosaic, manifest.tile_size_px)
+            _log.warning(
+                LogEvent.CACHE_OLD_FORMAT,
+                cache_dir=str(cache_dir),
+                built_utc=manifest.created_utc,
+                missing=manifest.cell_crc_name,
+                manifest_hashed=manifest.content_sha256 is not None,
+                crc_seconds=round(time.monotonic() - t_crc, 3),
+                action="the cell CRC table was computed at open, reading the whole mosaic; add it with "
+                f"`gdnav cache build --source <the same source> --out {cache_dir}`",
+            )
+        store = cls(cache_dir, manifest, mosaic, tile_ids, tile_xy, cell_crc, verification)
         _log.info(
             LogEvent.CACHE_OPENED,
             cache_dir=str(cache_dir),
             zoom=manifest.zoom,
             tile_count=len(tile_ids),
             mosaic_shape=list(manifest.mosaic_shape),
-            verified_hashes=verify_hashes,
+            verification=verification.value,
+            cell_crc="recorded" if manifest.has_cell_crc else "computed at open",
             seconds=round(time.monotonic() - t0, 3),
         )
         return store
@@ -230,6 +265,12 @@ class TileStore:
     @property
     def manifest(self) -> CacheManifest:
         return self._manifest
+
+    @property
+    def verification(self) -> Verification:
+        """The level the cache was checked at when opened (its fields and tile features are opened at
+        the same)."""
+        return self._verification
 
     @property
     def grid(self) -> WebMercatorGrid:
@@ -357,7 +398,7 @@ class TileStore:
                 if known_bad:
                     cell[...] = 0
                     continue
-                crc = _crc32(cell)
+                crc = cell_crc32(cell)
                 if crc != int(self._cell_crc[r, c]):
                     self._report_corrupt(r, c, crc)
                     cell[...] = 0
@@ -420,23 +461,6 @@ def _clamp_span(start: int, size: int, extent: int) -> tuple[int, int]:
     return min(max(start, 0), extent - size), size
 
 
-def _cell_digests(mosaic: np.ndarray, tile_size_px: int) -> np.ndarray:
-    """CRC-32 of every ``tile_size_px`` square cell of the mosaic, (rows, cols) uint32 (edge cells may be
-    smaller when the mosaic is not a whole number of cells)."""
-    ts = tile_size_px
-    rows, cols = -(-mosaic.shape[0] // ts), -(-mosaic.shape[1] // ts)
-    crc = np.zeros((rows, cols), dtype=np.uint32)
-    for r in range(rows):
-        band = np.array(mosaic[r * ts : (r + 1) * ts])  # one sequential read per band of cells
-        for c in range(cols):
-            crc[r, c] = _crc32(band[:, c * ts : (c + 1) * ts])
-    return crc
-
-
-def _crc32(pixels: np.ndarray) -> int:
-    return zlib.crc32(np.ascontiguousarray(pixels).data)
-
-
 def _open_mosaic(path: Path, manifest: CacheManifest) -> np.ndarray:
     try:
         mosaic = np.load(path, mmap_mode="r", allow_pickle=False)
@@ -449,6 +473,22 @@ def _open_mosaic(path: Path, manifest: CacheManifest) -> np.ndarray:
             path=str(path),
         )
     return mosaic
+
+
+def _load_cell_crc(path: Path, manifest: CacheManifest) -> np.ndarray:
+    try:
+        table = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise TileStoreError(f"cannot read the cell CRC table {path.name!r}: {exc}", path=str(path)) from exc
+    ts = manifest.tile_size_px
+    cells = (-(-manifest.mosaic_shape[0] // ts), -(-manifest.mosaic_shape[1] // ts))
+    if table.dtype != np.uint32 or table.shape != cells:
+        raise TileStoreError(
+            f"cell CRC table {path.name!r} is {table.dtype} {table.shape}, expected uint32 {cells} "
+            "(the mosaic's grid of cells)",
+            path=str(path),
+        )
+    return table
 
 
 def _load_tiles(path: Path, manifest: CacheManifest) -> tuple[tuple[TileId, ...], np.ndarray]:
