@@ -390,46 +390,46 @@ def test_while_the_autopilot_tilt_is_off_fixes_stand_on_the_image_and_what_was_f
     assert records[-1]["fix_shared_sigma_m"] >= slope_m
 
 
-def test_while_vo_ground_tilt_shows_the_autopilot_tilt_off_fixes_are_solved_allowing_it() -> None:
-    """VO's ground tilt is 3 deg from the autopilot's on every frame, and leaning on that tilt puts tile
-    A's fix 6.3 m north of the truth; the fixes' own check passes them. Once VO's check has proven it off
-    (4 tilts with no scatter), every fix is solved allowing the autopilot's tilt 1.5 x the error shown
-    and fused at the truth, the IMU is left out and the estimate states the error what it fused before
-    may carry. When VO's tilt agrees again, its check clears once no window's bias is beyond the bound,
-    the IMU comes back and the fixes lean on the autopilot's tilt as before."""
+def test_while_vo_ground_tilt_shows_the_autopilot_tilt_off_fixes_stand_on_their_own_tilt() -> None:
+    """VO's ground tilt is 3 deg from the autopilot's on every frame, while every fix's own image finds
+    the autopilot's tilt right (the fixes' check passes them). Once VO's check has proven it off (4
+    tilts with no scatter), the IMU is left out and the estimate states once what VO and the fixes fused
+    may carry (2 x 120 m x tan 3 deg); each fix is solved standing on its own image, which measures the
+    tilt sharper than VO: it allows the autopilot's tilt what that image shows (here nothing, so 1.5 x
+    the attitude's sigma) and is fused, and the fixes bring the stated sigma back. (On a real PX4, VO's
+    ground tilt at a slow corner called the autopilot 16-25 deg off while the fixes measured 1-2 deg;
+    refused for that, the fixes left the autopilot without a position for 24 s.) When VO's tilt agrees
+    again, its check clears, the IMU comes back and the fixes lean on the autopilot's tilt as before."""
     fdr = _Fdr()
     vo = _TiltedVo(math.radians(3.0))
     pose = _PosePerTile(tilt_off_rad=0.0)
-    pose.north_m = 120.0 * math.tan(math.radians(3.0))
     p = _two_tile_pipeline(fdr, vo, pose)
-    t0 = T0 - 40 * 333_333
+    t0 = T0 - 44 * 333_333
     tracks, fixes = [], []
-    for k in range(8):
+    for k in range(12):
         frame = _frame(k, t0 + k * 333_333)
         tracks.append(p.track(frame, InitialPrior(47.0, 8.0, 30.0, "test") if k == 0 else None))
         fixes.append(p.localise(frame))
-    assert [t.ground_tilt.off for t in tracks if t.ground_tilt] == [False] * (MIN_FIXES - 1) + [True] * 5
+    assert [t.ground_tilt.off for t in tracks if t.ground_tilt] == [False] * (MIN_FIXES - 1) + [True] * 9
     assert all(f.fix_accepted for f in fixes), [f.no_fix_reason for f in fixes]
-    assert all(f.fix is not None and f.fix.attitude_doubt_rad >= math.radians(4.5) for f in fixes[MIN_FIXES:])
+    stood = [f.fix.attitude_doubt_rad for f in fixes[MIN_FIXES:] if f.fix is not None]
+    assert stood == pytest.approx([math.radians(1.5 * PoseConfig().attitude_sigma_deg)] * (12 - MIN_FIXES))
     assert all(f.attitude is not None and not f.attitude.off for f in fixes)  # the fixes' check passed them
     frame_records = [r for kind, r in fdr.records if kind == "pipeline.frame"]
     fix_records = [r for kind, r in fdr.records if kind == "pipeline.fix"]
     assert frame_records[-1]["ground_tilt_check"]["bias_deg"][0] == pytest.approx(3.0, abs=1e-3)
     assert fix_records[-1]["ground_tilt_check"]["off"] is True
-    state = p.time_axis.state_at(t0 + 7 * 333_333)
-    slope_m = 120.0 * math.tan(math.radians(3.0))  # what a slope as steep would make of them, shared
-    assert abs(float(state.pos_ned_m[0])) < 0.5 * slope_m <= 0.5 * state.horiz_sigma_m
-    assert fix_records[-1]["fix_shared_sigma_m"] >= slope_m
+    state = p.time_axis.state_at(t0 + 11 * 333_333)
+    assert abs(float(state.pos_ned_m[0])) < 1.0 and state.horiz_sigma_m < 5.0
     assert p._imu_trusted is False
 
     vo.tilt_off_rad = 0.0  # the attitude is right again
-    pose.north_m = 0.0
-    for k in range(8, 40):
+    for k in range(12, 44):
         frame = _frame(k, t0 + k * 333_333)
         tracks.append(p.track(frame, None))
         fixes.append(p.localise(frame))
-    cleared = next(k for k, t in enumerate(tracks) if k >= 8 and t.ground_tilt and not t.ground_tilt.off)
-    assert 8 < cleared < 40 and all(t.ground_tilt and not t.ground_tilt.off for t in tracks[cleared:])
+    cleared = next(k for k, t in enumerate(tracks) if k >= 12 and t.ground_tilt and not t.ground_tilt.off)
+    assert 12 < cleared < 44 and all(t.ground_tilt and not t.ground_tilt.off for t in tracks[cleared:])
     assert p._imu_trusted is True
     assert fixes[-1].no_fix_reason is None and fixes[-1].fix_accepted
     assert fixes[-1].fix is not None and fixes[-1].fix.attitude_doubt_rad == 0.0
@@ -473,10 +473,10 @@ def test_while_vo_shows_the_attitude_off_a_frame_without_a_tilt_of_its_own_allow
     """The autopilot's roll is 3 deg off from frame 5 to 30 and a fix leaning on it is 6.3 m off at
     120 m AGL; every third frame's pair gives no ground tilt, so it has no verdict of its own. Once VO's
     check has shown the attitude off, no fix is fused leaning on the autopilot's tilt until its tilt
-    agrees again, those frames' included: each is solved allowing the error shown, and stands on the
-    image (the estimate's raised sigma would let a leaning one through every gate: measured on a GPU
-    across dates at 1200 m AGL, one in about 15, 64 m off at a stated 4 m). What leaves stays within 3
-    sigma of the truth throughout."""
+    agrees again, those frames' included: each is solved standing on its own image (the estimate's
+    raised sigma would let a leaning one through every gate: measured on a GPU across dates at 1200 m
+    AGL, one in about 15, 64 m off at a stated 4 m). What leaves stays within 3 sigma of the truth
+    throughout."""
     fdr = _Fdr()
     vo = _TiltedVo(0.0)
     pose = _PosePerTile(tilt_off_rad=0.0)
@@ -495,7 +495,7 @@ def test_while_vo_shows_the_attitude_off_a_frame_without_a_tilt_of_its_own_allow
     assert 5 < shown < 12 and 30 < cleared < 60, (shown, cleared)
     fused = [k for k in range(shown, cleared) if fixes[k].fix_accepted]
     assert fused == list(range(shown, cleared)), [fixes[k].no_fix_reason for k in range(shown, cleared)]
-    assert all((fixes[k].fix.attitude_doubt_rad if fixes[k].fix else 0.0) >= math.radians(4.5) for k in fused)
+    assert all((fixes[k].fix.attitude_doubt_rad if fixes[k].fix else 0.0) > 0.0 for k in fused)
     for k, track in enumerate(tracks):
         north_m = float(track.state.pos_ned_m[0])  # the truth is 0 m north
         assert abs(north_m) <= 3.0 * np.sqrt(track.state.cov_pos_ned_m2[0, 0]), (k, north_m)
@@ -529,7 +529,7 @@ def test_a_slow_fix_exposed_before_vo_lets_go_of_a_wrong_attitude_is_judged_by_w
             p.localise(frames[k])
     assert tracks[29].ground_tilt is not None and tracks[29].ground_tilt.off
     cleared = next(k for k in range(66, 90) if tracks[k].ground_tilt and not tracks[k].ground_tilt.off)
-    assert slow.fix is not None and slow.fix.attitude_doubt_rad >= math.radians(4.5)
+    assert slow.fix is not None and slow.fix.attitude_doubt_rad > 0.0
     assert abs(float(slow.fix.pos_ned_m[0])) < 1e-9  # it stood on the image
     leaning = replace(
         slow, fix=replace(slow.fix, attitude_doubt_rad=0.0, pos_ned_m=np.array([6.3, 0.0, -120.0]))
@@ -564,7 +564,7 @@ def test_a_slow_fix_exposed_where_vo_later_shows_the_attitude_off_is_refused() -
     p.track(frames[5], None)
     p.track(frames[6], None)
     told = p.attempt_fix(frames[6])  # VO's tilt jumped at frame 5: the error is allowed
-    assert told.fix is not None and told.fix.attitude_doubt_rad >= math.radians(4.5)
+    assert told.fix is not None and told.fix.attitude_doubt_rad > 0.0
     outcomes = [p.track(frames[k], None) for k in range(7, 12)]
     assert outcomes[-1].ground_tilt is not None and outcomes[-1].ground_tilt.off
     late = p.fuse_attempt(frames[5], slow)

@@ -554,16 +554,15 @@ class NavigationPipeline:
             if attempt.attitude is not None and fix is not None:
                 self._answer_tilt("fixes", attempt.attitude, self._agl_m(fix), t)
             ground_tilt = self._ground_tilt_verdict
-            vo_suspect_deg = self._vo_suspect_deg_at(t)
             if (
                 fix is not None
                 and reason is None
-                and vo_suspect_deg is not None
-                and fix.attitude_doubt_rad < math.radians(vo_suspect_deg)
+                and fix.attitude_doubt_rad <= 0.0
+                and self._vo_suspect_deg_at(t) is not None
             ):
-                # VO's ground tilt has shown the autopilot's tilt off over this exposure by more than
-                # the fix was solved to allow: however late the fix comes (a slow matcher's was started
-                # before the check could tell), it leans on it.
+                # VO's ground tilt has shown the autopilot's tilt off over this exposure, and the fix
+                # leaned on it (it measured no tilt of its own, or was solved before any check showed
+                # the error: a slow matcher's): refused however late it comes.
                 reason = "vo_attitude_off"
                 log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, reason=reason)
             head = self._axis.head_unix_usec
@@ -912,9 +911,7 @@ class NavigationPipeline:
             return self._area_matched(frame, match, rerank_result, prior_state, timings, t3)
         handle = next(c.tile_pixels_handle for c in rerank_result.candidates if c.tile_id == best.tile_id)
         try:
-            fix = self._with_slope_doubt(
-                self._pose.solve(frame, best, handle, self._calib, attitude_doubt_rad=doubt_rad)
-            )
+            fix = self._pose.solve(frame, best, handle, self._calib, attitude_doubt_rad=doubt_rad)
         except PoseError as exc:
             timings["pose"] = (self._clock_ns() - t3) / 1e6
             return FixAttempt(
@@ -924,41 +921,55 @@ class NavigationPipeline:
         timings["pose"] = (t4 - t3) / 1e6
         assert fix.image_tilt_off_cam_rad is not None  # a solve from points measures the tilt
         self._note_camera_tilt(fix.image_tilt_off_cam_rad, frame.exposure_time_unix_usec, frame.timing)
-        if not self._comparable(frame.timing):
-            # The timing doubt at this attitude rate could make the tilt difference by itself: the check
-            # learns nothing from it, and the solver has already widened the tilt prior by it.
-            verdict = self._judge(frame, match, rerank_result, fix, prior_state)
-            timings["integrity"] = (self._clock_ns() - t4) / 1e6
-            return self._judged(frame, match, best, verdict, None)
-        attitude = self._attitude.note(fix, self._footprint_m(fix))
-        self._fix_tilt_verdict = attitude
-        if attitude.off:
-            # The fix measured its own tilt: solved again leaning on the autopilot's no more than the
-            # error shown allows, it stands on the image's (and states what that leaves).
-            shown_deg = min(attitude.suspect_deg or 0.0, MAX_TILT_DOUBT_DEG)
-            wider_rad = max(doubt_rad, math.radians(TILT_DOUBT_MARGIN * shown_deg))
-            if wider_rad > fix.attitude_doubt_rad:
-                try:
-                    fix = self._with_slope_doubt(
-                        self._pose.solve(frame, best, handle, self._calib, attitude_doubt_rad=wider_rad)
-                    )
-                except PoseError:
-                    log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, **attitude.fdr_fields())
-                    return FixAttempt(
-                        fix,
-                        best.inlier_count,
-                        match.reprojection_residual_px,
-                        attitude.refused,
-                        attitude=attitude,
-                    )
-        elif attitude.refused is not None:
-            log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, **attitude.fdr_fields())
-            return FixAttempt(
-                fix, best.inlier_count, match.reprojection_residual_px, attitude.refused, attitude=attitude
-            )
+        attitude: AttitudeVerdict | None = None
+        if self._comparable(frame.timing):
+            attitude = self._attitude.note(fix, self._footprint_m(fix))
+            self._fix_tilt_verdict = attitude
+            if attitude.refused is not None and not attitude.off:  # a jump: held back until the next say
+                log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, **attitude.fdr_fields())
+                return FixAttempt(
+                    fix,
+                    best.inlier_count,
+                    match.reprojection_residual_px,
+                    attitude.refused,
+                    attitude=attitude,
+                )
+        # (Where the timing doubt at this attitude rate could make the tilt difference by itself, the check
+        # learns nothing from it, and the solver has already widened the tilt prior by it.)
+        stand_rad = self._stand_on_image_rad(fix, doubt_rad, attitude)
+        if stand_rad != fix.attitude_doubt_rad:
+            try:
+                fix = self._pose.solve(frame, best, handle, self._calib, attitude_doubt_rad=stand_rad)
+            except PoseError:
+                reason = attitude.refused if attitude is not None and attitude.off else "vo_attitude_off"
+                log.warning(LogEvent.FIX_ATTITUDE_REFUSED, frame=frame.seq, reason=reason)
+                return FixAttempt(
+                    fix, best.inlier_count, match.reprojection_residual_px, reason, attitude=attitude
+                )
+        fix = self._with_slope_doubt(fix)
         verdict = self._judge(frame, match, rerank_result, fix, prior_state)
         timings["integrity"] = (self._clock_ns() - t4) / 1e6
         return self._judged(frame, match, best, verdict, attitude)
+
+    def _stand_on_image_rad(self, fix: PoseFix, doubt_rad: float, attitude: AttitudeVerdict | None) -> float:
+        """What the attitude prior of ``fix`` (solved from points) allows the autopilot's tilt beyond its
+        sigma, rad: 0 while neither check shows the tilt off (``doubt_rad``: what they showed when the
+        attempt began; ``attitude``: the fixes' check after this one, None where it could not judge).
+        Else ``TILT_DOUBT_MARGIN`` x the larger of the tilt difference this fix's own image shows, the
+        error the fixes' check has shown, and ``pose.attitude_sigma_deg``: the fix stands on its image.
+        Not VO's error: a fix that measures its own tilt is the sharper witness of it (on a real PX4, VO's
+        ground tilt at a slow corner called the autopilot 16-25 deg off while the fixes, each measuring
+        1-2 deg, were refused for 24 s and the output withheld into a failsafe)."""
+        fixes_off = attitude is not None and attitude.off
+        if doubt_rad <= 0.0 and not fixes_off:
+            return 0.0
+        assert fix.image_tilt_off_cam_rad is not None
+        shown_deg = max(
+            math.degrees(math.hypot(*fix.image_tilt_off_cam_rad)),
+            (attitude.suspect_deg or 0.0) if attitude is not None and attitude.off else 0.0,
+            self._attitude.sigma_deg,
+        )
+        return math.radians(TILT_DOUBT_MARGIN * min(shown_deg, MAX_TILT_DOUBT_DEG))
 
     def _area_matched(
         self,

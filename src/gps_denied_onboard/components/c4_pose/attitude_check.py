@@ -125,6 +125,11 @@ class AttitudeCheck:
         #: While off, the upper bound on the bias from the newest verdict that had a window (deg).
         self._off_upper_deg = 0.0
 
+    @property
+    def sigma_deg(self) -> float:
+        """The autopilot's tilt sigma the check holds it to (``pose.attitude_sigma_deg``), deg."""
+        return self._sigma_deg
+
     def note(self, fix: PoseFix, footprint_m: float) -> AttitudeVerdict:
         """Add ``fix``'s image-only tilt and say whether the autopilot's attitude is off.
         ``footprint_m``: the ground the frame covers across, m (its fixes' errors are correlated).
