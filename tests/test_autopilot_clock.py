@@ -269,3 +269,18 @@ def test_an_autopilot_clock_whose_rate_wanders_is_followed_by_the_receive_envelo
     assert np.percentile(errors_us, 50) < 8_000 and np.percentile(errors_us, 95) < 20_000, np.percentile(
         errors_us, [50, 95, 100]
     )
+
+
+def test_a_fit_whose_residuals_share_their_error_counts_fewer_samples() -> None:
+    """An autopilot's attitude error wanders for seconds, so consecutive frames' residuals share it: 300
+    residuals with a lag-1 correlation of 0.9 are worth about 300 x 0.1 / 1.9 = 16 independent ones (the
+    fit's standard error grows by sqrt(300 / 16)); 300 independent ones are worth about 300."""
+    from gps_denied_onboard.clock import _effective_samples
+
+    rng = np.random.default_rng(8)
+    white = rng.normal(0.0, 0.01, (300, 2))
+    assert 240 < _effective_samples(white) <= 300
+    wander = np.zeros((300, 2))
+    for k in range(1, 300):
+        wander[k] = 0.9 * wander[k - 1] + math.sqrt(1 - 0.81) * rng.normal(0.0, 0.01, 2)
+    assert 8 < _effective_samples(wander) < 32

@@ -452,6 +452,22 @@ class AutopilotClock:
             return self._answers
 
 
+def _effective_samples(residual: np.ndarray) -> float:
+    """How many independent samples a fit's residuals (n, 2), in time order, are worth: ``n (1 - r) /
+    (1 + r)`` with ``r`` their lag-1 autocorrelation (0 to ``CAMERA_OFFSET_MAX_AUTOCORR``), at least 2.
+    An autopilot's attitude error wanders with its manoeuvres for seconds, so consecutive frames'
+    residuals share it; counted as independent, PX4 SITL's fits of an on-time camera stated 0.01-0.05 s
+    and 0.26 s was applied (the output then led the vehicle by as much: EKF2 p95 5 m)."""
+    n = residual.shape[0]
+    if n < 3:
+        return float(max(n, 1))
+    e = residual - residual.mean(axis=0)
+    denom = float(np.sum(e * e))
+    r = float(np.sum(e[1:] * e[:-1]) / denom) if denom > 0 else 0.0
+    r = min(max(r, 0.0), CAMERA_OFFSET_MAX_AUTOCORR)
+    return max(2.0, n * (1.0 - r) / (1.0 + r))
+
+
 def _offset_at(fit: tuple[float, float, float], now_usec: float) -> float:
     t_ref, offset, drift = fit
     return offset + drift * (now_usec - t_ref)
@@ -472,6 +488,8 @@ CAMERA_OFFSET_MIN_RATE_RAD_S: Final[float] = 0.035  # 2 deg/s
 #: With 8, a fit of 0.14 s (stated 0.018-0.019 s) was applied to an on-time camera over NAIP at 1200 m
 #: AGL, whose slow fixed-wing turns say little: output p95 7.7 m against 1.4 m.
 CAMERA_OFFSET_MIN_SAMPLES: Final[int] = 40
+#: The most lag-1 autocorrelation a fit's residuals are credited with (``_effective_samples``).
+CAMERA_OFFSET_MAX_AUTOCORR: Final[float] = 0.95
 CAMERA_OFFSET_MAX_SE_S: Final[float] = 0.02
 #: Candidate latenesses tried, s apart.
 CAMERA_OFFSET_GRID_S: Final[float] = 0.005
@@ -654,6 +672,8 @@ class CameraStampOffset:
             curvature = (costs[k - 1] + costs[k + 1] - 2 * costs[k]) / CAMERA_OFFSET_GRID_S**2
             if curvature > 0:
                 se = math.sqrt(2.0 * costs[k] / max(2 * n - 3, 1) / curvature)
+                residual = tilts - (down_at(np.full(n, taus[k])) - seen_by_ap) - biases[k]
+                se *= math.sqrt(n / _effective_samples(residual))
         elif (
             k == taus.size - 1
             and costs[k] < costs[k - 1] < costs[k - 2]
