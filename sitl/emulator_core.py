@@ -284,8 +284,14 @@ class UdpEmulator:
         """Seconds since boot."""
         return time.time() - self.boot_unix_s
 
+    def boot_s(self) -> float:
+        """The autopilot's own boot clock, s: what its messages and TIMESYNC answers are stamped with
+        (``now_s`` runs the physics). The host's rate here; an emulator whose autopilot's clock runs
+        otherwise says so by overriding it."""
+        return self.now_s()
+
     def _boot_ms(self) -> int:
-        return int(self.now_s() * 1000) & 0xFFFFFFFF
+        return int(self.boot_s() * 1000) & 0xFFFFFFFF
 
     def _event(self, kind: str, **data: Any) -> None:
         ev = {"t_unix_s": round(time.time(), 3), "kind": kind, **data}
