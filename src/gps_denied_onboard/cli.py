@@ -162,6 +162,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_cache_build(args: argparse.Namespace) -> int:
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache
+    from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec
     from gps_denied_onboard.components.c11_tile_download import TileDownloadError
 
     configure_logging("info", json=False)
@@ -181,6 +182,13 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
             return EXIT_CONFIG
         headers[name.strip()] = value.strip()
     try:
+        engine = EngineSpec(workers=args.workers, address=args.address)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    if args.dry_run:
+        return _cache_dry_run(args, bbox, engine)
+    try:
         manifest = build_cache(
             args.source,
             Path(args.out),
@@ -197,6 +205,7 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
                 "timeout_s": args.timeout,
                 "headers": headers,
             },
+            engine=engine,
         )
     except (CacheBuildError, TileDownloadError) as exc:
         _err(str(exc))
@@ -205,6 +214,34 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
     if args.no_fields:
         return EXIT_OK
     return _map_fields(Path(args.out), force=False, quiet=args.quiet)
+
+
+def _cache_dry_run(
+    args: argparse.Namespace, bbox: tuple[float, float, float, float] | None, engine: Any
+) -> int:
+    """``cache build --dry-run``: the tile count, each artifact's size and each stage's estimated time."""
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.dry_run import estimate_geotiff_build
+
+    if not Path(args.source).is_file():
+        _err(f"--dry-run estimates a GeoTIFF build; {args.source!r} is not a file")
+        return EXIT_CONFIG
+    try:
+        estimate = estimate_geotiff_build(
+            Path(args.source),
+            zoom=args.zoom,
+            bbox_lonlat=bbox,
+            tile_size_px=args.tile_size if args.tile_size is not None else 256,
+            engine=engine,
+            fields=not args.no_fields,
+        )
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    print(f"dry run: {args.source} -> {args.out} (nothing written)")
+    for line in estimate.lines():
+        print(line)
+    return EXIT_OK
 
 
 def _map_fields(cache_dir: Path, *, force: bool, quiet: bool) -> int:
@@ -475,6 +512,26 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="skip the orientation fields of the area correlation (gdnav cache fields adds them later)",
     )
+    build.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="GeoTIFF: shards run on a local Dask cluster of this many worker processes (default 1: in "
+        "this process, no cluster); the cache is the same bytes whatever the number",
+    )
+    build.add_argument(
+        "--address",
+        default=None,
+        metavar="tcp://HOST:PORT",
+        help="GeoTIFF: run the shards on this running Dask scheduler; every worker must read --source "
+        "at the same path",
+    )
+    build.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="GeoTIFF: print the tile count, each artifact's size and each stage's estimated time "
+        "(from small samples timed here), and build nothing",
+    )
     build.set_defaults(func=_cmd_cache_build)
     vpr = cache_sub.add_parser(
         "vpr",
@@ -516,9 +573,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     feats.add_argument("--config", required=True, type=Path, help="daemon profile naming the matcher")
     feats.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="override one setting")
-    feats.add_argument(
-        "--cache", default=None, help="cache directory (default: the profile's cache.dir)"
-    )
+    feats.add_argument("--cache", default=None, help="cache directory (default: the profile's cache.dir)")
     feats.add_argument(
         "--strategy",
         default=None,

@@ -39,7 +39,6 @@ not yet calibrated (``orientation_corr`` refuses both and says which).
 from __future__ import annotations
 
 import dataclasses
-import datetime as dt
 import math
 import time
 import zlib
@@ -67,6 +66,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     MapFieldsInfo,
 )
 from gps_denied_onboard.components.c10_cache_build.npy_stream import NpyStream
+from gps_denied_onboard.components.c10_cache_build.shards import build_timestamp_utc
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.helpers.orientation_field import (
     FIELD_VERSION,
@@ -229,7 +229,7 @@ def _write_fields(store: TileStore, cache_dir: Path, mosaic_sha: str) -> MapFiel
         mosaic_sha256=mosaic_sha,
         levels=levels,
         files=files,
-        stats={"created_utc": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")},
+        stats={"created_utc": build_timestamp_utc()},
     )
 
 
