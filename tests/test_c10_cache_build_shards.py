@@ -17,7 +17,12 @@ import rasterio
 from rasterio.transform import from_origin
 
 from gps_denied_onboard import cli
-from gps_denied_onboard.components.c10_cache_build import CacheManifest, CacheManifestError, geotiff
+from gps_denied_onboard.components.c10_cache_build import (
+    CacheManifest,
+    CacheManifestError,
+    geotiff,
+    map_fields,
+)
 from gps_denied_onboard.components.c10_cache_build.geotiff import WarpJob, build_cache_from_geotiff
 from gps_denied_onboard.components.c10_cache_build.shards import (
     JOURNAL_DIR_NAME,
@@ -74,15 +79,24 @@ def _assert_same_cache(a: Path, b: Path) -> None:
 
 @dataclass
 class _RunSpy:
-    """What ``run_shards`` was asked and did, seen from the build."""
+    """What ``run_shards`` was asked and did, and the engines the fields' bands ran on, seen from the
+    build."""
 
     calls: list[dict[str, Any]]
+    field_engines: list[tuple[str, int]]
 
 
 @pytest.fixture
 def run_spy(monkeypatch: pytest.MonkeyPatch) -> _RunSpy:
-    spy = _RunSpy(calls=[])
+    spy = _RunSpy(calls=[], field_engines=[])
     real = geotiff.run_shards
+    real_ordered = map_fields.run_ordered
+
+    def spying_ordered(engine, work, items):  # type: ignore[no-untyped-def]
+        spy.field_engines.append((engine.name, engine.workers))
+        return real_ordered(engine, work, items)
+
+    monkeypatch.setattr(map_fields, "run_ordered", spying_ordered)
 
     def spying(journal, shards, work, engine, **kwargs):  # type: ignore[no-untyped-def]
         run = real(journal, shards, work, engine, **kwargs)
@@ -105,8 +119,8 @@ def small_shards(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_cache_build_two_dask_workers_is_byte_identical_to_one_process(
     tmp_path: Path, small_shards: None, run_spy: _RunSpy
 ) -> None:
-    """``gdnav cache build --workers 2`` (a local Dask cluster) writes the same files, byte for byte and
-    the manifest included, as the default single-process build, orientation fields and all."""
+    """``gdnav cache build --workers 2`` (a local Dask cluster: the mosaic's shards and the fields' bands)
+    writes the same files, byte for byte and the manifest included, as the default single-process build."""
     src = _source(tmp_path / "src.tif")
     one, two = tmp_path / "one", tmp_path / "two"
     assert cli.main(["cache", "build", "--source", str(src), "--out", str(one), "--quiet"]) == 0
@@ -115,6 +129,7 @@ def test_cache_build_two_dask_workers_is_byte_identical_to_one_process(
         == 0
     )
     assert [(c["engine"], c["workers"]) for c in run_spy.calls] == [("serial", 1), ("dask", 2)]
+    assert run_spy.field_engines == [("serial", 1), ("dask", 2)]
     assert run_spy.calls[0]["shards"] >= 8 and run_spy.calls[1]["ran"] == run_spy.calls[1]["shards"]
     _assert_same_cache(one, two)
     manifest = CacheManifest.load(two)

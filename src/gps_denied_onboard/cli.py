@@ -161,9 +161,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_cache_build(args: argparse.Namespace) -> int:
-    from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache
-    from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec
-    from gps_denied_onboard.components.c11_tile_download import TileDownloadError
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec, open_engine
 
     configure_logging("info", json=False)
     bbox: tuple[float, float, float, float] | None = None
@@ -188,6 +187,27 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
     if args.dry_run:
         return _cache_dry_run(args, bbox, engine)
+    if engine.distributed and not Path(args.source).is_file():
+        _err("--workers and --address apply to a GeoTIFF source; XYZ tiles are built in this process")
+        return EXIT_CONFIG
+    # One engine for both stages (the mosaic's shards, the fields' bands): a cluster starts once.
+    try:
+        with open_engine(engine) as runner:
+            return _cache_build_stages(args, bbox, headers, runner)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+
+
+def _cache_build_stages(
+    args: argparse.Namespace,
+    bbox: tuple[float, float, float, float] | None,
+    headers: dict[str, str],
+    engine: Any,
+) -> int:
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache
+    from gps_denied_onboard.components.c11_tile_download import TileDownloadError
+
     try:
         manifest = build_cache(
             args.source,
@@ -213,7 +233,7 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
     print(f"cache: {args.out}: zoom {manifest.zoom}, {manifest.tile_count} tiles")
     if args.no_fields:
         return EXIT_OK
-    return _map_fields(Path(args.out), force=False, quiet=args.quiet)
+    return _map_fields(Path(args.out), force=False, quiet=args.quiet, engine=engine)
 
 
 def _cache_dry_run(
@@ -244,14 +264,14 @@ def _cache_dry_run(
     return EXIT_OK
 
 
-def _map_fields(cache_dir: Path, *, force: bool, quiet: bool) -> int:
+def _map_fields(cache_dir: Path, *, force: bool, quiet: bool, engine: Any = None) -> int:
     """Add the area correlation's orientation fields and their calibration (``c10_cache_build.map_fields``)
     and say what they are."""
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
     from gps_denied_onboard.components.c10_cache_build.map_fields import build_map_fields
 
     try:
-        result = build_map_fields(cache_dir, force=force, progress=not quiet)
+        result = build_map_fields(cache_dir, force=force, progress=not quiet, engine=engine)
     except CacheBuildError as exc:
         _err(str(exc))
         return EXIT_RESOURCE

@@ -235,6 +235,8 @@ class LogEvent:
     CACHE_UP_TO_DATE: Final = "c10.cache.up_to_date"
     #: The cache build's shards: on which engine, how many workers, how many shards and tiles are left.
     CACHE_BUILD_SHARDS: Final = "c10.cache.build_shards"
+    #: The shards are done: wall time, the driver's share writing them, tiles per second.
+    CACHE_BUILD_SHARDS_DONE: Final = "c10.cache.build_shards_done"
     #: An interrupted cache build found its journal: how many shards were done and are skipped.
     CACHE_BUILD_RESUMED: Final = "c10.cache.build_resumed"
     TILE_DOWNLOAD_STARTED: Final = "c11.download.started"

@@ -53,10 +53,11 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
 from gps_denied_onboard.components.c10_cache_build.shards import (
     EngineSpec,
     Shard,
+    ShardEngine,
     ShardJournal,
     ShardOutput,
     discard_journal,
-    open_engine,
+    engine_scope,
     run_shards,
     shards_of,
 )
@@ -99,7 +100,7 @@ def build_cache_from_geotiff(
     tile_size_px: int = 256,
     progress: bool = True,
     min_tile_valid_fraction: float = 0.5,
-    engine: EngineSpec | None = None,
+    engine: EngineSpec | ShardEngine | None = None,
 ) -> CacheManifest:
     """Build (or confirm up to date) a tile cache in ``out_dir`` from the GeoTIFF ``source``.
 
@@ -108,8 +109,9 @@ def build_cache_from_geotiff(
     it is intersected with the source footprint. Tiles with less than ``min_tile_valid_fraction`` valid
     pixels are map gaps and are not listed. When ``out_dir`` already holds a complete cache of the same
     source (sha256), zoom, area and tile size, nothing is rebuilt and its manifest is returned.
-    ``engine`` says where the shards run (``shards.EngineSpec``; None: in this process); the cache is
-    the same bytes whatever it says. An interrupted build into the same ``out_dir`` resumes.
+    ``engine`` says where the shards run (a ``shards.EngineSpec``, an engine already open, or None: in
+    this process); the cache is the same bytes whatever it says. An interrupted build into the same
+    ``out_dir`` resumes.
 
     Raises CacheBuildError for a missing/unreadable source, bad parameters, no overlap, or an empty result.
     """
@@ -151,7 +153,7 @@ def build_cache_from_geotiff(
             min_tile_valid_fraction,
             progress,
             t_start,
-            engine or EngineSpec(),
+            engine,
         )
 
 
@@ -626,7 +628,7 @@ def _build(
     min_tile_valid_fraction: float,
     progress: bool,
     t_start: float,
-    engine: EngineSpec,
+    engine: EngineSpec | ShardEngine | None,
 ) -> CacheManifest:
     ts = tile_size_px
     tr = plan.tile_range
@@ -642,7 +644,7 @@ def _build(
             journal = ShardJournal.start(out_dir, identity, mosaic_tmp, shape)
         else:
             (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
-        with open_engine(engine) as runner:
+        with engine_scope(engine) as runner:
             run = run_shards(
                 journal,
                 shards,

@@ -40,14 +40,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time
 import zlib
+from functools import partial
 from pathlib import Path
 from typing import Final
 
 import cv2
 import numpy as np
 import structlog
+from tqdm import tqdm
 
 from gps_denied_onboard.components.c3_matcher.area_search import (
     FieldWindowSource,
@@ -66,7 +69,13 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     MapFieldsInfo,
 )
 from gps_denied_onboard.components.c10_cache_build.npy_stream import NpyStream
-from gps_denied_onboard.components.c10_cache_build.shards import build_timestamp_utc
+from gps_denied_onboard.components.c10_cache_build.shards import (
+    EngineSpec,
+    ShardEngine,
+    build_timestamp_utc,
+    engine_scope,
+    run_ordered,
+)
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.helpers.orientation_field import (
     FIELD_VERSION,
@@ -110,9 +119,17 @@ class MapFieldsBuild:
     calibrated: bool
 
 
-def build_map_fields(cache_dir: Path, *, force: bool = False, progress: bool = True) -> MapFieldsBuild:
+def build_map_fields(
+    cache_dir: Path,
+    *,
+    force: bool = False,
+    progress: bool = True,
+    engine: EngineSpec | ShardEngine | None = None,
+) -> MapFieldsBuild:
     """Add (or confirm up to date) the orientation fields and their calibration in the cache at
-    ``cache_dir``. Raises ``CacheBuildError`` for a cache that does not verify or a write that fails."""
+    ``cache_dir``. The fields' bands run on ``engine`` (``shards``: None in this process); the bytes are
+    the same whatever it is. Raises ``CacheBuildError`` for a cache that does not verify or a write that
+    fails."""
     cache_dir = Path(cache_dir)
     try:
         store = TileStore.open(cache_dir, verify_hashes=True)
@@ -126,7 +143,7 @@ def build_map_fields(cache_dir: Path, *, force: bool = False, progress: bool = T
         base = dataclasses.replace(manifest, map_fields=None)
         try:
             base.save(cache_dir)
-            info = _write_fields(store, cache_dir, mosaic_sha)
+            info = _write_fields(store, cache_dir, mosaic_sha, engine, progress)
             manifest = dataclasses.replace(base, map_fields=info)
             manifest.save(cache_dir)
         except OSError as exc:
@@ -186,30 +203,58 @@ def level_fields(grey: np.ndarray, valid: np.ndarray) -> dict[int, np.ndarray]:
     return out
 
 
-def _write_fields(store: TileStore, cache_dir: Path, mosaic_sha: str) -> MapFieldsInfo:
+def band_fields(mosaic_path: str, rows_px: tuple[int, int]) -> dict[int, np.ndarray]:
+    """Mosaic rows ``rows_px`` = (r0, r1) of every level's field (level -> (rows, W_L, 2) int8), computed
+    over the band and its halo: the same bytes as over the whole map.
+
+    Runs in any process (a Dask worker of the build included): it reads the mosaic at ``mosaic_path``.
+    """
+    r0, r1 = rows_px
+    mosaic = np.load(mosaic_path, mmap_mode="r")
+    height = mosaic.shape[0]
+    # r0 is a multiple of 4 rows from the top, so every level's rows align with the whole map's.
+    a, b = max(0, r0 - HALO_ROWS), min(height, r1 + HALO_ROWS)
+    band = np.asarray(mosaic[a:b])
+    fields = level_fields(grey_of(band), np.asarray(band.any(axis=2), dtype=bool))
+    return {
+        level: np.ascontiguousarray(f[(r0 - a) >> (level - 1) : (r1 - a) >> (level - 1)])
+        for level, f in fields.items()
+    }
+
+
+def _write_fields(
+    store: TileStore,
+    cache_dir: Path,
+    mosaic_sha: str,
+    engine: EngineSpec | ShardEngine | None = None,
+    progress: bool = False,
+) -> MapFieldsInfo:
     mosaic = store.mosaic
     height, width = mosaic.shape[:2]
     cell1 = store.tile_size_px
     streams = {level: NpyStream(cache_dir / field_file_names(level)[0]) for level in LEVELS}
     crcs = {level: [] for level in LEVELS}  # type: dict[int, list[np.ndarray]]
     pending = {level: np.empty((0, width >> (level - 1), 2), np.int8) for level in LEVELS}
+    bands = [(r0, min(r0 + BAND_ROWS, height)) for r0 in range(0, height, BAND_ROWS)]
+    work = partial(band_fields, str(cache_dir / store.manifest.mosaic_name))
+    show = progress and sys.stderr.isatty()
     try:
-        for r0 in range(0, height, BAND_ROWS):
-            r1 = min(r0 + BAND_ROWS, height)
-            # A multiple of 4 rows from the top, so every level's rows align with the whole map's.
-            a, b = max(0, r0 - HALO_ROWS), min(height, r1 + HALO_ROWS)
-            band = np.asarray(mosaic[a:b])
-            fields = level_fields(grey_of(band), np.asarray(band.any(axis=2), dtype=bool))
-            for level, f in fields.items():
-                s = level - 1
-                rows = f[(r0 - a) >> s : (r0 - a + (r1 - r0)) >> s]
-                streams[level].append(rows)
-                # CRC per cell, over whole rows of cells as they complete.
-                cell = cell1 >> s
-                pending[level] = np.concatenate([pending[level], rows])
-                while pending[level].shape[0] >= cell or (r1 == height and pending[level].shape[0]):
-                    strip, pending[level] = pending[level][:cell], pending[level][cell:]
-                    crcs[level].append(_strip_crcs(strip, cell))
+        with (
+            engine_scope(engine) as runner,
+            tqdm(total=len(bands), unit="band", desc="orientation fields", disable=not show) as bar,
+        ):
+            # The bands are computed on the engine and streamed here in order.
+            for (_, r1), fields in zip(bands, run_ordered(runner, work, bands), strict=True):
+                bar.update(1)
+                for level, rows in fields.items():
+                    s = level - 1
+                    streams[level].append(rows)
+                    # CRC per cell, over whole rows of cells as they complete.
+                    cell = cell1 >> s
+                    pending[level] = np.concatenate([pending[level], rows])
+                    while pending[level].shape[0] >= cell or (r1 == height and pending[level].shape[0]):
+                        strip, pending[level] = pending[level][:cell], pending[level][cell:]
+                        crcs[level].append(_strip_crcs(strip, cell))
         files = {}
         levels = {}
         for level in LEVELS:

@@ -37,9 +37,10 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
+from functools import partial
 from itertools import islice
 from pathlib import Path
-from typing import Any, Final, Protocol
+from typing import Any, Final, Protocol, TypeVar
 
 import numpy as np
 import structlog
@@ -53,6 +54,9 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
 from gps_denied_onboard.constants import LogEvent
 
 _log = structlog.get_logger(__name__)
+
+_Item = TypeVar("_Item")
+_Result = TypeVar("_Result")
 
 #: The journal's sub-directory of the cache directory (removed when the build completes).
 JOURNAL_DIR_NAME: Final = "_build"
@@ -141,24 +145,25 @@ class EngineSpec:
 
 
 class ShardEngine(Protocol):
-    """Runs ``work`` over shards; yields each output as it completes (in any order)."""
+    """Runs ``work`` over items (shards of tiles, bands of the fields); yields each result as it completes,
+    in any order. ``work`` and the items must be picklable for an engine of other processes."""
 
     #: Workers the engine runs on (for the progress bar and the logs).
     workers: int
     name: str
 
-    def run(self, work: Callable[[Shard], ShardOutput], shards: Sequence[Shard]) -> Iterator[ShardOutput]: ...
+    def run(self, work: Callable[[_Item], _Result], items: Sequence[_Item]) -> Iterator[_Result]: ...
 
 
 class SerialEngine:
-    """Every shard in this process, in layout order (the default: no cluster)."""
+    """Every item in this process, in order (the default: no cluster)."""
 
     workers = 1
     name = "serial"
 
-    def run(self, work: Callable[[Shard], ShardOutput], shards: Sequence[Shard]) -> Iterator[ShardOutput]:
-        for shard in shards:
-            yield work(shard)
+    def run(self, work: Callable[[_Item], _Result], items: Sequence[_Item]) -> Iterator[_Result]:
+        for item in items:
+            yield work(item)
 
 
 class DaskEngine:
@@ -175,15 +180,15 @@ class DaskEngine:
         self._client = client
         self.workers = max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
 
-    def run(self, work: Callable[[Shard], ShardOutput], shards: Sequence[Shard]) -> Iterator[ShardOutput]:
+    def run(self, work: Callable[[_Item], _Result], items: Sequence[_Item]) -> Iterator[_Result]:
         from distributed import as_completed
 
-        todo = iter(shards)
+        todo = iter(items)
         window = max(2, _IN_FLIGHT_PER_WORKER * self.workers)
         futures = as_completed([self._client.submit(work, s, pure=False) for s in islice(todo, window)])
         try:
             for future in futures:
-                output: ShardOutput = future.result()
+                output: _Result = future.result()
                 future.release()
                 nxt = next(todo, None)
                 if nxt is not None:
@@ -193,6 +198,45 @@ class DaskEngine:
             # On an error or an interrupt nothing is left running on the cluster for this build.
             for future in list(futures.futures):
                 future.cancel()
+
+
+def run_ordered(
+    engine: ShardEngine, work: Callable[[_Item], _Result], items: Sequence[_Item]
+) -> Iterator[_Result]:
+    """``engine.run`` with the results yielded in the items' order (a stream that must be written in
+    order). Results that arrive early wait here; the engine's bounded window bounds them."""
+    pending: dict[int, _Result] = {}
+    following = 0
+    for index, result in engine.run(partial(_indexed, work), list(enumerate(items))):
+        pending[index] = result
+        while following in pending:
+            yield pending.pop(following)
+            following += 1
+
+
+def _indexed(work: Callable[[_Item], _Result], indexed_item: tuple[int, _Item]) -> tuple[int, _Result]:
+    index, item = indexed_item
+    return index, work(item)
+
+
+def is_distributed(engine: EngineSpec | ShardEngine | None) -> bool:
+    """Whether ``engine`` (a spec, an open engine, or None: in this process) runs work in other processes."""
+    if engine is None:
+        return False
+    if isinstance(engine, EngineSpec):
+        return engine.distributed
+    return not isinstance(engine, SerialEngine)
+
+
+@contextmanager
+def engine_scope(engine: EngineSpec | ShardEngine | None) -> Iterator[ShardEngine]:
+    """An engine for one stage: ``engine`` itself when it is open (its owner closes it), else the one
+    the spec names (None: in this process), opened and closed around the stage."""
+    if engine is None or isinstance(engine, EngineSpec):
+        with open_engine(engine or EngineSpec()) as opened:
+            yield opened
+    else:
+        yield engine
 
 
 @contextmanager
@@ -401,11 +445,14 @@ def _jsonable(value: Mapping[str, Any]) -> Any:
 @dataclass(frozen=True)
 class ShardRun:
     """What ``run_shards`` did: the valid fractions of the whole tile range, float32 (n_rows, n_cols);
-    the shards found done from an earlier run and the shards run now."""
+    the shards found done from an earlier run and the shards run now; the stage's wall time and, within
+    it, the time this process spent writing and flushing shards (the part no worker can take)."""
 
     fractions: np.ndarray
     resumed: int
     ran: int
+    seconds: float
+    write_s: float
 
 
 def run_shards(
@@ -446,15 +493,29 @@ def run_shards(
     show = progress and sys.stderr.isatty()
     t0 = time.monotonic()
     tiles = 0
+    write_s = 0.0
     with tqdm(
         total=len(shards), initial=len(done), unit="shard", desc=desc, disable=not show, smoothing=0.1
     ) as bar:
         for output in engine.run(work, todo):
             shard = by_index[output.index]
+            t_write = time.monotonic()
             journal.write(output, shard, tile_size_px)
+            write_s += time.monotonic() - t_write
             r, c = shard.row0_tiles, shard.col0_tiles
             fractions[r : r + shard.n_rows_tiles, c : c + shard.n_cols_tiles] = output.valid_fraction
             tiles += shard.n_tiles
             bar.update(1)
             bar.set_postfix(tiles_s=f"{tiles / max(time.monotonic() - t0, 1e-9):.0f}", refresh=False)
-    return ShardRun(fractions=fractions, resumed=len(done), ran=len(todo))
+    seconds = time.monotonic() - t0
+    _log.info(
+        LogEvent.CACHE_BUILD_SHARDS_DONE,
+        engine=engine.name,
+        workers=engine.workers,
+        shards_run=len(todo),
+        tiles_run=tiles,
+        seconds=round(seconds, 3),
+        write_s=round(write_s, 3),
+        tiles_per_s=round(tiles / seconds, 1) if seconds > 0 else None,
+    )
+    return ShardRun(fractions=fractions, resumed=len(done), ran=len(todo), seconds=seconds, write_s=write_s)

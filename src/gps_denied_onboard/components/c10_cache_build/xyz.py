@@ -46,7 +46,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     SourceInfo,
     TileRange,
 )
-from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec
+from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec, ShardEngine, is_distributed
 
 #: Sub-directory of a URL-built cache that keeps the downloaded tiles (for resume and rebuilds).
 DOWNLOAD_DIR_NAME = "_download"
@@ -186,7 +186,7 @@ def build_cache(
     min_tile_valid_fraction: float = 0.5,
     allow_failed_tiles: bool = False,
     downloader_options: Mapping[str, Any] | None = None,
-    engine: EngineSpec | None = None,
+    engine: EngineSpec | ShardEngine | None = None,
 ) -> CacheManifest:
     """Build a cache from whatever ``source`` names: an ``http(s)://`` URL template with ``{z}``,
     ``{x}``, ``{y}`` (needs ``zoom`` and ``bbox_lonlat``), a directory of XYZ tiles (needs ``zoom``
@@ -200,7 +200,7 @@ def build_cache(
     """
     text = str(source)
     path = Path(text)
-    if engine is not None and engine.distributed and not path.is_file():
+    if is_distributed(engine) and not path.is_file():
         raise CacheBuildError(
             "workers and a cluster address apply to a GeoTIFF source; XYZ tiles are built in this process",
             path=text,
