@@ -287,6 +287,24 @@ def _strip_crcs(strip: np.ndarray, cell: int) -> np.ndarray:
     )
 
 
+class _RowMajorTrue:
+    """The positions of a boolean image's true pixels in row-major order, as ``np.argwhere`` lists them,
+    without listing them: ``self[k]`` is ``tuple(np.argwhere(mask)[k])`` from per-row counts (argwhere
+    over a 4,000-tile map took 14 s and 3.6 GB)."""
+
+    def __init__(self, mask: np.ndarray) -> None:
+        self._mask = mask
+        self._ends = np.cumsum(np.count_nonzero(mask, axis=1))
+
+    def __len__(self) -> int:
+        return int(self._ends[-1]) if self._ends.size else 0
+
+    def __getitem__(self, k: int) -> tuple[int, int]:
+        row = int(np.searchsorted(self._ends, k, side="right"))
+        before = int(self._ends[row - 1]) if row else 0
+        return row, int(np.flatnonzero(self._mask[row])[k - before])
+
+
 def _degrade(grey: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """``grey`` as another camera on another day might give it: gain, gamma, a slight blur, noise."""
     gained = np.clip(grey * rng.uniform(0.85, 1.15), 0.0, 255.0)
@@ -308,10 +326,13 @@ def calibrate(store: TileStore, fields: FieldWindowSource, level: int) -> FieldC
     height, width = valid.shape[:2]
     tw, th = CALIBRATION_TEMPLATE_PX
     # A smaller template on a small map: at most a third of its valid extent.
-    ys, xs = np.nonzero(valid)
-    if ys.size == 0:
+    # The valid extent from the rows and columns that hold data (not every valid pixel's coordinates:
+    # those were 3.6 GB and 16 s on a 4,000-tile map).
+    rows_with_data, cols_with_data = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+    if rows_with_data.size == 0:
         return None
-    extent_x, extent_y = int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)
+    extent_x = int(cols_with_data[-1] - cols_with_data[0] + 1)
+    extent_y = int(rows_with_data[-1] - rows_with_data[0] + 1)
     scale = min(1.0, extent_x / (3.0 * tw), extent_y / (3.0 * th))
     tw, th = max(32, int(tw * scale)), max(24, int(th * scale))
     radius = min(CALIBRATION_RADIUS_PX, (min(extent_x, extent_y) - max(tw, th)) / 4.0)
@@ -321,8 +342,8 @@ def calibrate(store: TileStore, fields: FieldWindowSource, level: int) -> FieldC
     # Where a template lies wholly on map data: its top-left corner in the summed-area table.
     sat = cv2.integral(valid)
     ok = (sat[th:, tw:] - sat[:-th, tw:] - sat[th:, :-tw] + sat[:-th, :-tw]) == tw * th
-    corners = np.argwhere(ok[: height - th + 1, : width - tw + 1])
-    if corners.size == 0:
+    corners = _RowMajorTrue(ok[: height - th + 1, : width - tw + 1])
+    if len(corners) == 0:
         return None
     null_psr: list[float] = []
     null_peak: list[float] = []
@@ -332,7 +353,7 @@ def calibrate(store: TileStore, fields: FieldWindowSource, level: int) -> FieldC
     attempts = 0
     while len(texture) < CALIBRATION_SAMPLES and attempts < 4 * CALIBRATION_SAMPLES:
         attempts += 1
-        y0, x0 = (int(v) for v in corners[rng.integers(len(corners))])
+        y0, x0 = corners[int(rng.integers(len(corners)))]
         grey = grey_of(np.asarray(mosaic[y0 * f : (y0 + th) * f, x0 * f : (x0 + tw) * f]))
         cut = np.ones(grey.shape, bool)
         for _ in range(level - 1):
