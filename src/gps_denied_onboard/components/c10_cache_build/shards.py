@@ -251,6 +251,8 @@ def open_engine(spec: EngineSpec) -> Iterator[ShardEngine]:
         return
     try:
         from distributed import Client, LocalCluster
+
+        from gps_denied_onboard.components.c10_cache_build.dask_worker import OneNativeThread
     except ImportError as exc:
         raise CacheBuildError(
             "--workers > 1 and --address need Dask's distributed scheduler: pip install distributed"
@@ -259,6 +261,7 @@ def open_engine(spec: EngineSpec) -> Iterator[ShardEngine]:
         try:
             client = Client(spec.address, timeout=f"{CLUSTER_CONNECT_TIMEOUT_S}s")
             client.wait_for_workers(1, timeout=CLUSTER_CONNECT_TIMEOUT_S)
+            client.register_plugin(OneNativeThread())
         except (OSError, TimeoutError) as exc:
             raise CacheBuildError(f"no Dask cluster answered at {spec.address}: {exc}") from exc
         try:
@@ -278,6 +281,7 @@ def open_engine(spec: EngineSpec) -> Iterator[ShardEngine]:
     client = Client(cluster)
     try:
         client.wait_for_workers(spec.workers, timeout=CLUSTER_CONNECT_TIMEOUT_S)
+        client.register_plugin(OneNativeThread())
         yield DaskEngine(client)
     finally:
         client.close()
