@@ -5,8 +5,10 @@ reprojection, a real ``distributed.LocalCluster``."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -283,3 +285,34 @@ def test_the_daemon_and_the_default_build_never_import_dask() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
     )
     assert out.stdout.strip() == "[]", out.stdout
+
+
+@pytest.mark.slow
+def test_cache_build_killed_process_resumes_byte_identical(tmp_path: Path) -> None:
+    """A real ``gdnav cache build`` killed with SIGKILL once two shards are recorded, run again with the
+    same arguments, says it resumed, and ends byte-identical to a build never killed."""
+    src = _source(tmp_path / "src.tif", width_px=4000, height_px=3000)
+    out, clean = tmp_path / "killed", tmp_path / "clean"
+    env = {**os.environ, "SOURCE_DATE_EPOCH": EPOCH_S}
+
+    def build(dest: Path) -> list[str]:
+        return [sys.executable, "-m", "gps_denied_onboard.cli", "cache", "build", "--source", str(src),
+                "--out", str(dest), "--quiet", "--no-fields"]  # fmt: skip
+
+    proc = subprocess.Popen(build(out), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    journal = out / JOURNAL_DIR_NAME
+    try:
+        deadline = time.monotonic() + 120
+        while len(list(journal.glob("shard_*.npy"))) < 2:
+            assert proc.poll() is None, "the build ended before it could be killed: make the source larger"
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    assert not (out / "manifest.json").exists()
+    recorded = len(list(journal.glob("shard_*.npy")))
+    again = subprocess.run(build(out), env=env, capture_output=True, text=True, timeout=300, check=True)
+    assert f"shards_done={recorded}" in again.stdout + again.stderr
+    subprocess.run(build(clean), env=env, capture_output=True, timeout=300, check=True)
+    _assert_same_cache(clean, out)
