@@ -316,3 +316,21 @@ def test_cache_build_killed_process_resumes_byte_identical(tmp_path: Path) -> No
     assert f"shards_done={recorded}" in again.stdout + again.stderr
     subprocess.run(build(clean), env=env, capture_output=True, timeout=300, check=True)
     _assert_same_cache(clean, out)
+
+
+@pytest.mark.slow
+def test_cache_build_on_a_running_cluster_address_is_byte_identical(
+    tmp_path: Path, small_shards: None, run_spy: _RunSpy
+) -> None:
+    """``--address`` builds on a Dask scheduler already running (a local one here), with the same bytes
+    as the default build."""
+    from distributed import LocalCluster
+
+    src = _source(tmp_path / "src.tif")
+    one, remote = tmp_path / "one", tmp_path / "remote"
+    base = ["cache", "build", "--source", str(src), "--quiet", "--no-fields"]
+    assert cli.main([*base, "--out", str(one)]) == 0
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        assert cli.main([*base, "--out", str(remote), "--address", cluster.scheduler_address]) == 0
+    assert [(c["engine"], c["workers"]) for c in run_spy.calls] == [("serial", 1), ("dask", 1)]
+    _assert_same_cache(one, remote)
