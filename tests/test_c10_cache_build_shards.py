@@ -334,3 +334,32 @@ def test_cache_build_on_a_running_cluster_address_is_byte_identical(
         assert cli.main([*base, "--out", str(remote), "--address", cluster.scheduler_address]) == 0
     assert [(c["engine"], c["workers"]) for c in run_spy.calls] == [("serial", 1), ("dask", 1)]
     _assert_same_cache(one, remote)
+
+
+@pytest.mark.slow
+def test_vlad_descriptors_on_two_workers_are_byte_identical(
+    tmp_path: Path, small_shards: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``gdnav cache vpr`` with its tiles described in shards on two Dask workers writes the same
+    descriptors, index, metadata, vocabulary and manifest as in one process."""
+    from gps_denied_onboard.components.c2_vpr.vlad import VladParams
+    from gps_denied_onboard.components.c10_cache_build import vpr_index
+
+    engines: list[str] = []
+    real_ordered = vpr_index.run_ordered
+
+    def spying_ordered(engine, work, items):  # type: ignore[no-untyped-def]
+        engines.append(engine.name)
+        return real_ordered(engine, work, items)
+
+    monkeypatch.setattr(vpr_index, "run_ordered", spying_ordered)
+    src = _source(tmp_path / "src.tif")
+    one, two = tmp_path / "one", tmp_path / "two"
+    build_cache_from_geotiff(src, one, progress=False)
+    build_cache_from_geotiff(src, two, progress=False)
+    params = VladParams(n_clusters=16, pca_dim=0, train_samples=60)
+    vpr_index.build_vlad_index(one, params, progress=False)
+    vpr_index.build_vlad_index(two, params, progress=False, engine=EngineSpec(workers=2))
+    assert engines == ["dask"]
+    assert (two / "vpr_descriptors.npy").is_file()
+    _assert_same_cache(one, two)

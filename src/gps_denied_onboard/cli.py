@@ -303,9 +303,15 @@ def _cmd_cache_fields(args: argparse.Namespace) -> int:
 
 def _cmd_cache_vpr(args: argparse.Namespace) -> int:
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec
     from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
 
     configure_logging("info", json=False)
+    try:
+        engine = EngineSpec(workers=args.workers, address=args.address)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
     describer = None
     params = None
     if args.descriptor == "xfeat":
@@ -330,7 +336,12 @@ def _cmd_cache_vpr(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
     try:
         manifest = build_vlad_index(
-            Path(args.cache), params, describer=describer, force=args.force, progress=not args.quiet
+            Path(args.cache),
+            params,
+            describer=describer,
+            force=args.force,
+            progress=not args.quiet,
+            engine=engine,
         )
     except CacheBuildError as exc:
         _err(str(exc))
@@ -582,6 +593,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     vpr.add_argument("--force", action="store_true", help="rebuild even when the index is up to date")
     vpr.add_argument("--quiet", action="store_true", help="no progress bar")
+    vpr.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="describe the tiles in shards on a local Dask cluster of this many worker processes (default "
+        "1: in this process); the same bytes whatever the number; --descriptor rootsift only",
+    )
+    vpr.add_argument(
+        "--address",
+        default=None,
+        metavar="tcp://HOST:PORT",
+        help="describe the tiles on this running Dask scheduler (every worker reads the cache at the "
+        "same path)",
+    )
     vpr.set_defaults(func=_cmd_cache_vpr)
     feats = cache_sub.add_parser(
         "features",
