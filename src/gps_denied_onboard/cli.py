@@ -162,8 +162,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_cache_build(args: argparse.Namespace) -> int:
-    from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache
-    from gps_denied_onboard.components.c11_tile_download import TileDownloadError
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec, open_engine
 
     configure_logging("info", json=False)
     bbox: tuple[float, float, float, float] | None = None
@@ -182,6 +182,34 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
             return EXIT_CONFIG
         headers[name.strip()] = value.strip()
     try:
+        engine = EngineSpec(workers=args.workers, address=args.address)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    if args.dry_run:
+        return _cache_dry_run(args, bbox, engine)
+    if engine.distributed and not Path(args.source).is_file():
+        _err("--workers and --address apply to a GeoTIFF source; XYZ tiles are built in this process")
+        return EXIT_CONFIG
+    # One engine for both stages (the mosaic's shards, the fields' bands): a cluster starts once.
+    try:
+        with open_engine(engine) as runner:
+            return _cache_build_stages(args, bbox, headers, runner)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+
+
+def _cache_build_stages(
+    args: argparse.Namespace,
+    bbox: tuple[float, float, float, float] | None,
+    headers: dict[str, str],
+    engine: Any,
+) -> int:
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError, build_cache
+    from gps_denied_onboard.components.c11_tile_download import TileDownloadError
+
+    try:
         manifest = build_cache(
             args.source,
             Path(args.out),
@@ -198,12 +226,17 @@ def _cmd_cache_build(args: argparse.Namespace) -> int:
                 "timeout_s": args.timeout,
                 "headers": headers,
             },
+            engine=engine,
         )
     except (CacheBuildError, TileDownloadError) as exc:
         _err(str(exc))
         return EXIT_CONFIG
     print(f"cache: {args.out}: zoom {manifest.zoom}, {manifest.tile_count} tiles")
-    code = EXIT_OK if args.no_fields else _map_fields(Path(args.out), force=False, quiet=args.quiet)
+    code = (
+        EXIT_OK
+        if args.no_fields
+        else _map_fields(Path(args.out), force=False, quiet=args.quiet, engine=engine)
+    )
     if code != EXIT_OK:
         return code
     return _verify_built_cache(Path(args.out))
@@ -227,14 +260,42 @@ def _verify_built_cache(cache_dir: Path) -> int:
     return EXIT_OK
 
 
-def _map_fields(cache_dir: Path, *, force: bool, quiet: bool) -> int:
+def _cache_dry_run(
+    args: argparse.Namespace, bbox: tuple[float, float, float, float] | None, engine: Any
+) -> int:
+    """``cache build --dry-run``: the tile count, each artifact's size and each stage's estimated time."""
+    from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.dry_run import estimate_geotiff_build
+
+    if not Path(args.source).is_file():
+        _err(f"--dry-run estimates a GeoTIFF build; {args.source!r} is not a file")
+        return EXIT_CONFIG
+    try:
+        estimate = estimate_geotiff_build(
+            Path(args.source),
+            zoom=args.zoom,
+            bbox_lonlat=bbox,
+            tile_size_px=args.tile_size if args.tile_size is not None else 256,
+            engine=engine,
+            fields=not args.no_fields,
+        )
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
+    print(f"dry run: {args.source} -> {args.out} (nothing written)")
+    for line in estimate.lines():
+        print(line)
+    return EXIT_OK
+
+
+def _map_fields(cache_dir: Path, *, force: bool, quiet: bool, engine: Any = None) -> int:
     """Add the area correlation's orientation fields and their calibration (``c10_cache_build.map_fields``)
     and say what they are."""
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
     from gps_denied_onboard.components.c10_cache_build.map_fields import build_map_fields
 
     try:
-        result = build_map_fields(cache_dir, force=force, progress=not quiet)
+        result = build_map_fields(cache_dir, force=force, progress=not quiet, engine=engine)
     except CacheBuildError as exc:
         _err(str(exc))
         return EXIT_RESOURCE
@@ -266,9 +327,15 @@ def _cmd_cache_fields(args: argparse.Namespace) -> int:
 
 def _cmd_cache_vpr(args: argparse.Namespace) -> int:
     from gps_denied_onboard.components.c10_cache_build import CacheBuildError
+    from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec
     from gps_denied_onboard.components.c10_cache_build.vpr_index import build_vlad_index
 
     configure_logging("info", json=False)
+    try:
+        engine = EngineSpec(workers=args.workers, address=args.address)
+    except CacheBuildError as exc:
+        _err(str(exc))
+        return EXIT_CONFIG
     describer = None
     params = None
     if args.descriptor == "xfeat":
@@ -293,7 +360,12 @@ def _cmd_cache_vpr(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
     try:
         manifest = build_vlad_index(
-            Path(args.cache), params, describer=describer, force=args.force, progress=not args.quiet
+            Path(args.cache),
+            params,
+            describer=describer,
+            force=args.force,
+            progress=not args.quiet,
+            engine=engine,
         )
     except CacheBuildError as exc:
         _err(str(exc))
@@ -495,6 +567,26 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="skip the orientation fields of the area correlation (gdnav cache fields adds them later)",
     )
+    build.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="GeoTIFF: shards run on a local Dask cluster of this many worker processes (default 1: in "
+        "this process, no cluster); the cache is the same bytes whatever the number",
+    )
+    build.add_argument(
+        "--address",
+        default=None,
+        metavar="tcp://HOST:PORT",
+        help="GeoTIFF: run the shards on this running Dask scheduler; every worker must read --source "
+        "at the same path",
+    )
+    build.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="GeoTIFF: print the tile count, each artifact's size and each stage's estimated time "
+        "(from small samples timed here), and build nothing",
+    )
     build.set_defaults(func=_cmd_cache_build)
     vpr = cache_sub.add_parser(
         "vpr",
@@ -525,6 +617,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     vpr.add_argument("--force", action="store_true", help="rebuild even when the index is up to date")
     vpr.add_argument("--quiet", action="store_true", help="no progress bar")
+    vpr.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="describe the tiles in shards on a local Dask cluster of this many worker processes (default "
+        "1: in this process); the same bytes whatever the number; --descriptor rootsift only",
+    )
+    vpr.add_argument(
+        "--address",
+        default=None,
+        metavar="tcp://HOST:PORT",
+        help="describe the tiles on this running Dask scheduler (every worker reads the cache at the "
+        "same path)",
+    )
     vpr.set_defaults(func=_cmd_cache_vpr)
     feats = cache_sub.add_parser(
         "features",
@@ -536,9 +642,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     feats.add_argument("--config", required=True, type=Path, help="daemon profile naming the matcher")
     feats.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="override one setting")
-    feats.add_argument(
-        "--cache", default=None, help="cache directory (default: the profile's cache.dir)"
-    )
+    feats.add_argument("--cache", default=None, help="cache directory (default: the profile's cache.dir)")
     feats.add_argument(
         "--strategy",
         default=None,

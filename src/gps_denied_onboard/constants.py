@@ -235,6 +235,12 @@ class LogEvent:
     CACHE_OLD_FORMAT: Final = "c6.cache.old_format"
     CACHE_BUILT: Final = "c10.cache.built"
     CACHE_UP_TO_DATE: Final = "c10.cache.up_to_date"
+    #: The cache build's shards: on which engine, how many workers, how many shards and tiles are left.
+    CACHE_BUILD_SHARDS: Final = "c10.cache.build_shards"
+    #: The shards are done: wall time, the driver's share writing them, tiles per second.
+    CACHE_BUILD_SHARDS_DONE: Final = "c10.cache.build_shards_done"
+    #: An interrupted cache build found its journal: how many shards were done and are skipped.
+    CACHE_BUILD_RESUMED: Final = "c10.cache.build_resumed"
     TILE_DOWNLOAD_STARTED: Final = "c11.download.started"
     TILE_DOWNLOAD_RETRY: Final = "c11.download.retry"
     TILE_DOWNLOAD_RATE_LIMITED: Final = "c11.download.rate_limited"

@@ -6,6 +6,9 @@ integer range of XYZ tiles, written as a memory-mappable ``.npy`` (see ``manifes
 Validity comes from the source's GDAL mask (nodata value, alpha band or internal mask) and is warped as
 an alpha band, so bilinear resampling never blends nodata into the image. In the mosaic, nodata is an
 all-zero pixel.
+
+The per-tile work (read, warp, valid fractions) runs in shards on an engine (``shards``: in this process
+by default, or on a Dask cluster), and an interrupted build resumes where it stopped.
 """
 
 from __future__ import annotations
@@ -14,11 +17,12 @@ import dataclasses
 import math
 import os
 import shutil
-import sys
 import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rasterio
@@ -28,7 +32,6 @@ from rasterio.errors import RasterioError
 from rasterio.transform import Affine
 from rasterio.warp import reproject, transform, transform_bounds
 from rasterio.windows import Window, from_bounds
-from tqdm import tqdm
 
 from gps_denied_onboard.components.c6_tiles.georef import WebMercatorGrid
 from gps_denied_onboard.components.c6_tiles.types import TileId
@@ -50,6 +53,17 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     mosaic_name,
     sha256_file,
     write_json_atomic,
+)
+from gps_denied_onboard.components.c10_cache_build.shards import (
+    EngineSpec,
+    Shard,
+    ShardEngine,
+    ShardJournal,
+    ShardOutput,
+    discard_journal,
+    engine_scope,
+    run_shards,
+    shards_of,
 )
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.geo import haversine_m
@@ -90,6 +104,7 @@ def build_cache_from_geotiff(
     tile_size_px: int = 256,
     progress: bool = True,
     min_tile_valid_fraction: float = 0.5,
+    engine: EngineSpec | ShardEngine | None = None,
 ) -> CacheManifest:
     """Build (or confirm up to date) a tile cache in ``out_dir`` from the GeoTIFF ``source``.
 
@@ -98,6 +113,9 @@ def build_cache_from_geotiff(
     it is intersected with the source footprint. Tiles with less than ``min_tile_valid_fraction`` valid
     pixels are map gaps and are not listed. When ``out_dir`` already holds a complete cache of the same
     source (sha256), zoom, area and tile size, nothing is rebuilt and its manifest is returned.
+    ``engine`` says where the shards run (a ``shards.EngineSpec``, an engine already open, or None: in
+    this process); the cache is the same bytes whatever it says. An interrupted build into the same
+    ``out_dir`` resumes.
 
     Raises CacheBuildError for a missing/unreadable source, bad parameters, no overlap, or an empty result.
     """
@@ -128,9 +146,18 @@ def build_cache_from_geotiff(
             resampling=_RESAMPLING.name,
         )
         if existing is not None:
+            discard_journal(out_dir)
             return existing
         return _build(
-            dataset, source_info, plan, out_dir, tile_size_px, min_tile_valid_fraction, progress, t_start
+            dataset,
+            source_info,
+            plan,
+            out_dir,
+            tile_size_px,
+            min_tile_valid_fraction,
+            progress,
+            t_start,
+            engine,
         )
 
 
@@ -463,11 +490,13 @@ def finalize_cache(
     min_tile_valid_fraction: float,
     resampling: str,
     t_start: float,
+    created_utc: str | None = None,
 ) -> CacheManifest:
     """Publish a filled mosaic: tile list, valid fractions, the cells' CRC table (``cell_crc``), artifact
     hashes and, last, the manifest.
 
     ``fractions`` is float32 (n_rows, n_cols): the valid-pixel fraction of every tile of ``tile_range``.
+    ``created_utc`` is the manifest's time stamp (None: now).
     Raises CacheBuildError when no tile reaches ``min_tile_valid_fraction`` (the temporary mosaic is
     removed) or on an I/O error.
     """
@@ -517,7 +546,7 @@ def finalize_cache(
         }
         manifest = CacheManifest(
             format_version=CACHE_FORMAT_VERSION,
-            created_utc=datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+            created_utc=created_utc or datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
             source=source_info,
             zoom=zoom,
             tile_size_px=ts,
@@ -548,6 +577,87 @@ def finalize_cache(
     return manifest
 
 
+@dataclass(frozen=True)
+class WarpJob:
+    """What a worker needs to warp any shard of one build (picklable, so it travels to Dask workers).
+
+    ``source_path``: the GeoTIFF, a path every worker can open. ``bands`` / ``lut``: ``_band_plan``.
+    ``origin_x_m`` / ``origin_y_m``: Web-Mercator metres of the tile range's north-west corner;
+    ``res_m_px``: Mercator metres per mosaic px; ``decimation``: the source read's box-filter factor.
+    """
+
+    source_path: str
+    bands: tuple[int, ...]
+    lut: np.ndarray | None
+    origin_x_m: float
+    origin_y_m: float
+    res_m_px: float
+    tile_size_px: int
+    decimation: int
+
+
+def warp_shard(job: WarpJob, shard: Shard) -> ShardOutput:
+    """Warp the source onto one shard's block of tiles: its pixels and its tiles' valid fractions.
+
+    Runs in any process (a Dask worker included): it opens the source itself and writes nothing.
+    """
+    ts = job.tile_size_px
+    r0, c0 = shard.row0_tiles * ts, shard.col0_tiles * ts
+    res = job.res_m_px
+    dst_transform = Affine(res, 0.0, job.origin_x_m + c0 * res, 0.0, -res, job.origin_y_m - r0 * res)
+    shape = (shard.n_rows_tiles * ts, shard.n_cols_tiles * ts)
+    with rasterio.open(job.source_path) as dataset:
+        warped = _warp_block(dataset, job.bands, job.lut, dst_transform, shape, job.decimation)
+    if warped is None:
+        return ShardOutput(
+            shard.index, None, np.zeros((shard.n_rows_tiles, shard.n_cols_tiles), dtype=np.float32)
+        )
+    bgr, valid = warped
+    fractions = valid.reshape(shard.n_rows_tiles, ts, shard.n_cols_tiles, ts).mean(axis=(1, 3))
+    return ShardOutput(shard.index, bgr, fractions.astype(np.float32))
+
+
+def warp_job(dataset: rasterio.io.DatasetReader, source_path: str, plan: _Plan, tile_size_px: int) -> WarpJob:
+    """The ``WarpJob`` of building ``plan`` from ``dataset`` (opened from ``source_path``)."""
+    ts = tile_size_px
+    tr = plan.tile_range
+    grid = WebMercatorGrid(plan.zoom, ts)
+    bands, lut = _band_plan(dataset)
+    decimation = max(
+        1, int(grid.gsd_m_px((plan.bbox_lonlat[1] + plan.bbox_lonlat[3]) / 2) / plan.source_gsd_m_px)
+    )
+    origin_x, origin_y = grid.px_to_merc(np.array([tr.x0 * ts, tr.y0 * ts], dtype=np.float64))
+    return WarpJob(
+        source_path=source_path,
+        bands=bands,
+        lut=lut,
+        origin_x_m=float(origin_x),
+        origin_y_m=float(origin_y),
+        res_m_px=float(grid.merc_m_per_px),
+        tile_size_px=ts,
+        decimation=decimation,
+    )
+
+
+def build_identity(
+    source_info: SourceInfo, plan: _Plan, tile_size_px: int, job: WarpJob, shards: list[Shard]
+) -> dict[str, Any]:
+    """Everything the mosaic's bytes depend on: the journal of a build of another identity is not resumed."""
+    return {
+        "format_version": CACHE_FORMAT_VERSION,
+        "source_sha256": source_info.sha256,
+        "zoom": plan.zoom,
+        "tile_size_px": tile_size_px,
+        "tile_range": vars(plan.tile_range),
+        "bbox_lonlat": list(plan.bbox_lonlat),
+        "resampling": _RESAMPLING.name,
+        "alpha_valid_min": _ALPHA_VALID_MIN,
+        "decimation": job.decimation,
+        "bands": list(job.bands),
+        "shards": [[s.row0_tiles, s.col0_tiles, s.n_rows_tiles, s.n_cols_tiles] for s in shards],
+    }
+
+
 def _build(
     dataset: rasterio.io.DatasetReader,
     source_info: SourceInfo,
@@ -557,47 +667,39 @@ def _build(
     min_tile_valid_fraction: float,
     progress: bool,
     t_start: float,
+    engine: EngineSpec | ShardEngine | None,
 ) -> CacheManifest:
     ts = tile_size_px
     tr = plan.tile_range
-    grid = WebMercatorGrid(plan.zoom, ts)
     shape = (tr.n_rows * ts, tr.n_cols * ts, 3)
-    mosaic_tmp = prepare_cache_dir(out_dir, zoom=plan.zoom, mosaic_shape=shape)
-
-    bands, lut = _band_plan(dataset)
-    decimation = max(
-        1, int(grid.gsd_m_px((plan.bbox_lonlat[1] + plan.bbox_lonlat[3]) / 2) / plan.source_gsd_m_px)
-    )
-    origin_x, origin_y = grid.px_to_merc(np.array([tr.x0 * ts, tr.y0 * ts], dtype=np.float64))
-    res = grid.merc_m_per_px
-    fractions = np.zeros((tr.n_rows, tr.n_cols), dtype=np.float32)
-    blocks = _blocks(tr, ts)
-    n_tiles = tr.n_rows * tr.n_cols
-    show = progress and sys.stderr.isatty()
+    job = warp_job(dataset, source_info.path, plan, ts)
+    shards = shards_of(_blocks(tr, ts))
+    identity = build_identity(source_info, plan, ts, job, shards)
+    mosaic_tmp = out_dir / (mosaic_name(plan.zoom) + ".tmp")
+    journal = ShardJournal.resume(out_dir, identity, mosaic_tmp, shape)
     try:
-        mosaic = np.lib.format.open_memmap(mosaic_tmp, mode="w+", dtype=np.uint8, shape=shape)
-        with tqdm(total=n_tiles, unit="tile", desc=f"cache z{plan.zoom}", disable=not show) as bar:
-            for brow, bcol, nrows, ncols in blocks:
-                r0, c0 = brow * ts, bcol * ts
-                dst_transform = Affine(
-                    res, 0.0, float(origin_x) + c0 * res, 0.0, -res, float(origin_y) - r0 * res
-                )
-                warped = _warp_block(dataset, bands, lut, dst_transform, (nrows * ts, ncols * ts), decimation)
-                if warped is not None:
-                    bgr, valid = warped
-                    mosaic[r0 : r0 + nrows * ts, c0 : c0 + ncols * ts] = bgr
-                    fractions[brow : brow + nrows, bcol : bcol + ncols] = valid.reshape(
-                        nrows, ts, ncols, ts
-                    ).mean(axis=(1, 3))
-                bar.update(nrows * ncols)
-        mosaic.flush()
-        del mosaic
+        if journal is None:
+            prepare_cache_dir(out_dir, zoom=plan.zoom, mosaic_shape=shape)
+            journal = ShardJournal.start(out_dir, identity, mosaic_tmp, shape)
+        else:
+            (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
+        with engine_scope(engine) as runner:
+            run = run_shards(
+                journal,
+                shards,
+                partial(warp_shard, job),
+                runner,
+                tile_range=tr,
+                tile_size_px=ts,
+                progress=progress,
+                desc=f"cache z{plan.zoom}",
+            )
     except (RasterioError, OSError) as exc:
         raise CacheBuildError(f"reprojection failed: {exc}", path=source_info.path) from exc
-    return finalize_cache(
+    manifest = finalize_cache(
         out_dir,
         mosaic_tmp=mosaic_tmp,
-        fractions=fractions,
+        fractions=run.fractions,
         source_info=source_info,
         zoom=plan.zoom,
         tile_size_px=ts,
@@ -606,4 +708,7 @@ def _build(
         min_tile_valid_fraction=min_tile_valid_fraction,
         resampling=_RESAMPLING.name,
         t_start=t_start,
+        created_utc=journal.created_utc,
     )
+    journal.remove()
+    return manifest

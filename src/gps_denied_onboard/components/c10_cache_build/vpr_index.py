@@ -12,6 +12,11 @@ weights-free ``vlad``, the XFeat extractor's ONNX file for ``vlad_xfeat``, the O
 model) and ``artifacts`` (size + sha256 of each file), so the daemon refuses a cache whose descriptors
 come from another backbone or model, and C6's hash gate covers the index.
 
+Sharding: with an engine of other processes (``shards``: ``--workers`` / ``--address``), the VLAD
+descriptors of weights-free ``vlad`` are computed in shards of ``VPR_SHARD_TILES`` consecutive tiles by
+``describe_tile_range``, which rebuilds the encoder from the vocabulary file, and gathered in tile order:
+the same bytes as in one process. The vocabulary and the index are made in this process.
+
 Crash safety: the manifest is first rewritten *without* VPR artifacts (backbone ``geo_prior``), then the
 files are written (temporary name + fsync + rename), then the manifest with them is written last. A run
 interrupted anywhere leaves a cache that verifies; re-running finishes the job. Idempotent: when the
@@ -22,6 +27,7 @@ the same tile list, nothing is recomputed.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import sys
 import time
@@ -45,6 +51,7 @@ from gps_denied_onboard.components.c2_vpr.vlad import (
     VladEncoder,
     VladError,
     VladParams,
+    VladVocabulary,
     train_vocabulary,
 )
 from gps_denied_onboard.components.c6_tiles.descriptor_index import DescriptorIndex
@@ -61,6 +68,13 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     sha256_file,
     write_json_atomic,
 )
+from gps_denied_onboard.components.c10_cache_build.shards import (
+    EngineSpec,
+    ShardEngine,
+    engine_scope,
+    is_distributed,
+    run_ordered,
+)
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.helpers import bounded_json
 
@@ -71,6 +85,8 @@ VPR_ARTIFACT_NAMES: Final[frozenset[str]] = frozenset(
     {VPR_DESCRIPTORS_NAME, VPR_INDEX_NAME, VPR_META_NAME, VLAD_VOCABULARY_NAME}
 )
 _NO_VPR = VprInfo(backbone="geo_prior", model_sha256=None)
+#: Tiles a VPR shard describes (about the mosaic's shard: 64 tiles).
+VPR_SHARD_TILES: Final = 64
 
 
 def build_vlad_index(
@@ -80,14 +96,23 @@ def build_vlad_index(
     describer: LocalDescriber | None = None,
     force: bool = False,
     progress: bool = True,
+    engine: EngineSpec | ShardEngine | None = None,
 ) -> CacheManifest:
     """Train a VLAD vocabulary on the cache's own mosaic, describe every tile, build the HNSW index.
 
     ``describer`` gives the local descriptors ``params.descriptor`` names (default: dense RootSIFT,
     strategy ``vlad``; an ``XFeatDescriber`` for ``vlad_xfeat``, whose model sha256 the manifest then
-    records). Returns the updated manifest. Raises ``CacheBuildError`` for an unusable cache or map, or a
-    describer that does not give ``params.descriptor``.
+    records). ``engine`` (``shards``) describes the tiles in shards on other processes; only the default
+    describer can be rebuilt there. Returns the updated manifest. Raises ``CacheBuildError`` for an
+    unusable cache or map, a describer that does not give ``params.descriptor``, or a describer given
+    with an engine of other processes.
     """
+    if describer is not None and is_distributed(engine):
+        raise CacheBuildError(
+            "VLAD descriptors run on workers with the default dense RootSIFT only; "
+            "a learned describer is built in this process (drop --workers/--address)",
+            path=str(cache_dir),
+        )
     params = params or VladParams()
     cache_dir = Path(cache_dir)
     wanted: dict[str, Any] = {
@@ -112,7 +137,8 @@ def build_vlad_index(
     except OSError as exc:
         raise CacheBuildError(f"cannot write the VLAD vocabulary: {exc}", path=str(vocab_path)) from exc
     train_s = time.monotonic() - t0
-    encoder = VladEncoder(vocab, model_sha256=sha256_file(vocab_path), describer=describer)
+    vocab_sha = sha256_file(vocab_path)
+    encoder = VladEncoder(vocab, model_sha256=vocab_sha, describer=describer)
     return _describe_and_index(
         store,
         encoder,
@@ -122,6 +148,8 @@ def build_vlad_index(
         progress=progress,
         t_start=t0,
         extra_timing={"vocabulary_s": round(train_s, 2)},
+        engine=engine,
+        vocab_sha256=vocab_sha,
     )
 
 
@@ -230,16 +258,21 @@ def _describe_and_index(
     progress: bool,
     t_start: float,
     extra_timing: dict[str, float],
+    engine: EngineSpec | ShardEngine | None = None,
+    vocab_sha256: str | None = None,
 ) -> CacheManifest:
     cache_dir = store.cache_dir
     n = len(store)
     descriptors = np.empty((n, encoder.dim), dtype=np.float32)
     t_desc = time.monotonic()
     show = progress and sys.stderr.isatty()
-    for i, tile_id in enumerate(
-        tqdm(store.tile_ids, unit="tile", desc=f"vpr {encoder.label}", disable=not show)
-    ):
-        descriptors[i] = encoder.embed_image(np.asarray(store.chip(tile_id, chip_size_px).pixels()))
+    if is_distributed(engine) and vocab_sha256 is not None:
+        _describe_in_shards(store, descriptors, chip_size_px, vocab_sha256, engine, show, encoder.label)
+    else:
+        for i, tile_id in enumerate(
+            tqdm(store.tile_ids, unit="tile", desc=f"vpr {encoder.label}", disable=not show)
+        ):
+            descriptors[i] = encoder.embed_image(np.asarray(store.chip(tile_id, chip_size_px).pixels()))
     describe_s = time.monotonic() - t_desc
     if not np.isfinite(descriptors).all():
         raise CacheBuildError(
@@ -287,6 +320,54 @@ def _describe_and_index(
         **extra_timing,
     )
     return updated
+
+
+def _describe_in_shards(
+    store: TileStore,
+    descriptors: np.ndarray,
+    chip_size_px: int,
+    vocab_sha256: str,
+    engine: EngineSpec | ShardEngine | None,
+    show: bool,
+    label: str,
+) -> None:
+    """Fill ``descriptors`` (N, D) float32 in tile order, shard by shard, on ``engine``."""
+    n = len(store)
+    ranges = [(i0, min(i0 + VPR_SHARD_TILES, n)) for i0 in range(0, n, VPR_SHARD_TILES)]
+    work = functools.partial(describe_tile_range, str(store.cache_dir), vocab_sha256, chip_size_px)
+    with (
+        engine_scope(engine) as runner,
+        tqdm(total=len(ranges), unit="shard", desc=f"vpr {label}", disable=not show) as bar,
+    ):
+        for (i0, i1), block in zip(ranges, run_ordered(runner, work, ranges), strict=True):
+            descriptors[i0:i1] = block
+            bar.update(1)
+
+
+def describe_tile_range(
+    cache_dir: str, vocab_sha256: str, chip_size_px: int, tile_range: tuple[int, int]
+) -> np.ndarray:
+    """The VLAD descriptors, float32 (i1 - i0, D), of tiles ``i0..i1`` of the cache's tile list, with the
+    default describer and the cache's vocabulary file (whose sha256 names the encoder a worker keeps).
+
+    Runs in any process (a Dask worker included): it opens the cache and the vocabulary itself.
+    """
+    store, encoder = _worker_encoder(cache_dir, vocab_sha256)
+    i0, i1 = tile_range
+    return np.stack(
+        [
+            encoder.embed_image(np.asarray(store.chip(tile_id, chip_size_px).pixels()))
+            for tile_id in store.tile_ids[i0:i1]
+        ]
+    ).astype(np.float32, copy=False)
+
+
+@functools.lru_cache(maxsize=2)
+def _worker_encoder(cache_dir: str, vocab_sha256: str) -> tuple[TileStore, VladEncoder]:
+    """This process's store and encoder for one build (the driver verified the cache's hashes)."""
+    store = TileStore.open(Path(cache_dir), Verification.LIGHT)
+    vocab = VladVocabulary.load(Path(cache_dir) / VLAD_VOCABULARY_NAME)
+    return store, VladEncoder(vocab, model_sha256=vocab_sha256)
 
 
 def _save_npy_atomic(path: Path, array: np.ndarray) -> None:

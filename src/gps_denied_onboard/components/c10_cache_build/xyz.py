@@ -46,6 +46,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     SourceInfo,
     TileRange,
 )
+from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec, ShardEngine, is_distributed
 
 #: Sub-directory of a URL-built cache that keeps the downloaded tiles (for resume and rebuilds).
 DOWNLOAD_DIR_NAME = "_download"
@@ -185,16 +186,25 @@ def build_cache(
     min_tile_valid_fraction: float = 0.5,
     allow_failed_tiles: bool = False,
     downloader_options: Mapping[str, Any] | None = None,
+    engine: EngineSpec | ShardEngine | None = None,
 ) -> CacheManifest:
     """Build a cache from whatever ``source`` names: an ``http(s)://`` URL template with ``{z}``,
     ``{x}``, ``{y}`` (needs ``zoom`` and ``bbox_lonlat``), a directory of XYZ tiles (needs ``zoom``
     unless it holds a single zoom level), or a GeoTIFF file (``zoom`` None: matched to its GSD;
     ``tile_size_px`` None: 256). ``tms`` applies to a directory (a TMS server uses ``{-y}`` in its
     template); ``allow_failed_tiles`` and ``downloader_options`` (``TileDownloader`` keywords) to a URL.
+    ``engine`` (where the shards run, ``shards.EngineSpec``) applies to a GeoTIFF; the other sources are
+    built in this process.
 
     Raises CacheBuildError (or TileDownloadError for a URL) naming what is wrong.
     """
     text = str(source)
+    path = Path(text)
+    if is_distributed(engine) and not path.is_file():
+        raise CacheBuildError(
+            "workers and a cluster address apply to a GeoTIFF source; XYZ tiles are built in this process",
+            path=text,
+        )
     if text.lower().startswith(("http://", "https://")):
         if zoom is None:
             raise CacheBuildError("a tile server source needs a zoom", path=text)
@@ -213,7 +223,6 @@ def build_cache(
         )
     if "://" in text:
         raise CacheBuildError("unsupported URL scheme, expected http:// or https://", path=text)
-    path = Path(text)
     if path.is_dir():
         return build_cache_from_xyz_dir(
             path,
@@ -234,6 +243,7 @@ def build_cache(
             tile_size_px=tile_size_px if tile_size_px is not None else 256,
             progress=progress,
             min_tile_valid_fraction=min_tile_valid_fraction,
+            engine=engine,
         )
     raise CacheBuildError(
         "source not found: expected a GeoTIFF file, a directory of {z}/{x}/{y} tiles or an "
