@@ -10,12 +10,13 @@ Every stage's failure has one meaning for the estimator:
 - pose rejected (degenerate, implausible) → no fix;
 - the autopilot's tilt shown off by the image-only tilts of the recent fixes, or by the ground tilt VO
   sees between frames (``c1_vio/ground_tilt.py``, at the camera rate; ``c4_pose/attitude_check.py``):
-  a fix solved from points is solved again with its attitude prior widened by the tilt error shown
-  (it then leans on the image's own tilt, and states what it may carry); a fix that measured no tilt
-  of its own (an area alignment) is refused (``attitude_off``, ``vo_attitude_off``: wherever VO has
-  shown it, however late the fix arrives), and so is a fix whose tilt jumped from the recent ones
-  (``attitude_jump``); when a check first shows a tilt error (or a larger one) the estimate states
-  what the fixes and VO fused before may carry from it, and while either shows one the IMU is left out;
+  a fix solved from points stands on its own image (``_stand_on_image_rad``: its attitude prior allows
+  what its image shows, and it states what a slope as steep would make of it); a fix that leaned on the
+  autopilot's tilt (no tilt of its own, an area alignment; or solved before any check spoke) is refused
+  (``attitude_off``, ``vo_attitude_off``: wherever VO has shown it, however late the fix arrives), and
+  so is a fix whose tilt jumped from the recent ones (``attitude_jump``); when a check first shows a
+  tilt error (or a larger one) the estimate states what the fixes and VO fused before may carry from
+  it, and while either shows one the IMU is left out;
 - fix refused by the integrity rule (weak evidence, ambiguous candidates, disagrees with the prior; see
   ``c4_pose/integrity.py``) → no fix; a fix it passes states a covariance that reflects its evidence,
   scaled by how consistent the recent fixes were with each other through VO (``c4_pose/consistency.py``);
