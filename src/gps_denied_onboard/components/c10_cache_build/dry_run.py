@@ -30,16 +30,14 @@ from pathlib import Path
 from typing import Final
 
 import numpy as np
-import rasterio
-from rasterio.errors import RasterioError
 
 from gps_denied_onboard.components.c6_tiles.georef import WebMercatorGrid
 from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.components.c10_cache_build.geotiff import (
     _blocks,
-    _check_dataset,
     _plan,
     check_build_params,
+    open_source,
     warp_job,
     warp_shard,
 )
@@ -47,7 +45,6 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     MANIFEST_NAME,
     TILE_VALID_FRACTION_NAME,
     TILES_NAME,
-    CacheBuildError,
     mosaic_name,
 )
 from gps_denied_onboard.components.c10_cache_build.shards import EngineSpec, ShardOutput, shards_of
@@ -126,14 +123,7 @@ def estimate_geotiff_build(
     engine = engine or EngineSpec()
     source = Path(source)
     check_build_params(zoom, bbox_lonlat, tile_size_px, 0.5)
-    if not source.is_file():
-        raise CacheBuildError("source GeoTIFF not found", path=str(source))
-    try:
-        dataset = rasterio.open(source)
-    except RasterioError as exc:
-        raise CacheBuildError(f"not a raster file rasterio can read: {exc}", path=str(source)) from exc
-    with dataset:
-        _check_dataset(dataset, source)
+    with open_source(source) as dataset:
         plan = _plan(dataset, zoom, bbox_lonlat, tile_size_px, source)
         job = warp_job(dataset, str(source.resolve()), plan, tile_size_px)
     ts = tile_size_px

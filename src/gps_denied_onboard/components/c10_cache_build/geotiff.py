@@ -123,14 +123,7 @@ def build_cache_from_geotiff(
     source = Path(source)
     out_dir = Path(out_dir)
     check_build_params(zoom, bbox_lonlat, tile_size_px, min_tile_valid_fraction)
-    if not source.is_file():
-        raise CacheBuildError("source GeoTIFF not found", path=str(source))
-    try:
-        dataset = rasterio.open(source)
-    except RasterioError as exc:
-        raise CacheBuildError(f"not a raster file rasterio can read: {exc}", path=str(source)) from exc
-    with dataset:
-        _check_dataset(dataset, source)
+    with open_source(source) as dataset:
         plan = _plan(dataset, zoom, bbox_lonlat, tile_size_px, source)
         source_info = SourceInfo(
             kind="geotiff", path=str(source.resolve()), sha256=sha256_file(source), crs=str(dataset.crs)
@@ -197,6 +190,23 @@ def check_build_params(
         if not (west < east and south < north):
             # Antimeridian-crossing boxes would need two mosaics; not supported.
             raise CacheBuildError(f"bbox_lonlat must satisfy W < E and S < N, got {bbox_lonlat!r}")
+
+
+def open_source(source: Path) -> Any:
+    """The source GeoTIFF opened and checked (``_check_dataset``), for a ``with`` block; CacheBuildError
+    naming the file when it is missing, unreadable or unusable."""
+    if not source.is_file():
+        raise CacheBuildError("source GeoTIFF not found", path=str(source))
+    try:
+        dataset = rasterio.open(source)
+    except RasterioError as exc:
+        raise CacheBuildError(f"not a raster file rasterio can read: {exc}", path=str(source)) from exc
+    try:
+        _check_dataset(dataset, source)
+    except BaseException:
+        dataset.close()
+        raise
+    return dataset
 
 
 def _check_dataset(dataset: rasterio.io.DatasetReader, source: Path) -> None:

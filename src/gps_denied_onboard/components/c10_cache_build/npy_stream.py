@@ -63,3 +63,13 @@ class NpyStream:
             self._raw.close()
             self._raw = None
         self._raw_path.unlink(missing_ok=True)
+
+
+def save_npy_atomic(path: Path, array: np.ndarray) -> None:
+    """``array`` to ``path`` as ``.npy``, crash-safely: written to ``<name>.tmp``, fsynced, renamed."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.save(fh, array)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)

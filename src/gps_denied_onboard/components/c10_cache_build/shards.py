@@ -51,6 +51,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     TileRange,
     write_json_atomic,
 )
+from gps_denied_onboard.components.c10_cache_build.npy_stream import save_npy_atomic
 from gps_denied_onboard.constants import LogEvent
 
 _log = structlog.get_logger(__name__)
@@ -394,13 +395,7 @@ class ShardJournal:
 
     def record(self, index: int, fractions: np.ndarray) -> None:
         """Record shard ``index`` done (atomic: temporary file, fsync, rename)."""
-        path = self._record_path(index)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            np.save(fh, fractions)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        save_npy_atomic(self._record_path(index), fractions)
 
     def remove(self) -> None:
         """Drop the journal (after the manifest is written)."""

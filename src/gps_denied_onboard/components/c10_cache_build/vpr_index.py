@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 import sys
 import time
 from dataclasses import asdict
@@ -68,6 +67,7 @@ from gps_denied_onboard.components.c10_cache_build.manifest import (
     sha256_file,
     write_json_atomic,
 )
+from gps_denied_onboard.components.c10_cache_build.npy_stream import save_npy_atomic
 from gps_denied_onboard.components.c10_cache_build.shards import (
     EngineSpec,
     ShardEngine,
@@ -293,7 +293,7 @@ def _describe_and_index(
     }
     try:
         index.save(cache_dir / VPR_INDEX_NAME)
-        _save_npy_atomic(cache_dir / VPR_DESCRIPTORS_NAME, descriptors)
+        save_npy_atomic(cache_dir / VPR_DESCRIPTORS_NAME, descriptors)
         write_json_atomic(cache_dir / VPR_META_NAME, meta)
         names = (VPR_DESCRIPTORS_NAME, VPR_INDEX_NAME, VPR_META_NAME, *extra_artifacts)
         artifacts = dict(manifest.artifacts)
@@ -368,12 +368,3 @@ def _worker_encoder(cache_dir: str, vocab_sha256: str) -> tuple[TileStore, VladE
     store = TileStore.open(Path(cache_dir), Verification.LIGHT)
     vocab = VladVocabulary.load(Path(cache_dir) / VLAD_VOCABULARY_NAME)
     return store, VladEncoder(vocab, model_sha256=vocab_sha256)
-
-
-def _save_npy_atomic(path: Path, array: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        np.save(fh, array)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
