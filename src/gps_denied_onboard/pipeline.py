@@ -183,11 +183,10 @@ class FixAttempt:
 @dataclass(frozen=True)
 class _OffSpan:
     """Exposures (us, Unix) over which the ground-tilt check showed the autopilot's tilt off (its
-    evidence since, its newest tilt), and the largest error it showed there, deg."""
+    evidence since, its newest tilt)."""
 
     since_usec: int
     until_usec: int
-    suspect_deg: float
 
 
 @dataclass(frozen=True)
@@ -466,10 +465,9 @@ class NavigationPipeline:
                     )
                 self._ground_tilt_verdict = ground_tilt
                 if ground_tilt.refused is not None:
-                    self._note_vo_off(ground_tilt.since_unix_usec, t, ground_tilt.suspect_deg or 0.0)
+                    self._note_vo_off(ground_tilt.since_unix_usec, t)
                 elif before is not None and before.refused is not None and self._vo_off_spans:
-                    last = self._vo_off_spans[-1]  # never shown right before t
-                    self._note_vo_off(last.until_usec, t - 1, last.suspect_deg)
+                    self._note_vo_off(self._vo_off_spans[-1].until_usec, t - 1)  # never shown right before t
                 self._answer_tilt("vo", ground_tilt, frame.alt_agl_m, t)
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
@@ -555,12 +553,7 @@ class NavigationPipeline:
             if attempt.attitude is not None and fix is not None:
                 self._answer_tilt("fixes", attempt.attitude, self._agl_m(fix), t)
             ground_tilt = self._ground_tilt_verdict
-            if (
-                fix is not None
-                and reason is None
-                and fix.attitude_doubt_rad <= 0.0
-                and self._vo_suspect_deg_at(t) is not None
-            ):
+            if fix is not None and reason is None and fix.attitude_doubt_rad <= 0.0 and self._vo_off_at(t):
                 # VO's ground tilt has shown the autopilot's tilt off over this exposure, and the fix
                 # leaned on it (it measured no tilt of its own, or was solved before any check showed
                 # the error: a slow matcher's): refused however late it comes.
@@ -730,45 +723,33 @@ class NavigationPipeline:
         """Ground the frame of ``fix`` covers across, m (nadir, flat ground)."""
         return 2.0 * self._agl_m(fix) * math.tan(self._calib.hfov_rad / 2.0)
 
-    def _note_vo_off(self, since_usec: int, t: int, suspect_deg: float) -> None:
-        """The ground-tilt check shows the attitude off at ``t`` on evidence since ``since_usec``, by up
-        to ``suspect_deg``."""
+    def _note_vo_off(self, since_usec: int, t: int) -> None:
+        """The ground-tilt check shows the attitude off at ``t`` on evidence since ``since_usec``."""
         spans = self._vo_off_spans
         if spans and since_usec <= spans[-1].until_usec:
-            last = spans[-1]
-            spans[-1] = _OffSpan(
-                min(last.since_usec, since_usec), max(last.until_usec, t), max(last.suspect_deg, suspect_deg)
-            )
+            spans[-1] = _OffSpan(min(spans[-1].since_usec, since_usec), max(spans[-1].until_usec, t))
         else:
-            spans.append(_OffSpan(since_usec, t, suspect_deg))
+            spans.append(_OffSpan(since_usec, t))
 
-    def _vo_suspect_deg_at(self, t: int) -> float | None:
-        """The tilt error (deg) the ground-tilt check has shown over an exposure at ``t``, or None where
-        it has shown none. Shown: ``t`` lies in a span where it refused, or after its newest verdict
-        while that verdict refuses (until a tilt says otherwise the attitude is still off). A span runs
-        on to just before the first verdict that lets go, so a slow fix exposed between the last verdict
-        that refused and that one is judged by it however late. A frame whose pair gave no tilt, or a
-        fix fused before its own frame's VO, has no verdict of its own; measured without this rule on a
-        GPU (3 deg of roll at 1200 m AGL across dates), one such fix in about 15 slipped through, 64 m
-        off at a stated 4 m."""
+    def _vo_off_at(self, t: int) -> bool:
+        """Whether the ground-tilt check has shown the attitude off over an exposure at ``t``: ``t`` lies
+        in a span where it refused, or after its newest verdict while that verdict refuses (until a tilt
+        says otherwise the attitude is still off). A span runs on to just before the first verdict that
+        lets go, so a slow fix exposed between the last verdict that refused and that one is judged by it
+        however late. A frame whose pair gave no tilt, or a fix fused before its own frame's VO, has no
+        verdict of its own; measured without this rule on a GPU (3 deg of roll at 1200 m AGL across
+        dates), one such fix in about 15 slipped through, 64 m off at a stated 4 m."""
         spans = self._vo_off_spans
-        shown = [span.suspect_deg for span in spans if span.since_usec <= t <= span.until_usec]
-        if shown:
-            return max(shown)
+        if any(span.since_usec <= t <= span.until_usec for span in spans):
+            return True
         newest = self._ground_tilt_verdict
-        if newest is not None and newest.refused is not None and spans and t > spans[-1].until_usec:
-            return max(spans[-1].suspect_deg, newest.suspect_deg or 0.0)
-        return None
+        return newest is not None and newest.refused is not None and bool(spans) and t > spans[-1].until_usec
 
-    def _tilt_doubt_rad(self, t: int) -> float:
-        """What a fix exposed at ``t`` must allow the autopilot's tilt beyond its sigma, rad: the larger
-        tilt error either check has shown (VO over ``t``, the fixes' check in its newest verdict while it
-        finds the attitude off) times ``TILT_DOUBT_MARGIN``; 0 where neither shows one."""
-        shown_deg = self._vo_suspect_deg_at(t) or 0.0
+    def _tilt_shown_at(self, t: int) -> bool:
+        """Whether either check shows the autopilot's tilt off for an exposure at ``t``: VO over ``t``, or
+        the fixes' check in its newest verdict."""
         fixes = self._fix_tilt_verdict
-        if fixes is not None and fixes.off and fixes.suspect_deg is not None:
-            shown_deg = max(shown_deg, fixes.suspect_deg)
-        return math.radians(TILT_DOUBT_MARGIN * min(shown_deg, MAX_TILT_DOUBT_DEG))
+        return self._vo_off_at(t) or (fixes is not None and fixes.off)
 
     def _answer_tilt(self, source: str, verdict: AttitudeVerdict, agl_m: float, t: int) -> None:
         """What the estimate does with a tilt check's verdict (``source``: ``fixes`` or ``vo``), inside
@@ -777,7 +758,7 @@ class NavigationPipeline:
         same wrong tilt: the position's sigma is raised to twice the ground distance it makes from
         ``agl_m`` (m), in the filter's covariance, so a fix solved without leaning on it may pull the
         state back by that much. Raised once per error, not on every verdict: the fixes fused since are
-        solved with the error allowed (``_tilt_doubt_rad``), and VO states its own
+        standing on their own images (``_stand_on_image_rad``), and VO states its own
         (``measured_ahrs_doubt_rad``). The IMU's accelerations are
         rotated with the same attitude (gravity leaks in): it is left out while either check refuses,
         and said again on the next verdict when the axis could not take it (not yet initialised)."""
@@ -799,7 +780,7 @@ class NavigationPipeline:
             return FixAttempt(None, 0, None, "no_attitude_or_altitude")
         with self._axis.unit(UNIT_FIX_PRIOR, frame.exposure_time_unix_usec):
             prior_state = self._axis.state_at(frame.exposure_time_unix_usec)
-            doubt_rad = self._tilt_doubt_rad(frame.exposure_time_unix_usec)
+            tilt_shown = self._tilt_shown_at(frame.exposure_time_unix_usec)
         search_prior = _search_prior(prior_state)
         doubting = self._doubt is not None and self._doubt.active
         frame_texture = edge_share(frame.image_bgr) if doubting else None
@@ -837,7 +818,7 @@ class NavigationPipeline:
         if doubting and rerank_result.candidates:
             map_texture = edge_share(np.asarray(rerank_result.candidates[0].tile_pixels_handle.pixels()))
         attempt = replace(
-            self._matched(frame, prior_state, rung, rerank_result, timings, t1, doubt_rad),
+            self._matched(frame, prior_state, rung, rerank_result, timings, t1, tilt_shown),
             rung=rung.name,
             frame_texture=frame_texture,
             map_texture=map_texture,
@@ -890,10 +871,10 @@ class NavigationPipeline:
         rerank_result: RerankResult,
         timings: dict[str, float],
         t1: int,
-        doubt_rad: float,
+        tilt_shown: bool,
     ) -> FixAttempt:
         """C3 -> C4 on the reranked candidates (``t1``: when retrieval ended, for ``timings``;
-        ``doubt_rad``: the tilt error the checks have shown, ``_tilt_doubt_rad``)."""
+        ``tilt_shown``: a check showed the autopilot's tilt off when the attempt began)."""
         t2 = self._clock_ns()
         timings["rerank"] = (t2 - t1) / 1e6
         try:
@@ -912,7 +893,7 @@ class NavigationPipeline:
             return self._area_matched(frame, match, rerank_result, prior_state, timings, t3)
         handle = next(c.tile_pixels_handle for c in rerank_result.candidates if c.tile_id == best.tile_id)
         try:
-            fix = self._pose.solve(frame, best, handle, self._calib, attitude_doubt_rad=doubt_rad)
+            fix = self._pose.solve(frame, best, handle, self._calib)
         except PoseError as exc:
             timings["pose"] = (self._clock_ns() - t3) / 1e6
             return FixAttempt(
@@ -937,7 +918,7 @@ class NavigationPipeline:
                 )
         # (Where the timing doubt at this attitude rate could make the tilt difference by itself, the check
         # learns nothing from it, and the solver has already widened the tilt prior by it.)
-        stand_rad = self._stand_on_image_rad(fix, doubt_rad, attitude)
+        stand_rad = self._stand_on_image_rad(fix, tilt_shown, attitude)
         if stand_rad != fix.attitude_doubt_rad:
             try:
                 fix = self._pose.solve(frame, best, handle, self._calib, attitude_doubt_rad=stand_rad)
@@ -952,17 +933,17 @@ class NavigationPipeline:
         timings["integrity"] = (self._clock_ns() - t4) / 1e6
         return self._judged(frame, match, best, verdict, attitude)
 
-    def _stand_on_image_rad(self, fix: PoseFix, doubt_rad: float, attitude: AttitudeVerdict | None) -> float:
+    def _stand_on_image_rad(self, fix: PoseFix, tilt_shown: bool, attitude: AttitudeVerdict | None) -> float:
         """What the attitude prior of ``fix`` (solved from points) allows the autopilot's tilt beyond its
-        sigma, rad: 0 while neither check shows the tilt off (``doubt_rad``: what they showed when the
-        attempt began; ``attitude``: the fixes' check after this one, None where it could not judge).
+        sigma, rad: 0 while neither check shows the tilt off (``tilt_shown``: one did when the attempt
+        began; ``attitude``: the fixes' check after this one, None where it could not judge).
         Else ``TILT_DOUBT_MARGIN`` x the larger of the tilt difference this fix's own image shows, the
         error the fixes' check has shown, and ``pose.attitude_sigma_deg``: the fix stands on its image.
         Not VO's error: a fix that measures its own tilt is the sharper witness of it (on a real PX4, VO's
         ground tilt at a slow corner called the autopilot 16-25 deg off while the fixes, each measuring
         1-2 deg, were refused for 24 s and the output withheld into a failsafe)."""
         fixes_off = attitude is not None and attitude.off
-        if doubt_rad <= 0.0 and not fixes_off:
+        if not tilt_shown and not fixes_off:
             return 0.0
         assert fix.image_tilt_off_cam_rad is not None
         shown_deg = max(
@@ -1177,15 +1158,14 @@ AHRS_DOUBT_FREE_RAD: Final[float] = math.radians(1.0)
 #: Accepted fixes' tilt errors kept for ``measured_ahrs_doubt_rad`` (3 Hz over its window), and the
 #: window, s (as the autopilot's swing window, ``vehicle_state.AHRS_SWING_WINDOW_S``).
 TILT_OFF_HISTORY: Final[int] = 32
-#: A fix solved while a tilt check shows the autopilot's tilt off widens its attitude prior by this
-#: times the error shown (``NavigationPipeline._tilt_doubt_rad``): the check's bound moves from verdict
-#: to verdict, and a fix solved with less than the error shown at its exposure when it is fused is
-#: refused.
-TILT_DOUBT_MARGIN: Final[float] = 1.5
-#: The most tilt error, deg, a fix's attitude prior is widened by (the solver's own gate on the image's
-#: tilt against the autopilot's, ``pose.max_attitude_disagreement_deg``, refuses beyond).
-MAX_TILT_DOUBT_DEG: Final[float] = 15.0
 MEASURED_TILT_WINDOW_S: Final[float] = 8.0
+#: A fix that stands on its own image while a tilt check shows the autopilot's tilt off allows that tilt
+#: this times the difference its image shows (``NavigationPipeline._stand_on_image_rad``): one image's
+#: measure of it scatters.
+TILT_DOUBT_MARGIN: Final[float] = 1.5
+#: The most tilt difference, deg, a fix's attitude prior is widened for (the solver's own gate on the
+#: image's tilt against the autopilot's, ``pose.max_attitude_disagreement_deg``, refuses beyond).
+MAX_TILT_DOUBT_DEG: Final[float] = 15.0
 #: The camera's axis is taken at most this far from nadir for VO's lever (cos 60 deg).
 MIN_COS_OFF_NADIR: Final[float] = 0.5
 #: How fast the autopilot's attitude error changes, as a share of its size per second: it built up and
