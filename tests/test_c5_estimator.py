@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import uuid
 
@@ -468,3 +469,43 @@ def test_one_vo_blunder_among_consistent_updates_is_still_gated() -> None:
         assert est.update_vo(_vo(np.zeros(2), 0.3, 1 / 3), time_unix_usec=T0_USEC + k * S // 3).accepted
     decision = est.update_vo(_vo(np.array([6.0, 0.0]), 0.3, 1 / 3), time_unix_usec=T0_USEC + 8 * S // 3)
     assert not decision.accepted and decision.reason == FixReason.GATED
+
+
+def _fly_wrong_vo_right_fixes(*, slope_apart: bool) -> tuple[float, float]:
+    """Hovering at 80 m while VO, de-rotated with a drifting tilt, says 1 m east a frame at 10 Hz
+    (stating 0.3 m), and fixes at 3 Hz are right within 0.5 m but state 8 m for a slope they might be on
+    (g11 on a real PX4 beside two busy loops): the largest error, m, over 2 s, and the largest in units
+    of the stated horizontal sigma from the first fix."""
+    rng = np.random.default_rng(7)
+    est = _estimator()
+    est.initialise(np.array([0.0, 0.0, -80.0]), 1.0, T0_USEC)
+    worst_m, worst_ratio = 0.0, 0.0
+    for k in range(1, 21):
+        t = T0_USEC + k * S // 10
+        est.update_vo(_vo(np.array([0.0, 1.0]), 0.3, 0.1), time_unix_usec=t)
+        if k % 3 == 0:
+            slope_m = 8.0
+            fix = _fix(np.array([0.0, 0.0, -80.0]) + rng.normal(0, 0.3, 3), 0.5, t)
+            cov = np.array(fix.cov_ned_m2)
+            cov[:2, :2] += np.eye(2) * slope_m**2
+            fix = dataclasses.replace(
+                fix, cov_ned_m2=cov, shared_sigma_m=slope_m, slope_sigma_m=slope_m if slope_apart else 0.0
+            )
+            assert est.update_fix(fix).accepted
+        st = est.state()
+        err = float(np.hypot(*st.pos_ned_m[:2]))
+        worst_m = max(worst_m, err)
+        if k >= 3:  # from the first fix (before it, VO's own doubt is the pipeline's to state)
+            worst_ratio = max(worst_ratio, err / st.horiz_sigma_m)
+    return worst_m, worst_ratio
+
+
+def test_a_slope_the_fixes_might_share_does_not_make_them_too_weak_to_hold_the_estimate() -> None:
+    """Weighed with the slope's 8 m as their own noise, right fixes let wrong VO carry the estimate
+    18 m off in 2 s; weighed by their own error, with the slope stated in the output, they hold it
+    within the 3.3 m VO runs between two of them, and the output never claims less than its error."""
+    weak_m, weak_ratio = _fly_wrong_vo_right_fixes(slope_apart=False)
+    held_m, held_ratio = _fly_wrong_vo_right_fixes(slope_apart=True)
+    assert weak_m > 9.0 and weak_ratio > 3.0  # a confident lie: 18 m off at a stated 2 m
+    assert held_m < 4.0
+    assert held_ratio < 1.0

@@ -972,3 +972,21 @@ def test_vo_states_the_tilt_error_the_fixes_measured_through_the_off_nadir_lever
     assert sigma(rolled, math.radians(4.0)) > 1.05  # the measured error per frame, 1 sigma
     without = math.hypot(0.1, 80.0 / math.cos(math.radians(38.0)) ** 2 * math.radians(0.3) * 0.17)
     assert sigma(rolled, 0.0) == pytest.approx(without, rel=1e-6)  # the autopilot's own doubt alone
+
+
+def test_vo_doubts_a_tilt_error_as_soon_as_two_fixes_agree_on_it_not_one() -> None:
+    """Fixes at 3 Hz found the autopilot's tilt 0.5 deg off for 6 s; then it drifts to 6 deg (a real
+    PX4 beside two busy loops). Two fixes saying so are VO's doubt at once, where the 8 s median still
+    said 0.5 deg; one fix alone (a stale attitude) moves nothing; and a window with none says 0."""
+    from gps_denied_onboard.pipeline import measured_tilt_doubt_rad
+
+    small, large = math.radians(0.5), math.radians(6.0)
+    seen = [(T0 - 6_000_000 + k * 333_333, small) for k in range(18)]
+    now = T0 + 500_000
+    assert measured_tilt_doubt_rad(seen, now) == pytest.approx(small)
+    one = [*seen, (T0, large)]
+    assert measured_tilt_doubt_rad(one, now) == pytest.approx(small)
+    two = [*one, (T0 + 333_333, large)]
+    assert measured_tilt_doubt_rad(two, now) == pytest.approx(large)
+    assert measured_tilt_doubt_rad(two, T0 + 4_000_000) == pytest.approx(small)  # no longer the newest
+    assert measured_tilt_doubt_rad(two, T0 - 7_000_000) == 0.0

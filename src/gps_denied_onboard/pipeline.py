@@ -405,14 +405,11 @@ class NavigationPipeline:
         return math.hypot(timing.tilt_sigma_rad, ahrs_rad) <= limit
 
     def measured_ahrs_doubt_rad(self, time_unix_usec: int) -> float:
-        """The median tilt error of the autopilot that accepted fixes measured (each solved from points
-        measures the camera's own tilt) over ``MEASURED_TILT_WINDOW_S`` before ``time_unix_usec``, rad; 0
-        with none there (no fix measured it: area correlation, VO alone). The median: one fix made with a
-        stale attitude (6.3 deg at a link cut, in the emulator) must not hold VO's doubt up for 8 s."""
-        lo = time_unix_usec - int(MEASURED_TILT_WINDOW_S * 1e6)
+        """The tilt error of the autopilot that accepted fixes measured before ``time_unix_usec``, rad
+        (``measured_tilt_doubt_rad``)."""
         with self._tilt_off_lock:
-            seen = [off for t, off in self._tilt_off_seen if lo <= t <= time_unix_usec]
-        return float(np.median(seen)) if seen else 0.0
+            seen = list(self._tilt_off_seen)
+        return measured_tilt_doubt_rad(seen, time_unix_usec)
 
     def _note_camera_tilt(
         self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, timing: FrameTiming | None
@@ -641,6 +638,7 @@ class NavigationPipeline:
                     else None
                 ),
                 "fix_attitude_doubt_deg": round(math.degrees(fix.attitude_doubt_rad), 3) if fix else None,
+                "fix_slope_sigma_m": round(fix.slope_sigma_m, 3) if fix else None,
                 "fix_yaw_deg": round(math.degrees(fix.yaw_rad), 3) if fix else None,
                 "fix_alt_amsl_m": round(fix.alt_amsl_m, 2) if fix else None,
                 "timing": _timing_fields(frame.timing),
@@ -713,11 +711,13 @@ class NavigationPipeline:
         that much, and a wrong attitude and a ground sloping as much look the same: the pose is solved
         against flat ground, so on such a slope the fix that stands on the image is off by it, as one
         leaning on the autopilot is under a wrong attitude. Fusing more fixes over the same slope does
-        not average it away."""
+        not average it away; nor does it make any one of them noisier, so the estimator weighs the fix
+        without it (``PoseFix.slope_sigma_m``) and states it in every output after."""
         if fix.attitude_doubt_rad <= 0.0:
             return fix
         shown_rad = fix.attitude_doubt_rad / TILT_DOUBT_MARGIN
-        return with_regional_error(fix, self._agl_m(fix) * math.tan(shown_rad))
+        slope_m = self._agl_m(fix) * math.tan(shown_rad)
+        return replace(with_regional_error(fix, slope_m), slope_sigma_m=slope_m)
 
     def _footprint_m(self, fix: PoseFix) -> float:
         """Ground the frame of ``fix`` covers across, m (nadir, flat ground)."""
@@ -1159,6 +1159,9 @@ AHRS_DOUBT_FREE_RAD: Final[float] = math.radians(1.0)
 #: window, s (as the autopilot's swing window, ``vehicle_state.AHRS_SWING_WINDOW_S``).
 TILT_OFF_HISTORY: Final[int] = 32
 MEASURED_TILT_WINDOW_S: Final[float] = 8.0
+#: The newest two fixes' tilt errors speak for themselves within this, s (a fix comes 0.3-1.2 s after
+#: its exposure on a busy CPU, so the track half may see none younger than that).
+RECENT_TILT_WINDOW_S: Final[float] = 3.0
 #: A fix that stands on its own image while a tilt check shows the autopilot's tilt off allows that tilt
 #: this times the difference its image shows (``NavigationPipeline._stand_on_image_rad``): one image's
 #: measure of it scatters.
@@ -1171,6 +1174,24 @@ MIN_COS_OFF_NADIR: Final[float] = 0.5
 #: How fast the autopilot's attitude error changes, as a share of its size per second: it built up and
 #: decayed over 2-10 s on ArduPilot SITL (``VehicleStateTracker.ahrs_doubt_rad``), so take 2 s.
 AHRS_ERROR_CHANGE_TIME_S: Final[float] = 2.0
+
+
+def measured_tilt_doubt_rad(seen: list[tuple[int, float]], time_unix_usec: int) -> float:
+    """The autopilot's tilt error, rad, that accepted fixes measured (``seen``: exposure, us, and how far
+    each found the autopilot's tilt from its own image's; a fix solved from points measures the camera's
+    own tilt) before ``time_unix_usec``; 0 with none there (no fix measured it: area correlation, VO
+    alone). The larger of their median over ``MEASURED_TILT_WINDOW_S`` and the smaller of the newest two
+    within ``RECENT_TILT_WINDOW_S``: an error that appears is VO's doubt as soon as two fixes agree on
+    it, not once it fills half the window (on a real PX4 beside two busy loops, a 4-8 deg error carried
+    VO 20 m off in 2 s while the 8 s median still said little); one fix made with a stale attitude (6.3
+    deg at a link cut, in the emulator) holds up nothing alone."""
+    lo = time_unix_usec - int(MEASURED_TILT_WINDOW_S * 1e6)
+    kept = sorted((t, off) for t, off in seen if lo <= t <= time_unix_usec)
+    if not kept:
+        return 0.0
+    recent_lo = time_unix_usec - int(RECENT_TILT_WINDOW_S * 1e6)
+    newest = [off for t, off in kept[-2:] if t >= recent_lo]
+    return max(float(np.median([off for _, off in kept])), min(newest) if len(newest) == 2 else 0.0)
 
 
 def _with_attitude_doubt(motion: VoMotion, frame: NavCameraFrame, measured_rad: float = 0.0) -> VoMotion:

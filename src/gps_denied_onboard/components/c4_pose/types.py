@@ -46,6 +46,14 @@ class PoseFix:
     #: autopilot's attitude (a tilt check had shown one; ``NavigationPipeline``): 0 for a fix that leans
     #: on it as usual, and for one that measured no tilt of its own.
     attitude_doubt_rad: float = 0.0
+    #: Per-axis horizontal 1-sigma, metres, of the error a ground sloping as steeply as the tilt a check
+    #: showed would make of this fix (``NavigationPipeline._with_slope_doubt``). It is inside
+    #: ``cov_ned_m2`` and ``shared_sigma_m`` like any regional error, so every gate allows for it and
+    #: every output after it states it; but the estimator weighs the fix without it
+    #: (``c5_estimator/ekf.py``): it is one error for all the fixes over that ground, not noise that
+    #: fusing fewer of them would avoid, and a right fix stated as weak lets VO, de-rotated with the same
+    #: wrong tilt, carry the estimate away from it.
+    slope_sigma_m: float = 0.0
 
     @property
     def horiz_sigma_m(self) -> float:

@@ -17,7 +17,9 @@ up while the recent VO innovations show VO noisier than it states: ``_vo_noise_f
 (AGL plus the flat ground, on ``d``).
 Shared error: ``shared_sigma_m`` bounds the part of the map fixes' error they all share
 (``s <- ||I - K|| s + ||K|| s_fix`` per accepted fix) and is added to every output, so fusing more fixes
-never averages it away; the gates leave it out.
+never averages it away; the gates leave it out. A slope's share (``PoseFix.slope_sigma_m``) is in the
+gate and the shared error but not in the fix's weight: the estimate follows a fix over a slope, slope and
+all, and says so.
 Output: :class:`EstimatorState` at any time, with its provenance (:meth:`NavEstimator.provenance_at`):
 ``satellite_anchored`` (newest fix attempt accepted, exposed within ``anchored_window_s``),
 ``visual_propagated`` (VO within ``vo_recent_s``), ``dead_reckoning``, or ``no_estimate`` (not
@@ -55,6 +57,10 @@ PREDICT_STEP_S: Final[float] = 0.1
 #: A VO interval longer than this with no IMU to move its mean velocity to the interval's end is a gap
 #: (frames lost, attitude missing): the velocity may have changed by much more than within a frame, s.
 VO_GAP_S: Final[float] = 0.5
+
+#: The least horizontal 1-sigma, m, a fix is weighed by once the slope's share is taken out
+#: (``_weighing_cov``).
+MIN_WEIGHING_SIGMA_M: Final[float] = 0.1
 
 #: VO updates whose normalised innovations say whether VO is as noisy as it states (``_vo_noise_factor``).
 VO_NIS_WINDOW: Final[int] = 8
@@ -94,6 +100,18 @@ def _is_covariance(cov: np.ndarray, dim: int) -> bool:
     if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-9):
         return False
     return bool(np.all(np.linalg.eigvalsh(cov) > 0))
+
+
+def _weighing_cov(cov: np.ndarray, slope_sigma_m: float) -> np.ndarray:
+    """The covariance a fix is weighed by: its own, less the slope's share (``PoseFix.slope_sigma_m``),
+    which the gate allowed for and the shared error states. The scales after the slope was added only
+    grow a covariance, so what is left is the fix's own; ``MIN_WEIGHING_SIGMA_M`` guards the arithmetic."""
+    if not (math.isfinite(slope_sigma_m) and slope_sigma_m > 0.0):
+        return cov
+    out = np.array(cov, dtype=np.float64, copy=True)
+    vals, vecs = np.linalg.eigh(out[:2, :2] - np.eye(2) * slope_sigma_m**2)
+    out[:2, :2] = (vecs * np.maximum(vals, MIN_WEIGHING_SIGMA_M**2)) @ vecs.T
+    return out
 
 
 def _horiz_sigma_m(p_mat: np.ndarray) -> float:
@@ -453,7 +471,7 @@ class NavEstimator:
 
         self._prior_conflict = None
         self._map_confirmed = True
-        self._kf.update(pos.reshape(3, 1), R=cov, H=_H_POS)
+        self._kf.update(pos.reshape(3, 1), R=_weighing_cov(cov, float(fix.slope_sigma_m)), H=_H_POS)
         gain_ne = self._kf.K[:2, :2]
         self._shared_sigma_m = (
             float(np.linalg.norm(np.eye(2) - gain_ne, 2)) * self._shared_sigma_m
