@@ -978,15 +978,43 @@ def test_vo_doubts_a_tilt_error_as_soon_as_two_fixes_agree_on_it_not_one() -> No
     """Fixes at 3 Hz found the autopilot's tilt 0.5 deg off for 6 s; then it drifts to 6 deg (a real
     PX4 beside two busy loops). Two fixes saying so are VO's doubt at once, where the 8 s median still
     said 0.5 deg; one fix alone (a stale attitude) moves nothing; and a window with none says 0."""
-    from gps_denied_onboard.pipeline import measured_tilt_doubt_rad
+    from gps_denied_onboard.pipeline import TiltSeen, measured_tilt_doubt_rad
 
     small, large = math.radians(0.5), math.radians(6.0)
-    seen = [(T0 - 6_000_000 + k * 333_333, small) for k in range(18)]
+    seen = [TiltSeen(T0 - 6_000_000 + k * 333_333, (small, 0.0), False) for k in range(18)]
     now = T0 + 500_000
     assert measured_tilt_doubt_rad(seen, now) == pytest.approx(small)
-    one = [*seen, (T0, large)]
+    one = [*seen, TiltSeen(T0, (0.0, large), True)]
     assert measured_tilt_doubt_rad(one, now) == pytest.approx(small)
-    two = [*one, (T0 + 333_333, large)]
+    two = [*one, TiltSeen(T0 + 333_333, (0.0, large), True)]
     assert measured_tilt_doubt_rad(two, now) == pytest.approx(large)
     assert measured_tilt_doubt_rad(two, T0 + 4_000_000) == pytest.approx(small)  # no longer the newest
     assert measured_tilt_doubt_rad(two, T0 - 7_000_000) == 0.0
+
+
+def test_vo_states_how_far_the_tilt_error_swings_between_frames_while_fixes_stand_on_their_images() -> None:
+    """On a real PX4 under load the fixes, right to 0.07 m, found the autopilot's tilt error swinging
+    1-2 deg from one frame to the next, and VO, de-rotating with it, was 3-4 m wrong a frame at 79 m AGL
+    while stating 0.9 m from the error's size alone. The swing the fixes measured is VO's change of
+    attitude error at once, through the same lever; not while the fixes lean on the autopilot (their
+    tilts' scatter is then the image's own noise), nor from fixes too far apart to say."""
+    from gps_denied_onboard.pipeline import TiltSeen, _with_attitude_doubt, measured_tilt_change_rad
+
+    swing = math.radians(1.5)
+    zigzag = [
+        TiltSeen(T0 - 3_000_000 + k * 333_333, (math.radians(3.0) + (swing if k % 2 else 0.0), 0.0), True)
+        for k in range(9)
+    ]
+    now = T0
+    assert measured_tilt_change_rad(zigzag, now) == pytest.approx(swing)
+    leaning = [replace(x, stood=False) for x in zigzag]
+    assert measured_tilt_change_rad(leaning, now) == 0.0
+    sparse = [replace(x, time_unix_usec=T0 - 6_000_000 + k * 1_500_000) for k, x in enumerate(zigzag[:5])]
+    assert measured_tilt_change_rad(sparse, now) == 0.0
+
+    motion = VoMotion(uuid.uuid4(), uuid.uuid4(), 0.33, np.array([0.0, 2.4]), np.eye(2) * 0.01, 300, None)
+    image = np.zeros((480, 640, 3), np.uint8)
+    frame = NavCameraFrame(uuid.uuid4(), 0, T0, image, Attitude(0.0, 0.0, 0.0), 79.0, 0)
+    stated = _with_attitude_doubt(motion, frame, math.radians(3.0), measured_tilt_change_rad(zigzag, now))
+    assert math.sqrt(float(stated.cov_ne_m2[0, 0])) == pytest.approx(math.hypot(0.1, 79.0 * swing), rel=1e-6)
+    assert 79.0 * swing > 2.0  # against 79 m x 3 deg x 0.33 s / 2 s = 0.7 m from the error's size

@@ -31,6 +31,7 @@ Each half is synchronous and single-threaded by contract (INV-1); the daemon run
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import threading
 import time
@@ -280,7 +281,7 @@ class NavigationPipeline:
         self._area_doubt_m: float | None = None
         #: How far accepted fixes found the autopilot's tilt from the camera's, with their exposure
         #: (``measured_ahrs_doubt_rad``): written by the fix thread, read by the track thread.
-        self._tilt_off_seen: deque[tuple[int, float]] = deque(maxlen=TILT_OFF_HISTORY)
+        self._tilt_off_seen: deque[TiltSeen] = deque(maxlen=TILT_OFF_HISTORY)
         self._tilt_off_lock = threading.Lock()
         self._prior_gate_chi2 = integrity.config.prior_gate_chi2
         self._heading_height = heading_height_check
@@ -411,6 +412,13 @@ class NavigationPipeline:
             seen = list(self._tilt_off_seen)
         return measured_tilt_doubt_rad(seen, time_unix_usec)
 
+    def measured_ahrs_change_rad(self, time_unix_usec: int) -> float:
+        """How far the autopilot's tilt error changed from one fix's frame to the next, rad, while the
+        fixes stand on their own images (``measured_tilt_change_rad``)."""
+        with self._tilt_off_lock:
+            seen = list(self._tilt_off_seen)
+        return measured_tilt_change_rad(seen, time_unix_usec)
+
     def _note_camera_tilt(
         self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, timing: FrameTiming | None
     ) -> None:
@@ -469,7 +477,9 @@ class NavigationPipeline:
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
                 if motion is not None:
-                    motion = _with_attitude_doubt(motion, frame, self.measured_ahrs_doubt_rad(t))
+                    motion = _with_attitude_doubt(
+                        motion, frame, self.measured_ahrs_doubt_rad(t), self.measured_ahrs_change_rad(t)
+                    )
                     decision = self._axis.fuse_vo(motion, t)
                     if decision.accepted:
                         fused = motion
@@ -581,7 +591,9 @@ class NavigationPipeline:
                     self._area_doubt_m = None
                     self._area_disagreements.clear()
                     with self._tilt_off_lock:
-                        self._tilt_off_seen.append((t, math.hypot(*fix.image_tilt_off_cam_rad)))
+                        self._tilt_off_seen.append(
+                            TiltSeen(t, fix.image_tilt_off_cam_rad, fix.attitude_doubt_rad > 0.0)
+                        )
             heading_height = None
             evidence = verdict.evidence if verdict is not None else None
             if accepted and self._heading_height is not None and isinstance(evidence, AreaEvidence):
@@ -1162,6 +1174,10 @@ MEASURED_TILT_WINDOW_S: Final[float] = 8.0
 #: The newest two fixes' tilt errors speak for themselves within this, s (a fix comes 0.3-1.2 s after
 #: its exposure on a busy CPU, so the track half may see none younger than that).
 RECENT_TILT_WINDOW_S: Final[float] = 3.0
+#: Consecutive fixes further apart than this, s, say nothing of how the tilt error changes between two
+#: of VO's frames; fewer pairs than ``MIN_CHANGE_PAIRS`` in the window say nothing either.
+MAX_CHANGE_PAIR_GAP_S: Final[float] = 1.0
+MIN_CHANGE_PAIRS: Final[int] = 3
 #: A fix that stands on its own image while a tilt check shows the autopilot's tilt off allows that tilt
 #: this times the difference its image shows (``NavigationPipeline._stand_on_image_rad``): one image's
 #: measure of it scatters.
@@ -1176,36 +1192,82 @@ MIN_COS_OFF_NADIR: Final[float] = 0.5
 AHRS_ERROR_CHANGE_TIME_S: Final[float] = 2.0
 
 
-def measured_tilt_doubt_rad(seen: list[tuple[int, float]], time_unix_usec: int) -> float:
-    """The autopilot's tilt error, rad, that accepted fixes measured (``seen``: exposure, us, and how far
-    each found the autopilot's tilt from its own image's; a fix solved from points measures the camera's
-    own tilt) before ``time_unix_usec``; 0 with none there (no fix measured it: area correlation, VO
-    alone). The larger of their median over ``MEASURED_TILT_WINDOW_S`` and the smaller of the newest two
-    within ``RECENT_TILT_WINDOW_S``: an error that appears is VO's doubt as soon as two fixes agree on
-    it, not once it fills half the window (on a real PX4 beside two busy loops, a 4-8 deg error carried
-    VO 20 m off in 2 s while the 8 s median still said little); one fix made with a stale attitude (6.3
-    deg at a link cut, in the emulator) holds up nothing alone."""
+@dataclass(frozen=True)
+class TiltSeen:
+    """What one accepted fix solved from points measured of the autopilot's tilt."""
+
+    #: The fix's exposure, us (Unix).
+    time_unix_usec: int
+    #: World down by its image minus by the autopilot, on the camera's x and y axes, rad.
+    off_cam_rad: tuple[float, float]
+    #: Whether it stood on its own image (a tilt check showed the autopilot's tilt off).
+    stood: bool
+
+
+def _seen_in_window(seen: list[TiltSeen], time_unix_usec: int) -> list[TiltSeen]:
     lo = time_unix_usec - int(MEASURED_TILT_WINDOW_S * 1e6)
-    kept = sorted((t, off) for t, off in seen if lo <= t <= time_unix_usec)
+    return sorted(
+        (x for x in seen if lo <= x.time_unix_usec <= time_unix_usec), key=lambda x: x.time_unix_usec
+    )
+
+
+def measured_tilt_doubt_rad(seen: list[TiltSeen], time_unix_usec: int) -> float:
+    """The autopilot's tilt error, rad, that accepted fixes measured before ``time_unix_usec`` (a fix
+    solved from points measures the camera's own tilt); 0 with none there (no fix measured it: area
+    correlation, VO alone). The larger of their median over ``MEASURED_TILT_WINDOW_S`` and the smaller of
+    the newest two within ``RECENT_TILT_WINDOW_S``: an error that appears is VO's doubt as soon as two
+    fixes agree on it, not once it fills half the window (on a real PX4 beside two busy loops, a 4-8 deg
+    error carried VO 20 m off in 2 s while the 8 s median still said little); one fix made with a stale
+    attitude (6.3 deg at a link cut, in the emulator) holds up nothing alone."""
+    kept = _seen_in_window(seen, time_unix_usec)
     if not kept:
         return 0.0
+    sizes = [math.hypot(*x.off_cam_rad) for x in kept]
     recent_lo = time_unix_usec - int(RECENT_TILT_WINDOW_S * 1e6)
-    newest = [off for t, off in kept[-2:] if t >= recent_lo]
-    return max(float(np.median([off for _, off in kept])), min(newest) if len(newest) == 2 else 0.0)
+    newest = [size for x, size in zip(kept[-2:], sizes[-2:], strict=True) if x.time_unix_usec >= recent_lo]
+    return max(float(np.median(sizes)), min(newest) if len(newest) == 2 else 0.0)
 
 
-def _with_attitude_doubt(motion: VoMotion, frame: NavCameraFrame, measured_rad: float = 0.0) -> VoMotion:
+def measured_tilt_change_rad(seen: list[TiltSeen], time_unix_usec: int) -> float:
+    """How far the autopilot's tilt error changed between consecutive fixes' frames, rad (the root mean
+    square over ``MEASURED_TILT_WINDOW_S`` of the change of the error vector, from pairs at most
+    ``MAX_CHANGE_PAIR_GAP_S`` apart; at least ``MIN_CHANGE_PAIRS``), while the newest fix stood on its own
+    image (a check shows the autopilot's tilt off); else 0. VO de-rotates each frame with the autopilot's
+    tilt, so that change is what moves it, whatever makes it: a drifting AHRS, or attitudes taken from the
+    wrong moment in a turn (on a real PX4 under load, fixes right to 0.07 m found the error swinging 1-2
+    deg from frame to frame, and VO was 3-4 m wrong a frame at 79 m AGL, stating 0.9 m). Only while the
+    tilt is shown off: otherwise the changes are the image's own noise, which from high up across dates
+    would bury VO for nothing."""
+    kept = _seen_in_window(seen, time_unix_usec)
+    if not kept or not kept[-1].stood:
+        return 0.0
+    gap_usec = int(MAX_CHANGE_PAIR_GAP_S * 1e6)
+    changes = [
+        math.hypot(b.off_cam_rad[0] - a.off_cam_rad[0], b.off_cam_rad[1] - a.off_cam_rad[1])
+        for a, b in itertools.pairwise(kept)
+        if b.time_unix_usec - a.time_unix_usec <= gap_usec
+    ]
+    if len(changes) < MIN_CHANGE_PAIRS:
+        return 0.0
+    return math.sqrt(float(np.mean(np.square(changes))))
+
+
+def _with_attitude_doubt(
+    motion: VoMotion, frame: NavCameraFrame, measured_rad: float = 0.0, measured_change_rad: float = 0.0
+) -> VoMotion:
     """``motion`` stating the displacement error a drifting autopilot attitude makes: VO de-rotates the
     frames with it, so a tilt error that changed by ``d`` between them moves the ground under the camera's
     axis by ``height / cos(off-nadir)^2 x d``. The error is the larger of the autopilot's AHRS doubt after
     its manoeuvres (``FrameTiming.ahrs_sigma_rad``) and ``measured_rad``, the tilt error the fixes found
     (``NavigationPipeline.measured_ahrs_doubt_rad``): on PX4 SIH, 2-5 deg through a sustained 38 deg roll
-    with no swing to show it, which made VO 1 m a frame wrong at 80 m."""
+    with no swing to show it, which made VO 1 m a frame wrong at 80 m. The change over the interval is
+    that error's share of ``AHRS_ERROR_CHANGE_TIME_S``, or ``measured_change_rad`` when more: how far the
+    fixes found it change from one frame to the next (``NavigationPipeline.measured_ahrs_change_rad``)."""
     timing = frame.timing
     doubt_rad = max(timing.ahrs_sigma_rad if timing is not None else 0.0, measured_rad)
-    if doubt_rad <= 0.0 or frame.alt_agl_m is None or frame.attitude is None:
+    change_rad = max(doubt_rad * min(1.0, motion.dt_s / AHRS_ERROR_CHANGE_TIME_S), measured_change_rad)
+    if change_rad <= 0.0 or frame.alt_agl_m is None or frame.attitude is None:
         return motion
-    change_rad = doubt_rad * min(1.0, motion.dt_s / AHRS_ERROR_CHANGE_TIME_S)
     cos_off_nadir = max(float(frame.attitude.R_ned_cam()[2, 2]), MIN_COS_OFF_NADIR)
     extra_m = frame.alt_agl_m / cos_off_nadir**2 * change_rad
     return replace(motion, cov_ne_m2=np.asarray(motion.cov_ne_m2) + np.eye(2) * extra_m**2)
