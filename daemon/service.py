@@ -472,6 +472,7 @@ class NavDaemon:
             "sigma_s": round(camera.sigma_s, 4),
             "fit_s": round(fit.offset_s, 4) if fit is not None else None,
             "fit_se_s": round(fit.se_s, 4) if fit is not None else None,
+            "fit_explained": round(fit.explained, 3) if fit is not None else None,
             "samples": fit.samples if fit is not None else 0,
             "out_of_bounds": camera.out_of_bounds,
         }
@@ -877,6 +878,7 @@ class NavDaemon:
             "camera_stamp_sigma_s": round(camera.sigma_s, 4) if camera is not None else None,
             "camera_stamp_fit_s": round(fit.offset_s, 4) if fit is not None else None,
             "camera_stamp_fit_se_s": round(fit.se_s, 4) if fit is not None else None,
+            "camera_stamp_fit_explained": round(fit.explained, 3) if fit is not None else None,
             "camera_stamp_out_of_bounds": camera.out_of_bounds if camera is not None else None,
             "ground_alt_disagrees": self._ground_alt_off,
         }

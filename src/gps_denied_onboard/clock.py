@@ -509,6 +509,11 @@ CAMERA_OFFSET_MIN_SAMPLES: Final[int] = 40
 #: The most lag-1 autocorrelation a fit's residuals are credited with (``_effective_samples``).
 CAMERA_OFFSET_MAX_AUTOCORR: Final[float] = 0.95
 CAMERA_OFFSET_MAX_SE_S: Final[float] = 0.02
+#: A lateness is applied only when it accounts for at least this share of the tilts' scatter about their
+#: bias (``CameraOffsetFit.explained``): a camera that is late moves every tilt by the rate times the
+#: lateness, which leaves little else; an autopilot whose attitude error follows its manoeuvres also
+#: fits a lateness, and leaves most of the scatter where it was.
+CAMERA_OFFSET_MIN_EXPLAINED: Final[float] = 0.5
 #: Candidate latenesses tried, s apart.
 CAMERA_OFFSET_GRID_S: Final[float] = 0.005
 #: The applied correction moves only when the fit differs from it by more than this many standard errors
@@ -534,14 +539,16 @@ CAMERA_OFFSET_SCATTER_MIN_FITS: Final[int] = 5
 @dataclass(frozen=True)
 class CameraOffsetFit:
     """The fit of the camera's stamp lateness: ``offset_s`` (+: stamps later than the exposure), its
-    standard error, the tilt bias on the camera's x and y axes it was fitted with (rad), and how many
-    samples (with a useful rate) it rests on."""
+    standard error, the tilt bias on the camera's x and y axes it was fitted with (rad), how many
+    samples (with a useful rate) it rests on, and ``explained``: the share of the tilts' scatter about
+    their bias, with the stamps taken as the camera gives them, that the lateness accounts for."""
 
     offset_s: float
     se_s: float
     bias_cam_rad: tuple[float, float]
     samples: int
     informative: int
+    explained: float = 1.0
 
 
 class CameraStampOffset:
@@ -629,7 +636,11 @@ class CameraStampOffset:
     def _refit_locked(self) -> bool:
         fit = self._fit_locked()
         self._fit = fit
-        sure = fit is not None and fit.informative >= CAMERA_OFFSET_MIN_SAMPLES
+        sure = (
+            fit is not None
+            and fit.informative >= CAMERA_OFFSET_MIN_SAMPLES
+            and fit.explained >= CAMERA_OFFSET_MIN_EXPLAINED
+        )
         if fit is None or not sure or fit.se_s > CAMERA_OFFSET_MAX_SE_S:
             return False
         target = min(max(fit.offset_s, -CAMERA_CURVE_AHEAD_S), self._max_s)
@@ -701,7 +712,10 @@ class CameraStampOffset:
             and informative >= 3 * CAMERA_OFFSET_MIN_SAMPLES
         ):
             se = CAMERA_OFFSET_MAX_SE_S  # still falling at the grid's end: at least this late
-        return CameraOffsetFit(float(taus[k]), se, (float(biases[k][0]), float(biases[k][1])), n, informative)
+        on_time = costs[int(np.argmin(np.abs(taus)))]
+        explained = 1.0 - costs[k] / on_time if on_time > 0.0 else 0.0
+        bias = (float(biases[k][0]), float(biases[k][1]))
+        return CameraOffsetFit(float(taus[k]), se, bias, n, informative, float(explained))
 
     @property
     def applied_s(self) -> float:
