@@ -12,6 +12,7 @@ import pytest
 
 from gps_denied_onboard.clock import (
     CAMERA_OFFSET_MAX_SE_S,
+    CAMERA_OFFSET_MIN_EXPLAINED,
     CAMERA_OFFSET_SE_FLOOR_S,
     TIMESYNC_JUMP_SAMPLES,
     AutopilotClock,
@@ -184,12 +185,13 @@ def test_a_lateness_that_leaves_most_of_the_tilts_scatter_unexplained_is_not_app
     lateness as of a real one, but it leaves most of the scatter where it was, so nothing is applied.
     A real lateness explains nearly all of it."""
     cam = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
-    _camera_samples(cam, 0.12, 300, rng=random.Random(8), amp_rad=0.08, noise_rad=math.radians(1.5))
+    _camera_samples(cam, 0.12, 300, rng=random.Random(8), amp_rad=0.06, noise_rad=math.radians(1.5))
     fit = cam.fit
     assert fit is not None and fit.offset_s == pytest.approx(0.12, abs=0.02)
     assert fit.se_s < CAMERA_OFFSET_MAX_SE_S  # as sure as a real lateness: applied, but for this rule
-    assert fit.explained < 0.5
+    assert fit.explained < CAMERA_OFFSET_MIN_EXPLAINED
     assert cam.applied_s == 0.0
+    assert cam.sigma_s >= fit.offset_s  # carried as doubt
     late = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
     _camera_samples(late, 0.2, 60, rng=random.Random(1))
     assert late.fit is not None and late.fit.explained > 0.95

@@ -510,10 +510,13 @@ CAMERA_OFFSET_MIN_SAMPLES: Final[int] = 40
 CAMERA_OFFSET_MAX_AUTOCORR: Final[float] = 0.95
 CAMERA_OFFSET_MAX_SE_S: Final[float] = 0.02
 #: A lateness is applied only when it accounts for at least this share of the tilts' scatter about their
-#: bias (``CameraOffsetFit.explained``): a camera that is late moves every tilt by the rate times the
-#: lateness, which leaves little else; an autopilot whose attitude error follows its manoeuvres also
-#: fits a lateness, and leaves most of the scatter where it was.
-CAMERA_OFFSET_MIN_EXPLAINED: Final[float] = 0.5
+#: bias (``CameraOffsetFit.explained``); one that explains less is carried as the frames' timing doubt. A
+#: late camera moves every tilt by the rate times the lateness; an autopilot whose attitude error only
+#: partly follows its manoeuvres fits a lateness too, and leaves most of the scatter where it was.
+#: Measured: on PX4 SITL (SIH), fits of 0.07-0.34 s on a camera on time explained 0.004-0.18; on the
+#: ArduPilot emulator (its AHRS error follows every swing, as measured on ArduPilot SITL) a camera 0.2 s
+#: late explained 0.23-0.50; in the unit tests' late camera over 0.95. The margin is thin.
+CAMERA_OFFSET_MIN_EXPLAINED: Final[float] = 0.2
 #: Candidate latenesses tried, s apart.
 CAMERA_OFFSET_GRID_S: Final[float] = 0.005
 #: The applied correction moves only when the fit differs from it by more than this many standard errors
@@ -636,11 +639,7 @@ class CameraStampOffset:
     def _refit_locked(self) -> bool:
         fit = self._fit_locked()
         self._fit = fit
-        sure = (
-            fit is not None
-            and fit.informative >= CAMERA_OFFSET_MIN_SAMPLES
-            and fit.explained >= CAMERA_OFFSET_MIN_EXPLAINED
-        )
+        sure = fit is not None and fit.informative >= CAMERA_OFFSET_MIN_SAMPLES
         if fit is None or not sure or fit.se_s > CAMERA_OFFSET_MAX_SE_S:
             return False
         target = min(max(fit.offset_s, -CAMERA_CURVE_AHEAD_S), self._max_s)
@@ -657,7 +656,9 @@ class CameraStampOffset:
         # scatter), so that an early fit that later ones disown is not kept
         moving_se = se if self._changes == 0 else max(fit.se_s, scatter)
         threshold_s = max(CAMERA_OFFSET_STEP_SE * moving_se, CAMERA_OFFSET_MIN_STEP_S)
-        step = abs(target - self._applied_s) > threshold_s
+        # a correction moves only to a lateness that accounts for the tilts (module docstring): one that
+        # leaves them as scattered is carried as doubt below, never applied
+        step = abs(target - self._applied_s) > threshold_s and fit.explained >= CAMERA_OFFSET_MIN_EXPLAINED
         if step:
             self._applied_s = target
             self._changes += 1
