@@ -113,14 +113,6 @@ HEADING_SETTLE_S: Final[float] = 3.0
 #: constant (an assumption: measured only "truth plus a little noise").
 GNSS_NOISE_SIGMA_M: Final[float] = 0.2
 GNSS_NOISE_TAU_S: Final[float] = 5.0
-#: EKF2's roll and pitch (ATTITUDE) minus SIH's truth: a first-order Gauss-Markov error per axis of this
-#: sigma and time constant, not following the rate. Measured from PX4's ulog (`vehicle_attitude` against
-#: `vehicle_attitude_groundtruth`, px4_square with the GNSS off, PX4 main 02e73e3 SIH): 0.7-1.2 deg rms
-#: per axis, autocorrelation 0.5 at 2-5 s, correlation with the rate -0.27 to +0.09, no lag (best shift
-#: -0.02 s). An autopilot's attitude that is the truth hides how the daemon's tilt checks and the camera
-#: stamp fit meet a real one.
-ATTITUDE_ERR_SIGMA_RAD: Final[float] = math.radians(1.0)
-ATTITUDE_ERR_TAU_S: Final[float] = 3.0
 #: Height at which the land detector says "Takeoff detected", m (an assumption).
 TAKEOFF_DETECT_HEIGHT_M: Final[float] = 1.0
 #: EXTENDED_SYS_STATE.landed_state values (MAV_LANDED_STATE).
@@ -186,7 +178,6 @@ class Px4Emulator(PointMassVehicle, UdpEmulator):
         self._reset_vehicle(self.opts.home_heading_deg)
         self.est_err_ne = np.zeros(2)  # EKF2's horizontal position minus the truth
         self._gnss_noise_ne = np.zeros(2)
-        self.att_err_rad = np.zeros(2)  # EKF2's roll and pitch minus the truth (ATTITUDE_ERR_*)
         self.last_gnss_s: float | None = None  # the last tick EKF2 fused SIH's GNSS
         self.gnss_origin: tuple[float, float, float] | None = None
         self._agp_ref_ne = np.zeros(2)  # the truth where the vehicle-fixed frame of the AGP double is pinned
@@ -292,9 +283,6 @@ class Px4Emulator(PointMassVehicle, UdpEmulator):
 
     def _before_physics(self, now: float) -> None:
         self._update_estimate(now, 1.0 / 50.0)
-        a = min(1.0, (1.0 / 50.0) / ATTITUDE_ERR_TAU_S)
-        kick = self._rng.normal(0.0, ATTITUDE_ERR_SIGMA_RAD * math.sqrt(2.0 * a), 2)
-        self.att_err_rad = (1.0 - a) * self.att_err_rad + kick
         valid = self.position_valid(now)
         if valid and self.home is None and self.on_ground:
             self._set_home()
@@ -571,15 +559,9 @@ class Px4Emulator(PointMassVehicle, UdpEmulator):
         )
 
     def _send_attitude(self) -> None:
-        """ATTITUDE: EKF2's, the truth plus its measured error (``ATTITUDE_ERR_*``)."""
+        """ATTITUDE: the truth (nothing was measured of PX4's attitude error in SIH)."""
         self._mav.attitude_send(
-            self._boot_ms(),
-            self.roll_rad + float(self.att_err_rad[0]),
-            self.pitch_rad + float(self.att_err_rad[1]),
-            wrap_pi(self.yaw_rad),
-            0,
-            0,
-            0,
+            self._boot_ms(), self.roll_rad, self.pitch_rad, wrap_pi(self.yaw_rad), 0, 0, 0
         )
 
     def _send_imu(self) -> None:
