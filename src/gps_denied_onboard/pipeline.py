@@ -405,19 +405,13 @@ class NavigationPipeline:
         ahrs_rad = max(0.0, timing.ahrs_sigma_rad - AHRS_DOUBT_FREE_RAD)
         return math.hypot(timing.tilt_sigma_rad, ahrs_rad) <= limit
 
-    def measured_ahrs_doubt_rad(self, time_unix_usec: int) -> float:
-        """The tilt error of the autopilot that accepted fixes measured before ``time_unix_usec``, rad
-        (``measured_tilt_doubt_rad``)."""
+    def measured_ahrs_doubt_rad(self, time_unix_usec: int) -> tuple[float, float]:
+        """What accepted fixes measured of the autopilot's tilt before ``time_unix_usec``, rad: its error
+        (``measured_tilt_doubt_rad``) and how far it changed from one fix's frame to the next while they
+        stood on their own images (``measured_tilt_change_rad``); one copy under the lock a frame."""
         with self._tilt_off_lock:
             seen = list(self._tilt_off_seen)
-        return measured_tilt_doubt_rad(seen, time_unix_usec)
-
-    def measured_ahrs_change_rad(self, time_unix_usec: int) -> float:
-        """How far the autopilot's tilt error changed from one fix's frame to the next, rad, while the
-        fixes stand on their own images (``measured_tilt_change_rad``)."""
-        with self._tilt_off_lock:
-            seen = list(self._tilt_off_seen)
-        return measured_tilt_change_rad(seen, time_unix_usec)
+        return measured_tilt_doubt_rad(seen, time_unix_usec), measured_tilt_change_rad(seen, time_unix_usec)
 
     def _note_camera_tilt(
         self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, timing: FrameTiming | None
@@ -477,9 +471,7 @@ class NavigationPipeline:
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
                 if motion is not None:
-                    motion = _with_attitude_doubt(
-                        motion, frame, self.measured_ahrs_doubt_rad(t), self.measured_ahrs_change_rad(t)
-                    )
+                    motion = _with_attitude_doubt(motion, frame, *self.measured_ahrs_doubt_rad(t))
                     decision = self._axis.fuse_vo(motion, t)
                     if decision.accepted:
                         fused = motion
@@ -1262,7 +1254,7 @@ def _with_attitude_doubt(
     (``NavigationPipeline.measured_ahrs_doubt_rad``): on PX4 SIH, 2-5 deg through a sustained 38 deg roll
     with no swing to show it, which made VO 1 m a frame wrong at 80 m. The change over the interval is
     that error's share of ``AHRS_ERROR_CHANGE_TIME_S``, or ``measured_change_rad`` when more: how far the
-    fixes found it change from one frame to the next (``NavigationPipeline.measured_ahrs_change_rad``)."""
+    fixes found it change from one frame to the next (``NavigationPipeline.measured_ahrs_doubt_rad``)."""
     timing = frame.timing
     doubt_rad = max(timing.ahrs_sigma_rad if timing is not None else 0.0, measured_rad)
     change_rad = max(doubt_rad * min(1.0, motion.dt_s / AHRS_ERROR_CHANGE_TIME_S), measured_change_rad)
