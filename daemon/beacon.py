@@ -7,6 +7,11 @@ state, TIMESYNC), sends HEARTBEAT with MAV_STATE_BOOT at ``mavlink.heartbeat_hz`
 fix_type 0 (no estimate) at ``mavlink.estimate_rate_hz``, and says "GDN: starting" once the autopilot
 is heard. It claims nothing: no position leaves it. ``stop`` ends it and hands the link to the
 daemon's own tasks (``NavDaemon.run``), on the same link object.
+
+Once the autopilot is heard, the beacon also asks it what the start-up prior needs (its estimate, EKF
+status and home every ``ESTIMATE_ASK_PERIOD_S``; its landed state every ``PHASE_ASK_PERIOD_S``), as the
+daemon's first frame would: the answers are in the tracker when that frame comes, so a restart in flight
+starts its estimator a frame sooner. ``asked`` says when, for the daemon to carry on from.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import select
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import structlog
 from pymavlink import mavutil
@@ -28,14 +34,37 @@ log = structlog.get_logger(__name__)
 
 #: The text the operator sees once the autopilot is heard.
 STARTING_TEXT = "GDN: starting"
+#: How often the beacon asks for the autopilot's estimate and home, and for its landed state, s (the
+#: daemon's own start-up asks keep the same pace: ``NavDaemon._prior``).
+ESTIMATE_ASK_PERIOD_S = 0.25
+PHASE_ASK_PERIOD_S = 1.0
+
+
+@dataclass(frozen=True)
+class BeaconAsks:
+    """When the beacon asked the autopilot (daemon clock, Unix s; None: never): the first and the last
+    request for its estimate and home, and the last for its landed state."""
+
+    estimate_first_unix_s: float | None = None
+    estimate_last_unix_s: float | None = None
+    phase_last_unix_s: float | None = None
 
 
 class StartupBeacon:
     """Keeps ``link`` talking on a thread of its own until ``stop``."""
 
-    def __init__(self, link: MavlinkLink, config: MavlinkConfig, clock: Callable[[], float]) -> None:
-        """``clock``: the daemon's clock (Unix s), which stamps the GPS_INPUT."""
+    def __init__(
+        self,
+        link: MavlinkLink,
+        config: MavlinkConfig,
+        clock: Callable[[], float],
+        *,
+        ask_estimate: bool = True,
+    ) -> None:
+        """``clock``: the daemon's clock (Unix s), which stamps the GPS_INPUT. ``ask_estimate``: ask for the
+        autopilot's estimate and home (False where ``init.autopilot_wait_s`` is 0: "do not ask")."""
         self._link = link
+        self._ask_estimate = ask_estimate
         self._clock = clock
         self._estimate_period_s = 1.0 / config.estimate_rate_hz
         self._heartbeat_period_s = 1.0 / config.heartbeat_hz
@@ -46,6 +75,8 @@ class StartupBeacon:
         self.first_estimate_unix_s: float | None = None
         self._said_starting = False
         self._error: BaseException | None = None
+        #: What it asked the autopilot, and when (written by the beacon's thread only).
+        self.asked = BeaconAsks()
 
     def start(self) -> None:
         log.info(LogEvent.DAEMON_BEACON_STARTED)
@@ -83,15 +114,31 @@ class StartupBeacon:
                     next_estimate += self._estimate_period_s
                     if next_estimate < now:  # late (the GIL was busy): the next one a period from now
                         next_estimate = now + self._estimate_period_s
-                if not self._said_starting and link.tracker.autopilot_seen:
-                    info = mavutil.mavlink.MAV_SEVERITY_INFO
-                    self._said_starting = link.send_statustext(info, STARTING_TEXT)
+                if link.tracker.autopilot_seen:
+                    if not self._said_starting:
+                        info = mavutil.mavlink.MAV_SEVERITY_INFO
+                        self._said_starting = link.send_statustext(info, STARTING_TEXT)
+                    self._ask(link)
                 self._wait_readable(min(next_estimate, next_heartbeat) - time.monotonic())
                 link.poll()
                 now = time.monotonic()
         except Exception as exc:  # the daemon's own tasks take over (or report) at stop; never lost
             self._error = exc
             log.exception(LogEvent.DAEMON_BEACON_STOPPED, error=repr(exc))
+
+    def _ask(self, link: MavlinkLink) -> None:
+        """Ask the autopilot for its estimate and home, and its landed state, each at its own pace."""
+        now_s = self._clock()
+        asked = self.asked
+        last = asked.estimate_last_unix_s
+        due = last is None or now_s - last >= ESTIMATE_ASK_PERIOD_S
+        if self._ask_estimate and due and link.request_autopilot_estimate():
+            first = asked.estimate_first_unix_s if asked.estimate_first_unix_s is not None else now_s
+            asked = replace(asked, estimate_first_unix_s=first, estimate_last_unix_s=now_s)
+        last = asked.phase_last_unix_s
+        if (last is None or now_s - last >= PHASE_ASK_PERIOD_S) and link.request_flight_phase():
+            asked = replace(asked, phase_last_unix_s=now_s)
+        self.asked = asked
 
     def _wait_readable(self, timeout_s: float) -> None:
         timeout_s = min(max(0.0, timeout_s), 0.05)

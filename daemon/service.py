@@ -60,7 +60,7 @@ from gps_denied_onboard.constants import (
     LogEvent,
     Provenance,
 )
-from gps_denied_onboard.daemon.beacon import StartupBeacon
+from gps_denied_onboard.daemon.beacon import ESTIMATE_ASK_PERIOD_S, PHASE_ASK_PERIOD_S, StartupBeacon
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
@@ -194,6 +194,12 @@ class NavDaemon:
                 loop.add_signal_handler(sig, self._signal_ignored, sig)
         if self._beacon is not None:
             self._beacon.stop()  # the link is the tasks' from here
+            # Its asks for the autopilot's estimate count as the daemon's own: the start-up wait runs from
+            # the first, and the answers that came are the ones the first frame's prior may take.
+            asked = self._beacon.asked
+            self._asked_autopilot_first_s = asked.estimate_first_unix_s
+            self._asked_autopilot_last_s = asked.estimate_last_unix_s
+            self._asked_phase_s = asked.phase_last_unix_s
         self._root.link.open()
         bodies = {
             "camera_ingest": self._camera_ingest(),
@@ -333,7 +339,7 @@ class NavDaemon:
         now_s = self._clock.now_unix_s()
         phase = tracker.flight_phase(now_s)
         air = in_the_air(self._cfg.init, alt_agl_m, phase)
-        if self._asked_phase_s is None or now_s - self._asked_phase_s >= 1.0:
+        if self._asked_phase_s is None or now_s - self._asked_phase_s >= PHASE_ASK_PERIOD_S:
             # ArduPilot streams EXTENDED_SYS_STATE only where its stream rates say so: ask, at 1 Hz, until
             # the estimator has started.
             self._root.link.request_flight_phase()
@@ -358,7 +364,8 @@ class NavDaemon:
             if autopilot is None or need_home:
                 if self._asked_autopilot_first_s is None:
                     self._asked_autopilot_first_s = now_s
-                if self._asked_autopilot_last_s is None or now_s - self._asked_autopilot_last_s >= 0.25:
+                last_s = self._asked_autopilot_last_s
+                if last_s is None or now_s - last_s >= ESTIMATE_ASK_PERIOD_S:
                     self._root.link.request_autopilot_estimate()
                     self._asked_autopilot_last_s = now_s
                 first_s = self._asked_autopilot_first_s

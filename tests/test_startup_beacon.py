@@ -80,6 +80,16 @@ def test_beacon_speaks_to_the_autopilot_without_a_position_until_stopped() -> No
         assert all(m.system_status == D.MAV_STATE_BOOT for m in got["HEARTBEAT"])
         texts = [m.text for m in got.get("STATUSTEXT", [])]
         assert texts == [STARTING_TEXT], texts
+        # what the start-up prior needs is asked for before the first frame: estimate and home at 4 Hz,
+        # the landed state at 1 Hz
+        asks = _requested(got)
+        for wanted in ("GLOBAL_POSITION_INT", "EKF_STATUS_REPORT", "HOME_POSITION", "GPS_RAW_INT"):
+            assert 4 <= asks.count(wanted) <= 7, asks
+        assert 1 <= asks.count("EXTENDED_SYS_STATE") <= 2, asks
+        asked = beacon.asked
+        assert asked.estimate_first_unix_s is not None and asked.estimate_last_unix_s is not None
+        assert asked.phase_last_unix_s is not None
+        assert 0.75 <= asked.estimate_last_unix_s - asked.estimate_first_unix_s <= 1.5, asked
         beacon.stop()
         sent = beacon.estimates_sent
         assert sent >= len(gps)
@@ -88,6 +98,37 @@ def test_beacon_speaks_to_the_autopilot_without_a_position_until_stopped() -> No
         link.attach(None, LocalTangentPlane(47.0, 8.0, 400.0))
         link.open()  # already open: the daemon's call is a no-op, the port stays ours
         assert link.connected
+    finally:
+        beacon.stop()
+        ap.close()
+        link.close()
+
+
+def _requested(got: dict[str, list[Any]]) -> list[str]:
+    """The messages asked for by MAV_CMD_REQUEST_MESSAGE among ``got``'s COMMAND_LONGs, by name."""
+    names = {
+        v: k.removeprefix("MAVLINK_MSG_ID_") for k, v in vars(D).items() if k.startswith("MAVLINK_MSG_ID_")
+    }
+    return [
+        names[int(m.param1)] for m in got.get("COMMAND_LONG", []) if m.command == D.MAV_CMD_REQUEST_MESSAGE
+    ]
+
+
+def test_beacon_asks_only_for_the_landed_state_where_the_autopilot_is_not_to_be_asked() -> None:
+    """``init.autopilot_wait_s`` 0 ("do not ask"): the beacon asks for the landed state only."""
+    port = _free_udp_port()
+    config = config_from_mapping({"mavlink": {"url": f"udpin:127.0.0.1:{port}"}})
+    clock = DaemonClock()
+    link = open_link_first(config, clock)
+    ap = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    beacon = StartupBeacon(link, config.mavlink, clock.now_unix_s, ask_estimate=False)
+    try:
+        beacon.start()
+        hb = ap.mav.heartbeat_encode(D.MAV_TYPE_QUADROTOR, D.MAV_AUTOPILOT_PX4, 0, 0, D.MAV_STATE_ACTIVE)
+        ap.mav.send(hb)
+        asks = _requested(_collect(ap, 1.2))
+        assert asks and set(asks) == {"EXTENDED_SYS_STATE"}, asks
+        assert beacon.asked.estimate_first_unix_s is None
     finally:
         beacon.stop()
         ap.close()

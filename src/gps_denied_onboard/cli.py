@@ -110,7 +110,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     except (StartupError, MavlinkConfigError) as exc:
         log.error("daemon.startup_refused", what=getattr(exc, "what", "mavlink.url"), error=str(exc))
         raise  # main() prints the one line and exits 3
-    beacon = StartupBeacon(link, config.mavlink, clock.now_unix_s)
+    beacon = StartupBeacon(
+        link, config.mavlink, clock.now_unix_s, ask_estimate=config.init.autopilot_wait_s > 0
+    )
     beacon.start()
     try:
         from gps_denied_onboard.daemon.service import NavDaemon
