@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
-from scipy.stats import t as student_t
+from scipy.special import stdtrit
 
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.config import PoseConfig
@@ -341,7 +341,7 @@ def _prediction_margin_deg(offs_deg: np.ndarray) -> float:
 
 @functools.lru_cache(maxsize=4096)
 def _student_t(dof_hundredths: int) -> float:
-    return float(student_t.ppf(CONFIDENCE, dof_hundredths / 100.0))
+    return float(stdtrit(dof_hundredths / 100.0, CONFIDENCE))  # Student t quantile
 
 
 def _t_quantile(dof: float) -> float:

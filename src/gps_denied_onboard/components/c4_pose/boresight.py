@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
-from scipy.stats import t as student_t
+from scipy.special import stdtrit
 
 #: Fewest VO tilts a mount is ever set from.
 MIN_SAMPLES: Final[int] = 30
@@ -54,7 +54,7 @@ class TiltOffset:
         if n < 2:
             return None
         scatter = tilts.std(axis=0, ddof=1)
-        half = float(student_t.ppf(0.5 + CONFIDENCE / 2.0, n - 1)) * scatter / math.sqrt(n)
+        half = float(stdtrit(n - 1, 0.5 + CONFIDENCE / 2.0)) * scatter / math.sqrt(n)  # Student t quantile
         mean = tilts.mean(axis=0)
         return cls(
             (float(mean[0]), float(mean[1])),

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri
 
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
@@ -138,7 +138,7 @@ class FixConsistency:
         if n == 0:
             return float(self._cfg.unverified_sigma_scale) ** 2
         total = sum(min(v, self._cfg.consistency_nis_cap) for v in self._nis)
-        bound = float(chi2.ppf(self._cfg.consistency_confidence, 2 * n))
+        bound = float(chdtri(2 * n, 1.0 - self._cfg.consistency_confidence))  # chi2 quantile
         return max(1.0, total / bound)
 
     def assess(self, fix: PoseFix, *, full_evidence: bool) -> ConsistencyVerdict:

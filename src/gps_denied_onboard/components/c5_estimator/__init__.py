@@ -1,8 +1,9 @@
 """C5 estimator: fuses absolute fixes, visual odometry, altitude and the IMU on one time axis; labels the
 provenance.
 
-The names below load on first use (PEP 562): the filter pulls in filterpy and SciPy (~0.6 s), and the
-MAVLink link, which needs only ``types``, must be able to start before them (``daemon.beacon``).
+The names below load on first use (PEP 562): the filter pulls in the VO and pose types' packages (OpenCV
+among them), and the MAVLink link, which needs only ``types``, must be able to start before them
+(``daemon.beacon``).
 """
 
 from __future__ import annotations

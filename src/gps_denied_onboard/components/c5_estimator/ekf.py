@@ -1,4 +1,4 @@
-"""C5 navigation estimator: a Kalman filter (filterpy) over absolute fixes, VO, altitude and the IMU.
+"""C5 navigation estimator: a Kalman filter (``kalman``, NumPy) over absolute fixes, VO, altitude and the IMU.
 
 The filter math at one instant. When each input is fused, and whether its time is admitted at all, is
 decided by :mod:`~gps_denied_onboard.components.c5_estimator.time_axis`, the only caller of the update
@@ -36,11 +36,10 @@ from typing import Any, Final
 
 import numpy as np
 import structlog
-from filterpy.common import Q_continuous_white_noise
-from filterpy.kalman import KalmanFilter
 
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
+from gps_denied_onboard.components.c5_estimator.kalman import KalmanState, white_noise_accel_q
 from gps_denied_onboard.components.c5_estimator.protocol import AccelerationSource
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState, FixDecision
 from gps_denied_onboard.config import EstimatorConfig
@@ -185,7 +184,7 @@ class NavEstimator:
         self._imu_trusted = True
         self._fix_recent_s = config.anchored_window_s
         self._vo_recent_s = vo_recent_s
-        self._kf = KalmanFilter(dim_x=6, dim_z=3)
+        self._kf = KalmanState.zeros(6)
         self._time_usec: int | None = None
         self._last_fix_usec: int | None = None
         self._last_no_fix_usec: int | None = None
@@ -314,9 +313,7 @@ class NavEstimator:
         f_mat = np.eye(6)
         f_mat[0:3, 3:6] = dt * np.eye(3)
         density = self._config.accel_noise_m_s2 if accel is None else self._config.imu_accel_noise_m_s2
-        q_mat = Q_continuous_white_noise(
-            dim=2, dt=dt, spectral_density=density**2, block_size=3, order_by_dim=False
-        )
+        q_mat = white_noise_accel_q(dt, density**2)
         x_new = f_mat @ x
         if accel is not None:
             x_new[0:3] += 0.5 * dt * dt * accel
