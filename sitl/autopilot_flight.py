@@ -68,7 +68,7 @@ TRUTH_TIMEOUT_S = 30.0
 
 #: The shipped unit's RestartSec= (systemd/gdnav.service; tests/test_systemd_unit.py keeps them equal): a
 #: restart on a real autopilot is flown with the gap it would have in the air, s.
-UNIT_RESTART_SEC_S = 1.0
+UNIT_RESTART_SEC_S = 0.2
 
 
 def _home_refusal(lat: float, lon: float, bbox: tuple[float, float, float, float], map_path: Path) -> str:

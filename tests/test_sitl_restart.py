@@ -61,7 +61,7 @@ def test_no_confident_lie_across_the_restart(flight: dict) -> None:
 #: Issue 27, item 5: after a kill -9, GPS_INPUT again within this long of the new process's start (the
 #: start-up beacon's, fix_type 0, before the fix path has loaded), and an honest 3D fix within this long,
 #: s. Bounds for a loaded 2-core CI machine; measured figures are in docs/benchmarks.md ("Restart in
-#: flight"). With the unit's RestartSec= (1 s) before them, the issue's targets are 2 s and 4 s.
+#: flight"). The unit's RestartSec= (0.2 s) comes before them.
 FIRST_GPS_INPUT_AFTER_START_MAX_S = 2.0
 FIRST_3D_AFTER_START_MAX_S = 4.5
 #: ArduPilot declares NO_FIX this long after the last GPS_INPUT, s.
