@@ -48,6 +48,32 @@ def test_the_first_stage_imports_nothing_heavy() -> None:
     assert out.stdout.strip() == "[]", out.stdout
 
 
+#: The navigator core's side of the daemon (issue 36): the link, the clocks, the estimator on its time
+#: axis, the start-up prior and resume state, the flight data recorder, systemd's notifications.
+CORE_MODULES = (
+    "gps_denied_onboard.clock",
+    "gps_denied_onboard.components.c8_mavlink",
+    "gps_denied_onboard.components.c8_mavlink.px4_params",
+    "gps_denied_onboard.components.c5_estimator.time_axis",
+    "gps_denied_onboard.components.c5_estimator.ekf",
+    "gps_denied_onboard.components.c5_estimator.prior",
+    "gps_denied_onboard.components.c5_estimator.resume_state",
+    "gps_denied_onboard.components.c13_fdr",
+    "gps_denied_onboard.daemon.beacon",
+    "gps_denied_onboard.daemon.sd_notify",
+)
+
+
+def test_the_navigator_cores_modules_import_nothing_heavy() -> None:
+    """The estimator and everything else the core holds, in a fresh interpreter: no SciPy, OpenCV,
+    ONNX Runtime, FAISS or torch comes with them (the VO and pose packages load their heavy parts only
+    when those are asked for), so a core can start without the vision's imports."""
+    code = "import sys\n" + "".join(f"import {m}\n" for m in CORE_MODULES)
+    code += f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY_MODULES!r})))\n"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
 def _collect(ap: Any, seconds: float) -> dict[str, list[Any]]:
     got: dict[str, list[Any]] = {}
     deadline = time.monotonic() + seconds

@@ -8,8 +8,9 @@ among them), and the MAVLink link, which needs only ``types``, must be able to s
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from gps_denied_onboard.helpers.lazy_exports import lazy_exports
 
 if TYPE_CHECKING:
     from gps_denied_onboard.components.c5_estimator.ekf import (
@@ -55,12 +56,4 @@ __all__ = [
     "TimeAxis",
     "TimeAxisStats",
 ]
-
-
-def __getattr__(name: str) -> Any:
-    module = _HOME.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_exports(__name__, _HOME)
