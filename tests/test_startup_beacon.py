@@ -22,7 +22,7 @@ from gps_denied_onboard.geo import LocalTangentPlane
 from gps_denied_onboard.runtime_root.link_first import open_link_first
 
 #: What the first stage must not import: each costs 0.1-0.6 s of start-up on two cores.
-HEAVY_MODULES = ("scipy", "filterpy", "cv2", "onnxruntime", "faiss", "rasterio", "torch")
+HEAVY_MODULES = ("scipy", "cv2", "onnxruntime", "faiss", "rasterio", "torch")
 
 
 def _free_udp_port() -> int:

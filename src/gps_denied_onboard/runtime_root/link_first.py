@@ -3,7 +3,7 @@
 ``gdnav run`` opens it right after reading the configuration, so the start-up beacon
 (``daemon.beacon``) can talk to the autopilot while the map cache, the models and the estimator load.
 Imports here stay light (MAVLink, the clock, the config): tests/test_import_graph.py checks that none
-of SciPy, filterpy, OpenCV, ONNX Runtime or FAISS comes with them.
+of SciPy, OpenCV, ONNX Runtime or FAISS comes with them.
 """
 
 from __future__ import annotations
