@@ -28,13 +28,7 @@ def white_noise_accel_q(dt_s: float, spectral_density: float, axes: int = 3) -> 
     if not (np.isfinite(dt_s) and dt_s >= 0):
         raise ValueError(f"dt_s must be a finite number of seconds >= 0, got {dt_s!r}")
     block = spectral_density * np.array([[dt_s**3 / 3.0, dt_s**2 / 2.0], [dt_s**2 / 2.0, dt_s]])
-    q_mat = np.zeros((2 * axes, 2 * axes))
-    eye = np.eye(axes)
-    q_mat[:axes, :axes] = block[0, 0] * eye
-    q_mat[:axes, axes:] = block[0, 1] * eye
-    q_mat[axes:, :axes] = block[1, 0] * eye
-    q_mat[axes:, axes:] = block[1, 1] * eye
-    return q_mat
+    return np.kron(block, np.eye(axes))  # (position, velocity) blocks, each diagonal over the axes
 
 
 @dataclass
