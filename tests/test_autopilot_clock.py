@@ -16,9 +16,11 @@ from gps_denied_onboard.clock import (
     CAMERA_OFFSET_SE_FLOOR_S,
     TIMESYNC_JUMP_SAMPLES,
     AutopilotClock,
+    CameraOffsetFit,
     CameraStampOffset,
     TimeSource,
     TimesyncSample,
+    unapplied_doubt_s,
 )
 
 T0_USEC = 1_717_000_000_000_000
@@ -191,10 +193,27 @@ def test_a_lateness_that_leaves_most_of_the_tilts_scatter_unexplained_is_not_app
     assert fit.se_s < CAMERA_OFFSET_MAX_SE_S  # as sure as a real lateness: applied, but for this rule
     assert fit.explained < CAMERA_OFFSET_MIN_EXPLAINED
     assert cam.applied_s == 0.0
-    assert cam.sigma_s >= fit.offset_s  # carried as doubt
+    # carried as doubt in proportion to the share it explains: more than the floor, less than its whole
+    assert 0.0 < unapplied_doubt_s(fit, 0.0) < fit.offset_s
+    assert cam.sigma_s >= math.hypot(CAMERA_OFFSET_SE_FLOOR_S, unapplied_doubt_s(fit, 0.0)) - 1e-12
+    assert cam.sigma_s < fit.offset_s
     late = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
     _camera_samples(late, 0.2, 60, rng=random.Random(1))
     assert late.fit is not None and late.fit.explained > 0.95
+
+
+def test_an_unapplied_fit_is_doubted_in_proportion_to_the_share_of_the_tilts_it_explains() -> None:
+    """The gap to a fit that would be applied is carried whole; one that explains nothing adds nothing
+    (the stamps as they are fit the tilts as well); in between, in proportion."""
+
+    def fit(offset_s: float, explained: float) -> CameraOffsetFit:
+        return CameraOffsetFit(offset_s, 0.01, (0.0, 0.0), 100, 80, explained)
+
+    assert unapplied_doubt_s(fit(0.3, CAMERA_OFFSET_MIN_EXPLAINED), 0.0) == pytest.approx(0.3)
+    assert unapplied_doubt_s(fit(0.3, 0.9), 0.1) == pytest.approx(0.2)
+    assert unapplied_doubt_s(fit(0.3, 0.0), 0.0) == 0.0
+    assert unapplied_doubt_s(fit(0.3, -0.1), 0.0) == 0.0  # a fit worse than the stamps as they are
+    assert unapplied_doubt_s(fit(-0.04, CAMERA_OFFSET_MIN_EXPLAINED / 4), 0.0) == pytest.approx(0.01)
 
 
 def test_a_correction_follows_later_fits_that_disown_the_first() -> None:

@@ -554,6 +554,21 @@ class CameraOffsetFit:
     explained: float = 1.0
 
 
+def unapplied_doubt_s(fit: CameraOffsetFit, applied_s: float) -> float:
+    """The timing doubt a fit adds beyond its own error when its lateness is not the applied one, s.
+
+    A fit that explains at least ``CAMERA_OFFSET_MIN_EXPLAINED`` of the tilts' scatter would be applied,
+    so the gap to it is carried whole. One that explains less is carried in proportion to the share it
+    explains: a lateness that leaves the tilts nearly as scattered as the stamps taken as they are (the
+    autopilot's attitude error partly following its manoeuvres) is evidence of little, and carried whole
+    it made the frames' timing doubt the fit's whole 0.32 s on a camera on time (a real PX4 under SIH: the
+    fit explained 0.04-0.06, the position's sigma doubled, and EKF2, weighing the positions by it, ran
+    6.5 m off at p95 on its own IMU). A real lateness of the same size explains most of the scatter and
+    is applied."""
+    gap = abs(fit.offset_s - applied_s)
+    return gap * min(1.0, max(fit.explained, 0.0) / CAMERA_OFFSET_MIN_EXPLAINED)
+
+
 class CameraStampOffset:
     """Online estimate of how late the camera stamps its frames (module docstring); thread-safe.
 
@@ -564,7 +579,8 @@ class CameraStampOffset:
     ``down(stamp - tau) - down(stamp - applied)`` plus a bias; the fit is the ``tau`` (on a grid) whose
     prediction leaves the least scatter. ``applied_s`` is the correction the time axis subtracts from
     new stamps; ``sigma_s`` how well a corrected exposure time is known: ``prior_sigma_s`` until the fit
-    is sure, then its standard error (floored). ``out_of_bounds``: the fit is sure and beyond
+    is sure, then its standard error (floored) with the doubt an unapplied fit adds
+    (``unapplied_doubt_s``). ``out_of_bounds``: the fit is sure and beyond
     ``max_offset_s``, which the correction then stays at, the frames carrying the rest as doubt.
     """
 
@@ -662,8 +678,7 @@ class CameraStampOffset:
         if step:
             self._applied_s = target
             self._changes += 1
-        # the doubt of a corrected stamp: the fit's own, and whatever the fit says the correction misses
-        self._sigma_s = math.hypot(se, abs(fit.offset_s - self._applied_s))
+        self._sigma_s = math.hypot(se, unapplied_doubt_s(fit, self._applied_s))
         return step
 
     def _fit_locked(self) -> CameraOffsetFit | None:
