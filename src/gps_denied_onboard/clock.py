@@ -571,8 +571,8 @@ class TiltSource(Enum):
     image-only tilt (0.5-0.8 deg rms against EKF2's attitude on the real PX4 under SIH) and VO's ground
     tilt from two frames (0.5 deg at a long baseline, tens of degrees near the shortest, and through
     PX4's 35 deg pitch); weighed alike, VO's tilts flattened the fit's cost so that its minimum wandered
-    from 0.04 to 0.34 s within seconds on a camera on time, while the fixes' tilts alone put it at
-    0.02 s."""
+    from 0.04 to 0.34 s within seconds on a camera on time, while the fixes' tilts alone put it within
+    0.02 s of 0."""
 
     FIX = "fix"
     VO = "vo"
