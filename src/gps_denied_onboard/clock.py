@@ -566,13 +566,13 @@ CAMERA_OFFSET_SPREAD_FLOOR_RAD: Final[float] = math.radians(0.1)
 
 
 class TiltSource(Enum):
-    """Where an image-minus-autopilot tilt for the camera-stamp fit comes from. The two differ in
-    precision by an order of magnitude or more, so the fit weighs each by its own spread: a fix's
-    image-only tilt (0.5-0.8 deg rms against EKF2's attitude on the real PX4 under SIH) and VO's ground
-    tilt from two frames (0.5 deg at a long baseline, tens of degrees near the shortest, and through
-    PX4's 35 deg pitch); weighed alike, VO's tilts flattened the fit's cost so that its minimum wandered
-    from 0.04 to 0.34 s within seconds on a camera on time, while the fixes' tilts alone put it within
-    0.02 s of 0."""
+    """Where an image-minus-autopilot tilt for the camera-stamp fit comes from. The two can differ in
+    precision by an order of magnitude, so the fit weighs each by its own spread: a fix's image-only
+    tilt (0.5-0.8 deg rms against EKF2's attitude on the real PX4 under SIH) and VO's ground tilt from
+    two frames (0.5 deg at a long baseline; on those PX4 flights its own check read 5-9 deg off at the
+    median). Weighed alike, VO's tilts flattened the fit's cost so that its minimum wandered from 0.04
+    to 0.34 s within seconds on a camera on time, while the fixes' tilts alone put it within 0.02 s of
+    0 (docs/design.md, "The camera's stamps")."""
 
     FIX = "fix"
     VO = "vo"
