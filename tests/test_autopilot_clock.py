@@ -18,7 +18,6 @@ from gps_denied_onboard.clock import (
     AutopilotClock,
     CameraOffsetFit,
     CameraStampOffset,
-    TiltSource,
     TimeSource,
     TimesyncSample,
     unapplied_doubt_s,
@@ -135,14 +134,12 @@ def _camera_samples(
     amp_rad: float = 0.15,
     late_y_s: float | None = None,
     noise_rad: float = 0.0017,
-    vo: tuple[float, float, TiltSource] | None = None,
 ) -> int:
     """``n`` frames, 1 s apart, of a camera stamping ``late_s`` late, each admitted with the correction
     applied then: world-down swings in the camera as a copter's tilt does at manoeuvres (``amp_rad`` at
     1-2 rad/s) and the image sees it at the true exposure, plus a bias and 0.1 deg of noise. The
-    attitude's world-down reaches the fit through ``complete``. ``vo`` = (noise rad, lateness s, source):
-    each frame also gives a second tilt that much noisier and following its manoeuvre as that lateness
-    would, noted as from that source. Returns how often the correction changed."""
+    attitude's world-down reaches the fit through ``complete``. Returns how often the correction
+    changed."""
     bias = np.array([0.004, -0.003])
     motions: dict[int, tuple[float, float, float]] = {}  # stamp us -> (w, phase x, phase y)
 
@@ -164,13 +161,6 @@ def _camera_samples(
             seen[1] = down(-late_y_s, *motions[stamp_usec])[1]
         tilt = seen - down(-applied, *motions[stamp_usec]) + bias + noise
         cam.note((float(tilt[0]), float(tilt[1])), stamp_usec - round(applied * 1e6), applied)
-        if vo is not None:
-            vo_noise_rad, vo_late_s, source = vo
-            wrong = down(-vo_late_s, *motions[stamp_usec]) - down(-applied, *motions[stamp_usec])
-            vo_tilt = wrong + bias + np.array([rng.gauss(0, vo_noise_rad), rng.gauss(0, vo_noise_rad)])
-            cam.note(
-                (float(vo_tilt[0]), float(vo_tilt[1])), stamp_usec - round(applied * 1e6), applied, source
-            )
         changes += cam.complete(curve, stamp_usec + 50_000)
     return changes
 
@@ -224,29 +214,6 @@ def test_an_unapplied_fit_is_doubted_in_proportion_to_the_share_of_the_tilts_it_
     assert unapplied_doubt_s(fit(0.3, 0.0), 0.0) == 0.0
     assert unapplied_doubt_s(fit(0.3, -0.1), 0.0) == 0.0  # a fit worse than the stamps as they are
     assert unapplied_doubt_s(fit(-0.04, CAMERA_OFFSET_MIN_EXPLAINED / 4), 0.0) == pytest.approx(0.01)
-
-
-def test_a_noisy_source_of_tilts_does_not_move_the_fit_the_precise_one_pins() -> None:
-    """An on-time camera whose fixes' tilts carry 0.5 deg of noise, beside VO ground tilts 10 times
-    noisier that follow the manoeuvres as a 0.3 s lateness would. Weighed alike they pull the fit to a
-    lateness; weighed by their own spread, the fixes' tilts keep it at the truth and the frames' doubt
-    at the floor. A late camera is still found."""
-    fix_noise = math.radians(0.5)
-    noisy_vo = (math.radians(5.0), 0.3, TiltSource.VO)
-    cam = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
-    _camera_samples(cam, 0.0, 150, rng=random.Random(11), amp_rad=0.06, noise_rad=fix_noise, vo=noisy_vo)
-    assert cam.fit is not None and abs(cam.fit.offset_s) <= 0.02
-    assert cam.applied_s == 0.0
-    assert cam.sigma_s < 0.06
-    alike = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
-    as_fix = (noisy_vo[0], noisy_vo[1], TiltSource.FIX)
-    _camera_samples(alike, 0.0, 150, rng=random.Random(11), amp_rad=0.06, noise_rad=fix_noise, vo=as_fix)
-    assert alike.fit is not None and alike.fit.offset_s > 0.05 and alike.fit.se_s > 3 * cam.fit.se_s
-    # a camera 0.2 s late is still found and corrected with the same noisy VO beside its fixes
-    late = CameraStampOffset(max_offset_s=0.3, prior_sigma_s=0.1)
-    late_vo = (noisy_vo[0], 0.2, TiltSource.VO)
-    _camera_samples(late, 0.2, 100, rng=random.Random(12), amp_rad=0.06, noise_rad=fix_noise, vo=late_vo)
-    assert late.applied_s == pytest.approx(0.2, abs=0.02)
 
 
 def test_a_correction_follows_later_fits_that_disown_the_first() -> None:

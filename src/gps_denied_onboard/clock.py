@@ -470,27 +470,6 @@ def _axes_disagreement_s(
     return abs(tau_x - tau_y) / 2.0
 
 
-def _source_weights(tilts: np.ndarray, groups: list[np.ndarray]) -> np.ndarray:
-    """Each sample's weight in the camera-stamp fit (n,): one over its source's spread, the robust
-    standard deviation of the source's tilts about their median (both axes), floored at
-    CAMERA_OFFSET_SPREAD_FLOOR_RAD; a source with fewer than CAMERA_OFFSET_SOURCE_MIN_SAMPLES takes the
-    widest spread measured (1 when none is). ``groups`` are the sources' masks."""
-    spreads: list[float | None] = []
-    for g in groups:
-        t = tilts[g]
-        if t.shape[0] < CAMERA_OFFSET_SOURCE_MIN_SAMPLES:
-            spreads.append(None)
-            continue
-        mad = np.median(np.abs(t - np.median(t, axis=0)), axis=0) * 1.4826
-        spreads.append(max(float(np.sqrt(np.mean(mad**2))), CAMERA_OFFSET_SPREAD_FLOOR_RAD))
-    measured = [v for v in spreads if v is not None]
-    widest = max(measured) if measured else 1.0
-    weights = np.ones(tilts.shape[0])
-    for g, v in zip(groups, spreads, strict=True):
-        weights[g] = 1.0 / (v if v is not None else widest)
-    return weights
-
-
 def _effective_samples(residual: np.ndarray) -> float:
     """How many independent samples a fit's residuals (n, 2), in time order, are worth: ``n (1 - r) /
     (1 + r)`` with ``r`` their lag-1 autocorrelation (0 to ``CAMERA_OFFSET_MAX_AUTOCORR``), at least 2.
@@ -558,24 +537,6 @@ CAMERA_OFFSET_MIN_STEP_S: Final[float] = 0.005
 #: put the output 2-3 m ahead along the track at 7-10 m/s, and PX4's EKF2 with it.
 CAMERA_OFFSET_SCATTER_FITS: Final[int] = 30
 CAMERA_OFFSET_SCATTER_MIN_FITS: Final[int] = 5
-#: Each source's tilts are weighed by their own spread (``TiltSource``), measured once a source has this
-#: many samples; a source with fewer takes the widest spread measured. The spread is floored at
-#: CAMERA_OFFSET_SPREAD_FLOOR_RAD so that a source of near-identical tilts does not take all the weight.
-CAMERA_OFFSET_SOURCE_MIN_SAMPLES: Final[int] = 10
-CAMERA_OFFSET_SPREAD_FLOOR_RAD: Final[float] = math.radians(0.1)
-
-
-class TiltSource(Enum):
-    """Where an image-minus-autopilot tilt for the camera-stamp fit comes from. The two can differ in
-    precision by an order of magnitude, so the fit weighs each by its own spread: a fix's image-only
-    tilt (0.5-0.8 deg rms against EKF2's attitude on the real PX4 under SIH) and VO's ground tilt from
-    two frames (0.5 deg at a long baseline; on those PX4 flights its own check read 5-9 deg off at the
-    median). Weighed alike, VO's tilts flattened the fit's cost so that its minimum wandered from 0.04
-    to 0.34 s within seconds on a camera on time, while the fixes' tilts alone put it within 0.02 s of
-    0 (docs/design.md, "The camera's stamps")."""
-
-    FIX = "fix"
-    VO = "vo"
 
 
 @dataclass(frozen=True)
@@ -635,10 +596,8 @@ class CameraStampOffset:
         #: Where world-down is sampled, relative to a frame's stamp, s.
         self.curve_offsets_s: np.ndarray = np.arange(-n_past, n_ahead + 1) * CAMERA_CURVE_STEP_S
         self._lock = threading.Lock()
-        self._pending: deque[tuple[np.ndarray, int, float, TiltSource]] = deque(maxlen=CAMERA_OFFSET_PENDING)
-        self._samples: deque[tuple[np.ndarray, np.ndarray, float, bool, TiltSource]] = deque(
-            maxlen=CAMERA_OFFSET_SAMPLES
-        )
+        self._pending: deque[tuple[np.ndarray, int, float]] = deque(maxlen=CAMERA_OFFSET_PENDING)
+        self._samples: deque[tuple[np.ndarray, np.ndarray, float, bool]] = deque(maxlen=CAMERA_OFFSET_SAMPLES)
         self._applied_s = 0.0
         self._sigma_s = self._prior_sigma_s
         self._fit: CameraOffsetFit | None = None
@@ -646,19 +605,12 @@ class CameraStampOffset:
         self._changes = 0
         self._recent_fits: deque[float] = deque(maxlen=CAMERA_OFFSET_SCATTER_FITS)
 
-    def note(
-        self,
-        tilt_off_cam_rad: tuple[float, float],
-        exposure_unix_usec: int,
-        applied_s: float,
-        source: TiltSource = TiltSource.FIX,
-    ) -> None:
-        """Queue one tilt from ``source`` of the frame admitted at ``exposure_unix_usec`` with
-        ``applied_s`` taken off."""
+    def note(self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, applied_s: float) -> None:
+        """Queue one tilt of the frame admitted at ``exposure_unix_usec`` with ``applied_s`` taken off."""
         tilt = np.asarray(tilt_off_cam_rad, dtype=np.float64)
         if np.all(np.isfinite(tilt)) and math.isfinite(applied_s):
             with self._lock:
-                self._pending.append((tilt, int(exposure_unix_usec), float(applied_s), source))
+                self._pending.append((tilt, int(exposure_unix_usec), float(applied_s)))
 
     def due_before_unix_usec(self) -> int | None:
         """The attitude must reach this time (the oldest queued stamp plus the curve's reach) for
@@ -666,31 +618,31 @@ class CameraStampOffset:
         with self._lock:
             if not self._pending:
                 return None
-            _, t, applied, _ = self._pending[0]
+            _, t, applied = self._pending[0]
             return t + round((applied + CAMERA_CURVE_AHEAD_S) * 1e6)
 
     def complete(self, curve: Callable[[int, np.ndarray], np.ndarray | None], latest_unix_usec: int) -> bool:
         """Take every queued tilt whose curve the attitude up to ``latest_unix_usec`` covers (a tilt whose
         curve ``curve`` cannot give is dropped). True when the applied correction changed."""
-        taken: list[tuple[np.ndarray, int, float, TiltSource]] = []  # (tilt, stamp us, applied s, source)
+        taken: list[tuple[np.ndarray, int, float]] = []  # (tilt, stamp us, applied s)
         with self._lock:
             while self._pending:
-                tilt, t_usec, applied, source = self._pending[0]
+                tilt, t_usec, applied = self._pending[0]
                 stamp_usec = t_usec + round(applied * 1e6)
                 if stamp_usec + CAMERA_CURVE_AHEAD_S * 1e6 > latest_unix_usec:
                     break
                 self._pending.popleft()
-                taken.append((tilt, stamp_usec, applied, source))
+                taken.append((tilt, stamp_usec, applied))
         samples = []
-        for tilt, stamp_usec, applied, source in taken:
+        for tilt, stamp_usec, applied in taken:
             c = curve(stamp_usec, self.curve_offsets_s)
             if c is not None and c.shape == (self.curve_offsets_s.size, 2) and np.all(np.isfinite(c)):
-                samples.append((tilt, np.asarray(c, dtype=np.float64), applied, source))
+                samples.append((tilt, np.asarray(c, dtype=np.float64), applied))
         if not samples:
             return False
         with self._lock:
-            for tilt, c, applied, source in samples:
-                self._samples.append((tilt, c, applied, self._informative(c, applied), source))
+            for tilt, c, applied in samples:
+                self._samples.append((tilt, c, applied, self._informative(c, applied)))
             return self._refit_locked()
 
     def _informative(self, curve: np.ndarray, applied_s: float) -> bool:
@@ -731,17 +683,12 @@ class CameraStampOffset:
 
     def _fit_locked(self) -> CameraOffsetFit | None:
         samples = list(self._samples)
-        informative = sum(1 for *_, inf, _ in samples if inf)
+        informative = sum(1 for *_, inf in samples if inf)
         if len(samples) < 3 or informative < 2:
             return None
         tilts = np.stack([t for t, *_ in samples])  # (n, 2)
         curves = np.stack([c for _, c, *_ in samples])  # (n, m, 2), on each frame's stamp
-        applied = np.array([a for _, _, a, *_ in samples])
-        sources = [src for *_, src in samples]
-        groups = [np.array([s is src for s in sources]) for src in TiltSource if src in sources]
-        weights = _source_weights(tilts, groups)  # (n,): 1 / the sample's source's spread
-        # the bias reported is the fixes' where there are any (the attitude checks' own measure)
-        shown = next((i for i, src in enumerate(sources) if src is TiltSource.FIX), 0)
+        applied = np.array([a for _, _, a, _ in samples])
         offs = self.curve_offsets_s
 
         def down_at(lateness_s: np.ndarray) -> np.ndarray:
@@ -760,18 +707,10 @@ class CameraStampOffset:
         costs = np.empty(taus.size)
         biases = np.zeros((taus.size, 2))
         axis_costs = np.empty((taus.size, 2))
-        source_bias = np.zeros_like(tilts)
-
-        def weighed(e: np.ndarray) -> np.ndarray:
-            """Residuals about each source's own bias (kept in ``source_bias``), in its spreads."""
-            for g in groups:
-                source_bias[g] = e[g].mean(axis=0)
-            return (e - source_bias) * weights[:, None]
-
         for k, tau in enumerate(taus):
-            e = weighed(tilts - (down_at(np.full(len(samples), tau)) - seen_by_ap))
-            biases[k] = source_bias[shown]
-            axis_costs[k] = np.mean(e**2, axis=0)
+            e = tilts - (down_at(np.full(len(samples), tau)) - seen_by_ap)
+            biases[k] = e.mean(axis=0)
+            axis_costs[k] = np.mean((e - biases[k]) ** 2, axis=0)
             costs[k] = float(axis_costs[k].sum())
         k = int(np.argmin(costs))
         n = len(samples)
@@ -780,7 +719,7 @@ class CameraStampOffset:
             curvature = (costs[k - 1] + costs[k + 1] - 2 * costs[k]) / CAMERA_OFFSET_GRID_S**2
             if curvature > 0:
                 se = math.sqrt(2.0 * costs[k] / max(2 * n - 3, 1) / curvature)
-                residual = weighed(tilts - (down_at(np.full(n, taus[k])) - seen_by_ap))
+                residual = tilts - (down_at(np.full(n, taus[k])) - seen_by_ap) - biases[k]
                 se *= math.sqrt(n / _effective_samples(residual))
                 se = max(se, _axes_disagreement_s(axis_costs, taus, curves, offs))
         elif (

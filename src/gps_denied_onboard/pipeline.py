@@ -45,7 +45,6 @@ import numpy as np
 import structlog
 
 from gps_denied_onboard.camera.types import CameraCalibration, CameraMount, FrameTiming, NavCameraFrame
-from gps_denied_onboard.clock import TiltSource
 from gps_denied_onboard.components.c1_vio.types import VoError, VoMotion
 from gps_denied_onboard.components.c2_5_rerank.footprint import FootprintChips
 from gps_denied_onboard.components.c2_5_rerank.protocol import RerankStrategy
@@ -415,16 +414,12 @@ class NavigationPipeline:
         return measured_tilt_doubt_rad(seen, time_unix_usec), measured_tilt_change_rad(seen, time_unix_usec)
 
     def _note_camera_tilt(
-        self,
-        tilt_off_cam_rad: tuple[float, float],
-        exposure_unix_usec: int,
-        timing: FrameTiming | None,
-        source: TiltSource,
+        self, tilt_off_cam_rad: tuple[float, float], exposure_unix_usec: int, timing: FrameTiming | None
     ) -> None:
         """One image-minus-autopilot tilt for the camera's stamp lateness (``clock.CameraStampOffset``)."""
         camera = self._axis.camera_offset
         if camera is not None and timing is not None:
-            camera.note(tilt_off_cam_rad, exposure_unix_usec, timing.stamp_offset_s, source)
+            camera.note(tilt_off_cam_rad, exposure_unix_usec, timing.stamp_offset_s)
 
     def track(self, frame: NavCameraFrame, prior: InitialPrior | None) -> TrackOutcome:
         """VO on ``frame`` fused at its exposure time; initialises the estimator from ``prior`` on the
@@ -454,7 +449,7 @@ class NavigationPipeline:
             tilt = motion.ground_tilt_off_cam_rad if motion is not None else None
             if tilt is not None and motion is not None:
                 prev_t, prev_timing = self._timing_of.get(motion.prev_frame_id, (t, None))
-                self._note_camera_tilt(tilt, prev_t, prev_timing, TiltSource.VO)
+                self._note_camera_tilt(tilt, prev_t, prev_timing)
                 if not self._comparable(prev_timing):
                     tilt = None  # the timing doubt alone could make this tilt: no evidence either way
             if self._ground_tilt is not None and tilt is not None and frame.alt_agl_m is not None:
@@ -911,9 +906,7 @@ class NavigationPipeline:
         t4 = self._clock_ns()
         timings["pose"] = (t4 - t3) / 1e6
         assert fix.image_tilt_off_cam_rad is not None  # a solve from points measures the tilt
-        self._note_camera_tilt(
-            fix.image_tilt_off_cam_rad, frame.exposure_time_unix_usec, frame.timing, TiltSource.FIX
-        )
+        self._note_camera_tilt(fix.image_tilt_off_cam_rad, frame.exposure_time_unix_usec, frame.timing)
         attitude: AttitudeVerdict | None = None
         if self._comparable(frame.timing):
             attitude = self._attitude.note(fix, self._footprint_m(fix))
