@@ -36,7 +36,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-#: A judged fix as the worker would send it (about 260 bytes in msgpack).
+#: A judged fix as the worker would send it (343 bytes in msgpack).
 FIX_MESSAGE: dict[str, Any] = {
     "kind": "fix",
     "frame_seq": 12345,
