@@ -341,7 +341,10 @@ class NavigationPipeline:
         alt_agl_m = frame.alt_agl_m if frame.alt_agl_m is not None else 0.0
         pos = self._ltp.to_ned(prior.lat_deg, prior.lon_deg, self._ground_alt_amsl_m + alt_agl_m)
         t = frame.exposure_time_unix_usec
-        self._axis.initialise(pos, prior.sigma_m, t, map_confirmed=prior.confirmed)
+        if prior.handover is not None:
+            self._axis.resume(prior.handover)  # the core's filter as it is: velocity and covariance kept
+        else:
+            self._axis.initialise(pos, prior.sigma_m, t, map_confirmed=prior.confirmed)
         if self._doubt is not None:
             self._doubt.start()
         log.info(

@@ -125,7 +125,7 @@ def _valid_accel(a: np.ndarray | None) -> np.ndarray | None:
 
 
 @dataclass(frozen=True)
-class _PriorConflict:
+class PriorConflict:
     """A run of consecutive gated fixes that agree with each other while the start prior is unconfirmed:
     where the state was at the first (NE, m), the newest's innovation (m) and covariance, the state's
     horizontal covariance then (m^2), and how many."""
@@ -151,7 +151,7 @@ class EstimatorCheckpoint:
     yaw_rad: float | None
     shared_sigma_m: float
     imu_trusted: bool = True
-    prior_conflict: _PriorConflict | None = None
+    prior_conflict: PriorConflict | None = None
     map_confirmed: bool = False
     vo_nis: tuple[float, ...] = ()
 
@@ -190,7 +190,7 @@ class NavEstimator:
         self._last_no_fix_usec: int | None = None
         self._consecutive_gated = 0
         #: Gated fixes contradicting a start prior no fix has confirmed (``_note_prior_conflict``).
-        self._prior_conflict: _PriorConflict | None = None
+        self._prior_conflict: PriorConflict | None = None
         #: A map fix has confirmed the state since ``initialise`` (or it started from a resumed 3D
         #: estimate): only then may the output be a 3D fix (``EstimatorState.map_confirmed``).
         self._map_confirmed = False
@@ -509,7 +509,7 @@ class NavEstimator:
             agrees = float(d @ np.linalg.solve(s_mat, d)) <= self._config.fix_gate_chi2
         first = run.first_pos_ne if run is not None and agrees else pos_ne.copy()
         count = run.count + 1 if run is not None and agrees else 1
-        self._prior_conflict = _PriorConflict(first, innov.copy(), fix_cov_ne.copy(), p_ne.copy(), count)
+        self._prior_conflict = PriorConflict(first, innov.copy(), fix_cov_ne.copy(), p_ne.copy(), count)
         if count < PRIOR_DOUBT_FIXES:
             return
         disagreement_m = float(np.hypot(*innov))

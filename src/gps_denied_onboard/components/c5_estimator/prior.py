@@ -32,6 +32,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
+from gps_denied_onboard.components.c5_estimator.ekf import EstimatorCheckpoint
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
 from gps_denied_onboard.components.c8_mavlink.vehicle_state import (
     AutopilotPosition,
@@ -62,6 +63,9 @@ class PriorSource:
     #: The start points (configured, HOME_POSITION, the autopilot's own position on the ground) disagree
     #: beyond their sigmas: a prior wide enough to cover them all.
     DISPUTED: Final = "disputed"
+    #: The navigator core's own estimate, carried on the IMU while the vision worker restarted
+    #: (``daemon/core.py``): the whole filter state, velocity and covariance included.
+    CORE_HANDOVER: Final = "core_handover"
 
 
 @dataclass(frozen=True)
@@ -79,6 +83,8 @@ class InitialPrior:
     confirmed: bool = False
     #: ``disputed``: the largest distance between two start points, m (None otherwise).
     spread_m: float | None = None
+    #: ``core_handover``: the filter state to start from as it is (None otherwise).
+    handover: EstimatorCheckpoint | None = None
 
 
 @dataclass(frozen=True)

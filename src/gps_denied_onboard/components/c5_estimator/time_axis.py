@@ -219,6 +219,18 @@ class TimeAxis:
             self._est.initialise(pos_ned_m, sigma_m, int(time_unix_usec), map_confirmed=map_confirmed)
             self._entries.clear()
 
+    def resume(self, checkpoint: EstimatorCheckpoint) -> None:
+        """(Re)start the filter from ``checkpoint`` exactly (the navigator core's handover to a restarted
+        vision worker); nothing before its time can be fused afterwards."""
+        with self._lock:
+            self._est.restore(checkpoint)
+            self._entries.clear()
+
+    def head_checkpoint(self) -> EstimatorCheckpoint | None:
+        """The filter at its newest fused input (what the core predicts from); None before it starts."""
+        with self._lock:
+            return self._est.checkpoint() if self._est.is_initialised else None
+
     @contextlib.contextmanager
     def unit(self, kind: str, time_unix_usec: int) -> Iterator[dict[str, Any]]:
         """One atomic visit of a pipeline half (``c5_estimator.journal``): the axis' lock is held for the
