@@ -49,11 +49,19 @@ def make_tracker(config: Config, clock: DaemonClock | None = None) -> VehicleSta
     )
 
 
-def open_link_first(config: Config, clock: DaemonClock) -> MavlinkLink:
+def open_link_first(config: Config, clock: DaemonClock, *, signing_link_id: int = 0) -> MavlinkLink:
     """The daemon's MAVLink link, open, with its tracker, and without its FDR and local frame yet
     (``compose_root`` attaches them). Raises ``StartupError`` for an unusable signing key file and
-    ``MavlinkConfigError`` for a link that cannot work (URL, a UDP port another process holds)."""
+    ``MavlinkConfigError`` for a link that cannot work (URL, a UDP port another process holds).
+    ``signing_link_id``: see ``MavlinkLink``."""
     check_signing_key(config)
-    link = MavlinkLink(config.mavlink, make_tracker(config, clock), None, clock.now_unix_s, frame_later=True)
+    link = MavlinkLink(
+        config.mavlink,
+        make_tracker(config, clock),
+        None,
+        clock.now_unix_s,
+        frame_later=True,
+        signing_link_id=signing_link_id,
+    )
     link.open()
     return link

@@ -270,10 +270,13 @@ class MavlinkLink:
         *,
         ltp: LocalTangentPlane | None = None,
         frame_later: bool = False,
+        signing_link_id: int = 0,
     ) -> None:
         """``ltp``: the daemon's local tangent plane (the frame of ``EstimatorState.pos_ned_m``); required
         when ``vision_position_estimate`` is among ``config.outputs``. ``frame_later``: the link starts
-        before the map is open (the start-up beacon); ``attach`` then gives it the frame and the FDR."""
+        before the map is open (the start-up beacon); ``attach`` then gives it the frame and the FDR.
+        ``signing_link_id``: the MAVLink 2 signing link id of what this link signs (the navigator core
+        signs as 0 and its vision worker, relayed through it, as 1: each keeps its own timestamps)."""
         if _VISION_OUTPUT in config.outputs and ltp is None and not frame_later:
             raise _no_frame(config)
         self._config = config
@@ -284,6 +287,9 @@ class MavlinkLink:
         self._rng = rng or random.Random()
         self._lock = threading.RLock()
         self._conn: Any = None
+        self._signing_link_id = signing_link_id
+        #: Called with each message the tracker took from the autopilot (``relay_autopilot_to``).
+        self._relay: Callable[[Any], None] | None = None
         self._opened = False
         self._signing_key: bytes | None = None
         self._boot_monotonic = time.monotonic()
@@ -382,7 +388,7 @@ class MavlinkLink:
                 self._signing_key,
                 sign_outgoing=True,
                 allow_unsigned_callback=_allow_unsigned,
-                link_id=0,
+                link_id=self._signing_link_id,
             )
         self._conn = conn
         self._ap_address_followed = False  # a new transport learns the autopilot's address afresh
@@ -425,6 +431,12 @@ class MavlinkLink:
     def tracker(self) -> VehicleStateTracker:
         return self._tracker
 
+    def relay_autopilot_to(self, relay: Callable[[Any], None] | None) -> None:
+        """Hand every message the tracker takes from the autopilot (an impostor's never) to ``relay`` as
+        well, on the polling thread, after the tracker (the navigator core relays them to its vision
+        worker). None: stop."""
+        self._relay = relay
+
     # --- receive ------------------------------------------------------------------------------------
     def poll(self) -> int:
         """Handle every pending input message without blocking; returns how many were decoded.
@@ -456,6 +468,8 @@ class MavlinkLink:
                                 continue  # an impostor's: ignored, counted, reported
                         else:
                             self._tracker.handle(msg, recv_s)
+                        if self._relay is not None:
+                            self._relay(msg)
                         if msg.get_type() == "TIMESYNC":
                             self._answer_timesync(msg, recv_s, from_autopilot=self._from_autopilot(conn))
                 except (OSError, _PeerClosed) as exc:
@@ -473,6 +487,16 @@ class MavlinkLink:
         parameters not checked yet, or an ``EKF2_AGP0_ID`` that is not the message's id
         (``px4_params``)."""
         self._agp_hold = reason
+
+    @property
+    def global_position_sensor_hold(self) -> str | None:
+        """Why GLOBAL_POSITION_SENSOR is held back now (None: it is not)."""
+        return self._agp_hold
+
+    @property
+    def altitude_distrust(self) -> str | None:
+        """Why GPS_INPUT's altitude is flagged as ignored now (None: it is not)."""
+        return self._alt_distrust
 
     def distrust_altitude(self, reason: str | None) -> None:
         """Flag GPS_INPUT's altitude as ignored while ``reason`` (None: give it again)."""
@@ -623,6 +647,24 @@ class MavlinkLink:
                 return False
             except Exception as exc:  # an encoding bug must not take the pipeline down; counted + logged
                 self._count_send_error(exc, msg)
+                return False
+            self._sent += 1
+            return True
+
+    def send_raw(self, buf: bytes) -> bool:
+        """Send an already encoded (and, on a signed link, signed) MAVLink message as it is: what the
+        navigator core relays from its vision worker. Never raises; True when handed to the transport."""
+        with self._lock:
+            conn = self._conn
+            if conn is None:
+                self._dropped_down += 1
+                return False
+            try:
+                conn.write(buf)
+            except (OSError, _PeerClosed) as exc:
+                self._drop_connection()
+                self._schedule_reconnect(self._clock(), reason=f"send failed: {exc}")
+                self._count_send_error(exc, "relayed")
                 return False
             self._sent += 1
             return True
