@@ -47,6 +47,7 @@ from gps_denied_onboard.components.c5_estimator.prior import (
 )
 from gps_denied_onboard.components.c5_estimator.time_axis import TimeAxisStats
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState
+from gps_denied_onboard.components.c5_estimator.wire import state_to_wire
 from gps_denied_onboard.components.c8_mavlink.messages import Fix3dGate, stated_speed_sigma_m_s
 from gps_denied_onboard.components.c8_mavlink.px4_params import PX4_AGP_PARAMS, px4_agp_problems
 from gps_denied_onboard.components.c13_fdr import FdrHealth
@@ -61,6 +62,7 @@ from gps_denied_onboard.constants import (
     Provenance,
 )
 from gps_denied_onboard.daemon.beacon import ESTIMATE_ASK_PERIOD_S, PHASE_ASK_PERIOD_S, StartupBeacon
+from gps_denied_onboard.daemon.core_channel import CoreChannel
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
@@ -135,10 +137,18 @@ class DaemonCounters:
 
 class NavDaemon:
     def __init__(
-        self, root: RuntimeRoot, *, notifier: SdNotifier | None = None, beacon: StartupBeacon | None = None
+        self,
+        root: RuntimeRoot,
+        *,
+        notifier: SdNotifier | None = None,
+        beacon: StartupBeacon | None = None,
+        core: CoreChannel | None = None,
     ) -> None:
-        """``beacon``: the start-up beacon on ``root.link`` (``gdnav run``), stopped when the tasks start."""
+        """``beacon``: the start-up beacon on ``root.link`` (``gdnav run``), stopped when the tasks start.
+        ``core``: this daemon is a navigator core's vision worker (``daemon/core.py``): its estimate goes
+        to the core, which sends it, tells the ground of its provenance and keeps the resume state."""
         self._root = root
+        self._core = core
         self._beacon = beacon
         self._cfg = root.config
         self._axis = root.time_axis
@@ -210,8 +220,10 @@ class NavDaemon:
             "mavlink_tx": self._mavlink_tx(),
             "status": self._status(),
         }
-        if self._root.resume_state is not None:
+        if self._root.resume_state is not None and self._core is None:
             bodies["resume_state"] = self._keep_resume_state()
+        if self._core is not None:
+            bodies["core_channel"] = self._core_channel()
         if "global_position_sensor" in self._cfg.mavlink.outputs:
             self._root.link.hold_global_position_sensor("PX4's EKF2_AGP0 parameters not checked yet")
             bodies["px4_parameters"] = self._idle_after(self._check_px4_parameters())
@@ -333,6 +345,21 @@ class NavDaemon:
         previous run to resume)."""
         if self._axis.is_initialised:
             return None
+        handover = self._core.take_handover() if self._core is not None else None
+        if handover is not None:
+            cp = handover.checkpoint
+            if handover.ltp == self._root.ltp and cp.time_usec is not None:
+                lat, lon, _alt = self._root.ltp.to_geodetic(cp.x[:3, 0])
+                return InitialPrior(
+                    float(lat),
+                    float(lon),
+                    float(math.sqrt(max(cp.p_mat[0, 0], cp.p_mat[1, 1]))),
+                    PriorSource.CORE_HANDOVER,
+                    why="the navigator core's filter, carried on the IMU while this worker restarted",
+                    confirmed=cp.map_confirmed,
+                    handover=cp,
+                )
+            log.warning(LogEvent.WORKER_BAD_CORE_MESSAGE, error="handover in another local frame: not taken")
         tracker = self._root.tracker
         home = tracker.home() if self._cfg.init.use_home_position else None
         alt_agl_m = tracker.alt_agl_at(exposure_time_unix_usec)
@@ -413,11 +440,16 @@ class NavDaemon:
                 "sigma_m": prior.sigma_m,
                 "confirmed": prior.confirmed,
                 "spread_m": prior.spread_m,
+                # the core's filter this worker started from, whole: a replay starts from it too
+                "handover": (
+                    state_to_wire(prior.handover, self._root.ltp) if prior.handover is not None else None
+                ),
             },
         )
         self.counters.prior_confirmed = prior.confirmed
         text = {
             PriorSource.RESUMED: f"GDN: resumed, sigma {prior.sigma_m:.0f} m",
+            PriorSource.CORE_HANDOVER: f"GDN: vision resumed, sigma {prior.sigma_m:.0f} m",
             PriorSource.MAP_EXTENT: "GDN: no trusted prior, searching map",
             PriorSource.AUTOPILOT: "GDN: no trusted prior, searching map from AP estimate",
             PriorSource.DISPUTED: STATUSTEXT_PRIOR_DISPUTED.format(prior.spread_m or 0.0),
@@ -739,9 +771,12 @@ class NavDaemon:
         state = self._axis.state_at()
         self._last_state = state
         fix_type = self._fix_gate.fix_type(state)
-        sent = self._root.link.send_estimate(
-            state, time_unix_usec=state.time_unix_usec, gps_fix_type=fix_type
-        )
+        if self._core is not None:
+            sent = int(self._to_core())
+        else:
+            sent = self._root.link.send_estimate(
+                state, time_unix_usec=state.time_unix_usec, gps_fix_type=fix_type
+            )
         self.counters.estimates_sent += int(sent > 0)
         new = state.provenance
         if new is not self._provenance:
@@ -751,7 +786,8 @@ class NavDaemon:
             self._root.fdr.record(
                 FdrKind.PROVENANCE_CHANGED, {"old": old.value, "new": new.value, "reason": reason}
             )
-            self._root.link.notify_provenance(old, new, f"GDN: {new.value}: {reason}" if reason else None)
+            if self._core is None:  # under a core, the core tells the ground what it sends
+                self._root.link.notify_provenance(old, new, f"GDN: {new.value}: {reason}" if reason else None)
         horiz = state.horiz_sigma_m if math.isfinite(state.lat_deg) else None
         speed = stated_speed_sigma_m_s(state)
         if fix_type == 3 and horiz is not None:
@@ -771,6 +807,42 @@ class NavDaemon:
                 "sent": sent,
             },
         )
+
+    def _to_core(self) -> bool:
+        """The filter at its head to the navigator core, which predicts it to its send times (the core's
+        worker only); before the estimator starts, that the worker is alive."""
+        core = self._core
+        assert core is not None
+        link = self._root.link
+        fields = {
+            "system_status": self._system_status(),
+            "no_fix_reason": self._last_fix_reason,
+            "agp_hold": link.global_position_sensor_hold,
+            "alt_distrust": link.altitude_distrust,
+        }
+        checkpoint = self._axis.head_checkpoint()
+        if checkpoint is None:
+            return core.send_alive(**fields)
+        return core.send_estimate(checkpoint, self._root.ltp, **fields)
+
+    async def _core_channel(self) -> None:
+        """The navigator core's socket (its worker only): its handover read; returns when the core is
+        gone, which stops this worker."""
+        core = self._core
+        assert core is not None
+        loop = asyncio.get_running_loop()
+        readable = asyncio.Event()
+        loop.add_reader(core.fileno(), readable.set)
+        try:
+            while True:
+                readable.clear()
+                if not core.poll():
+                    log.warning(LogEvent.DAEMON_STOPPING, reason="the navigator core closed its socket")
+                    return
+                await readable.wait()
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                loop.remove_reader(core.fileno())
 
     async def _keep_resume_state(self) -> None:
         """The last 3D estimate sent, to the resume state file about once a second (F8): atomic and

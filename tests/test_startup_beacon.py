@@ -61,6 +61,8 @@ CORE_MODULES = (
     "gps_denied_onboard.components.c13_fdr",
     "gps_denied_onboard.daemon.beacon",
     "gps_denied_onboard.daemon.sd_notify",
+    "gps_denied_onboard.components.c5_estimator.wire",
+    "gps_denied_onboard.daemon.core",
 )
 
 

@@ -95,18 +95,29 @@ def _cmd_run(args: argparse.Namespace) -> int:
         config=config_to_dict(config),
         blas_threads=config.daemon.blas_threads if blas_set else "not set: numpy was already loaded",
     )
-    _apply_process_nice(config.daemon.process_nice, log)
+    worker = args.worker_fd is not None
+    if not worker:  # a vision worker runs at the nice value its core gave it
+        _apply_process_nice(config.daemon.process_nice, log)
 
     from gps_denied_onboard.clock import DaemonClock
     from gps_denied_onboard.components.c8_mavlink import MavlinkConfigError
     from gps_denied_onboard.daemon.beacon import StartupBeacon
     from gps_denied_onboard.runtime_root.link_first import StartupError, open_link_first
 
+    if config.daemon.vision_worker and not worker:
+        return _run_core(args, config, log)
     # The link first, and the beacon on it while the rest loads (imports included): the autopilot hears
     # the daemon (HEARTBEAT, GPS_INPUT without a fix) a second sooner after a restart (issue 27).
     clock = DaemonClock()
+    channel = None
+    if worker:
+        from gps_denied_onboard.daemon.core import WORKER_SIGNING_LINK_ID
+        from gps_denied_onboard.daemon.core_channel import CoreChannel
+
+        channel = CoreChannel(args.worker_fd)
+        channel.poll()  # the core's handover, if it has an estimate, is already waiting
     try:
-        link = open_link_first(config, clock)
+        link = open_link_first(config, clock, signing_link_id=WORKER_SIGNING_LINK_ID if worker else 0)
     except (StartupError, MavlinkConfigError) as exc:
         log.error("daemon.startup_refused", what=getattr(exc, "what", "mavlink.url"), error=str(exc))
         raise  # main() prints the one line and exits 3
@@ -138,7 +149,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         )
         root.fdr.record(FdrKind.CONFIG, {"version": __version__, "config": config_to_dict(config), **inputs})
         # The daemon opens its MAVLink link before READY: a UDP port another process holds is refused there.
-        daemon = NavDaemon(root, beacon=beacon)
+        daemon = NavDaemon(root, beacon=beacon, core=channel)
         # Not asyncio.run: its teardown waits without bound for tasks that ignored their cancellation
         # (seen under load: a SIGTERM'd daemon still alive 10 s later, then SIGKILLed).
         loop = asyncio.new_event_loop()
@@ -161,6 +172,28 @@ def _cmd_run(args: argparse.Namespace) -> int:
     loop.run_until_complete(loop.shutdown_asyncgens())
     loop.close()
     return code
+
+
+def _run_core(args: argparse.Namespace, config: Any, log: Any) -> int:
+    """``daemon.vision_worker``: this process is the navigator core (``daemon/core.py``); the vision
+    worker is ``gdnav run`` again, started by it."""
+    from gps_denied_onboard.clock import DaemonClock
+    from gps_denied_onboard.components.c8_mavlink import MavlinkConfigError
+    from gps_denied_onboard.daemon.core import CORE_SIGNING_LINK_ID, NavigatorCore
+    from gps_denied_onboard.runtime_root.link_first import StartupError, open_link_first
+
+    clock = DaemonClock()
+    try:
+        link = open_link_first(config, clock, signing_link_id=CORE_SIGNING_LINK_ID)
+    except (StartupError, MavlinkConfigError) as exc:
+        log.error("daemon.startup_refused", what=getattr(exc, "what", "mavlink.url"), error=str(exc))
+        raise
+    core = NavigatorCore(config, args.config, args.set or (), link=link, clock=clock)
+    loop = asyncio.new_event_loop()
+    try:
+        return loop.run_until_complete(core.run())
+    finally:
+        loop.close()
 
 
 def _cmd_cache_build(args: argparse.Namespace) -> int:
@@ -482,6 +515,8 @@ def _add_run(sub: Any) -> None:
         metavar="KEY.PATH=VALUE",
         help="override one setting (repeatable), validated like the file",
     )
+    # The navigator core starts its vision worker with this (``daemon.vision_worker``); not for people.
+    run.add_argument("--worker-fd", type=int, default=None, help=argparse.SUPPRESS)
     run.set_defaults(func=_cmd_run)
 
 

@@ -613,6 +613,16 @@ class DaemonConfig:
     #: or CAP_SYS_NICE) and logs what it got (never raises it: an operator who started it nicer meant
     #: it). null = leave it as started.
     process_nice: Annotated[int, Strict(), Field(ge=-20, le=19)] | None = -5
+    #: Run the vision (camera, VO, VPR, matching, pose, fusion) in a worker process under a light navigator
+    #: core that holds the MAVLink link and the output (``daemon/core.py``): a crash, a kill or an OOM of
+    #: the worker then costs sigma growth on the IMU, never a gap in the autopilot's estimate stream.
+    vision_worker: Bool = False
+    #: The vision worker's nice value above the core's (the core ahead of it, the worker behind).
+    worker_nice_offset: Annotated[int, Strict(), Field(ge=0, le=19)] = 5
+    #: A started worker that sends nothing for this long is stalled: killed and started again, s.
+    worker_silence_s: Annotated[float, Strict(), Field(gt=0.5, le=60)] = 3.0
+    #: From a worker's start to its first message (its imports, the map, the models), at most, s.
+    worker_start_s: Annotated[float, Strict(), Field(gt=1, le=600)] = 60.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -59,6 +59,12 @@ STATUSTEXT_PRIOR_DISPUTED: Final[str] = "GDN: start points {:.0f} m apart, searc
 STATUSTEXT_PRIOR_UNCONFIRMED: Final[str] = "GDN: {} is a claim: no 3D until map fix"
 STATUSTEXT_PRIOR_DOUBTED: Final[str] = "GDN: prior doubted, {} fails, search {:.0f} m"
 STATUSTEXT_PRIOR_REANCHORED: Final[str] = "GDN: re-anchored {:.0f} m from the prior"
+# STATUSTEXT about the vision worker (``daemon/core.py``).
+STATUSTEXT_WORKER_LOST: Final[str] = "GDN: vision lost ({}), on IMU, restarting"
+STATUSTEXT_WORKER_BACK: Final[str] = "GDN: vision back after {:.1f} s"
+
+#: The navigator core's own flight data records, under ``fdr.dir`` (``daemon/core.py``).
+CORE_FDR_SUBDIR: Final[str] = "core"
 
 # --- SITL transport ---------------------------------------------------------------------------------
 #: Magic prefix of a frame message on the SITL camera stream (see camera.stream).
@@ -131,6 +137,19 @@ class LogEvent:
     #: A command ended on an exception no refusal maps (a bug): its traceback, at debug level.
     CLI_UNEXPECTED_ERROR: Final = "cli.unexpected_error"
     DAEMON_STATUS: Final = "daemon.status"
+    #: The navigator core (``daemon/core.py``): started, its vision worker started, lost, back, killed
+    #: for its silence, and a message from it refused.
+    CORE_READY: Final = "core.ready"
+    CORE_STOPPED: Final = "core.stopped"
+    CORE_WORKER_STARTED: Final = "core.worker_started"
+    CORE_WORKER_LOST: Final = "core.worker_lost"
+    CORE_WORKER_BACK: Final = "core.worker_back"
+    CORE_WORKER_KILLED: Final = "core.worker_killed"
+    CORE_WORKER_BAD_MESSAGE: Final = "core.worker_bad_message"
+    CORE_STATUS: Final = "core.status"
+    #: The vision worker's side: the core's handover taken, a message from the core refused.
+    WORKER_HANDOVER: Final = "worker.handover"
+    WORKER_BAD_CORE_MESSAGE: Final = "worker.bad_core_message"
     CAMERA_CONNECTED: Final = "camera.connected"
     CAMERA_DISCONNECTED: Final = "camera.disconnected"
     CAMERA_FRAME_DROPPED: Final = "camera.frame_dropped"
@@ -298,6 +317,8 @@ class FdrKind:
     FRAME_IMAGE: Final = "pipeline.frame_image"
     #: One estimate sent to the autopilot (the steady output stream).
     ESTIMATE_SENT: Final = "mavlink.estimate"
+    #: The navigator core's vision worker: started, lost (how it ended), back, killed (``daemon/core.py``).
+    CORE_WORKER: Final = "core.worker"
     PROVENANCE_CHANGED: Final = "estimator.provenance_changed"
     #: The daemon's counters once per status period (daemon.status_hz): frames, refusals, faults, link.
     STATUS: Final = "daemon.status"

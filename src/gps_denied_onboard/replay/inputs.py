@@ -21,6 +21,7 @@ from __future__ import annotations
 import bisect
 import contextlib
 import csv
+import dataclasses
 import datetime as _dt
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -32,6 +33,7 @@ import numpy as np
 
 from gps_denied_onboard.camera.types import Attitude, CameraCalibration, FrameTiming
 from gps_denied_onboard.components.c5_estimator.prior import InitialPrior
+from gps_denied_onboard.components.c5_estimator.wire import WireError, state_from_wire
 from gps_denied_onboard.constants import FdrKind
 
 #: Image file suffixes read from a directory (case-insensitive).
@@ -256,6 +258,12 @@ def _from_fdr(path: Path, *, run: int | None) -> ReplayInput:
             str(prior_rec.get("why", "")),
             confirmed=bool(prior_rec.get("confirmed", False)),  # as the run started (issue 37)
         )
+        if prior_rec.get("handover") is not None:  # a vision worker that started from its core's filter
+            try:
+                handover = state_from_wire(prior_rec["handover"]).checkpoint
+            except WireError as exc:
+                raise ReplayInputError(f"{path}: run {run}: the prior's handover state: {exc}") from exc
+            prior = dataclasses.replace(prior, handover=handover)
     t_first = frames[0].exposure_time_unix_usec
     first = next(r for r in frames_rec if int(r["exposure_time_unix_usec"]) == t_first)
     skipped = frames_rec[: frames_rec.index(first)]

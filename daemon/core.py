@@ -1,0 +1,623 @@
+"""The navigator core: the light process that keeps the autopilot fed while the vision works, crashes or
+restarts (``daemon.vision_worker``; docs/design.md, "The navigator core and the vision worker").
+
+What it holds, and what the vision worker (``gdnav run`` under it, the whole pipeline) holds:
+
+- **The MAVLink link** to the autopilot. Every message the autopilot sends that the link's tracker takes
+  (never an impostor's) is relayed to the worker's own link on loopback UDP; what the worker sends is
+  relayed to the autopilot, except what the core says itself: the estimate (GPS_INPUT,
+  GLOBAL_POSITION_SENSOR, VISION_POSITION_ESTIMATE), HEARTBEAT, the vision frame's origin and TIMESYNC
+  answers. The worker signs as link id 1, the core as 0.
+- **The estimate.** The worker fuses (VO, fixes, the time axis with its rewinds) and sends its filter's
+  state at every output period over a Unix ``SOCK_SEQPACKET`` socket in msgpack
+  (``c5_estimator/wire.py``; chosen by ``tools/ipc_bench.py``). The core restores it into its own
+  ``NavEstimator`` and predicts it to each send time with the autopilot's IMU, on absolute deadlines.
+  When the worker is gone, nothing else changes: the same filter goes on predicting on the IMU, its
+  sigma grows as the filter's process noise says, its provenance and ``fix_type`` follow the same rules
+  (``Fix3dGate``), and no deadline is missed. A restarted worker starts from the core's filter as it is
+  (the handover: position, velocity and covariance), so fusion resumes where the core had got to.
+- **The worker itself.** Started with its nice value ``daemon.worker_nice_offset`` above the core's.
+  Every message is its heartbeat; end-of-file on the socket is its death (a kill, a segfault, the OOM
+  killer), seen at once. Silent for ``daemon.worker_silence_s`` (or with no first message within
+  ``daemon.worker_start_s``) it is killed. Restarted after a back-off that doubles from
+  ``WORKER_BACKOFF_MIN_S`` to ``WORKER_BACKOFF_MAX_S`` and starts again after ``WORKER_HEALTHY_S`` of
+  good running. The ground hears when it is lost and when it is back (STATUSTEXT); the log
+  (``core.*``) and the core's FDR (``<fdr.dir>/core``, ``core.worker`` and ``mavlink.estimate``
+  records) keep both.
+- **The resume state file**, from what the core sent as 3D; systemd's ``sd_notify`` and its watchdog.
+
+Imports stay light (no OpenCV, ONNX Runtime, SciPy, FAISS, torch): tests/test_core_imports.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+import structlog
+from pymavlink import mavutil
+
+from gps_denied_onboard.clock import DaemonClock
+from gps_denied_onboard.components.c5_estimator.ekf import NavEstimator
+from gps_denied_onboard.components.c5_estimator.prior import ResumeState
+from gps_denied_onboard.components.c5_estimator.resume_state import ResumeStateFile, default_path
+from gps_denied_onboard.components.c5_estimator.types import EstimatorState
+from gps_denied_onboard.components.c5_estimator.wire import (
+    WireError,
+    pack,
+    state_from_wire,
+    state_to_wire,
+    unpack,
+)
+from gps_denied_onboard.components.c8_mavlink import MavlinkLink
+from gps_denied_onboard.components.c8_mavlink.messages import DIALECT, Fix3dGate
+from gps_denied_onboard.components.c13_fdr.recorder import FlightDataRecorder
+from gps_denied_onboard.config import Config
+from gps_denied_onboard.constants import (
+    CORE_FDR_SUBDIR,
+    RESUME_STATE_INTERVAL_S,
+    STATUSTEXT_WORKER_BACK,
+    STATUSTEXT_WORKER_LOST,
+    FdrKind,
+    LogEvent,
+    Provenance,
+)
+from gps_denied_onboard.daemon.sd_notify import SdNotifier
+from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
+from gps_denied_onboard.geo import LocalTangentPlane
+
+log = structlog.get_logger(__name__)
+
+#: The MAVLink 2 signing link ids of the core's own messages and of the worker's, relayed.
+CORE_SIGNING_LINK_ID: Final = 0
+WORKER_SIGNING_LINK_ID: Final = 1
+#: What the worker sends that the core never relays: it says these itself.
+CORE_OWN_MESSAGES: Final = frozenset(
+    {"GPS_INPUT", "GLOBAL_POSITION_SENSOR", "VISION_POSITION_ESTIMATE", "HEARTBEAT", "SET_GPS_GLOBAL_ORIGIN"}
+)
+#: The restart back-off: the first pause, the longest, and the good running after which it starts over, s.
+WORKER_BACKOFF_MIN_S: Final = 0.2
+WORKER_BACKOFF_MAX_S: Final = 10.0
+WORKER_HEALTHY_S: Final = 30.0
+#: How often the supervisor looks at the worker, and how long a worker whose socket closed may live on, s.
+SUPERVISE_PERIOD_S: Final = 0.05
+WORKER_EOF_GRACE_S: Final = 0.5
+#: The worker's grace between SIGTERM and SIGKILL when the core stops, s.
+WORKER_STOP_GRACE_S: Final = 1.5
+#: The largest message on the socket (a state is about 1 KiB), bytes.
+MAX_MESSAGE_BYTES: Final = 65536
+#: The core's share of ``fdr.max_bytes`` for its own records.
+CORE_FDR_SHARE: Final = 0.1
+
+
+@dataclass
+class WorkerState:
+    """The vision worker as the core sees it."""
+
+    proc: subprocess.Popen[bytes] | None = None
+    sock: socket.socket | None = None
+    started_s: float = 0.0
+    #: Its newest message of any kind (None: none since this start), core clock s.
+    heard_s: float | None = None
+    #: Its newest estimate (None: none since this start), core clock s.
+    estimate_s: float | None = None
+    #: When it was lost (None: it is running), core clock s.
+    lost_s: float | None = None
+    starts: int = 0
+    losses: int = 0
+    kills: int = 0
+    bad_messages: int = 0
+    backoff_s: float = WORKER_BACKOFF_MIN_S
+    #: What it last said of itself: its HEARTBEAT's system status, why there is no fix, and the holds on
+    #: the outputs its own checks set (PX4's parameters, the autopilot's ground altitude).
+    system_status: int = mavutil.mavlink.MAV_STATE_BOOT
+    no_fix_reason: str | None = None
+    exits: list[str] = field(default_factory=list)
+
+
+class NavigatorCore:
+    """The core's tasks on one asyncio loop (see the module docstring). ``config_path`` and
+    ``overrides``: how the worker is started (``gdnav run --config ... --set ...``)."""
+
+    def __init__(
+        self,
+        config: Config,
+        config_path: str | Path,
+        overrides: Sequence[str],
+        *,
+        link: MavlinkLink,
+        clock: DaemonClock,
+        notifier: SdNotifier | None = None,
+    ) -> None:
+        self._cfg = config
+        self._config_path = str(config_path)
+        self._overrides = list(overrides)
+        self._link = link
+        self._clock = clock
+        self._notifier = notifier or SdNotifier()
+        self._worker = WorkerState()
+        self._est: NavEstimator | None = None
+        self._ltp: LocalTangentPlane | None = None
+        self._gate = Fix3dGate()
+        self._provenance = Provenance.NO_ESTIMATE
+        self._last_3d: tuple[ResumeState, str] | None = None
+        self._parser = DIALECT.MAVLink(None)
+        self._parser.robust_parsing = True
+        self._relay_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._relay_sock.bind(("127.0.0.1", 0))
+        self._relay_sock.setblocking(False)
+        self._worker_port = _free_udp_port()
+        self.relayed_to_worker = 0
+        self.relayed_to_autopilot = 0
+        self.estimates_sent = 0
+        fdr_dir = Path(config.fdr.dir)
+        (fdr_dir / CORE_FDR_SUBDIR).mkdir(parents=True, exist_ok=True)
+        self._fdr = FlightDataRecorder(
+            fdr_dir / CORE_FDR_SUBDIR,
+            max_bytes=max(int(config.fdr.max_bytes * CORE_FDR_SHARE), config.fdr.segment_bytes * 2),
+            segment_bytes=config.fdr.segment_bytes,
+            clock=clock.now_unix_s,
+            images_max_bytes=0,
+            min_free_bytes=config.fdr.min_free_bytes,
+        )
+        state_path = config.init.resume_state_path or default_path(fdr_dir)
+        self._resume = ResumeStateFile(state_path)
+        if "global_position_sensor" in config.mavlink.outputs:
+            link.hold_global_position_sensor(
+                "the vision worker has not checked PX4's EKF2_AGP0 parameters yet"
+            )
+
+    # -- lifecycle ------------------------------------------------------------------------------------
+    async def run(self, stop: asyncio.Event | None = None) -> int:
+        stop = stop or asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.add_signal_handler(sig, stop.set)
+        for sig in IGNORED_SIGNALS:
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.add_signal_handler(
+                    sig, lambda s=sig: log.warning(LogEvent.DAEMON_SIGNAL_IGNORED, signal=s.name)
+                )
+        self._link.relay_autopilot_to(self._relay_to_worker)
+        bodies = {
+            "output": self._output(),
+            "mavlink_rx": self._mavlink_rx(),
+            "relay_rx": self._relay_rx(),
+            "heartbeat": self._heartbeat(),
+            "supervise": self._supervise(),
+            "resume_state": self._keep_resume_state(),
+            "status": self._status(),
+        }
+        tasks = {name: asyncio.create_task(body, name=name) for name, body in bodies.items()}
+        stopper = asyncio.create_task(stop.wait(), name="stop")
+        self._notifier.ready("navigator core; vision worker starting")
+        log.info(
+            LogEvent.CORE_READY,
+            worker_port=self._worker_port,
+            relay_port=self._relay_sock.getsockname()[1],
+            nice=os.getpriority(os.PRIO_PROCESS, 0),
+        )
+        exit_code = 0
+        try:
+            done, _ = await asyncio.wait([stopper, *tasks.values()], return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                if task is not stopper and not task.cancelled() and task.exception() is not None:
+                    log.error(LogEvent.DAEMON_TASK_FAILED, task=task.get_name(), error=repr(task.exception()))
+                    exit_code = 1
+        finally:
+            for sig in (signal.SIGTERM, signal.SIGINT, *IGNORED_SIGNALS):
+                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                    loop.remove_signal_handler(sig)
+            self._notifier.stopping()
+            sock = self._worker.sock
+            if sock is not None:  # its end at the stop is no loss to report
+                with contextlib.suppress(OSError, ValueError):
+                    loop.remove_reader(sock.fileno())
+            for task in [stopper, *tasks.values()]:
+                task.cancel()
+            await asyncio.wait([stopper, *tasks.values()], timeout=0.5)
+            await asyncio.to_thread(self._stop_worker)
+            self._link.relay_autopilot_to(None)
+            self._link.close()
+            self._relay_sock.close()
+            self._fdr.close()
+            self._notifier.close()
+            log.info(
+                LogEvent.CORE_STOPPED,
+                exit_code=exit_code,
+                worker_starts=self._worker.starts,
+                worker_losses=self._worker.losses,
+                estimates_sent=self.estimates_sent,
+            )
+        return exit_code
+
+    # -- the worker -----------------------------------------------------------------------------------
+    def _worker_command(self, fd: int) -> list[str]:
+        command = [sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", self._config_path]
+        for item in self._overrides:
+            command += ["--set", item]
+        command += ["--set", f"mavlink.url=udpin:127.0.0.1:{self._worker_port}", "--worker-fd", str(fd)]
+        return command
+
+    def _start_worker(self) -> None:
+        w = self._worker
+        core_end, worker_end = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        handover = self._handover()
+        if handover is not None:
+            core_end.send(pack(handover))  # waits in the socket for the worker's first read
+        env = dict(os.environ)
+        env.pop("NOTIFY_SOCKET", None)  # systemd hears the core only (NotifyAccess=main)
+        env.pop("WATCHDOG_USEC", None)
+        env.pop("WATCHDOG_PID", None)
+        try:
+            proc = subprocess.Popen(
+                self._worker_command(worker_end.fileno()), pass_fds=(worker_end.fileno(),), env=env
+            )
+        finally:
+            worker_end.close()
+        with contextlib.suppress(OSError):  # behind the core: its nice value above the core's
+            nice = os.getpriority(os.PRIO_PROCESS, 0) + self._cfg.daemon.worker_nice_offset
+            os.setpriority(os.PRIO_PROCESS, proc.pid, min(19, nice))
+        core_end.setblocking(False)
+        w.proc, w.sock = proc, core_end
+        w.started_s = time.monotonic()
+        w.heard_s = w.estimate_s = w.eof_s = None
+        w.kill_reason = None
+        w.starts += 1
+        w.system_status = mavutil.mavlink.MAV_STATE_BOOT
+        fields = {"pid": proc.pid, "start": w.starts, "handover": handover is not None}
+        log.info(LogEvent.CORE_WORKER_STARTED, **fields)
+        self._fdr.record(FdrKind.CORE_WORKER, {"event": "started", **fields})
+
+    def _handover(self) -> dict[str, Any] | None:
+        """The core's filter predicted to now, for a restarted worker to start from (None: no estimate)."""
+        if self._est is None or self._ltp is None or not self._est.is_initialised:
+            return None
+        self._est.predict_to(self._clock.now_unix_usec())
+        return {"kind": "handover", "state": state_to_wire(self._est.checkpoint(), self._ltp)}
+
+    def _close_socket(self) -> None:
+        w = self._worker
+        sock, w.sock = w.sock, None
+        if sock is not None:
+            with contextlib.suppress(OSError, ValueError, RuntimeError):
+                asyncio.get_running_loop().remove_reader(sock.fileno())
+            sock.close()
+
+    def _kill_worker(self, how: str, short: str) -> None:
+        """Kill the worker for ``how`` (the ground hears ``short``); ``_supervise`` reaps and reports it."""
+        w = self._worker
+        if w.proc is None or w.kill_reason is not None:
+            return
+        w.kills += 1
+        w.kill_reason = (how, short)
+        with contextlib.suppress(OSError):
+            w.proc.kill()
+
+    def _lose_worker(self) -> None:
+        """The worker has exited: reaped, counted, reported; the output goes on on the IMU."""
+        w = self._worker
+        proc = w.proc
+        assert proc is not None
+        self._close_socket()
+        w.proc = None
+        exit_text = _exit_text(proc.returncode)
+        how, short = w.kill_reason or ("it ended" if w.eof_s is None else "its socket closed", exit_text)
+        w.kill_reason = None
+        w.eof_s = None
+        ran_s = time.monotonic() - w.started_s
+        w.losses += 1
+        w.lost_s = time.monotonic()
+        w.exits.append(exit_text)
+        if ran_s >= WORKER_HEALTHY_S:
+            w.backoff_s = WORKER_BACKOFF_MIN_S  # it had been running well: this loss starts the count over
+        w.restart_in_s = w.backoff_s
+        w.backoff_s = min(WORKER_BACKOFF_MAX_S, w.backoff_s * 2)
+        fields = {"how": how, "exit": exit_text, "ran_s": round(ran_s, 2), "restart_in_s": w.restart_in_s}
+        log.error(LogEvent.CORE_WORKER_LOST, **fields)
+        self._fdr.record(FdrKind.CORE_WORKER, {"event": "lost", **fields})
+        self._link.send_statustext(
+            mavutil.mavlink.MAV_SEVERITY_CRITICAL, STATUSTEXT_WORKER_LOST.format(short)
+        )
+
+    def _stop_worker(self) -> None:
+        """At the core's stop (off the loop): SIGTERM, then SIGKILL after ``WORKER_STOP_GRACE_S``."""
+        proc = self._worker.proc
+        if proc is None or proc.poll() is not None:
+            return
+        with contextlib.suppress(OSError):
+            proc.terminate()
+        try:
+            proc.wait(timeout=WORKER_STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(OSError):
+                proc.kill()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=1.0)
+
+    async def _supervise(self) -> None:
+        """Start the worker, watch it, and start it again after each loss (see the module docstring).
+        Nothing here blocks the loop: an end is reaped by polling, every ``SUPERVISE_PERIOD_S``."""
+        loop = asyncio.get_running_loop()
+        cfg = self._cfg.daemon
+        while True:
+            w = self._worker
+            if w.proc is None:
+                if w.lost_s is not None:
+                    await asyncio.sleep(max(0.0, w.lost_s + w.restart_in_s - time.monotonic()))
+                self._start_worker()
+                assert w.sock is not None
+                loop.add_reader(w.sock.fileno(), self._read_worker)
+            await asyncio.sleep(SUPERVISE_PERIOD_S)
+            proc = w.proc
+            assert proc is not None
+            now = time.monotonic()
+            if proc.poll() is not None:
+                self._read_worker()  # what it said last
+                self._lose_worker()
+            elif w.eof_s is not None and now - w.eof_s > WORKER_EOF_GRACE_S:
+                self._kill_worker("its socket closed, and it lived on", "socket closed")
+            elif w.heard_s is None and now - w.started_s > cfg.worker_start_s:
+                self._kill_worker(f"nothing within {cfg.worker_start_s:.0f} s of its start", "no start")
+            elif w.heard_s is not None and now - w.heard_s > cfg.worker_silence_s:
+                self._kill_worker(f"silent for {now - w.heard_s:.1f} s", "stalled")
+
+    def _read_worker(self) -> None:
+        """Every message waiting on the worker's socket; at its end-of-file, the socket is closed and the
+        process left for ``_supervise`` to reap."""
+        w = self._worker
+        while w.sock is not None:
+            try:
+                data = w.sock.recv(MAX_MESSAGE_BYTES)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                data = b""
+            if not data:
+                w.eof_s = time.monotonic()
+                self._close_socket()
+                return
+            w.heard_s = time.monotonic()
+            try:
+                self._on_message(unpack(data))
+            except WireError as exc:
+                w.bad_messages += 1
+                log.warning(LogEvent.CORE_WORKER_BAD_MESSAGE, error=str(exc), count=w.bad_messages)
+
+    def _on_message(self, message: dict[str, Any]) -> None:
+        w = self._worker
+        status = message.get("system_status")
+        if isinstance(status, int):
+            w.system_status = status
+        if message["kind"] != "estimate":
+            return  # "alive": loading, or waiting for its first prior
+        ws = state_from_wire(message["state"])
+        if self._est is None or self._ltp != ws.ltp:
+            self._est = NavEstimator(self._cfg.estimator, ws.ltp, accel_source=self._link.tracker)
+            self._ltp = ws.ltp
+            self._link.attach(self._fdr, ws.ltp)
+        self._est.restore(ws.checkpoint)
+        reason = message.get("no_fix_reason")
+        w.no_fix_reason = reason if isinstance(reason, str) else None
+        agp, alt = message.get("agp_hold"), message.get("alt_distrust")
+        self._link.hold_global_position_sensor(agp if isinstance(agp, str) else None)
+        self._link.distrust_altitude(alt if isinstance(alt, str) else None)
+        now = time.monotonic()
+        if w.estimate_s is None and w.lost_s is not None:
+            gap_s = now - w.lost_s
+            log.warning(LogEvent.CORE_WORKER_BACK, after_s=round(gap_s, 2), start=w.starts)
+            self._fdr.record(FdrKind.CORE_WORKER, {"event": "back", "after_s": round(gap_s, 3)})
+            self._link.send_statustext(
+                mavutil.mavlink.MAV_SEVERITY_NOTICE, STATUSTEXT_WORKER_BACK.format(gap_s)
+            )
+            w.lost_s = None
+        w.estimate_s = now
+
+    # -- MAVLink ----------------------------------------------------------------------------------------
+    def _relay_to_worker(self, msg: Any) -> None:
+        with contextlib.suppress(OSError):
+            self._relay_sock.sendto(msg.get_msgbuf(), ("127.0.0.1", self._worker_port))
+            self.relayed_to_worker += 1
+
+    async def _mavlink_rx(self) -> None:
+        loop = asyncio.get_running_loop()
+        readable = asyncio.Event()
+        fd: int | None = None
+        try:
+            while True:
+                current = self._link.fileno()
+                if current != fd:
+                    if fd is not None:
+                        loop.remove_reader(fd)
+                    fd = current
+                    if fd is not None:
+                        loop.add_reader(fd, readable.set)
+                readable.clear()  # before the poll: a datagram arriving during it sets it again
+                self._link.poll()
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(readable.wait(), 0.05)
+        finally:
+            if fd is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    loop.remove_reader(fd)
+
+    async def _relay_rx(self) -> None:
+        loop = asyncio.get_running_loop()
+        readable = asyncio.Event()
+        loop.add_reader(self._relay_sock.fileno(), readable.set)
+        try:
+            while True:
+                readable.clear()
+                self._relay_from_worker()
+                await readable.wait()
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                loop.remove_reader(self._relay_sock.fileno())
+
+    def _relay_from_worker(self) -> None:
+        """What the worker's link sent, to the autopilot as it was encoded (and signed), but for what the
+        core says itself."""
+        while True:
+            try:
+                data, address = self._relay_sock.recvfrom(MAX_MESSAGE_BYTES)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            if address != ("127.0.0.1", self._worker_port):
+                continue  # only the worker's link speaks on this socket
+            try:
+                messages = self._parser.parse_buffer(data) or []
+            except Exception:  # a malformed datagram: dropped
+                continue
+            for msg in messages:
+                name = msg.get_type()
+                if name == "BAD_DATA" or name in CORE_OWN_MESSAGES:
+                    continue
+                if name == "TIMESYNC" and msg.tc1 != 0:
+                    continue  # the core answers the autopilot's TIMESYNC itself
+                if self._link.send_raw(msg.get_msgbuf()):
+                    self.relayed_to_autopilot += 1
+
+    async def _heartbeat(self) -> None:
+        period = 1.0 / self._cfg.mavlink.heartbeat_hz
+        while True:
+            self._link.send_heartbeat(self._system_status())
+            self._notifier.watchdog()
+            await asyncio.sleep(min(period, self._notifier.watchdog_interval_s or period))
+
+    def _system_status(self) -> int:
+        w = self._worker
+        if w.estimate_s is not None:
+            return w.system_status
+        if self._est is not None and self._est.is_initialised:
+            return mavutil.mavlink.MAV_STATE_CRITICAL  # navigating on the IMU alone until the worker is back
+        return mavutil.mavlink.MAV_STATE_BOOT
+
+    # -- the output -----------------------------------------------------------------------------------
+    async def _output(self) -> None:
+        period_s = 1.0 / self._cfg.mavlink.estimate_rate_hz
+        loop = asyncio.get_running_loop()
+        deadline = loop.time()
+        while True:
+            try:
+                self._send_estimate()
+            except Exception as exc:  # one estimate failing must not stop the stream; recorded
+                log.exception(LogEvent.PIPELINE_FRAME_ERROR, stage="core_output", error=repr(exc))
+                self._fdr.record(
+                    FdrKind.FRAME_ERROR, {"frame_seq": None, "stage": "core_output", "error": repr(exc)}
+                )
+            deadline += period_s
+            now = loop.time()
+            if now - deadline > period_s:
+                deadline = now
+            await asyncio.sleep(max(0.0, deadline - now))
+
+    def _send_estimate(self) -> None:
+        now_usec = self._clock.now_unix_usec()
+        est = self._est
+        state = est.state(now_usec) if est is not None else EstimatorState.no_estimate(now_usec)
+        fix_type = self._gate.fix_type(state) if est is not None else 0
+        sent = self._link.send_estimate(state, time_unix_usec=state.time_unix_usec, gps_fix_type=fix_type)
+        self.estimates_sent += int(sent > 0)
+        new = state.provenance
+        if new is not self._provenance:
+            old, self._provenance = self._provenance, new
+            reason = None
+            if new is not Provenance.SATELLITE_ANCHORED:
+                reason = (
+                    self._worker.no_fix_reason
+                    if self._worker.estimate_s is not None
+                    else "vision worker lost"
+                )
+            log.warning(LogEvent.PROVENANCE_CHANGED, old=old.value, new=new.value, reason=reason)
+            self._fdr.record(
+                FdrKind.PROVENANCE_CHANGED, {"old": old.value, "new": new.value, "reason": reason}
+            )
+            self._link.notify_provenance(old, new, f"GDN: {new.value}: {reason}" if reason else None)
+        horiz = state.horiz_sigma_m if math.isfinite(state.lat_deg) else None
+        if fix_type == 3 and horiz is not None:
+            self._last_3d = (
+                ResumeState(state.lat_deg, state.lon_deg, horiz, state.time_unix_usec),
+                new.value,
+            )
+        self._fdr.record(
+            FdrKind.ESTIMATE_SENT,
+            {
+                "time_unix_usec": state.time_unix_usec,
+                "provenance": new.value,
+                "fix_type": fix_type,
+                "lat_deg": state.lat_deg if horiz is not None else None,
+                "lon_deg": state.lon_deg if horiz is not None else None,
+                "horiz_sigma_m": horiz,
+                "worker": self._worker.estimate_s is not None,
+                "sent": sent,
+            },
+        )
+
+    async def _keep_resume_state(self) -> None:
+        written: tuple[ResumeState, str] | None = None
+        while True:
+            await asyncio.sleep(RESUME_STATE_INTERVAL_S)
+            latest = self._last_3d
+            if latest is None or latest is written:
+                continue
+            await asyncio.to_thread(
+                self._resume.write, latest[0], provenance=latest[1], written_unix_s=self._clock.now_unix_s()
+            )
+            written = latest
+
+    async def _status(self) -> None:
+        period = 1.0 / self._cfg.daemon.status_hz
+        while True:
+            await asyncio.sleep(period)
+            w = self._worker
+            now = time.monotonic()
+            log.info(
+                LogEvent.CORE_STATUS,
+                worker_pid=w.proc.pid if w.proc is not None else None,
+                worker_running=w.proc is not None,
+                worker_estimating=w.estimate_s is not None,
+                worker_starts=w.starts,
+                worker_losses=w.losses,
+                worker_kills=w.kills,
+                worker_last_heard_s=None if w.heard_s is None else round(now - w.heard_s, 3),
+                provenance=self._provenance.value,
+                estimates_sent=self.estimates_sent,
+                relayed_to_worker=self.relayed_to_worker,
+                relayed_to_autopilot=self.relayed_to_autopilot,
+            )
+            self._notifier.status(
+                f"worker {'up' if w.estimate_s is not None else 'down'}; {self._provenance.value}; "
+                f"restarts {max(0, w.starts - 1)}"
+            )
+
+
+def _free_udp_port() -> int:
+    """A loopback UDP port free now (the worker's link listens there)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def _exit_text(code: int | None) -> str:
+    """How a process ended, in few words (``SIGKILL``, ``exit 1``): the operator's STATUSTEXT has 50."""
+    if code is None:
+        return "unknown"
+    if code < 0:
+        with contextlib.suppress(ValueError):
+            return signal.Signals(-code).name
+        return f"signal {-code}"
+    return f"exit {code}"
