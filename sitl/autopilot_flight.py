@@ -32,9 +32,10 @@ from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.camera.types import Attitude
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import ConfigError, load_config
+from gps_denied_onboard.constants import CORE_FDR_SUBDIR
 from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.sitl.frame_server import FrameServer
-from gps_denied_onboard.sitl.host_faults import CpuHogs
+from gps_denied_onboard.sitl.host_faults import CpuHogs, child_pids
 from gps_denied_onboard.sitl.mission import (
     TRUTH_TYPES,
     AutopilotRelay,
@@ -45,7 +46,14 @@ from gps_denied_onboard.sitl.mission import (
 from gps_denied_onboard.sitl.photometric import PhotometricModel
 from gps_denied_onboard.sitl.px4_mission import Px4MissionDriver, is_px4
 from gps_denied_onboard.sitl.render import MapRenderer, RenderError
-from gps_denied_onboard.sitl.report import SentFrame, analyse, plot_report, restart_recovery, score
+from gps_denied_onboard.sitl.report import (
+    SentFrame,
+    analyse,
+    plot_report,
+    restart_recovery,
+    score,
+    worker_kill_recovery,
+)
 from gps_denied_onboard.sitl.runner import (
     DAEMON_READY_TIMEOUT_S,
     DAEMON_STOP_TIMEOUT_S,
@@ -230,7 +238,7 @@ def _fly(
         assert p is not None
         return p.lat_deg, p.lon_deg
 
-    records = list(read_records(workdir / "fdr"))
+    records = [*read_records(workdir / "fdr"), *read_records(workdir / "fdr" / CORE_FDR_SUBDIR)]
     gps_types = {1: 14}  # GPS 2 = GPS_INPUT
     times = {e["kind"]: e["t_unix_s"] for e in mission.get("log", [])}
     # with the GNSS back on (GPS_AUTO_SWITCH = 1) GPS 1 is primary again: GPS 2's silences trip nothing
@@ -293,6 +301,9 @@ def _fly(
             "daemon_exit_code": exit_code,
             "daemon_stop_s": stop_s,
             "daemon_restarts": restart_recovery(restarts, relay.received, records),
+            "worker_kills": worker_kill_recovery(
+                [f["killed_unix_s"] for f in injected if f["kind"] == "worker_kill"], relay.received, records
+            ),
             "faults_injected": injected,
             "t0_unix_s": t0[0] if t0 else None,
             "daemon_log": str(workdir / "daemon.log"),
@@ -394,6 +405,22 @@ async def _run_flight(
             restarts.append({"killed_unix_s": t_kill, "restarted_unix_s": time.time()})
             say(f"daemon killed (SIGKILL) at {at_s:.1f} s and restarted: pid {procs[-1].pid}")
 
+    async def worker_killer(procs: list[subprocess.Popen[bytes]]) -> None:
+        """SIGKILL the navigator core's vision worker at each of the scenario's ``worker_kills`` (s after
+        the take-off); the core restarts it."""
+        for at_s in scenario.worker_kills_s:
+            while not t0:
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(max(0.0, t0[0] + at_s - time.time()))
+            workers = child_pids(procs[-1].pid)
+            for pid in workers:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            injected.append(
+                {"kind": "worker_kill", "t_s": at_s, "killed_unix_s": time.time(), "pids": workers}
+            )
+            say(f"vision worker killed (SIGKILL) at {at_s:.1f} s: pids {workers}")
+
     hogs = CpuHogs()
 
     async def host_load() -> None:
@@ -420,6 +447,7 @@ async def _run_flight(
         cam_task = asyncio.create_task(camera())
         restart_task = asyncio.create_task(restarter(procs, log_file))
         load_task = asyncio.create_task(host_load())
+        kill_task = asyncio.create_task(worker_killer(procs))
         exit_code: int | None = None
         stop_s: float | None = None
         try:
@@ -446,6 +474,7 @@ async def _run_flight(
             restart_task.cancel()  # no new daemon from here on
             cam_task.cancel()
             load_task.cancel()
+            kill_task.cancel()
             hogs.stop()
             proc = procs[-1]
             t_term = time.monotonic()

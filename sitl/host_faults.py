@@ -107,6 +107,23 @@ class HostSetup:
 _BUSY_LOOP = "while True:\n    pass\n"
 
 
+def child_pids(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (Linux ``/proc``): a navigator core's vision worker."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        # pid (comm) state ppid ...: comm may hold spaces and parentheses, so split after the last ')'
+        fields = stat[stat.rfind(")") + 2 :].split()
+        if len(fields) > 1 and int(fields[1]) == pid:
+            out.append(int(entry.name))
+    return sorted(out)
+
+
 class CpuHogs:
     """The ``cpu_hogs`` fault: busy processes on the daemon's host while it is on."""
 

@@ -34,7 +34,7 @@ from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
@@ -607,6 +607,65 @@ def restart_recovery(
                 "fix_attempts_to_anchor": n_anchor,
                 "fix_attempts": len(attempts) if run else None,
                 "fix_attempt_ms": {"p50": _pct(cost, 50), "max": max(cost, default=None)},
+            }
+        )
+    return out
+
+
+#: How long after the vision worker is back a kill's stretch runs on (``worker_kill_recovery``), s.
+WORKER_KILL_SETTLE_S: Final[float] = 10.0
+
+
+def worker_kill_recovery(
+    kills_unix_s: Sequence[float],
+    received: Sequence[ReceivedMessage],
+    fdr_records: Sequence[Mapping[str, Any]] = (),
+) -> list[dict[str, Any]]:
+    """For each kill of the vision worker (its navigator core lives on): when the core said the worker was
+    back (FDR ``core.worker`` ``back``; ``back_after_s``), the restarted worker's start-up prior
+    (``prior_source``: ``core_handover`` when it took the core's filter), and over the stretch the kill
+    touched (from 1 s before it to ``WORKER_KILL_SETTLE_S`` after the worker was back, or to the next
+    kill): the longest interval between the autopilot's position messages (``max_interval_ms``), the
+    lowest fix_type sent after the kill (``min_fix_type``) and the most the stated accuracy of a 3D one
+    grew to (``max_horiz_accuracy_m``)."""
+    gps = [
+        (m.recv_time_unix_s, int(m.fields["fix_type"]), float(m.fields.get("horiz_accuracy", math.nan)))
+        for m in position_messages(received)
+    ]
+    out = []
+    for i, kill in enumerate(kills_unix_s):
+        until = kills_unix_s[i + 1] if i + 1 < len(kills_unix_s) else math.inf
+        back = next(
+            (
+                r
+                for r in fdr_records
+                if r.get("kind") == FdrKind.CORE_WORKER
+                and r.get("event") == "back"
+                and kill < float(r.get("t_unix_s", -math.inf)) <= until
+            ),
+            None,
+        )
+        prior = next(
+            (
+                r
+                for r in fdr_records
+                if r.get("kind") == FdrKind.PRIOR and kill < float(r.get("t_unix_s", -math.inf)) <= until
+            ),
+            None,
+        )
+        if back is not None:
+            until = min(until, float(back["t_unix_s"]) + WORKER_KILL_SETTLE_S)
+        window = [g for g in gps if kill - 1.0 <= g[0] <= until]
+        times = [t for t, _, _ in window]
+        after = [g for g in window if g[0] > kill]
+        out.append(
+            {
+                "killed_unix_s": kill,
+                "max_interval_ms": round(1000.0 * max(np.diff(times)), 1) if len(times) > 1 else None,
+                "min_fix_type": min((ft for _, ft, _ in after), default=None),
+                "max_horiz_accuracy_m": max((acc for _, ft, acc in after if ft >= 3), default=None),
+                "back_after_s": _since(float(back["t_unix_s"]), kill) if back is not None else None,
+                "prior_source": prior.get("source") if prior is not None else None,
             }
         )
     return out

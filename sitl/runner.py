@@ -42,7 +42,7 @@ from pymavlink import mavutil
 from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import Config, ConfigError, load_config
-from gps_denied_onboard.constants import FRAME_STREAM_MAGIC
+from gps_denied_onboard.constants import CORE_FDR_SUBDIR, FRAME_STREAM_MAGIC
 from gps_denied_onboard.sitl.autopilot import ReceivedMessage, SimAutopilot
 from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.host_faults import HostFaultError, HostFaults
@@ -262,6 +262,7 @@ class _Flight:
             f"camera.intrinsics.cx_px={self.calib.cx_px}",
             f"camera.intrinsics.cy_px={self.calib.cy_px}",
             *self._spoofed_config(),
+            *(["daemon.vision_worker=true"] if self.scenario.vision_worker else []),
             *self.opts.overrides,
             *self.host_setup.overrides,
         ]
@@ -820,7 +821,7 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
         s = trajectory.truth_at(max(0.0, t_unix_s - flight.t0_unix_s))
         return s.lat_deg, s.lon_deg
 
-    records = list(read_records(workdir / "fdr"))
+    records = [*read_records(workdir / "fdr"), *read_records(workdir / "fdr" / CORE_FDR_SUBDIR)]
     report = score(flight.frames, ap.received, truth_at_unix, records, end_unix_s=flight.end_unix_s)
     ap.close()
     report["analysis"] = analyse(report, records, truth_at_unix)

@@ -561,6 +561,10 @@ class Scenario:
     daemon_restarts_s: tuple[float, ...] = ()
     #: The restarts (by time) before which the FDR directory is deleted.
     daemon_restarts_wipe_fdr: frozenset[float] = frozenset()
+    #: The daemon runs as a navigator core and its vision worker (``daemon.vision_worker``).
+    vision_worker: bool = False
+    #: Flight times at which the vision worker is killed (SIGKILL; its core restarts it), s.
+    worker_kills_s: tuple[float, ...] = ()
     #: The start points dragged off before the flight (None: they are true).
     spoofed_start: SpoofedStart | None = None
     #: File the scenario was read from (None when built from a mapping).
@@ -1026,6 +1030,20 @@ def _read_restarts(value: object, source: str | None) -> tuple[tuple[float, ...]
     return tuple(sorted(times)), frozenset(wipes)
 
 
+def _read_worker_kills(value: object, vision_worker: bool, source: str | None) -> tuple[float, ...]:
+    """The worker kill times, sorted (a scenario with kills runs the vision worker)."""
+    if not isinstance(value, list):
+        raise ScenarioError("worker_kills", f"expected a list, got {_type_name(value)}", source=source)
+    if value and not vision_worker:
+        raise ScenarioError("worker_kills", "needs vision_worker: true (no worker to kill)", source=source)
+    times = []
+    for i, raw in enumerate(value):
+        b = _Block(raw, f"worker_kills[{i}]", source)
+        times.append(b.number("at_s", gt=0.0))
+        b.finish()
+    return tuple(sorted(times))
+
+
 def _read_gaps(value: object, source: str | None) -> tuple[MapGap, ...]:
     if not isinstance(value, list):
         raise ScenarioError("map_gaps", f"expected a list, got {_type_name(value)}", source=source)
@@ -1135,6 +1153,10 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     drops = _read_link_drops(root.get("link_drops", []), source)
     stamp_faults = _read_timestamp_faults(root.get("timestamp_faults", []), source)
     restarts, restart_wipes = _read_restarts(root.get("daemon_restarts", []), source)
+    vision_worker = root.get("vision_worker", False)
+    if not isinstance(vision_worker, bool):
+        raise ScenarioError("vision_worker", f"expected true or false, got {vision_worker!r}", source=source)
+    worker_kills = _read_worker_kills(root.get("worker_kills", []), vision_worker, source)
     faults = _read_faults(root.get("faults", []), source)
     spoofed = _read_spoofed_start(root.get("spoofed_start", None), source)
     root.finish()
@@ -1162,6 +1184,8 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
         timestamp_faults=stamp_faults,
         daemon_restarts_s=restarts,
         daemon_restarts_wipe_fdr=restart_wipes,
+        vision_worker=vision_worker,
+        worker_kills_s=worker_kills,
         faults=faults,
         spoofed_start=spoofed,
         source=source,

@@ -21,7 +21,7 @@ import yaml
 from conftest import REPO_ROOT, shared_path
 from gps_denied_onboard.clock import CAMERA_OFFSET_SE_FLOOR_S
 from gps_denied_onboard.components.c13_fdr import read_records
-from gps_denied_onboard.constants import FdrKind
+from gps_denied_onboard.constants import CORE_FDR_SUBDIR, FdrKind
 from gps_denied_onboard.sitl.render import MapRenderer
 from gps_denied_onboard.sitl.scenario import load_scenario
 
@@ -218,6 +218,32 @@ def test_link_drop_trips_no_fix_and_recovers_without_failsafe(tmp_path: Path) ->
     assert "ekf_failsafe" not in _kinds(emu)
     assert "gps_recovered" in _kinds(emu)
     assert "landed" in [e["kind"] for e in report["mission"]["log"]]
+
+
+def test_vision_worker_killed_twice_the_stream_never_pauses(tmp_path: Path) -> None:
+    """Issue 36: the navigator core and its vision worker, the worker killed (SIGKILL) twice while the
+    vehicle flies on the daemon alone. The core keeps GPS_INPUT on its deadlines on the IMU (no interval
+    over ArduPilot's 245 ms, no drop below 3D), restarts the worker, which starts from the core's filter;
+    the flight meets issue 26's bounds with 0 beyond 3 sigma."""
+    report, emu, _cli = _fly(tmp_path, REPO_ROOT / "sitl" / "scenarios" / "autopilot_worker_crash.yaml")
+    kills = report["worker_kills"]
+    assert len(kills) == 2, kills
+    for kill in kills:
+        assert kill["back_after_s"] is not None and kill["back_after_s"] <= 20.0, kill
+        assert kill["prior_source"] == "core_handover", kill
+        assert kill["max_interval_ms"] <= 245.0, kill
+        assert kill["min_fix_type"] == 3, kill
+    assert "daemon.vision_worker=true" in report["daemon_overrides"], report["daemon_overrides"]
+    _issue_26_bounds(report, emu)
+    iv = report["gnss_off"]["stream"]["interval_ms"]
+    assert iv["max_ms"] <= 245.0, iv
+    core_fdr = tmp_path / "work" / "fdr" / CORE_FDR_SUBDIR
+    lost = [r for r in read_records(core_fdr) if r.get("kind") == FdrKind.CORE_WORKER]
+    assert [r["event"] for r in lost].count("lost") == 2, lost
+    assert all(r["exit"] == "SIGKILL" for r in lost if r["event"] == "lost"), lost
+    texts = [t["text"] for t in report["statustext"]]
+    assert sum(t.startswith("GDN: vision lost") for t in texts) == 2, texts
+    assert sum(t.startswith("GDN: vision back") for t in texts) == 2, texts
 
 
 @pytest.mark.sitl

@@ -169,6 +169,7 @@ def test_scenario_builtin_files_load() -> None:
         "attitude_offset",
         "autopilot_restart",
         "autopilot_square",
+        "autopilot_worker_crash",
         "clock_faults",
         "demo",
         "faults",
@@ -179,6 +180,7 @@ def test_scenario_builtin_files_load() -> None:
         "nominal_real",
         "px4_restart",
         "px4_square",
+        "px4_worker_crash",
         "restart",
         "smoke",
         "soak",
@@ -278,7 +280,8 @@ def test_scenario_map_gaps_parse_and_validate() -> None:
 def test_scenario_file_errors_name_the_file(tmp_path: Path) -> None:
     """A missing file lists the built-ins; broken YAML is a ScenarioError naming the file."""
     listed = (
-        r"built-in scenarios: attitude_offset, autopilot_restart, autopilot_square, clock_faults, demo, "
+        r"built-in scenarios: attitude_offset, autopilot_restart, autopilot_square, autopilot_worker_crash, "
+        r"clock_faults, demo, "
         r"faults, link_drop, "
         r".*, smoke"
     )

@@ -37,8 +37,10 @@ LEFT_OUT: Final[dict[str, str]] = {
     "soak": "20 minutes per strategy: fly it on its own (docs/benchmarks.md, Soak)",
     "autopilot_square": "needs an autopilot (gdnav sitl run --autopilot)",
     "autopilot_restart": "needs an autopilot (gdnav sitl run --autopilot)",
+    "autopilot_worker_crash": "needs an autopilot (gdnav sitl run --autopilot)",
     "px4_square": "needs PX4 (gdnav sitl run --autopilot)",
     "px4_restart": "needs PX4 (gdnav sitl run --autopilot)",
+    "px4_worker_crash": "needs PX4 (gdnav sitl run --autopilot)",
 }
 _NAIP: Final = ("data", "naip_timeseries", "naip")
 _GEOVISION: Final = ("data", "geovision_india", "geovision_india_z18.tif")
