@@ -15,7 +15,8 @@ What it holds, and what the vision worker (``gdnav run`` under it, the whole pip
   When the worker is gone, nothing else changes: the same filter goes on predicting on the IMU, its
   sigma grows as the filter's process noise says, its provenance and ``fix_type`` follow the same rules
   (``Fix3dGate``), and no deadline is missed. A restarted worker starts from the core's filter as it is
-  (the handover: position, velocity and covariance), so fusion resumes where the core had got to.
+  at the worker's first frame (the handover, offered at every output period until the worker's first
+  estimate: position, velocity and covariance), so fusion resumes where the core had got to.
 - **The worker itself.** Started with its nice value ``daemon.worker_nice_offset`` above the core's.
   Every message is its heartbeat; end-of-file on the socket is its death (a kill, a segfault, the OOM
   killer), seen at once. Silent for ``daemon.worker_silence_s`` (or with no first message within
@@ -525,7 +526,20 @@ class NavigatorCore:
                 deadline = now
             await asyncio.sleep(max(0.0, deadline - now))
 
+    def _offer_handover(self) -> None:
+        """Until a started worker sends its first estimate, the core's filter at every output period: the
+        worker starts from the newest at its first frame, so it need not predict the time it took to
+        start again without the IMU the core had (its own link hears the IMU only from its start)."""
+        w = self._worker
+        if w.sock is None or w.estimate_s is not None:
+            return
+        handover = self._handover()
+        if handover is not None:
+            with contextlib.suppress(BlockingIOError, InterruptedError, OSError):
+                w.sock.send(pack(handover))
+
     def _send_estimate(self) -> None:
+        self._offer_handover()
         now_usec = self._clock.now_unix_usec()
         est = self._est
         state = est.state(now_usec) if est is not None else EstimatorState.no_estimate(now_usec)

@@ -9,8 +9,10 @@ on from the previous one).
 
 from __future__ import annotations
 
+import ctypes
+import signal
 import socket
-from typing import Any
+from typing import Any, Final
 
 import structlog
 
@@ -27,6 +29,21 @@ from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
 
 log = structlog.get_logger(__name__)
+
+#: Linux prctl(2): the signal a process gets when the thread that started it ends.
+_PR_SET_PDEATHSIG: Final = 1
+
+
+def die_with_core() -> bool:
+    """Have the kernel SIGKILL this worker the moment its core ends (Linux ``PR_SET_PDEATHSIG``), as
+    one process would have died whole; under systemd the unit's cgroup would end it too, but a core
+    started otherwise must not leave a worker flying on. False where the call is not available."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return int(libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)) == 0
+    except (OSError, AttributeError):
+        return False
+
 
 #: The largest message the core sends (a handover is about 1 KiB), bytes.
 MAX_MESSAGE_BYTES = 65536

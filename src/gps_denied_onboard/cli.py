@@ -112,10 +112,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     channel = None
     if worker:
         from gps_denied_onboard.daemon.core import WORKER_SIGNING_LINK_ID
-        from gps_denied_onboard.daemon.core_channel import CoreChannel
+        from gps_denied_onboard.daemon.core_channel import CoreChannel, die_with_core
 
+        die_with_core()  # before the first read: a core gone before it is seen as end-of-file below
         channel = CoreChannel(args.worker_fd)
-        channel.poll()  # the core's handover, if it has an estimate, is already waiting
+        if not channel.poll():  # the core's handover, if it has an estimate, is already waiting
+            log.error("daemon.startup_refused", what="--worker-fd", error="the navigator core has gone")
+            return EXIT_FAILURE
     try:
         link = open_link_first(config, clock, signing_link_id=WORKER_SIGNING_LINK_ID if worker else 0)
     except (StartupError, MavlinkConfigError) as exc:
