@@ -163,7 +163,8 @@ class NavigatorCore:
         self.relayed_to_autopilot = 0
         self.estimates_sent = 0
         fdr_dir = Path(config.fdr.dir)
-        (fdr_dir / CORE_FDR_SUBDIR).mkdir(parents=True, exist_ok=True)
+        with contextlib.suppress(OSError):  # a full or read-only disk: the recorder counts what it loses
+            (fdr_dir / CORE_FDR_SUBDIR).mkdir(parents=True, exist_ok=True)
         self._fdr = FlightDataRecorder(
             fdr_dir / CORE_FDR_SUBDIR,
             max_bytes=max(int(config.fdr.max_bytes * CORE_FDR_SHARE), config.fdr.segment_bytes * 2),
@@ -428,6 +429,10 @@ class NavigatorCore:
 
     # -- MAVLink ----------------------------------------------------------------------------------------
     def _relay_to_worker(self, msg: Any) -> None:
+        """The autopilot's own messages to the worker's link (what other systems say, a ground station's or
+        a flood's, the worker does not need: relaying it would double the core's work under a flood)."""
+        if msg.get_srcSystem() != self._cfg.mavlink.autopilot_system_id:
+            return
         with contextlib.suppress(OSError):
             self._relay_sock.sendto(msg.get_msgbuf(), ("127.0.0.1", self._worker_port))
             self.relayed_to_worker += 1

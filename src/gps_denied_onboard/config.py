@@ -616,7 +616,8 @@ class DaemonConfig:
     #: Run the vision (camera, VO, VPR, matching, pose, fusion) in a worker process under a light navigator
     #: core that holds the MAVLink link and the output (``daemon/core.py``): a crash, a kill or an OOM of
     #: the worker then costs sigma growth on the IMU, never a gap in the autopilot's estimate stream.
-    vision_worker: Bool = False
+    #: false: one process holds both, and any crash silences the output until systemd restarts it.
+    vision_worker: Bool = True
     #: The vision worker's nice value above the core's (the core ahead of it, the worker behind).
     worker_nice_offset: Annotated[int, Strict(), Field(ge=0, le=19)] = 5
     #: A started worker that sends nothing for this long is stalled: killed and started again, s.
