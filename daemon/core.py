@@ -510,6 +510,8 @@ class NavigatorCore:
             return w.system_status
         if self._est is not None and self._est.is_initialised:
             return mavutil.mavlink.MAV_STATE_CRITICAL  # navigating on the IMU alone until the worker is back
+        if w.heard_s is not None:
+            return w.system_status  # its tasks run (STANDBY until its estimator starts)
         return mavutil.mavlink.MAV_STATE_BOOT
 
     # -- the output -----------------------------------------------------------------------------------

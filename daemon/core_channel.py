@@ -9,10 +9,9 @@ on from the previous one).
 
 from __future__ import annotations
 
-import ctypes
 import signal
 import socket
-from typing import Any, Final
+from typing import Any
 
 import structlog
 
@@ -27,22 +26,15 @@ from gps_denied_onboard.components.c5_estimator.wire import (
 )
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
+from gps_denied_onboard.helpers.process import die_with_parent
 
 log = structlog.get_logger(__name__)
 
-#: Linux prctl(2): the signal a process gets when the thread that started it ends.
-_PR_SET_PDEATHSIG: Final = 1
-
-
 def die_with_core() -> bool:
-    """Have the kernel SIGKILL this worker the moment its core ends (Linux ``PR_SET_PDEATHSIG``), as
-    one process would have died whole; under systemd the unit's cgroup would end it too, but a core
-    started otherwise must not leave a worker flying on. False where the call is not available."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        return int(libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)) == 0
-    except (OSError, AttributeError):
-        return False
+    """Have the kernel SIGKILL this worker the moment its core ends, as one process would have died
+    whole; under systemd the unit's cgroup would end it too, but a core started otherwise must not leave
+    a worker flying on. False where that is not available."""
+    return die_with_parent(signal.SIGKILL)
 
 
 #: The largest message the core sends (a handover is about 1 KiB), bytes.

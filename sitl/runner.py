@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import ctypes
 import dataclasses
 import hashlib
 import itertools
@@ -43,6 +42,7 @@ from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import Config, ConfigError, load_config
 from gps_denied_onboard.constants import CORE_FDR_SUBDIR, FRAME_STREAM_MAGIC
+from gps_denied_onboard.helpers.process import die_with_parent
 from gps_denied_onboard.sitl.autopilot import ReceivedMessage, SimAutopilot
 from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.host_faults import HostFaultError, HostFaults
@@ -71,8 +71,6 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO_ROOT / "config" / "sitl.yaml"
 DAEMON_READY_TIMEOUT_S = 90.0
 DAEMON_STOP_TIMEOUT_S = 10.0
-#: prctl option: the signal a child gets when its parent dies (linux/prctl.h).
-_PR_SET_PDEATHSIG = 1
 ATTITUDE_HZ = 50.0
 #: How often the daemon's resident memory is sampled, s.
 RSS_SAMPLE_S = 5.0
@@ -138,11 +136,9 @@ def _send_from_a_fresh_port(packet: bytes, port: int) -> int:
 
 
 def _die_with_parent() -> None:
-    """In the child before exec: SIGTERM when the process that started it dies (Linux
-    ``PR_SET_PDEATHSIG``), so a runner killed outright leaves no daemon behind."""
-    with contextlib.suppress(OSError, AttributeError):
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    """In the child before exec: SIGTERM when the process that started it dies, so a runner killed
+    outright leaves no daemon behind."""
+    die_with_parent(signal.SIGTERM)
 
 
 def daemon_ready(received: Sequence[ReceivedMessage]) -> bool:
