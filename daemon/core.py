@@ -98,7 +98,8 @@ WORKER_EOF_GRACE_S: Final = 0.5
 WORKER_STOP_GRACE_S: Final = 1.5
 #: The largest message on the socket (a state is about 1 KiB), bytes.
 MAX_MESSAGE_BYTES: Final = 65536
-#: The core's share of ``fdr.max_bytes`` for its own records.
+#: The core's share of ``fdr.max_bytes`` for its own records (at least two segments); the worker gets the
+#: rest.
 CORE_FDR_SHARE: Final = 0.1
 
 
@@ -119,7 +120,14 @@ class WorkerState:
     losses: int = 0
     kills: int = 0
     bad_messages: int = 0
+    #: When its socket closed (None: open), core clock s; why the core killed it (how, the ground's words).
+    eof_s: float | None = None
+    kill_reason: tuple[str, str] | None = None
+    #: The pause before the restart after this loss, and the one after the next (doubling), s.
+    restart_in_s: float = WORKER_BACKOFF_MIN_S
     backoff_s: float = WORKER_BACKOFF_MIN_S
+    #: The loopback UDP port its link listens on (a fresh one for each start).
+    port: int = 0
     #: What it last said of itself: its HEARTBEAT's system status, why there is no fix, and the holds on
     #: the outputs its own checks set (PX4's parameters, the autopilot's ground altitude).
     system_status: int = mavutil.mavlink.MAV_STATE_BOOT
@@ -158,16 +166,16 @@ class NavigatorCore:
         self._relay_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._relay_sock.bind(("127.0.0.1", 0))
         self._relay_sock.setblocking(False)
-        self._worker_port = _free_udp_port()
         self.relayed_to_worker = 0
         self.relayed_to_autopilot = 0
         self.estimates_sent = 0
         fdr_dir = Path(config.fdr.dir)
         with contextlib.suppress(OSError):  # a full or read-only disk: the recorder counts what it loses
             (fdr_dir / CORE_FDR_SUBDIR).mkdir(parents=True, exist_ok=True)
+        self._fdr_bytes = max(int(config.fdr.max_bytes * CORE_FDR_SHARE), config.fdr.segment_bytes * 2)
         self._fdr = FlightDataRecorder(
             fdr_dir / CORE_FDR_SUBDIR,
-            max_bytes=max(int(config.fdr.max_bytes * CORE_FDR_SHARE), config.fdr.segment_bytes * 2),
+            max_bytes=self._fdr_bytes,
             segment_bytes=config.fdr.segment_bytes,
             clock=clock.now_unix_s,
             images_max_bytes=0,
@@ -189,9 +197,7 @@ class NavigatorCore:
                 loop.add_signal_handler(sig, stop.set)
         for sig in IGNORED_SIGNALS:
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                loop.add_signal_handler(
-                    sig, lambda s=sig: log.warning(LogEvent.DAEMON_SIGNAL_IGNORED, signal=s.name)
-                )
+                loop.add_signal_handler(sig, self._signal_ignored, sig)
         self._link.relay_autopilot_to(self._relay_to_worker)
         bodies = {
             "output": self._output(),
@@ -207,7 +213,6 @@ class NavigatorCore:
         self._notifier.ready("navigator core; vision worker starting")
         log.info(
             LogEvent.CORE_READY,
-            worker_port=self._worker_port,
             relay_port=self._relay_sock.getsockname()[1],
             nice=os.getpriority(os.PRIO_PROCESS, 0),
         )
@@ -245,16 +250,25 @@ class NavigatorCore:
             )
         return exit_code
 
+    @staticmethod
+    def _signal_ignored(sig: signal.Signals) -> None:
+        """One of ``IGNORED_SIGNALS``: the core flies on (``daemon.signals``)."""
+        log.warning(LogEvent.DAEMON_SIGNAL_IGNORED, signal=sig.name)
+
     # -- the worker -----------------------------------------------------------------------------------
     def _worker_command(self, fd: int) -> list[str]:
         command = [sys.executable, "-m", "gps_denied_onboard.cli", "run", "--config", self._config_path]
         for item in self._overrides:
             command += ["--set", item]
-        command += ["--set", f"mavlink.url=udpin:127.0.0.1:{self._worker_port}", "--worker-fd", str(fd)]
+        worker_fdr_bytes = self._cfg.fdr.max_bytes - self._fdr_bytes
+        if worker_fdr_bytes >= 2 * self._cfg.fdr.segment_bytes:  # the two recorders within fdr.max_bytes
+            command += ["--set", f"fdr.max_bytes={worker_fdr_bytes}"]
+        command += ["--set", f"mavlink.url=udpin:127.0.0.1:{self._worker.port}", "--worker-fd", str(fd)]
         return command
 
     def _start_worker(self) -> None:
         w = self._worker
+        w.port = _free_udp_port()
         core_end, worker_end = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         handover = self._handover()
         if handover is not None:
@@ -279,7 +293,7 @@ class NavigatorCore:
         w.kill_reason = None
         w.starts += 1
         w.system_status = mavutil.mavlink.MAV_STATE_BOOT
-        fields = {"pid": proc.pid, "start": w.starts, "handover": handover is not None}
+        fields = {"pid": proc.pid, "start": w.starts, "handover": handover is not None, "port": w.port}
         log.info(LogEvent.CORE_WORKER_STARTED, **fields)
         self._fdr.record(FdrKind.CORE_WORKER, {"event": "started", **fields})
 
@@ -434,7 +448,7 @@ class NavigatorCore:
         if msg.get_srcSystem() != self._cfg.mavlink.autopilot_system_id:
             return
         with contextlib.suppress(OSError):
-            self._relay_sock.sendto(msg.get_msgbuf(), ("127.0.0.1", self._worker_port))
+            self._relay_sock.sendto(msg.get_msgbuf(), ("127.0.0.1", self._worker.port))
             self.relayed_to_worker += 1
 
     async def _mavlink_rx(self) -> None:
@@ -482,7 +496,7 @@ class NavigatorCore:
                 return
             except OSError:
                 return
-            if address != ("127.0.0.1", self._worker_port):
+            if address != ("127.0.0.1", self._worker.port):
                 continue  # only the worker's link speaks on this socket
             try:
                 messages = self._parser.parse_buffer(data) or []

@@ -105,7 +105,7 @@ class _ScriptedCore(NavigatorCore):
 
     def _worker_command(self, fd: int) -> list[str]:
         out = self.out_dir / f"worker{self._worker.starts + 1}.json"
-        return [sys.executable, "-c", WORKER, str(fd), str(out), str(self._worker_port)]
+        return [sys.executable, "-c", WORKER, str(fd), str(out), str(self._worker.port)]
 
 
 def _free_udp_port() -> int:
