@@ -22,7 +22,9 @@ What it holds, and what the vision worker (``gdnav run`` under it, the whole pip
   killer), seen at once. Silent for ``daemon.worker_silence_s`` (or with no first message within
   ``daemon.worker_start_s``) it is killed. Restarted after a back-off that doubles from
   ``WORKER_BACKOFF_MIN_S`` to ``WORKER_BACKOFF_MAX_S`` and starts again after ``WORKER_HEALTHY_S`` of
-  good running. The ground hears when it is lost and when it is back (STATUSTEXT); the log
+  good running; one that exits 2 or 3 (its configuration, or a file it needs, refused) is not started
+  again: the core stops with that code, as one process would. The ground hears when it is lost and when
+  it is back (STATUSTEXT); the log
   (``core.*``) and the core's FDR (``<fdr.dir>/core``, ``core.worker`` and ``mavlink.estimate``
   records) keep both.
 - **The resume state file**, from what the core sent as 3D; systemd's ``sd_notify`` and its watchdog.
@@ -67,6 +69,8 @@ from gps_denied_onboard.components.c13_fdr.recorder import FlightDataRecorder
 from gps_denied_onboard.config import Config
 from gps_denied_onboard.constants import (
     CORE_FDR_SUBDIR,
+    EXIT_CONFIG,
+    EXIT_RESOURCE,
     RESUME_STATE_INTERVAL_S,
     STATUSTEXT_WORKER_BACK,
     STATUSTEXT_WORKER_LOST,
@@ -95,7 +99,7 @@ WORKER_HEALTHY_S: Final = 30.0
 SUPERVISE_PERIOD_S: Final = 0.05
 WORKER_EOF_GRACE_S: Final = 0.5
 #: The worker's grace between SIGTERM and SIGKILL when the core stops, s.
-WORKER_STOP_GRACE_S: Final = 1.5
+WORKER_STOP_GRACE_S: Final = 1.2
 #: The largest message on the socket (a state is about 1 KiB), bytes.
 MAX_MESSAGE_BYTES: Final = 65536
 #: The core's share of ``fdr.max_bytes`` for its own records (at least two segments); the worker gets the
@@ -169,6 +173,12 @@ class NavigatorCore:
         self.relayed_to_worker = 0
         self.relayed_to_autopilot = 0
         self.estimates_sent = 0
+        #: The worker's exit code when it refused its configuration or a file (2 or 3): the core's too.
+        self.refused_exit: int | None = None
+        #: SIGHUP, SIGUSR1, SIGUSR2 survived, by name (``daemon.signals``).
+        self.signals_ignored: dict[str, int] = {}
+        #: The worker's refusal line, when it said one (``gdnav run`` prints it last).
+        self.worker_refusal: str | None = None
         fdr_dir = Path(config.fdr.dir)
         with contextlib.suppress(OSError):  # a full or read-only disk: the recorder counts what it loses
             (fdr_dir / CORE_FDR_SUBDIR).mkdir(parents=True, exist_ok=True)
@@ -219,11 +229,14 @@ class NavigatorCore:
         exit_code = 0
         try:
             done, _ = await asyncio.wait([stopper, *tasks.values()], return_when=asyncio.FIRST_COMPLETED)
+            if self.refused_exit is not None:
+                exit_code = self.refused_exit
             for task in done:
                 if task is not stopper and not task.cancelled() and task.exception() is not None:
                     log.error(LogEvent.DAEMON_TASK_FAILED, task=task.get_name(), error=repr(task.exception()))
                     exit_code = 1
         finally:
+            log.info(LogEvent.DAEMON_STOPPING)
             for sig in (signal.SIGTERM, signal.SIGINT, *IGNORED_SIGNALS):
                 with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                     loop.remove_signal_handler(sig)
@@ -232,6 +245,10 @@ class NavigatorCore:
             if sock is not None:  # its end at the stop is no loss to report
                 with contextlib.suppress(OSError, ValueError):
                     loop.remove_reader(sock.fileno())
+            proc = self._worker.proc
+            if proc is not None and proc.poll() is None:  # the worker's own stop runs beside the core's
+                with contextlib.suppress(OSError):
+                    proc.terminate()
             for task in [stopper, *tasks.values()]:
                 task.cancel()
             await asyncio.wait([stopper, *tasks.values()], timeout=0.5)
@@ -242,18 +259,19 @@ class NavigatorCore:
             self._fdr.close()
             self._notifier.close()
             log.info(
-                LogEvent.CORE_STOPPED,
+                LogEvent.DAEMON_STOPPED,
                 exit_code=exit_code,
+                signals_ignored=dict(self.signals_ignored),
                 worker_starts=self._worker.starts,
                 worker_losses=self._worker.losses,
                 estimates_sent=self.estimates_sent,
             )
         return exit_code
 
-    @staticmethod
-    def _signal_ignored(sig: signal.Signals) -> None:
-        """One of ``IGNORED_SIGNALS``: the core flies on (``daemon.signals``)."""
-        log.warning(LogEvent.DAEMON_SIGNAL_IGNORED, signal=sig.name)
+    def _signal_ignored(self, sig: signal.Signals) -> None:
+        """One of ``IGNORED_SIGNALS``: the core flies on (``daemon.signals``); logged and counted."""
+        self.signals_ignored[sig.name] = self.signals_ignored.get(sig.name, 0) + 1
+        log.warning(LogEvent.DAEMON_SIGNAL_IGNORED, signal=sig.name, count=self.signals_ignored[sig.name])
 
     # -- the worker -----------------------------------------------------------------------------------
     def _worker_command(self, fd: int) -> list[str]:
@@ -383,6 +401,11 @@ class NavigatorCore:
             if proc.poll() is not None:
                 self._read_worker()  # what it said last
                 self._lose_worker()
+                if proc.returncode in (EXIT_CONFIG, EXIT_RESOURCE):
+                    # its configuration or a file it needs is refused: starting it again cannot help
+                    log.error(LogEvent.CORE_WORKER_REFUSED, exit=proc.returncode)
+                    self.refused_exit = proc.returncode
+                    return
             elif w.eof_s is not None and now - w.eof_s > WORKER_EOF_GRACE_S:
                 self._kill_worker("its socket closed, and it lived on", "socket closed")
             elif w.heard_s is None and now - w.started_s > cfg.worker_start_s:
@@ -417,6 +440,9 @@ class NavigatorCore:
         status = message.get("system_status")
         if isinstance(status, int):
             w.system_status = status
+        if message["kind"] == "refusal" and isinstance(message.get("text"), str):
+            self.worker_refusal = message["text"]
+            return
         if message["kind"] != "estimate":
             return  # "alive": loading, or waiting for its first prior
         ws = state_from_wire(message["state"])
@@ -620,20 +646,23 @@ class NavigatorCore:
             await asyncio.sleep(period)
             w = self._worker
             now = time.monotonic()
-            log.info(
-                LogEvent.CORE_STATUS,
-                worker_pid=w.proc.pid if w.proc is not None else None,
-                worker_running=w.proc is not None,
-                worker_estimating=w.estimate_s is not None,
-                worker_starts=w.starts,
-                worker_losses=w.losses,
-                worker_kills=w.kills,
-                worker_last_heard_s=None if w.heard_s is None else round(now - w.heard_s, 3),
-                provenance=self._provenance.value,
-                estimates_sent=self.estimates_sent,
-                relayed_to_worker=self.relayed_to_worker,
-                relayed_to_autopilot=self.relayed_to_autopilot,
-            )
+            fields = {
+                "worker_pid": w.proc.pid if w.proc is not None else None,
+                "worker_running": w.proc is not None,
+                "worker_estimating": w.estimate_s is not None,
+                "worker_starts": w.starts,
+                "worker_losses": w.losses,
+                "worker_kills": w.kills,
+                "worker_bad_messages": w.bad_messages,
+                "worker_last_heard_s": None if w.heard_s is None else round(now - w.heard_s, 3),
+                "provenance": self._provenance.value,
+                "estimates_sent": self.estimates_sent,
+                "relayed_to_worker": self.relayed_to_worker,
+                "relayed_to_autopilot": self.relayed_to_autopilot,
+                "signals_ignored": dict(self.signals_ignored),
+            }
+            log.info(LogEvent.CORE_STATUS, **fields)
+            self._fdr.record(FdrKind.CORE_STATUS, fields)
             self._notifier.status(
                 f"worker {'up' if w.estimate_s is not None else 'down'}; {self._provenance.value}; "
                 f"restarts {max(0, w.starts - 1)}"

@@ -101,6 +101,11 @@ class CoreChannel:
         """The filter at its head, in ``ltp``, with what the core should know (``fields``)."""
         return self.send({"kind": "estimate", "state": state_to_wire(checkpoint, ltp), **fields})
 
+    def send_refusal(self, message: str) -> bool:
+        """The one line this worker would print when it refuses its configuration or a file: its core
+        prints it when it stops with the worker's exit code."""
+        return self.send({"kind": "refusal", "text": message})
+
     def send_alive(self, **fields: Any) -> bool:
         return self.send({"kind": "alive", **fields})
 

@@ -17,6 +17,7 @@ import pytest
 from daemon_harness import build_small_cache, start_daemon, wait_for
 from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.components.c13_fdr import read_records
+from gps_denied_onboard.constants import CORE_FDR_SUBDIR, FdrKind
 from gps_denied_onboard.sitl.autopilot import SimAutopilot
 
 pytestmark = pytest.mark.sitl
@@ -95,7 +96,8 @@ def test_daemon_survives_sighup_sigusr1_sigusr2_and_keeps_the_autopilot_fed(
     events = [json.loads(ln) for ln in d.log_text().splitlines() if ln.startswith("{")]
     ignored = [e["signal"] for e in events if e.get("event") == "daemon.signal_ignored"]
     assert ignored == ["SIGHUP", "SIGUSR1", "SIGUSR2"], ignored
-    status = [r for r in read_records(d.fdr_dir) if r["kind"] == "daemon.status"][-1]
+    # the signals reach the service's main process, the navigator core: its own status record counts them
+    status = [r for r in read_records(d.fdr_dir / CORE_FDR_SUBDIR) if r["kind"] == FdrKind.CORE_STATUS][-1]
     assert status["signals_ignored"] == {"SIGHUP": 1, "SIGUSR1": 1, "SIGUSR2": 1}
 
 

@@ -14,7 +14,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,15 +22,22 @@ import structlog
 
 from gps_denied_onboard import __version__
 from gps_denied_onboard.config import ConfigError, config_to_dict, load_config
-from gps_denied_onboard.constants import FdrKind, LogEvent
+from gps_denied_onboard.constants import EXIT_CONFIG, EXIT_FAILURE, EXIT_OK, EXIT_RESOURCE, FdrKind, LogEvent
 from gps_denied_onboard.logging_setup import configure_logging, log_unexpected
 
-EXIT_OK, EXIT_FAILURE, EXIT_CONFIG, EXIT_RESOURCE = 0, 1, 2, 3
 #: Ctrl-C (or a SIGTERM a command turns into one): the shell's convention, 128 + SIGINT.
 EXIT_INTERRUPTED = 130
 
 
+#: Where a vision worker's one refusal line goes instead of stderr: to its navigator core, which prints it
+#: as its own last line when it stops with the worker's exit code (``daemon/core.py``).
+_err_to_core: Callable[[str], object] | None = None
+
+
 def _err(message: str) -> None:
+    if _err_to_core is not None:
+        _err_to_core(message)
+        return
     print(f"gdnav: {message}", file=sys.stderr)
 
 
@@ -116,6 +123,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
         die_with_core()  # before the first read: a core gone before it is seen as end-of-file below
         channel = CoreChannel(args.worker_fd)
+        global _err_to_core
+        _err_to_core = channel.send_refusal
         if not channel.poll():  # the core's handover, if it has an estimate, is already waiting
             log.error("daemon.startup_refused", what="--worker-fd", error="the navigator core has gone")
             return EXIT_FAILURE
@@ -194,9 +203,12 @@ def _run_core(args: argparse.Namespace, config: Any, log: Any) -> int:
     core = NavigatorCore(config, args.config, args.set or (), link=link, clock=clock)
     loop = asyncio.new_event_loop()
     try:
-        return loop.run_until_complete(core.run())
+        code = loop.run_until_complete(core.run())
     finally:
         loop.close()
+    if core.refused_exit is not None and core.worker_refusal is not None:
+        _err(core.worker_refusal)  # the worker's one line, last, as one process would have said it
+    return code
 
 
 def _cmd_cache_build(args: argparse.Namespace) -> int:

@@ -17,8 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
-# Same values as ``cli``'s (not imported: ``cli`` imports this module).
-EXIT_OK, EXIT_FAILURE, EXIT_CONFIG, EXIT_RESOURCE = 0, 1, 2, 3
+from gps_denied_onboard.constants import EXIT_CONFIG, EXIT_FAILURE, EXIT_OK, EXIT_RESOURCE
 
 
 @dataclass(frozen=True)
@@ -333,6 +332,7 @@ FLIGHTS_COMMAND: Final[BenchCommand] = BenchCommand(
     add_arguments=_add_flights_arguments,
     run=_run_flights,
 )
+
 
 # --- bench area ------------------------------------------------------------------------------------------
 def _add_area_arguments(p: argparse.ArgumentParser) -> None:

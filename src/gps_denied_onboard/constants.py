@@ -63,6 +63,14 @@ STATUSTEXT_PRIOR_REANCHORED: Final[str] = "GDN: re-anchored {:.0f} m from the pr
 STATUSTEXT_WORKER_LOST: Final[str] = "GDN: vision lost ({}), on IMU, restarting"
 STATUSTEXT_WORKER_BACK: Final[str] = "GDN: vision back after {:.1f} s"
 
+#: ``gdnav`` exit codes: success, a failure, a bad configuration or arguments, a refused file, model or
+#: port. systemd's unit restarts on none of 2 and 3 (``RestartPreventExitStatus=``): restarting cannot
+#: fix them, and the navigator core stops with its vision worker's 2 or 3 for the same reason.
+EXIT_OK: Final = 0
+EXIT_FAILURE: Final = 1
+EXIT_CONFIG: Final = 2
+EXIT_RESOURCE: Final = 3
+
 #: The navigator core's own flight data records, under ``fdr.dir`` (``daemon/core.py``).
 CORE_FDR_SUBDIR: Final[str] = "core"
 
@@ -140,12 +148,13 @@ class LogEvent:
     #: The navigator core (``daemon/core.py``): started, its vision worker started, lost, back, killed
     #: for its silence, and a message from it refused.
     CORE_READY: Final = "core.ready"
-    CORE_STOPPED: Final = "core.stopped"
     CORE_WORKER_STARTED: Final = "core.worker_started"
     CORE_WORKER_LOST: Final = "core.worker_lost"
     CORE_WORKER_BACK: Final = "core.worker_back"
     CORE_WORKER_KILLED: Final = "core.worker_killed"
     CORE_WORKER_BAD_MESSAGE: Final = "core.worker_bad_message"
+    #: The worker exited 2 or 3 (a refused configuration or file): the core stops with its code.
+    CORE_WORKER_REFUSED: Final = "core.worker_refused"
     CORE_STATUS: Final = "core.status"
     #: The vision worker's side: the core's handover taken, a message from the core refused.
     WORKER_HANDOVER: Final = "worker.handover"
@@ -319,6 +328,9 @@ class FdrKind:
     ESTIMATE_SENT: Final = "mavlink.estimate"
     #: The navigator core's vision worker: started, lost (how it ended), back, killed (``daemon/core.py``).
     CORE_WORKER: Final = "core.worker"
+    #: The navigator core's counters once per status period: its worker, its output, its relays, the
+    #: signals it survived.
+    CORE_STATUS: Final = "core.status"
     PROVENANCE_CHANGED: Final = "estimator.provenance_changed"
     #: The daemon's counters once per status period (daemon.status_hz): frames, refusals, faults, link.
     STATUS: Final = "daemon.status"
