@@ -191,6 +191,7 @@ class NavigatorCore:
             images_max_bytes=0,
             min_free_bytes=config.fdr.min_free_bytes,
         )
+        link.attach_fdr(self._fdr)  # its events (impostors, link lost, TIMESYNC) in the core's records
         state_path = config.init.resume_state_path or default_path(fdr_dir)
         self._resume = ResumeStateFile(state_path)
         if "global_position_sensor" in config.mavlink.outputs:
@@ -646,6 +647,7 @@ class NavigatorCore:
             await asyncio.sleep(period)
             w = self._worker
             now = time.monotonic()
+            link = self._link.stats()
             fields = {
                 "worker_pid": w.proc.pid if w.proc is not None else None,
                 "worker_running": w.proc is not None,
@@ -660,6 +662,14 @@ class NavigatorCore:
                 "relayed_to_worker": self.relayed_to_worker,
                 "relayed_to_autopilot": self.relayed_to_autopilot,
                 "signals_ignored": dict(self.signals_ignored),
+                "link_alive": link.connected,
+                "mavlink_received": link.messages_received,
+                "mavlink_bad_packets": link.bad_packets,
+                "mavlink_sent": link.messages_sent,
+                "mavlink_send_errors": link.send_errors,
+                "mavlink_impostor_messages": link.impostor_messages,
+                "timesync_answered": link.timesync_answered,
+                "timesync_ignored": link.timesync_ignored,
             }
             log.info(LogEvent.CORE_STATUS, **fields)
             self._fdr.record(FdrKind.CORE_STATUS, fields)

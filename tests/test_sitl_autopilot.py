@@ -233,7 +233,6 @@ def test_vision_worker_killed_twice_the_stream_never_pauses(tmp_path: Path) -> N
         assert kill["prior_source"] == "core_handover", kill
         assert kill["max_interval_ms"] <= 245.0, kill
         assert kill["min_fix_type"] == 3, kill
-    assert "daemon.vision_worker=true" in report["daemon_overrides"], report["daemon_overrides"]
     _issue_26_bounds(report, emu)
     iv = report["gnss_off"]["stream"]["interval_ms"]
     assert iv["max_ms"] <= 245.0, iv

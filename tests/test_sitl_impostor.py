@@ -11,7 +11,7 @@ import yaml
 
 from daemon_harness import fly_small_map
 from gps_denied_onboard.components.c13_fdr import read_records
-from gps_denied_onboard.constants import LINK_EVENT_IMPOSTOR, FdrKind
+from gps_denied_onboard.constants import CORE_FDR_SUBDIR, LINK_EVENT_IMPOSTOR, FdrKind
 from gps_denied_onboard.sitl.ardupilot_rules import HEALTH_DELAYED_INTERVAL_MS
 from gps_denied_onboard.sitl.runner import summary_lines
 from gps_denied_onboard.sitl.scenario import BUILTIN_SCENARIOS_DIR
@@ -40,8 +40,9 @@ def test_an_impostor_with_the_autopilots_ids_never_pauses_its_gps_input(tmp_path
     assert iv["max_ms"] <= HEALTH_DELAYED_INTERVAL_MS == 245, summary_lines(report)
     assert not report["stream"]["health"]["tripped"], report["stream"]
     assert report["consistency"]["beyond_3sigma"] == 0, summary_lines(report)
-    records = list(read_records(tmp_path / "work" / "fdr"))
+    # the navigator core holds the autopilot's link: its records say what it refused
+    records = list(read_records(tmp_path / "work" / "fdr" / CORE_FDR_SUBDIR))
     events = [r.get("event") for r in records if r["kind"] == FdrKind.LINK_EVENT]
     assert LINK_EVENT_IMPOSTOR in events, "no impostor report in the FDR"
-    status = [r for r in records if r["kind"] == FdrKind.STATUS]
+    status = [r for r in records if r["kind"] == FdrKind.CORE_STATUS]
     assert max(r["mavlink_impostor_messages"] for r in status) >= 1000

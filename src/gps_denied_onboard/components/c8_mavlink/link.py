@@ -351,6 +351,12 @@ class MavlinkLink:
             self._fdr = fdr
             self._ltp = ltp
 
+    def attach_fdr(self, fdr: FdrClient | None) -> None:
+        """Give a link made with ``frame_later`` its FDR alone (the navigator core's, before it knows the
+        frame its worker's filter is in)."""
+        with self._lock:
+            self._fdr = fdr
+
     def open(self) -> None:
         """Validate the config (URL, signing key, a UDP listen port nobody else holds) and connect.
         Raises ``MavlinkConfigError`` for a configuration that cannot work; a transport failure only
