@@ -71,13 +71,13 @@ from gps_denied_onboard.constants import (
     CORE_FDR_SUBDIR,
     EXIT_CONFIG,
     EXIT_RESOURCE,
-    RESUME_STATE_INTERVAL_S,
     STATUSTEXT_WORKER_BACK,
     STATUSTEXT_WORKER_LOST,
     FdrKind,
     LogEvent,
     Provenance,
 )
+from gps_denied_onboard.daemon.periodic import keep_resume_state, on_deadlines
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
 from gps_denied_onboard.geo import LocalTangentPlane
@@ -216,7 +216,7 @@ class NavigatorCore:
             "relay_rx": self._relay_rx(),
             "heartbeat": self._heartbeat(),
             "supervise": self._supervise(),
-            "resume_state": self._keep_resume_state(),
+            "resume_state": keep_resume_state(self._resume, lambda: self._last_3d, self._clock.now_unix_s),
             "status": self._status(),
         }
         tasks = {name: asyncio.create_task(body, name=name) for name, body in bodies.items()}
@@ -557,22 +557,16 @@ class NavigatorCore:
 
     # -- the output -----------------------------------------------------------------------------------
     async def _output(self) -> None:
-        period_s = 1.0 / self._cfg.mavlink.estimate_rate_hz
-        loop = asyncio.get_running_loop()
-        deadline = loop.time()
-        while True:
-            try:
-                self._send_estimate()
-            except Exception as exc:  # one estimate failing must not stop the stream; recorded
-                log.exception(LogEvent.PIPELINE_FRAME_ERROR, stage="core_output", error=repr(exc))
-                self._fdr.record(
-                    FdrKind.FRAME_ERROR, {"frame_seq": None, "stage": "core_output", "error": repr(exc)}
-                )
-            deadline += period_s
-            now = loop.time()
-            if now - deadline > period_s:
-                deadline = now
-            await asyncio.sleep(max(0.0, deadline - now))
+        await on_deadlines(1.0 / self._cfg.mavlink.estimate_rate_hz, self._output_tick)
+
+    def _output_tick(self) -> None:
+        try:
+            self._send_estimate()
+        except Exception as exc:  # one estimate failing must not stop the stream; recorded
+            log.exception(LogEvent.PIPELINE_FRAME_ERROR, stage="core_output", error=repr(exc))
+            self._fdr.record(
+                FdrKind.FRAME_ERROR, {"frame_seq": None, "stage": "core_output", "error": repr(exc)}
+            )
 
     def _offer_handover(self) -> None:
         """Until a started worker sends its first estimate, the core's filter at every output period: the
@@ -628,18 +622,6 @@ class NavigatorCore:
                 "sent": sent,
             },
         )
-
-    async def _keep_resume_state(self) -> None:
-        written: tuple[ResumeState, str] | None = None
-        while True:
-            await asyncio.sleep(RESUME_STATE_INTERVAL_S)
-            latest = self._last_3d
-            if latest is None or latest is written:
-                continue
-            await asyncio.to_thread(
-                self._resume.write, latest[0], provenance=latest[1], written_unix_s=self._clock.now_unix_s()
-            )
-            written = latest
 
     async def _status(self) -> None:
         period = 1.0 / self._cfg.daemon.status_hz

@@ -52,7 +52,6 @@ from gps_denied_onboard.components.c8_mavlink.messages import Fix3dGate, stated_
 from gps_denied_onboard.components.c8_mavlink.px4_params import PX4_AGP_PARAMS, px4_agp_problems
 from gps_denied_onboard.components.c13_fdr import FdrHealth
 from gps_denied_onboard.constants import (
-    RESUME_STATE_INTERVAL_S,
     STATUSTEXT_PRIOR_DISPUTED,
     STATUSTEXT_PRIOR_DOUBTED,
     STATUSTEXT_PRIOR_REANCHORED,
@@ -64,6 +63,7 @@ from gps_denied_onboard.constants import (
 from gps_denied_onboard.daemon.beacon import ESTIMATE_ASK_PERIOD_S, PHASE_ASK_PERIOD_S, StartupBeacon
 from gps_denied_onboard.daemon.core_channel import CoreChannel
 from gps_denied_onboard.daemon.frame_queue import LatestQueue
+from gps_denied_onboard.daemon.periodic import keep_resume_state, on_deadlines
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
 from gps_denied_onboard.daemon.worker import WorkerThread
@@ -221,7 +221,8 @@ class NavDaemon:
             "status": self._status(),
         }
         if self._root.resume_state is not None and self._core is None:
-            bodies["resume_state"] = self._keep_resume_state()
+            resume = self._root.resume_state
+            bodies["resume_state"] = keep_resume_state(resume, lambda: self._last_3d, self._clock.now_unix_s)
         if self._core is not None:
             bodies["core_channel"] = self._core_channel()
         if "global_position_sensor" in self._cfg.mavlink.outputs:
@@ -746,26 +747,19 @@ class NavDaemon:
         self._root.link.send_statustext(severity, text)
 
     async def _estimate_output(self) -> None:
-        """The steady estimate stream: on absolute deadlines (no drift, bounded jitter), the state
-        propagated to the send time, whatever the frames do. A deadline missed by more than a period
-        (the loop was blocked) is skipped, not sent in a burst."""
-        period_s = 1.0 / self._cfg.mavlink.estimate_rate_hz
-        loop = asyncio.get_running_loop()
-        deadline = loop.time()
-        while True:
-            try:
-                self._send_estimate()
-            except Exception as exc:  # one estimate failing must not stop the stream; recorded
-                self.counters.frame_errors += 1
-                log.exception(LogEvent.PIPELINE_FRAME_ERROR, stage="estimate_output", error=repr(exc))
-                self._root.fdr.record(
-                    FdrKind.FRAME_ERROR, {"frame_seq": None, "stage": "estimate_output", "error": repr(exc)}
-                )
-            deadline += period_s
-            now = loop.time()
-            if now - deadline > period_s:
-                deadline = now
-            await asyncio.sleep(max(0.0, deadline - now))
+        """The steady estimate stream: the state propagated to the send time, at
+        ``mavlink.estimate_rate_hz`` on absolute deadlines (``daemon.periodic``), whatever the frames do."""
+        await on_deadlines(1.0 / self._cfg.mavlink.estimate_rate_hz, self._estimate_tick)
+
+    def _estimate_tick(self) -> None:
+        try:
+            self._send_estimate()
+        except Exception as exc:  # one estimate failing must not stop the stream; recorded
+            self.counters.frame_errors += 1
+            log.exception(LogEvent.PIPELINE_FRAME_ERROR, stage="estimate_output", error=repr(exc))
+            self._root.fdr.record(
+                FdrKind.FRAME_ERROR, {"frame_seq": None, "stage": "estimate_output", "error": repr(exc)}
+            )
 
     def _send_estimate(self) -> None:
         state = self._axis.state_at()
@@ -843,23 +837,6 @@ class NavDaemon:
         finally:
             with contextlib.suppress(OSError, ValueError):
                 loop.remove_reader(core.fileno())
-
-    async def _keep_resume_state(self) -> None:
-        """The last 3D estimate sent, to the resume state file about once a second (F8): atomic and
-        fsynced, so on the ``resume_state`` worker thread, never on the loop."""
-        store = self._root.resume_state
-        if store is None:
-            raise RuntimeError("resume_state task started without a state file")
-        written: tuple[ResumeState, str] | None = None
-        while True:
-            await asyncio.sleep(RESUME_STATE_INTERVAL_S)
-            latest = self._last_3d
-            if latest is None or latest is written:
-                continue
-            await asyncio.to_thread(
-                store.write, latest[0], provenance=latest[1], written_unix_s=self._clock.now_unix_s()
-            )
-            written = latest
 
     async def _mavlink_rx(self) -> None:
         loop = asyncio.get_running_loop()

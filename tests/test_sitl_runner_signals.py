@@ -14,24 +14,9 @@ from pathlib import Path
 import pytest
 
 from daemon_harness import build_small_cache
+from gps_denied_onboard.sitl.host_faults import child_pids
 
 pytestmark = pytest.mark.sitl
-
-
-def _children(pid: int) -> list[int]:
-    """The direct children of ``pid`` (Linux /proc)."""
-    out = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        # "pid (comm) state ppid ...": comm may hold spaces, so split after the last ')'
-        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-            out.append(int(entry.name))
-    return out
 
 
 def _alive(pid: int) -> bool:
@@ -55,7 +40,7 @@ def _start_runner(tmp_path: Path) -> tuple[subprocess.Popen[bytes], int]:
     )  # fmt: skip
     deadline = time.time() + 120.0
     while time.time() < deadline:
-        daemons = [c for c in _children(runner.pid) if b"run" in Path(f"/proc/{c}/cmdline").read_bytes()]
+        daemons = [c for c in child_pids(runner.pid) if b"run" in Path(f"/proc/{c}/cmdline").read_bytes()]
         if daemons:
             return runner, daemons[0]
         if runner.poll() is not None:
@@ -120,7 +105,7 @@ def test_runner_sigterm_in_an_autopilot_flight_stops_the_mission_and_the_daemon_
         deadline = time.time() + 180.0
         while "mission: gnss_off" not in log.read_text() and time.time() < deadline:
             assert runner.poll() is None, log.read_text()[-3000:]
-            daemons = [c for c in _children(runner.pid) if b"run" in Path(f"/proc/{c}/cmdline").read_bytes()]
+            daemons = [c for c in child_pids(runner.pid) if b"run" in Path(f"/proc/{c}/cmdline").read_bytes()]
             daemon_pid = daemons[0] if daemons else daemon_pid
             time.sleep(0.2)
         assert "mission: gnss_off" in log.read_text(), log.read_text()[-3000:]

@@ -639,38 +639,30 @@ class MavlinkLink:
     # --- send ---------------------------------------------------------------------------------------
     def _send(self, msg: Any) -> bool:
         """Send one message; never raises. Returns True when handed to the transport."""
-        with self._lock:
-            conn = self._conn
-            if conn is None:
-                self._dropped_down += 1
-                return False
-            try:
-                conn.mav.send(msg)
-            except (OSError, _PeerClosed) as exc:
-                self._drop_connection()
-                self._schedule_reconnect(self._clock(), reason=f"send failed: {exc}")
-                self._count_send_error(exc, msg)
-                return False
-            except Exception as exc:  # an encoding bug must not take the pipeline down; counted + logged
-                self._count_send_error(exc, msg)
-                return False
-            self._sent += 1
-            return True
+        return self._transmit(lambda conn: conn.mav.send(msg), msg)
 
     def send_raw(self, buf: bytes) -> bool:
         """Send an already encoded (and, on a signed link, signed) MAVLink message as it is: what the
         navigator core relays from its vision worker. Never raises; True when handed to the transport."""
+        return self._transmit(lambda conn: conn.write(buf), "relayed")
+
+    def _transmit(self, write: Callable[[Any], object], what: Any) -> bool:
+        """``write(conn)`` under the lock, counted; a transport failure drops the connection and schedules
+        a reconnect, any other (an encoding bug) is counted and logged: never raised."""
         with self._lock:
             conn = self._conn
             if conn is None:
                 self._dropped_down += 1
                 return False
             try:
-                conn.write(buf)
+                write(conn)
             except (OSError, _PeerClosed) as exc:
                 self._drop_connection()
                 self._schedule_reconnect(self._clock(), reason=f"send failed: {exc}")
-                self._count_send_error(exc, "relayed")
+                self._count_send_error(exc, what)
+                return False
+            except Exception as exc:  # an encoding bug must not take the pipeline down; counted + logged
+                self._count_send_error(exc, what)
                 return False
             self._sent += 1
             return True
