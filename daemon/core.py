@@ -17,7 +17,11 @@ What it holds, and what the vision worker (``gdnav run`` under it, the whole pip
   (``Fix3dGate``), and no deadline is missed. A restarted worker starts from the core's filter as it is
   at the worker's first frame (the handover, offered at every output period until the worker's first
   estimate: position, velocity and covariance), so fusion resumes where the core had got to.
-- **The worker itself.** Started with its nice value ``daemon.worker_nice_offset`` above the core's.
+- **The worker itself.** Started with its nice value ``daemon.worker_nice_offset`` above the core's;
+  or, at the core's start, adopted: a worker left running by the core's previous process (killed,
+  crashed, stopped by the watchdog) waits at its rendezvous for ``daemon.worker_orphan_s``
+  (``daemon/core_channel.py``), and the new core takes it over with its filter, its VO and its map
+  already running, so a core restart costs the core's own start and no vision start-up.
   Every message is its heartbeat; end-of-file on the socket is its death (a kill, a segfault, the OOM
   killer), seen at once. Silent for ``daemon.worker_silence_s`` (or with no first message within
   ``daemon.worker_start_s``) it is killed. Restarted after a back-off that doubles from
@@ -29,7 +33,7 @@ What it holds, and what the vision worker (``gdnav run`` under it, the whole pip
   records) keep both.
 - **The resume state file**, from what the core sent as 3D; systemd's ``sd_notify`` and its watchdog.
 
-Imports stay light (no OpenCV, ONNX Runtime, SciPy, FAISS, torch): tests/test_core_imports.py.
+Imports stay light (no OpenCV, ONNX Runtime, SciPy, FAISS, torch): tests/test_startup_beacon.py.
 """
 
 from __future__ import annotations
@@ -38,8 +42,10 @@ import asyncio
 import contextlib
 import math
 import os
+import select
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -71,12 +77,14 @@ from gps_denied_onboard.constants import (
     CORE_FDR_SUBDIR,
     EXIT_CONFIG,
     EXIT_RESOURCE,
+    STATUSTEXT_WORKER_ADOPTED,
     STATUSTEXT_WORKER_BACK,
     STATUSTEXT_WORKER_LOST,
     FdrKind,
     LogEvent,
     Provenance,
 )
+from gps_denied_onboard.daemon.core_channel import rendezvous_address
 from gps_denied_onboard.daemon.periodic import keep_resume_state, on_deadlines
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
@@ -102,16 +110,60 @@ WORKER_EOF_GRACE_S: Final = 0.5
 WORKER_STOP_GRACE_S: Final = 1.2
 #: The largest message on the socket (a state is about 1 KiB), bytes.
 MAX_MESSAGE_BYTES: Final = 65536
+#: An adopted worker's exit status, which only its parent could read (``_exit_text``: "ended").
+EXIT_UNKNOWN: Final = 256
 #: The core's share of ``fdr.max_bytes`` for its own records (at least two segments); the worker gets the
 #: rest.
 CORE_FDR_SHARE: Final = 0.1
+
+
+class AdoptedWorker:
+    """A worker this core did not start (left running by the core's previous process): not this
+    process's child, so it is watched and signalled through a pidfd (Linux 5.3), which cannot reach a
+    later process given the same pid. The ``Popen`` methods the core uses; its exit status is unknown."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self._fd: int | None = os.pidfd_open(pid)
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None and self._fd is not None:
+            ended, _, _ = select.select([self._fd], [], [], 0.0)
+            if ended:
+                self._ended()
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        if self.returncode is None and self._fd is not None:
+            ended, _, _ = select.select([self._fd], [], [], timeout)
+            if not ended:
+                raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout or 0.0)
+            self._ended()
+        return EXIT_UNKNOWN if self.returncode is None else self.returncode
+
+    def _ended(self) -> None:
+        self.returncode = EXIT_UNKNOWN
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def send_signal(self, sig: signal.Signals) -> None:
+        if self.poll() is None and self._fd is not None:
+            signal.pidfd_send_signal(self._fd, sig)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
 
 
 @dataclass
 class WorkerState:
     """The vision worker as the core sees it."""
 
-    proc: subprocess.Popen[bytes] | None = None
+    proc: subprocess.Popen[bytes] | AdoptedWorker | None = None
     sock: socket.socket | None = None
     started_s: float = 0.0
     #: Its newest message of any kind (None: none since this start), core clock s.
@@ -120,7 +172,10 @@ class WorkerState:
     estimate_s: float | None = None
     #: When it was lost (None: it is running), core clock s.
     lost_s: float | None = None
+    #: Its first message due within this long of its start (or adoption), s.
+    first_message_s: float = 60.0
     starts: int = 0
+    adoptions: int = 0
     losses: int = 0
     kills: int = 0
     bad_messages: int = 0
@@ -193,6 +248,7 @@ class NavigatorCore:
         )
         link.attach_fdr(self._fdr)  # its events (impostors, link lost, TIMESYNC) in the core's records
         state_path = config.init.resume_state_path or default_path(fdr_dir)
+        self._rendezvous = rendezvous_address(fdr_dir)
         self._resume = ResumeStateFile(state_path)
         if "global_position_sensor" in config.mavlink.outputs:
             link.hold_global_position_sensor(
@@ -308,6 +364,7 @@ class NavigatorCore:
         core_end.setblocking(False)
         w.proc, w.sock = proc, core_end
         w.started_s = time.monotonic()
+        w.first_message_s = self._cfg.daemon.worker_start_s
         w.heard_s = w.estimate_s = w.eof_s = None
         w.kill_reason = None
         w.starts += 1
@@ -315,6 +372,34 @@ class NavigatorCore:
         fields = {"pid": proc.pid, "start": w.starts, "handover": handover is not None, "port": w.port}
         log.info(LogEvent.CORE_WORKER_STARTED, **fields)
         self._fdr.record(FdrKind.CORE_WORKER, {"event": "started", **fields})
+
+    def _adopt_worker(self) -> bool:
+        """Take over a worker of this daemon left running by the core's previous process, if one waits
+        at the rendezvous (``daemon/core_channel.py``): its pid from the socket's peer credentials, its
+        link's port from its ``hello``; told where this core's relay is. False when none waits."""
+        w = self._worker
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        try:
+            sock.connect(self._rendezvous)
+            pid, _, _ = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))
+            proc = AdoptedWorker(pid)
+            sock.setblocking(False)
+            sock.send(pack({"kind": "core", "relay_port": self._relay_sock.getsockname()[1]}))
+        except OSError:  # nobody listens (refused, or gone meanwhile): no worker of this daemon runs
+            sock.close()
+            return False
+        w.proc, w.sock, w.port = proc, sock, 0  # the port comes with its hello
+        w.started_s = time.monotonic()
+        w.first_message_s = self._cfg.daemon.worker_silence_s  # it runs already: it answers at once
+        w.heard_s = w.estimate_s = w.eof_s = None
+        w.kill_reason = None
+        w.adoptions += 1
+        w.system_status = mavutil.mavlink.MAV_STATE_BOOT
+        fields = {"pid": pid, "adoptions": w.adoptions}
+        log.warning(LogEvent.CORE_WORKER_ADOPTED, **fields)
+        self._fdr.record(FdrKind.CORE_WORKER, {"event": "adopted", **fields})
+        self._link.send_statustext(mavutil.mavlink.MAV_SEVERITY_NOTICE, STATUSTEXT_WORKER_ADOPTED)
+        return True
 
     def _handover(self) -> dict[str, Any] | None:
         """The core's filter predicted to now, for a restarted worker to start from (None: no estimate)."""
@@ -392,7 +477,8 @@ class NavigatorCore:
             if w.proc is None:
                 if w.lost_s is not None:
                     await asyncio.sleep(max(0.0, w.lost_s + w.restart_in_s - time.monotonic()))
-                self._start_worker()
+                if not self._adopt_worker():
+                    self._start_worker()
                 assert w.sock is not None
                 loop.add_reader(w.sock.fileno(), self._read_worker)
             await asyncio.sleep(SUPERVISE_PERIOD_S)
@@ -409,8 +495,8 @@ class NavigatorCore:
                     return
             elif w.eof_s is not None and now - w.eof_s > WORKER_EOF_GRACE_S:
                 self._kill_worker("its socket closed, and it lived on", "socket closed")
-            elif w.heard_s is None and now - w.started_s > cfg.worker_start_s:
-                self._kill_worker(f"nothing within {cfg.worker_start_s:.0f} s of its start", "no start")
+            elif w.heard_s is None and now - w.started_s > w.first_message_s:
+                self._kill_worker(f"nothing within {w.first_message_s:.0f} s of its start", "no start")
             elif w.heard_s is not None and now - w.heard_s > cfg.worker_silence_s:
                 self._kill_worker(f"silent for {now - w.heard_s:.1f} s", "stalled")
 
@@ -444,6 +530,9 @@ class NavigatorCore:
         if message["kind"] == "refusal" and isinstance(message.get("text"), str):
             self.worker_refusal = message["text"]
             return
+        if message["kind"] == "hello":  # an adopted worker: where its link listens
+            w.port = _udpin_port(message.get("mavlink_url"))
+            return
         if message["kind"] != "estimate":
             return  # "alive": loading, or waiting for its first prior
         ws = state_from_wire(message["state"])
@@ -472,7 +561,7 @@ class NavigatorCore:
     def _relay_to_worker(self, msg: Any) -> None:
         """The autopilot's own messages to the worker's link (what other systems say, a ground station's or
         a flood's, the worker does not need: relaying it would double the core's work under a flood)."""
-        if msg.get_srcSystem() != self._cfg.mavlink.autopilot_system_id:
+        if msg.get_srcSystem() != self._cfg.mavlink.autopilot_system_id or not self._worker.port:
             return
         with contextlib.suppress(OSError):
             self._relay_sock.sendto(msg.get_msgbuf(), ("127.0.0.1", self._worker.port))
@@ -635,6 +724,7 @@ class NavigatorCore:
                 "worker_running": w.proc is not None,
                 "worker_estimating": w.estimate_s is not None,
                 "worker_starts": w.starts,
+                "worker_adoptions": w.adoptions,
                 "worker_losses": w.losses,
                 "worker_kills": w.kills,
                 "worker_bad_messages": w.bad_messages,
@@ -668,10 +758,21 @@ def _free_udp_port() -> int:
         return int(probe.getsockname()[1])
 
 
+def _udpin_port(url: object) -> int:
+    """The port of a worker's ``udpin:127.0.0.1:PORT`` link (0: not such a URL, so nothing is relayed)."""
+    if isinstance(url, str) and url.startswith("udpin:127.0.0.1:"):
+        port = url.rsplit(":", 1)[1]
+        if port.isdigit() and 0 < int(port) < 65536:
+            return int(port)
+    return 0
+
+
 def _exit_text(code: int | None) -> str:
     """How a process ended, in few words (``SIGKILL``, ``exit 1``): the operator's STATUSTEXT has 50."""
     if code is None:
         return "unknown"
+    if code == EXIT_UNKNOWN:
+        return "ended"  # an adopted worker: only its parent could read how
     if code < 0:
         with contextlib.suppress(ValueError):
             return signal.Signals(-code).name

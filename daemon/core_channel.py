@@ -2,15 +2,24 @@
 
 The worker (``gdnav run --worker-fd N``, started by the core) sends its filter's state at every output
 period (``estimate``; ``alive`` before its estimator has started) and reads what the core sends: the
-``handover``, the core's filter to start from after a restart. End-of-file means the core is gone: the
-worker then stops. Sends never block: a full socket drops the message and counts it (the core predicts
-on from the previous one).
+``handover``, the core's filter to start from after a restart. Sends never block: a full socket drops the
+message and counts it (the core predicts on from the previous one).
+
+**A core's crash does not take the vision with it.** The worker listens at its daemon's rendezvous (a
+Linux abstract Unix socket named from the FDR directory: one daemon per directory, bound while the worker
+lives, nothing on disk to go stale). End-of-file on the socket means its core is gone: the worker keeps
+its pipeline running and waits up to ``daemon.worker_orphan_s`` for the core's next start, which connects
+to the rendezvous and takes it over (``adopt``: the worker says ``hello`` with its pid and its link's
+port; the core says where its relay is). A worker never speaks to the autopilot itself, so one waiting
+for a core sends nothing anyone could fly on; one whose core does not come back ends itself.
 """
 
 from __future__ import annotations
 
-import signal
+import errno
+import hashlib
 import socket
+from pathlib import Path
 from typing import Any
 
 import structlog
@@ -26,15 +35,19 @@ from gps_denied_onboard.components.c5_estimator.wire import (
 )
 from gps_denied_onboard.constants import LogEvent
 from gps_denied_onboard.geo import LocalTangentPlane
-from gps_denied_onboard.helpers.process import die_with_parent
 
 log = structlog.get_logger(__name__)
 
-def die_with_core() -> bool:
-    """Have the kernel SIGKILL this worker the moment its core ends, as one process would have died
-    whole; under systemd the unit's cgroup would end it too, but a core started otherwise must not leave
-    a worker flying on. False where that is not available."""
-    return die_with_parent(signal.SIGKILL)
+
+def rendezvous_address(fdr_dir: str | Path) -> bytes:
+    """The abstract Unix socket name where the vision worker of the daemon that records into ``fdr_dir``
+    waits for a core (the leading NUL: Linux's abstract namespace)."""
+    digest = hashlib.sha256(str(Path(fdr_dir).resolve()).encode()).hexdigest()[:24]
+    return b"\0gdnav-worker-" + digest.encode()
+
+
+class RendezvousTaken(RuntimeError):
+    """Another vision worker of this daemon holds the rendezvous: its core should have adopted it."""
 
 
 #: The largest message the core sends (a handover is about 1 KiB), bytes.
@@ -42,19 +55,63 @@ MAX_MESSAGE_BYTES = 65536
 
 
 class CoreChannel:
-    """The worker's socket to the core (``fd``: inherited from the core)."""
+    """The worker's socket to the core (``fd``: inherited from the core that started it). With
+    ``rendezvous`` it listens there for a later core (``adopt``) and says ``hello`` to it."""
 
-    def __init__(self, fd: int) -> None:
+    def __init__(
+        self, fd: int, *, rendezvous: bytes | None = None, hello: dict[str, Any] | None = None
+    ) -> None:
         self._sock = socket.socket(fileno=fd)
         self._sock.setblocking(False)
+        self._listener: socket.socket | None = None
+        if rendezvous is not None:
+            listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            try:
+                listener.bind(rendezvous)
+            except OSError as exc:
+                listener.close()
+                if exc.errno == errno.EADDRINUSE:
+                    raise RendezvousTaken(
+                        f"another vision worker of this daemon is running (rendezvous {rendezvous[1:]!r})"
+                    ) from exc
+                raise
+            listener.listen(1)
+            listener.setblocking(False)
+            self._listener = listener
+        self._hello = dict(hello or {})
         #: The core's filter to start from (None: none, or already taken).
         self.handover: WireState | None = None
         self.closed = False
         self.dropped = 0
         self.sent = 0
+        #: Cores that took this worker over after the one that started it.
+        self.adoptions = 0
+        #: Where the newest adopting core's relay is (its loopback UDP port; None: not told).
+        self.core_relay_port: int | None = None
 
     def fileno(self) -> int:
         return self._sock.fileno()
+
+    def rendezvous_fileno(self) -> int | None:
+        """The rendezvous listener (readable when a core connects; None: not listening)."""
+        return None if self._listener is None else self._listener.fileno()
+
+    def adopt(self) -> bool:
+        """Take a core waiting at the rendezvous as this worker's core (the previous one is gone), and
+        say ``hello``; False when none is waiting."""
+        if self._listener is None:
+            return False
+        try:
+            sock, _ = self._listener.accept()
+        except (BlockingIOError, InterruptedError):
+            return False
+        sock.setblocking(False)
+        old, self._sock = self._sock, sock
+        old.close()
+        self.closed = False
+        self.adoptions += 1
+        self.send({"kind": "hello", **self._hello})
+        return True
 
     def poll(self) -> bool:
         """Read every waiting message; False once the core has closed its end."""
@@ -74,6 +131,11 @@ class CoreChannel:
                 if message["kind"] == "handover":
                     self.handover = state_from_wire(message["state"])
                     log.info(LogEvent.WORKER_HANDOVER, time_unix_usec=self.handover.checkpoint.time_usec)
+                elif message["kind"] == "core":
+                    port = message["relay_port"]
+                    if not isinstance(port, int) or not 0 < port < 65536:
+                        raise WireError(f"relay_port must be a UDP port number, got {port!r}")
+                    self.core_relay_port = port
             except (WireError, KeyError) as exc:
                 log.warning(LogEvent.WORKER_BAD_CORE_MESSAGE, error=str(exc))
         return not self.closed
@@ -112,3 +174,5 @@ class CoreChannel:
     def close(self) -> None:
         self.closed = True
         self._sock.close()
+        if self._listener is not None:
+            self._listener.close()

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import faulthandler
 import math
 import signal
 import time
@@ -88,6 +89,9 @@ PRIOR_DOUBT_TEXT_INTERVAL_S = 5.0
 PX4_PARAM_POLL_S = 0.05
 PX4_PARAM_WAIT_S = 0.5
 PX4_PARAM_TRIES = 6
+#: A worker waiting for its next core and stuck in native code is ended this long after
+#: ``daemon.worker_orphan_s`` (``faulthandler``'s timer), s.
+ORPHAN_HARD_STOP_S = 5.0
 
 
 @dataclass
@@ -820,23 +824,62 @@ class NavDaemon:
         return core.send_estimate(checkpoint, self._root.ltp, **fields)
 
     async def _core_channel(self) -> None:
-        """The navigator core's socket (its worker only): its handover read; returns when the core is
-        gone, which stops this worker."""
+        """The navigator core's socket (its worker only): its handover and its relay's address read. When
+        the core has gone, the pipeline runs on while this waits ``daemon.worker_orphan_s`` for the core's
+        next start to adopt it (``daemon/core_channel.py``); returns when none does, which stops this
+        worker."""
         core = self._core
         assert core is not None
         loop = asyncio.get_running_loop()
         readable = asyncio.Event()
-        loop.add_reader(core.fileno(), readable.set)
+        while True:
+            fd = core.fileno()
+            loop.add_reader(fd, readable.set)
+            try:
+                while True:
+                    readable.clear()
+                    if not core.poll():
+                        break
+                    if core.core_relay_port is not None:  # a new core: its relay speaks for the autopilot
+                        self._root.link.follow_autopilot_at("127.0.0.1", core.core_relay_port)
+                        core.core_relay_port = None
+                    await readable.wait()
+            finally:
+                with contextlib.suppress(OSError, ValueError):
+                    loop.remove_reader(fd)
+            if not await self._await_next_core(core):
+                log.warning(LogEvent.DAEMON_STOPPING, reason="the navigator core closed its socket")
+                return
+
+    async def _await_next_core(self, core: CoreChannel) -> bool:
+        """This worker's core is gone: wait for its next start to adopt it. A worker stuck in native code
+        meanwhile is ended by ``faulthandler``'s timer, which needs no Python to run."""
+        wait_s = self._cfg.daemon.worker_orphan_s
+        listener = core.rendezvous_fileno()
+        log.warning(LogEvent.WORKER_ORPHANED, wait_s=wait_s, listening=listener is not None)
+        self._root.fdr.record(FdrKind.WORKER_CORE, {"event": "orphaned", "wait_s": wait_s})
+        if listener is None:
+            return False
+        faulthandler.dump_traceback_later(wait_s + ORPHAN_HARD_STOP_S, exit=True)
+        loop = asyncio.get_running_loop()
+        connecting = asyncio.Event()
+        loop.add_reader(listener, connecting.set)
+        deadline = time.monotonic() + wait_s
         try:
-            while True:
-                readable.clear()
-                if not core.poll():
-                    log.warning(LogEvent.DAEMON_STOPPING, reason="the navigator core closed its socket")
-                    return
-                await readable.wait()
+            while not core.adopt():
+                left_s = deadline - time.monotonic()
+                if left_s <= 0:
+                    return False
+                connecting.clear()
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(connecting.wait(), left_s)
         finally:
             with contextlib.suppress(OSError, ValueError):
-                loop.remove_reader(core.fileno())
+                loop.remove_reader(listener)
+            faulthandler.cancel_dump_traceback_later()
+        log.warning(LogEvent.WORKER_ADOPTED, adoptions=core.adoptions)
+        self._root.fdr.record(FdrKind.WORKER_CORE, {"event": "adopted", "adoptions": core.adoptions})
+        return True
 
     async def _mavlink_rx(self) -> None:
         loop = asyncio.get_running_loop()

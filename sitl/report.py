@@ -564,7 +564,10 @@ def restart_recovery(
     - ``last_before_kill_s``, ``first_after_s``, ``first_3d_after_s``: GPS_INPUT (any fix type, fix_type
       3; GLOBAL_POSITION_SENSOR with PX4, ``position_messages``) around the kill, s after the kill;
     - ``first_after_start_s``, ``first_3d_after_start_s``: the same, s after the new process started;
-    - ``prior_source``, ``prior_sigma_m``: the start-up prior it chose (FDR ``estimator.prior``);
+    - ``prior_source``, ``prior_sigma_m``: the start-up prior it chose (FDR ``estimator.prior``; None
+      when a navigator core was killed and its next start adopted the running vision worker);
+    - ``worker_adopted``: the restarted core took over the vision worker its previous process had left
+      running (its FDR ``core.worker`` record);
     - ``first_anchored_after_start_s``: its first accepted absolute fix (FDR ``pipeline.fix``), s after
       it started: re-acquisition; ``fix_attempts_to_anchor``: the attempts up to and including that one;
       ``fix_attempts``: all of its attempts; ``fix_attempt_ms``: their own time (p50, max), up to the
@@ -601,6 +604,11 @@ def restart_recovery(
                 "first_3d_after_start_s": _since(first_3d, start),
                 "prior_source": prior.get("source") if prior is not None else None,
                 "prior_sigma_m": prior.get("sigma_m") if prior is not None else None,
+                "worker_adopted": (
+                    any(x.get("kind") == FdrKind.CORE_WORKER and x.get("event") == "adopted" for x in run)
+                    if run
+                    else None
+                ),
                 "first_anchored_after_start_s": (
                     _since(float(attempts[n_anchor - 1]["t_unix_s"]), start) if n_anchor is not None else None
                 ),

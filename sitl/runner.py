@@ -258,7 +258,7 @@ class _Flight:
             f"camera.intrinsics.cx_px={self.calib.cx_px}",
             f"camera.intrinsics.cy_px={self.calib.cy_px}",
             *self._spoofed_config(),
-            *(["daemon.vision_worker=true"] if self.scenario.vision_worker else []),
+            *self._vision_worker_override(),
             *self.opts.overrides,
             *self.host_setup.overrides,
         ]
@@ -266,6 +266,10 @@ class _Flight:
         for s in sets:
             cmd += ["--set", s]
         return cmd
+
+    def _vision_worker_override(self) -> list[str]:
+        split = self.scenario.vision_worker
+        return [] if split is None else [f"daemon.vision_worker={'true' if split else 'false'}"]
 
     def _daemon_env(self) -> dict[str, str]:
         return {**os.environ, "PYTHONUNBUFFERED": "1", **self.host_setup.env}

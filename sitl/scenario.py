@@ -561,8 +561,9 @@ class Scenario:
     daemon_restarts_s: tuple[float, ...] = ()
     #: The restarts (by time) before which the FDR directory is deleted.
     daemon_restarts_wipe_fdr: frozenset[float] = frozenset()
-    #: The daemon runs as a navigator core and its vision worker (``daemon.vision_worker``).
-    vision_worker: bool = False
+    #: The daemon runs as a navigator core and its vision worker (``daemon.vision_worker``); None: as its
+    #: configuration says (the default: it does).
+    vision_worker: bool | None = None
     #: Flight times at which the vision worker is killed (SIGKILL; its core restarts it), s.
     worker_kills_s: tuple[float, ...] = ()
     #: The start points dragged off before the flight (None: they are true).
@@ -1030,11 +1031,11 @@ def _read_restarts(value: object, source: str | None) -> tuple[tuple[float, ...]
     return tuple(sorted(times)), frozenset(wipes)
 
 
-def _read_worker_kills(value: object, vision_worker: bool, source: str | None) -> tuple[float, ...]:
+def _read_worker_kills(value: object, vision_worker: bool | None, source: str | None) -> tuple[float, ...]:
     """The worker kill times, sorted (a scenario with kills runs the vision worker)."""
     if not isinstance(value, list):
         raise ScenarioError("worker_kills", f"expected a list, got {_type_name(value)}", source=source)
-    if value and not vision_worker:
+    if value and vision_worker is not True:
         raise ScenarioError("worker_kills", "needs vision_worker: true (no worker to kill)", source=source)
     times = []
     for i, raw in enumerate(value):
@@ -1153,8 +1154,8 @@ def scenario_from_mapping(data: Mapping[str, Any], *, source: str | None = None)
     drops = _read_link_drops(root.get("link_drops", []), source)
     stamp_faults = _read_timestamp_faults(root.get("timestamp_faults", []), source)
     restarts, restart_wipes = _read_restarts(root.get("daemon_restarts", []), source)
-    vision_worker = root.get("vision_worker", False)
-    if not isinstance(vision_worker, bool):
+    vision_worker = root.get("vision_worker", None)
+    if vision_worker is not None and not isinstance(vision_worker, bool):
         raise ScenarioError("vision_worker", f"expected true or false, got {vision_worker!r}", source=source)
     worker_kills = _read_worker_kills(root.get("worker_kills", []), vision_worker, source)
     faults = _read_faults(root.get("faults", []), source)

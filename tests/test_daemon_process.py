@@ -8,13 +8,14 @@ import os
 import signal
 import socket
 import struct
+import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from daemon_harness import build_small_cache, start_daemon, wait_for
+from daemon_harness import build_small_cache, daemon_command, free_udp_port, start_daemon, wait_for
 from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.constants import CORE_FDR_SUBDIR, FdrKind
@@ -145,3 +146,63 @@ def test_daemon_keeps_running_and_records_bad_frames(tmp_path: Path, small_cache
     assert any("100x100" in r["error"] for r in errors)
     stopped = next(json.loads(ln) for ln in d.log_text().splitlines() if '"daemon.stopped"' in ln)
     assert stopped["frames_bad"] == 2
+
+
+def _gone(pid: int) -> bool:
+    """Ended (a zombie waiting for its reaper is ended too)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[-1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+def test_a_killed_core_leaves_its_vision_worker_to_the_next_core_and_an_unclaimed_one_ends(
+    tmp_path: Path, small_cache: Path
+) -> None:
+    """kill -9 of the navigator core: its vision worker runs on, the core's next start (same FDR
+    directory) takes it over instead of starting another, and tells it where its relay is; killed again
+    with no core to follow, the worker ends itself after ``daemon.worker_orphan_s``."""
+    orphan_s = 2.0
+    overrides = (f"daemon.worker_orphan_s={orphan_s}",)
+    d = start_daemon(tmp_path, small_cache, overrides=overrides)
+    second: subprocess.Popen[bytes] | None = None
+    worker = -1
+    try:
+        _autopilot_until_heartbeat(d.mav_port)
+        assert wait_for(lambda: '"daemon.ready"' in d.log_text() or d.proc.poll() is not None, 60.0)
+        (started,) = [
+            r for r in read_records(d.fdr_dir / CORE_FDR_SUBDIR) if r["kind"] == FdrKind.CORE_WORKER
+        ]
+        worker = int(started["pid"])
+        d.proc.kill()
+        d.proc.wait(10)
+        assert wait_for(lambda: '"worker.orphaned"' in d.log_text(), 10.0), d.log_text()[-2000:]
+        assert not _gone(worker)
+        mav_port = free_udp_port()
+        cmd = daemon_command(mav_port, d.cam_port, d.fdr_dir, f"cache.dir={small_cache}", *overrides)
+        with (tmp_path / "second.log").open("wb") as log:
+            second = subprocess.Popen(cmd, stdout=log, stderr=log)
+        _autopilot_until_heartbeat(mav_port)
+        # the worker's own log line goes to the first core's log (its stdout): it was taken over
+        assert wait_for(lambda: '"worker.adopted"' in d.log_text(), 15.0), d.log_text()[-2000:]
+        events = [
+            r
+            for r in read_records(d.fdr_dir / CORE_FDR_SUBDIR)
+            if r["kind"] == FdrKind.CORE_WORKER and r["event"] in ("started", "adopted")
+        ]
+        assert [(r["event"], r["pid"]) for r in events] == [("started", worker), ("adopted", worker)]
+        told = [json.loads(ln) for ln in d.log_text().splitlines() if '"told": true' in ln]
+        assert told and told[-1]["event"] == "c8.mavlink.autopilot_address", told
+        second.kill()
+        second.wait(10)
+        assert wait_for(lambda: _gone(worker), orphan_s + 8.0), "an unclaimed worker outlived its wait"
+        # it stopped itself, in order (not by faulthandler's hard stop)
+        assert "the navigator core closed its socket" in d.log_text()
+        assert "Timeout (" not in d.log_text()
+    finally:
+        if second is not None and second.poll() is None:
+            second.kill()
+        d.stop()
+        if not _gone(worker):
+            os.kill(worker, signal.SIGKILL)

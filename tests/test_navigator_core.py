@@ -12,7 +12,6 @@ import json
 import os
 import signal
 import socket
-import subprocess
 import sys
 import threading
 import time
@@ -208,33 +207,3 @@ def test_a_killed_worker_leaves_no_gap_and_the_new_one_starts_from_the_cores_fil
         if r["kind"] == FdrKind.CORE_WORKER
     ]
     assert events[:4] == ["started", "lost", "started", "back"], events
-
-
-def test_a_worker_dies_with_its_core() -> None:
-    """``die_with_core``: the kernel ends the worker the moment the process that started it ends (a core
-    killed with -9 leaves no worker flying on)."""
-    grandchild = (
-        "import time; from gps_denied_onboard.daemon.core_channel import die_with_core; "
-        "assert die_with_core(); print('armed', flush=True); time.sleep(60)"
-    )
-    middle = (
-        "import subprocess, sys; "
-        f"p = subprocess.Popen([sys.executable, '-c', {grandchild!r}], stdout=subprocess.PIPE, text=True); "
-        "assert p.stdout.readline().strip() == 'armed'; print(p.pid, flush=True)"
-    )
-    out = subprocess.run(
-        [sys.executable, "-c", middle], capture_output=True, text=True, timeout=60, check=True
-    )
-    pid = int(out.stdout.strip())
-    deadline = time.monotonic() + 5.0
-    while time.monotonic() < deadline:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return
-        with open(f"/proc/{pid}/stat") as fh:  # a zombie waiting for init to reap it is gone too
-            if fh.read().split(")")[-1].split()[0] == "Z":
-                return
-        time.sleep(0.05)
-    os.kill(pid, signal.SIGKILL)
-    pytest.fail(f"worker {pid} outlived its core")

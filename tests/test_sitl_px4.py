@@ -91,8 +91,9 @@ def test_px4_square_flies_the_mission_on_the_daemon_alone(tmp_path: Path) -> Non
 
 
 def test_px4_restart_is_back_before_px4s_timeout_and_sends_nothing_unbacked(tmp_path: Path) -> None:
-    """px4_restart: the daemon killed (-9) 60 s after the take-off, in the GNSS-off stretch, and started
-    again: its first position reaches PX4 before the 5 s that PX4 waits (measured 5.3 s), no failsafe,
+    """px4_restart: the daemon's navigator core killed (-9) 60 s after the take-off, in the GNSS-off
+    stretch, and started again, taking over the vision worker that ran on: its first position reaches PX4
+    before the 5 s that PX4 waits (measured 5.3 s), no failsafe,
     and nothing at 0,0 ever arrives (PX4 would reset to it, or take it as its origin)."""
     report, emu = _fly(tmp_path, SCENARIOS / "px4_restart.yaml")
     _flown_on_the_daemon_alone(report, emu)
@@ -100,6 +101,8 @@ def test_px4_restart_is_back_before_px4s_timeout_and_sends_nothing_unbacked(tmp_
     lo, hi = report["gnss_off"]["window_unix_s"]
     assert lo < restart["killed_unix_s"] < hi, (restart, lo, hi)
     assert restart["first_3d_after_s"] is not None and restart["first_3d_after_s"] < 5.0, restart
+    # the navigator core's next start took over the vision worker the killed one had left running
+    assert restart["worker_adopted"] is True and restart["prior_source"] is None, restart
     sent = [r for r in report["per_frame"] if r["est_lat_deg"] is not None]
     assert sent and all(abs(r["est_lat_deg"]) > 1.0 and abs(r["est_lon_deg"]) > 1.0 for r in sent)
 

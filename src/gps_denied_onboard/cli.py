@@ -119,10 +119,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
     channel = None
     if worker:
         from gps_denied_onboard.daemon.core import WORKER_SIGNING_LINK_ID
-        from gps_denied_onboard.daemon.core_channel import CoreChannel, die_with_core
+        from gps_denied_onboard.daemon.core_channel import CoreChannel, RendezvousTaken, rendezvous_address
 
-        die_with_core()  # before the first read: a core gone before it is seen as end-of-file below
-        channel = CoreChannel(args.worker_fd)
+        try:  # listening for the core's next start from the first, so a core crash never ends the vision
+            channel = CoreChannel(
+                args.worker_fd,
+                rendezvous=rendezvous_address(config.fdr.dir),
+                hello={"pid": os.getpid(), "mavlink_url": config.mavlink.url},
+            )
+        except RendezvousTaken as exc:
+            log.error("daemon.startup_refused", what="--worker-fd", error=str(exc))
+            return EXIT_FAILURE
         global _err_to_core
         _err_to_core = channel.send_refusal
         if not channel.poll():  # the core's handover, if it has an estimate, is already waiting

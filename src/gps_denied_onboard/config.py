@@ -624,6 +624,10 @@ class DaemonConfig:
     worker_silence_s: Annotated[float, Strict(), Field(gt=0.5, le=60)] = 3.0
     #: From a worker's start to its first message (its imports, the map, the models), at most, s.
     worker_start_s: Annotated[float, Strict(), Field(gt=1, le=600)] = 60.0
+    #: A worker whose core has gone (killed, crashed, stopped by its watchdog) keeps its pipeline running
+    #: this long for the core's next start to adopt it, so a core restart costs no vision start-up; then it
+    #: ends itself (also when stuck in native code), s. It never speaks to the autopilot itself.
+    worker_orphan_s: Annotated[float, Strict(), Field(gt=0.5, le=120)] = 10.0
 
 
 @dataclasses.dataclass(frozen=True)

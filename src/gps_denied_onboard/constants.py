@@ -62,6 +62,7 @@ STATUSTEXT_PRIOR_REANCHORED: Final[str] = "GDN: re-anchored {:.0f} m from the pr
 # STATUSTEXT about the vision worker (``daemon/core.py``).
 STATUSTEXT_WORKER_LOST: Final[str] = "GDN: vision lost ({}), on IMU, restarting"
 STATUSTEXT_WORKER_BACK: Final[str] = "GDN: vision back after {:.1f} s"
+STATUSTEXT_WORKER_ADOPTED: Final[str] = "GDN: core restarted, vision kept"
 
 #: ``gdnav`` exit codes: success, a failure, a bad configuration or arguments, a refused file, model or
 #: port. systemd's unit restarts on none of 2 and 3 (``RestartPreventExitStatus=``): restarting cannot
@@ -155,10 +156,15 @@ class LogEvent:
     CORE_WORKER_BAD_MESSAGE: Final = "core.worker_bad_message"
     #: The worker exited 2 or 3 (a refused configuration or file): the core stops with its code.
     CORE_WORKER_REFUSED: Final = "core.worker_refused"
+    #: A worker left running by the core's previous process, taken over at this core's start.
+    CORE_WORKER_ADOPTED: Final = "core.worker_adopted"
     CORE_STATUS: Final = "core.status"
-    #: The vision worker's side: the core's handover taken, a message from the core refused.
+    #: The vision worker's side: the core's handover taken, a message from the core refused, its core
+    #: gone (it waits ``daemon.worker_orphan_s`` for the next), and taken over by a new core.
     WORKER_HANDOVER: Final = "worker.handover"
     WORKER_BAD_CORE_MESSAGE: Final = "worker.bad_core_message"
+    WORKER_ORPHANED: Final = "worker.orphaned"
+    WORKER_ADOPTED: Final = "worker.adopted"
     CAMERA_CONNECTED: Final = "camera.connected"
     CAMERA_DISCONNECTED: Final = "camera.disconnected"
     CAMERA_FRAME_DROPPED: Final = "camera.frame_dropped"
@@ -326,11 +332,14 @@ class FdrKind:
     FRAME_IMAGE: Final = "pipeline.frame_image"
     #: One estimate sent to the autopilot (the steady output stream).
     ESTIMATE_SENT: Final = "mavlink.estimate"
-    #: The navigator core's vision worker: started, lost (how it ended), back, killed (``daemon/core.py``).
+    #: The navigator core's vision worker: started, adopted (left running by the core's previous process),
+    #: lost (how it ended), back, killed (``daemon/core.py``).
     CORE_WORKER: Final = "core.worker"
     #: The navigator core's counters once per status period: its worker, its output, its relays, the
     #: signals it survived.
     CORE_STATUS: Final = "core.status"
+    #: The vision worker's side of its core: orphaned (the core gone; it waits for the next), adopted.
+    WORKER_CORE: Final = "worker.core"
     PROVENANCE_CHANGED: Final = "estimator.provenance_changed"
     #: The daemon's counters once per status period (daemon.status_hz): frames, refusals, faults, link.
     STATUS: Final = "daemon.status"

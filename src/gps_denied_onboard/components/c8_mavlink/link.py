@@ -589,6 +589,23 @@ class MavlinkLink:
             _log.info(LogEvent.MAVLINK_AUTOPILOT_ADDRESS, url=self._config.url, address=address)
             self._record_event("autopilot_address", address=address)
 
+    def follow_autopilot_at(self, host: str, port: int) -> bool:
+        """The autopilot speaks from ``host:port`` from now on (a listening UDP link; False otherwise):
+        what a trusted side channel says, never a datagram. A vision worker's new navigator core tells
+        its relay's address over the worker's Unix socket (``daemon/core.py``), so the worker need not
+        wait out ``link_timeout_s`` of the dead core's silence. Logged and recorded."""
+        with self._lock:
+            conn = self._conn
+            if not isinstance(conn, AutopilotUdpIn):
+                return False
+            address = conn.follow((host, port))
+            self._ap_address_followed = True
+            self._ap_heard_s = self._clock()
+        if address is not None:
+            _log.info(LogEvent.MAVLINK_AUTOPILOT_ADDRESS, url=self._config.url, address=address, told=True)
+            self._record_event("autopilot_address", address=address)
+        return True
+
     def _impostor(self, conn: AutopilotUdpIn | AutopilotTcpIn, msg: Any, recv_s: float) -> None:
         """Count a message from another address that claims the autopilot's ids; report them at most once
         per ``IMPOSTOR_REPORT_INTERVAL_S`` (log, FDR, STATUSTEXT to the ground through the autopilot)."""

@@ -136,12 +136,15 @@ class AutopilotUdpIn(mavutil.mavudp):
     def follow_source(self) -> str | None:
         """Write to the sender of the last returned message from now on; returns it as ``HOST:PORT``
         when that changed the address, else None."""
-        src = self.source
-        if src is None or src == self.autopilot_addr:
+        return None if self.source is None else self.follow(self.source)
+
+    def follow(self, addr: tuple[str, int]) -> str | None:
+        """Write to ``addr`` from now on; returns it as ``HOST:PORT`` when that changed the address."""
+        if addr == self.autopilot_addr:
             return None
-        self.autopilot_addr = src
-        self.clients = {src}
-        return f"{src[0]}:{src[1]}"
+        self.autopilot_addr = addr
+        self.clients = {addr}
+        return f"{addr[0]}:{addr[1]}"
 
 
 @dataclass(eq=False)
