@@ -101,7 +101,7 @@ def run_sitl_with_autopilot(opts: SitlOptions, autopilot_url: str) -> dict[str, 
     if opts.map_path is None:
         raise SitlError("--autopilot needs --map (the map the autopilot's home must lie on)")
     try:
-        load_config(config_path, opts.overrides)
+        daemon_nice = load_config(config_path, opts.overrides).daemon.process_nice
         scenario = load_scenario(opts.scenario)
         renderer = MapRenderer(opts.map_path)
     except (ConfigError, ScenarioError, RenderError) as exc:
@@ -130,6 +130,7 @@ def run_sitl_with_autopilot(opts: SitlOptions, autopilot_url: str) -> dict[str, 
             say,
             build_cache_from_geotiff,
             CacheBuildError,
+            daemon_nice=daemon_nice,
         )
     finally:
         relay.close()
@@ -163,6 +164,8 @@ def _fly(
     say: Any,
     build_cache: Any,
     cache_error: Any,
+    *,
+    daemon_nice: int | None = None,
 ) -> dict[str, Any]:
     trajectory = scenario.resolve(bbox, 0.0)
     plan = MissionPlan(
@@ -208,7 +211,9 @@ def _fly(
     )
     overrides = (f"terrain.ground_alt_amsl_m={ground_alt}", *outputs, *opts.overrides)
     fopts = dataclasses.replace(opts, overrides=overrides)
-    flight = _Flight(fopts, scenario, trajectory, renderer, config_path, cache_dir, workdir, ground_alt)
+    flight = _Flight(
+        fopts, scenario, trajectory, renderer, config_path, cache_dir, workdir, ground_alt, daemon_nice
+    )
     cmd = flight._daemon_cmd(relay.daemon_port, 0)
     frames: list[SentFrame] = []
     mission: dict[str, Any] = {}
@@ -401,7 +406,7 @@ async def _run_flight(
             old.kill()
             await loop.run_in_executor(None, old.wait)
             await asyncio.sleep(UNIT_RESTART_SEC_S)
-            procs.append(spawn_daemon(cmd, log_file, env))
+            procs.append(spawn_daemon(cmd, log_file, env, nice=flight.daemon_nice))
             restarts.append({"killed_unix_s": t_kill, "restarted_unix_s": time.time()})
             say(f"daemon killed (SIGKILL) at {at_s:.1f} s and restarted: pid {procs[-1].pid}")
 
@@ -442,7 +447,7 @@ async def _run_flight(
             say(f"{fault.kind.value} {'on' if start else 'off'} at {at_s:.1f} s: {entry}")
 
     with log_path.open("wb") as log_file:
-        procs = [spawn_daemon(cmd, log_file, env)]
+        procs = [spawn_daemon(cmd, log_file, env, nice=flight.daemon_nice)]
         proc = procs[0]
         cam_task = asyncio.create_task(camera())
         restart_task = asyncio.create_task(restarter(procs, log_file))

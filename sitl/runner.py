@@ -30,7 +30,7 @@ import subprocess
 import sys
 import time
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -141,6 +141,20 @@ def _die_with_parent() -> None:
     die_with_parent(signal.SIGTERM)
 
 
+def _child_setup(nice: int | None) -> Callable[[], None]:
+    """What runs in the daemon's child before exec: ``_die_with_parent``, and its nice value set from the
+    first instruction on, as the unit's ``Nice=`` does (the daemon itself can set it only after its
+    imports and its configuration; where this process may not lower it, it stays)."""
+
+    def setup() -> None:
+        _die_with_parent()
+        if nice is not None:
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, 0, nice)
+
+    return setup
+
+
 def daemon_ready(received: Sequence[ReceivedMessage]) -> bool:
     """Whether the daemon has said it is up: a HEARTBEAT out of MAV_STATE_BOOT (its start-up beacon sends
     BOOT while the fix path loads, ``daemon.beacon``)."""
@@ -148,10 +162,12 @@ def daemon_ready(received: Sequence[ReceivedMessage]) -> bool:
     return any(m.type == "HEARTBEAT" and m.fields.get("system_status") != boot for m in received)
 
 
-def spawn_daemon(cmd: list[str], log_file: Any, env: dict[str, str]) -> subprocess.Popen[bytes]:
+def spawn_daemon(
+    cmd: list[str], log_file: Any, env: dict[str, str], *, nice: int | None = None
+) -> subprocess.Popen[bytes]:
     """The daemon under test as a child process that dies with this one (SIGTERM, SIGKILL or a crash
-    of the runner alike)."""
-    preexec = _die_with_parent if sys.platform == "linux" else None
+    of the runner alike), at nice value ``nice`` from its start (its ``daemon.process_nice``)."""
+    preexec = _child_setup(nice) if sys.platform == "linux" else None
     return subprocess.Popen(cmd, stdout=log_file, stderr=log_file, env=env, preexec_fn=preexec)
 
 
@@ -187,8 +203,10 @@ class _Flight:
         cache_dir: Path,
         workdir: Path,
         ground_alt_amsl_m: float,
+        daemon_nice: int | None = None,
     ) -> None:
         self.opts = opts
+        self.daemon_nice = daemon_nice
         self.scenario = scenario
         self.traj = trajectory
         self.renderer = renderer
@@ -612,7 +630,7 @@ class _Flight:
             if at_s in self.scenario.daemon_restarts_wipe_fdr:  # a restart with no FDR at all
                 shutil.rmtree(self.workdir / "fdr", ignore_errors=True)
             self._spoof_resume_state(t_kill)
-            procs.append(spawn_daemon(cmd, log_file, self._daemon_env()))
+            procs.append(spawn_daemon(cmd, log_file, self._daemon_env(), nice=self.daemon_nice))
             self.restarts.append({"killed_unix_s": t_kill, "restarted_unix_s": time.time()})
             self._say(f"daemon killed (SIGKILL) at {at_s:.1f} s and restarted: pid {procs[-1].pid}")
 
@@ -625,7 +643,7 @@ class _Flight:
         stop = asyncio.Event()
         cmd = self._daemon_cmd(mav_port, cam_port)
         with log_path.open("wb") as log_file:
-            procs = [spawn_daemon(cmd, log_file, self._daemon_env())]
+            procs = [spawn_daemon(cmd, log_file, self._daemon_env(), nice=self.daemon_nice)]
             proc = procs[0]
             restarter: asyncio.Task[None] | None = None
             try:
@@ -712,9 +730,15 @@ def _build_vpr_index(daemon_cfg: Config, cache_dir: Path, *, progress: bool) -> 
         from gps_denied_onboard.components.c7_inference.protocol import EngineLoadError
         from gps_denied_onboard.helpers.model_manifest import ModelDirError
 
+        weights, model_dir = daemon_cfg.vpr.xfeat_weights_path, daemon_cfg.matcher.model_dir
         try:
-            path = daemon_cfg.vpr.xfeat_weights_path or find_xfeat_extractor(daemon_cfg.matcher.model_dir)
-            describer = XFeatDescriber(OnnxInferenceRuntime(intra_op_threads=2), Path(path))
+            if weights:
+                path = Path(weights)
+            elif model_dir is not None:
+                path = find_xfeat_extractor(model_dir)
+            else:
+                raise SitlError("vpr.strategy vlad_xfeat needs vpr.xfeat_weights_path or matcher.model_dir")
+            describer = XFeatDescriber(OnnxInferenceRuntime(intra_op_threads=2), path)
         except (ModelDirError, EngineLoadError, OSError) as exc:
             raise SitlError(f"vpr.strategy vlad_xfeat: {exc}") from exc
         build_vlad_index(cache_dir, default_xfeat_params(), describer=describer, progress=progress)
@@ -807,7 +831,17 @@ def run_sitl(opts: SitlOptions) -> dict[str, Any]:
 
     shutil.rmtree(workdir / "fdr", ignore_errors=True)  # this run's records only
     try:
-        flight = _Flight(opts, scenario, trajectory, renderer, config_path, cache_dir, workdir, ground_alt)
+        flight = _Flight(
+            opts,
+            scenario,
+            trajectory,
+            renderer,
+            config_path,
+            cache_dir,
+            workdir,
+            ground_alt,
+            daemon_nice=daemon_cfg.daemon.process_nice,
+        )
     except HostFaultError as exc:
         raise SitlError(str(exc)) from exc
     try:
