@@ -406,7 +406,8 @@ class NavigatorCore:
         if self._est is None or self._ltp is None or not self._est.is_initialised:
             return None
         self._est.predict_to(self._clock.now_unix_usec())
-        return {"kind": "handover", "state": state_to_wire(self._est.checkpoint(), self._ltp)}
+        state = state_to_wire(self._est.checkpoint(), self._ltp, clock_anchor_ns=self._clock.anchor_unix_ns)
+        return {"kind": "handover", "state": state}
 
     def _close_socket(self) -> None:
         w = self._worker
@@ -535,7 +536,7 @@ class NavigatorCore:
             return
         if message["kind"] != "estimate":
             return  # "alive": loading, or waiting for its first prior
-        ws = state_from_wire(message["state"])
+        ws = state_from_wire(message["state"], clock_anchor_ns=self._clock.anchor_unix_ns)
         if self._est is None or self._ltp != ws.ltp:
             self._est = NavEstimator(self._cfg.estimator, ws.ltp, accel_source=self._link.tracker)
             self._ltp = ws.ltp

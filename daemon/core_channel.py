@@ -56,11 +56,19 @@ MAX_MESSAGE_BYTES = 65536
 
 class CoreChannel:
     """The worker's socket to the core (``fd``: inherited from the core that started it). With
-    ``rendezvous`` it listens there for a later core (``adopt``) and says ``hello`` to it."""
+    ``rendezvous`` it listens there for a later core (``adopt``) and says ``hello`` to it. With
+    ``clock_anchor_ns`` (this worker's ``DaemonClock.anchor_unix_ns``) the states it sends carry it, and
+    a handover's times are mapped onto this worker's clock."""
 
     def __init__(
-        self, fd: int, *, rendezvous: bytes | None = None, hello: dict[str, Any] | None = None
+        self,
+        fd: int,
+        *,
+        rendezvous: bytes | None = None,
+        hello: dict[str, Any] | None = None,
+        clock_anchor_ns: int | None = None,
     ) -> None:
+        self._anchor_ns = clock_anchor_ns
         self._sock = socket.socket(fileno=fd)
         self._sock.setblocking(False)
         self._listener: socket.socket | None = None
@@ -129,7 +137,7 @@ class CoreChannel:
             try:
                 message = unpack(data)
                 if message["kind"] == "handover":
-                    self.handover = state_from_wire(message["state"])
+                    self.handover = state_from_wire(message["state"], clock_anchor_ns=self._anchor_ns)
                     log.info(LogEvent.WORKER_HANDOVER, time_unix_usec=self.handover.checkpoint.time_usec)
                 elif message["kind"] == "core":
                     port = message["relay_port"]
@@ -161,7 +169,8 @@ class CoreChannel:
 
     def send_estimate(self, checkpoint: EstimatorCheckpoint, ltp: LocalTangentPlane, **fields: Any) -> bool:
         """The filter at its head, in ``ltp``, with what the core should know (``fields``)."""
-        return self.send({"kind": "estimate", "state": state_to_wire(checkpoint, ltp), **fields})
+        state = state_to_wire(checkpoint, ltp, clock_anchor_ns=self._anchor_ns)
+        return self.send({"kind": "estimate", "state": state, **fields})
 
     def send_refusal(self, message: str) -> bool:
         """The one line this worker would print when it refuses its configuration or a file: its core

@@ -98,12 +98,31 @@ def _good() -> dict[str, object]:
         ("shared", -0.1, "shared"),
         ("yaw", math.nan, "yaw"),
         ("ltp", [math.nan, 0.0, 0.0], "ltp"),
+        ("anchor", 1.5e18, "anchor"),
     ],
 )
 def test_a_malformed_state_is_refused_naming_the_field(field: str, value: object, named: str) -> None:
     fields = {**_good(), field: value}
     with pytest.raises(WireError, match=named):
         state_from_wire(fields)
+
+
+def test_times_are_mapped_from_the_senders_clock_onto_the_receivers() -> None:
+    """Two processes' clocks count the host's monotonic time from anchors that differ by what the wall
+    clock slewed or stepped between their starts: the receiver's times are the sender's plus that."""
+    cp = _flown().checkpoint()
+    sender, receiver = 1_700_000_000_000_000_000, 1_700_000_000_250_000_000  # anchors 0.25 s apart
+    fields = state_to_wire(cp, LocalTangentPlane(17.59, 78.12, 500.0), clock_anchor_ns=sender)
+    mapped = state_from_wire(fields, clock_anchor_ns=receiver).checkpoint
+    assert cp.time_usec is not None and cp.last_fix_usec is not None and cp.last_vo_usec is not None
+    assert mapped.time_usec == cp.time_usec + 250_000
+    assert mapped.last_fix_usec == cp.last_fix_usec + 250_000
+    assert mapped.last_vo_usec == cp.last_vo_usec + 250_000
+    assert mapped.last_no_fix_usec == (None if cp.last_no_fix_usec is None else cp.last_no_fix_usec + 250_000)
+    # with either anchor unknown the times are taken as they are
+    assert state_from_wire(fields).checkpoint.time_usec == cp.time_usec
+    unsaid = state_to_wire(cp, LocalTangentPlane(17.59, 78.12, 500.0))
+    assert state_from_wire(unsaid, clock_anchor_ns=receiver).checkpoint.time_usec == cp.time_usec
 
 
 def test_a_missing_field_and_an_asymmetric_covariance_are_refused() -> None:

@@ -126,6 +126,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 args.worker_fd,
                 rendezvous=rendezvous_address(config.fdr.dir),
                 hello={"pid": os.getpid(), "mavlink_url": config.mavlink.url},
+                clock_anchor_ns=clock.anchor_unix_ns,
             )
         except RendezvousTaken as exc:
             log.error("daemon.startup_refused", what="--worker-fd", error=str(exc))

@@ -120,6 +120,13 @@ class DaemonClock:
 
     # -- reading --------------------------------------------------------------------------------------
 
+    @property
+    def anchor_unix_ns(self) -> int:
+        """Unix ns at monotonic 0: this clock's one anchor. CLOCK_MONOTONIC is the host's, so two
+        processes' clocks name one instant alike up to the difference of their anchors: the wall clock's
+        slewing and steps between their starts (``c5_estimator/wire.py`` maps one onto the other)."""
+        return self._anchor_ns
+
     def now_unix_usec(self) -> int:
         """The daemon's now, Unix microseconds (monotonic since the anchor)."""
         return (self._anchor_ns + self._mono()) // 1000

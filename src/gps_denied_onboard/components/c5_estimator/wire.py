@@ -5,6 +5,11 @@ in, as plain msgpack values: no pickle, so a message is data and never code, and
 refused with the field that is wrong (:class:`WireError`). The core restores it into its own
 :class:`~gps_denied_onboard.components.c5_estimator.ekf.NavEstimator` and predicts it to each send time
 with the autopilot's IMU; a restarted worker starts from the core's (the handover).
+
+Its times are on the sender's ``DaemonClock``. With the sender's anchor on the wire and the receiver's
+given, they are mapped onto the receiver's clock (both count the host's monotonic time, from anchors
+that differ by what the wall clock slewed or stepped between the two starts: a core started minutes
+after the worker it adopts).
 """
 
 from __future__ import annotations
@@ -51,6 +56,10 @@ def _opt_int(value: Any, name: str) -> int | None:
     return value
 
 
+def _shifted(usec: int | None, shift_usec: int) -> int | None:
+    return None if usec is None else usec + shift_usec
+
+
 def _opt_float(value: Any, name: str) -> float | None:
     if value is None:
         return None
@@ -59,11 +68,15 @@ def _opt_float(value: Any, name: str) -> float | None:
     return float(value)
 
 
-def state_to_wire(checkpoint: EstimatorCheckpoint, ltp: LocalTangentPlane) -> dict[str, Any]:
-    """``checkpoint`` in ``ltp`` as msgpack-ready values."""
+def state_to_wire(
+    checkpoint: EstimatorCheckpoint, ltp: LocalTangentPlane, *, clock_anchor_ns: int | None = None
+) -> dict[str, Any]:
+    """``checkpoint`` in ``ltp`` as msgpack-ready values; ``clock_anchor_ns``: the sender's clock's anchor
+    (``DaemonClock.anchor_unix_ns``; None: not said, the receiver takes the times as its own)."""
     cp = checkpoint
     conflict = cp.prior_conflict
     return {
+        "anchor": clock_anchor_ns,
         "ltp": [ltp.origin_lat_deg, ltp.origin_lon_deg, ltp.origin_alt_m],
         "x": cp.x.reshape(-1).tolist(),
         "p": cp.p_mat.reshape(-1).tolist(),
@@ -89,9 +102,14 @@ def state_to_wire(checkpoint: EstimatorCheckpoint, ltp: LocalTangentPlane) -> di
     }
 
 
-def state_from_wire(fields: Mapping[str, Any]) -> WireState:
-    """The checkpoint and frame of ``fields`` (``state_to_wire``'s), validated; raises ``WireError``."""
+def state_from_wire(fields: Mapping[str, Any], *, clock_anchor_ns: int | None = None) -> WireState:
+    """The checkpoint and frame of ``fields`` (``state_to_wire``'s), validated; raises ``WireError``. Its
+    times on the clock whose anchor is ``clock_anchor_ns`` when both it and the sender's are given."""
     try:
+        sender_anchor = _opt_int(fields.get("anchor"), "anchor")
+        shift_usec = 0
+        if sender_anchor is not None and clock_anchor_ns is not None:
+            shift_usec = (clock_anchor_ns - sender_anchor) // 1000
         lat, lon, alt = (float(v) for v in fields["ltp"])
         x = _matrix(fields["x"], (6,), "x").reshape(6, 1)
         p_mat = _matrix(fields["p"], (36,), "p").reshape(6, 6)
@@ -115,10 +133,10 @@ def state_from_wire(fields: Mapping[str, Any]) -> WireState:
         checkpoint = EstimatorCheckpoint(
             x=x,
             p_mat=p_mat,
-            time_usec=_opt_int(fields["t"], "t"),
-            last_fix_usec=_opt_int(fields["last_fix"], "last_fix"),
-            last_no_fix_usec=_opt_int(fields["last_no_fix"], "last_no_fix"),
-            last_vo_usec=_opt_int(fields["last_vo"], "last_vo"),
+            time_usec=_shifted(_opt_int(fields["t"], "t"), shift_usec),
+            last_fix_usec=_shifted(_opt_int(fields["last_fix"], "last_fix"), shift_usec),
+            last_no_fix_usec=_shifted(_opt_int(fields["last_no_fix"], "last_no_fix"), shift_usec),
+            last_vo_usec=_shifted(_opt_int(fields["last_vo"], "last_vo"), shift_usec),
             consecutive_gated=gated,
             yaw_rad=_opt_float(fields["yaw"], "yaw"),
             shared_sigma_m=shared,
