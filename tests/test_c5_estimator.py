@@ -509,3 +509,62 @@ def test_a_slope_the_fixes_might_share_does_not_make_them_too_weak_to_hold_the_e
     assert weak_m > 9.0 and weak_ratio > 3.0  # a confident lie: 18 m off at a stated 2 m
     assert held_m < 4.0
     assert held_ratio < 1.0
+
+
+def test_vo_that_keeps_saying_another_velocity_puts_the_velocity_in_doubt_not_the_vo() -> None:
+    """Anchored at 12 m/s north, then VO says 12 m/s south frame after frame (a reversal the state did
+    not follow): the first two are gated as blunders; the third puts the velocity in doubt by what VO
+    says and the position by what that moved it over the gated frames, so VO is fused again and the
+    stated accuracy covers where the vehicle is if VO was right, rather than holding a velocity the
+    camera keeps contradicting."""
+    from gps_denied_onboard.components.c5_estimator.ekf import CONSECUTIVE_GATED_INFLATE
+
+    est = _estimator()
+    est.initialise(np.array([0.0, 0.0, -100.0]), 1.0, T0_USEC)
+    t = T0_USEC
+    for k in range(1, 31):  # 10 s north at 12 m/s, VO and a fix every frame
+        t = T0_USEC + k * S // 3
+        est.update_vo(_vo(np.array([4.0, 0.0]), 0.05, 1 / 3), time_unix_usec=t)
+        est.update_fix(_fix(np.array([4.0 * k, 0.0, -100.0]), 1.0, t))
+    before = est.state(t)
+    assert before.speed_sigma_m_s < 1.0
+    decisions = []
+    for k in range(1, CONSECUTIVE_GATED_INFLATE + 2):
+        south = _vo(np.array([-4.0, 0.0]), 0.05, 1 / 3)
+        decisions.append(est.update_vo(south, time_unix_usec=t + k * S // 3))
+    assert [d.accepted for d in decisions[:CONSECUTIVE_GATED_INFLATE]] == [False] * CONSECUTIVE_GATED_INFLATE
+    assert decisions[-1].accepted  # the velocity in doubt, VO is heard again
+    t_end = t + (CONSECUTIVE_GATED_INFLATE + 1) * S // 3
+    after = est.state(t_end)
+    assert after.vel_ned_m_s[0] < 0.0  # going south, as VO says
+    # had the vehicle reversed at the first contradicting frame, the state is this far off: covered
+    truth_n = 4.0 * 30 - 12.0 * (t_end - t - S // 3) / S
+    assert abs(after.pos_ned_m[0] - truth_n) < 3.0 * after.horiz_sigma_m, (after.pos_ned_m, truth_n)
+
+
+def test_vo_back_after_a_dead_reckoned_stretch_does_not_vouch_for_the_position() -> None:
+    """Anchored at 12 m/s north, then 3 s without VO in which the vehicle in truth stood still (the state
+    dead-reckons on north, 36 m wrong at a sigma of a few metres), then VO again at 12 m/s north, which
+    agrees with the state's velocity: fixes 36 m behind are gated at first; after three the state takes
+    their disagreement into its sigma and the next fix re-anchors it. VO fused throughout since the last
+    fix (the look-alike case, test_a_confirmed_state_keeps_refusing_a_look_alike_however_long) keeps
+    refusing them."""
+    from gps_denied_onboard.components.c5_estimator.ekf import CONSECUTIVE_GATED_INFLATE
+
+    est = _estimator()
+    est.initialise(np.array([0.0, 0.0, -100.0]), 1.0, T0_USEC)
+    for k in range(1, 31):  # 10 s north at 12 m/s
+        t = T0_USEC + k * S // 3
+        est.update_vo(_vo(np.array([4.0, 0.0]), 0.05, 1 / 3), time_unix_usec=t)
+        est.update_fix(_fix(np.array([4.0 * k, 0.0, -100.0]), 1.0, t))
+    t_dr = T0_USEC + 10 * S
+    decisions = []
+    for k in range(1, CONSECUTIVE_GATED_INFLATE + 3):
+        t = t_dr + 3 * S + k * S // 3
+        truth_n = 120.0 + 4.0 * k  # stood still for the 3 s, then north again
+        est.update_vo(_vo(np.array([4.0, 0.0]), 0.05, 1 / 3), time_unix_usec=t)
+        decisions.append(est.update_fix(_fix(np.array([truth_n, 0.0, -100.0]), 1.0, t)))
+    assert [d.accepted for d in decisions[:CONSECUTIVE_GATED_INFLATE]] == [False] * CONSECUTIVE_GATED_INFLATE
+    assert decisions[CONSECUTIVE_GATED_INFLATE].accepted
+    end = est.state(t)
+    assert abs(end.pos_ned_m[0] - truth_n) < 3.0 * end.horiz_sigma_m and abs(end.pos_ned_m[0] - truth_n) < 5.0

@@ -15,6 +15,11 @@ by gated fixes that agree over ``prior_conflict_span_m``); a C1 ``VoMotion`` (th
 velocity, moved to its end with the IMU when known, covariance ``vo_noise_scale * cov / dt^2``, scaled
 up while the recent VO innovations show VO noisier than it states: ``_vo_noise_factor``); the altitude
 (AGL plus the flat ground, on ``d``).
+Disagreement that persists is doubt, not noise (``CONSECUTIVE_GATED_INFLATE`` in a row): gated VO puts the
+state's velocity in doubt by VO's, and its position by what that moved it over the frames gated; gated
+fixes put the position in doubt by theirs, unless VO has carried the state since its last accepted fix
+(then they are a look-alike area and stay refused; VO back after a dead-reckoned stretch vouches for
+nothing before it).
 Shared error: ``shared_sigma_m`` bounds the part of the map fixes' error they all share
 (``s <- ||I - K|| s + ||K|| s_fix`` per accepted fix) and is added to every output, so fusing more fixes
 never averages it away; the gates leave it out. A slope's share (``PoseFix.slope_sigma_m``) is in the
@@ -68,7 +73,8 @@ CHI2_2DOF_MEDIAN: Final[float] = 1.386
 #: The most VO's stated covariance is scaled up by the innovations it showed (5x its sigma).
 VO_NOISE_FACTOR_MAX: Final[float] = 25.0
 
-#: Consecutive gated fixes after which their disagreement is added to the position covariance.
+#: Consecutive gated fixes after which their disagreement is added to the position covariance; and
+#: consecutive gated VO velocities after which theirs is added to the velocity covariance.
 CONSECUTIVE_GATED_INFLATE: Final[int] = 3
 #: Gated fixes, consecutive and agreeing with each other, that put an unconfirmed start prior in doubt
 #: (the output then states their disagreement), and that may contradict it (over enough ground).
@@ -154,6 +160,12 @@ class EstimatorCheckpoint:
     prior_conflict: PriorConflict | None = None
     map_confirmed: bool = False
     vo_nis: tuple[float, ...] = ()
+    #: VO velocities gated in a row (``update_vo``), and the time they span, s.
+    vo_consecutive_gated: int = 0
+    vo_gated_s: float = 0.0
+    #: Since the last accepted fix the state has moved without VO for longer than ``vo_recent_s`` (a
+    #: dead-reckoned stretch), so VO fused now does not vouch for its position.
+    dr_since_fix: bool = False
 
 
 class NavEstimator:
@@ -195,6 +207,9 @@ class NavEstimator:
         #: estimate): only then may the output be a 3D fix (``EstimatorState.map_confirmed``).
         self._map_confirmed = False
         self._last_vo_usec: int | None = None
+        self._vo_consecutive_gated = 0
+        self._vo_gated_s = 0.0
+        self._dr_since_fix = False
         #: The normalised innovations of the newest VO updates against VO's stated covariance (gated
         #: ones too), the newest last (``_vo_noise_factor``).
         self._vo_nis: tuple[float, ...] = ()
@@ -256,6 +271,9 @@ class NavEstimator:
         self._prior_conflict = None
         self._map_confirmed = bool(map_confirmed)
         self._last_vo_usec = None
+        self._vo_consecutive_gated = 0
+        self._vo_gated_s = 0.0
+        self._dr_since_fix = False
         self._vo_nis = ()
         self._yaw_rad = None
         self._shared_sigma_m = 0.0
@@ -286,6 +304,9 @@ class NavEstimator:
             self._prior_conflict,
             self._map_confirmed,
             self._vo_nis,
+            self._vo_consecutive_gated,
+            self._vo_gated_s,
+            self._dr_since_fix,
         )
 
     def restore(self, cp: EstimatorCheckpoint) -> None:
@@ -303,6 +324,9 @@ class NavEstimator:
         self._prior_conflict = cp.prior_conflict
         self._map_confirmed = cp.map_confirmed
         self._vo_nis = cp.vo_nis
+        self._vo_consecutive_gated = cp.vo_consecutive_gated
+        self._vo_gated_s = cp.vo_gated_s
+        self._dr_since_fix = cp.dr_since_fix
 
     # -- prediction ---------------------------------------------------------------------------------------
 
@@ -441,18 +465,22 @@ class NavEstimator:
                 tile_id=tuple(fix.tile_id),
                 consecutive=self._consecutive_gated,
             )
-            vo_corroborates = (
+            vo_recent = (
                 self._last_vo_usec is not None
                 and (self._time_usec - self._last_vo_usec) / 1e6 <= self._vo_recent_s
             )
-            if vo_corroborates and self._last_fix_usec is None:
+            if vo_recent and self._last_fix_usec is None:
                 self._note_prior_conflict(x[:2], p_mat[:2, :2], innov, cov[:2, :2])
-            if self._consecutive_gated >= CONSECUTIVE_GATED_INFLATE and not vo_corroborates:
-                # Several fixes in a row disagree with a state that nothing corroborates (no recent VO):
-                # an unmodelled manoeuvre is as likely as a wrong match, so the stated accuracy is no
-                # longer honest and the disagreement is added to the position covariance. While VO is
-                # being fused the state's motion is measured, and a run of disagreeing fixes is far more
-                # likely a look-alike area: those stay rejected (the wrong-tile trap).
+            if self._consecutive_gated >= CONSECUTIVE_GATED_INFLATE and not (
+                vo_recent and not self._dr_since_fix
+            ):
+                # Several fixes in a row disagree with a state that nothing corroborates: an unmodelled
+                # manoeuvre is as likely as a wrong match, so the stated accuracy is no longer honest
+                # and the disagreement is added to the position covariance. While VO has carried the
+                # state since its last accepted fix, its motion is measured all the way, and a run of
+                # disagreeing fixes is far more likely a look-alike area: those stay rejected (the
+                # wrong-tile trap). VO back after a dead-reckoned stretch measures the motion since, not
+                # what the stretch did to the position: it vouches for nothing before it.
                 self._kf.P[:2, :2] += np.outer(innov, innov)
                 self._consecutive_gated = 0
                 self._emit(
@@ -468,6 +496,7 @@ class NavEstimator:
 
         self._prior_conflict = None
         self._map_confirmed = True
+        self._dr_since_fix = False
         self._kf.update(pos.reshape(3, 1), R=_weighing_cov(cov, float(fix.slope_sigma_m)), H=_H_POS)
         gain_ne = self._kf.K[:2, :2]
         self._shared_sigma_m = (
@@ -619,6 +648,8 @@ class NavEstimator:
         s_mat = self._kf.P[3:5, 3:5] + r_mat
         nis = float(innov @ np.linalg.solve(s_mat, innov))
         if nis > self._config.fix_gate_chi2:
+            self._vo_consecutive_gated += 1
+            self._vo_gated_s += dt
             self._emit(
                 "warning",
                 LogEvent.ESTIMATOR_VO_REJECTED,
@@ -626,9 +657,35 @@ class NavEstimator:
                 nis=nis,
                 gate=self._config.fix_gate_chi2,
                 noise_factor=round(factor, 2),
+                consecutive=self._vo_consecutive_gated,
             )
+            if self._vo_consecutive_gated >= CONSECUTIVE_GATED_INFLATE:
+                # VO has said a different velocity frame after frame: a manoeuvre the state's velocity
+                # did not follow is as likely as VO being wrong. So the velocity the state claims is in
+                # doubt by what VO says, and its position by what that difference moved it over the
+                # frames gated (its sigma, and its speed sigma, leave 3D) until VO or a fix settles it.
+                # A single blunder stays gated.
+                drift = innov * self._vo_gated_s
+                self._kf.P[3:5, 3:5] += np.outer(innov, innov)
+                self._kf.P[:2, :2] += np.outer(drift, drift)
+                self._vo_consecutive_gated = 0
+                self._vo_gated_s = 0.0
+                self._emit(
+                    "warning",
+                    LogEvent.ESTIMATOR_COVARIANCE_INFLATED,
+                    what="velocity",
+                    innovation_m_s=float(np.hypot(*innov)),
+                    speed_sigma_m_s=float(np.sqrt(np.trace(self._kf.P[3:5, 3:5]) / 2.0)),
+                    horiz_sigma_m=_horiz_sigma_m(self._kf.P),
+                )
             return FixDecision(False, nis, FixReason.GATED)
+        if self._last_fix_usec is not None:
+            carried_usec = max(self._last_fix_usec, self._last_vo_usec or self._last_fix_usec)
+            if (self._time_usec - carried_usec) / 1e6 > self._vo_recent_s:
+                self._dr_since_fix = True  # VO back after a stretch the state was dead-reckoned through
         self._kf.update(vel.reshape(2, 1), R=r_mat, H=_H_VEL_NE)
+        self._vo_consecutive_gated = 0
+        self._vo_gated_s = 0.0
         self._last_vo_usec = self._time_usec
         self._refresh_provenance()
         return FixDecision(True, nis, FixReason.ACCEPTED)

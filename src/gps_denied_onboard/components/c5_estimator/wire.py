@@ -99,6 +99,9 @@ def state_to_wire(
         },
         "confirmed": cp.map_confirmed,
         "vo_nis": list(cp.vo_nis),
+        "vo_gated": cp.vo_consecutive_gated,
+        "vo_gated_s": cp.vo_gated_s,
+        "dr_since_fix": cp.dr_since_fix,
     }
 
 
@@ -130,6 +133,9 @@ def state_from_wire(fields: Mapping[str, Any], *, clock_anchor_ns: int | None = 
         if shared is None or shared < 0:
             raise WireError(f"shared: expected a sigma >= 0 m, got {fields['shared']!r}")
         nis = tuple(float(v) for v in fields["vo_nis"])
+        vo_gated = fields.get("vo_gated", 0)  # absent from handovers recorded before it was sent
+        if not isinstance(vo_gated, int) or isinstance(vo_gated, bool) or vo_gated < 0:
+            raise WireError(f"vo_gated: expected a count, got {vo_gated!r}")
         checkpoint = EstimatorCheckpoint(
             x=x,
             p_mat=p_mat,
@@ -144,6 +150,9 @@ def state_from_wire(fields: Mapping[str, Any], *, clock_anchor_ns: int | None = 
             prior_conflict=conflict,
             map_confirmed=bool(fields["confirmed"]),
             vo_nis=nis,
+            vo_consecutive_gated=vo_gated,
+            vo_gated_s=_opt_float(fields.get("vo_gated_s", 0.0), "vo_gated_s") or 0.0,
+            dr_since_fix=bool(fields.get("dr_since_fix", False)),
         )
     except KeyError as exc:
         raise WireError(f"missing field {exc.args[0]!r}") from exc
