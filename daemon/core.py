@@ -45,7 +45,6 @@ import os
 import select
 import signal
 import socket
-import struct
 import subprocess
 import sys
 import time
@@ -84,7 +83,7 @@ from gps_denied_onboard.constants import (
     LogEvent,
     Provenance,
 )
-from gps_denied_onboard.daemon.core_channel import rendezvous_address
+from gps_denied_onboard.daemon.core_channel import peer_credentials, rendezvous_address
 from gps_denied_onboard.daemon.periodic import keep_resume_state, on_deadlines
 from gps_denied_onboard.daemon.sd_notify import SdNotifier
 from gps_denied_onboard.daemon.signals import IGNORED_SIGNALS
@@ -381,7 +380,11 @@ class NavigatorCore:
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         try:
             sock.connect(self._rendezvous)
-            pid, _, _ = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))
+            pid, uid, _ = peer_credentials(sock)
+            if uid != os.getuid():  # another user's process holds the name: not a worker of ours
+                log.warning(LogEvent.CORE_RENDEZVOUS_FOREIGN, pid=pid, uid=uid)
+                sock.close()
+                return False
             proc = AdoptedWorker(pid)
             sock.setblocking(False)
             sock.send(pack({"kind": "core", "relay_port": self._relay_sock.getsockname()[1]}))

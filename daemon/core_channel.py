@@ -12,13 +12,20 @@ its pipeline running and waits up to ``daemon.worker_orphan_s`` for the core's n
 to the rendezvous and takes it over (``adopt``: the worker says ``hello`` with its pid and its link's
 port; the core says where its relay is). A worker never speaks to the autopilot itself, so one waiting
 for a core sends nothing anyone could fly on; one whose core does not come back ends itself.
+
+An abstract socket has no file permissions: each side takes the other only when the kernel's peer
+credentials (``SO_PEERCRED``) show the same user as its own. A name another user holds costs the
+adoption, never the vision: the worker then runs without a rendezvous, and its core starts a new one when
+it dies, as before.
 """
 
 from __future__ import annotations
 
 import errno
 import hashlib
+import os
 import socket
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +51,13 @@ def rendezvous_address(fdr_dir: str | Path) -> bytes:
     waits for a core (the leading NUL: Linux's abstract namespace)."""
     digest = hashlib.sha256(str(Path(fdr_dir).resolve()).encode()).hexdigest()[:24]
     return b"\0gdnav-worker-" + digest.encode()
+
+
+def peer_credentials(sock: socket.socket) -> tuple[int, int, int]:
+    """The pid, uid and gid of the process at the other end of a connected Unix socket (the kernel's
+    record of who called ``connect`` or ``listen``; it cannot be forged)."""
+    pid, uid, gid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))
+    return int(pid), int(uid), int(gid)
 
 
 class RendezvousTaken(RuntimeError):
@@ -80,7 +94,8 @@ class CoreChannel:
                 listener.close()
                 if exc.errno == errno.EADDRINUSE:
                     raise RendezvousTaken(
-                        f"another vision worker of this daemon is running (rendezvous {rendezvous[1:]!r})"
+                        f"the rendezvous {rendezvous[1:]!r} is held by another process (a worker of this "
+                        "daemon its core did not adopt, or another user's)"
                     ) from exc
                 raise
             listener.listen(1)
@@ -96,6 +111,8 @@ class CoreChannel:
         self.adoptions = 0
         #: Where the newest adopting core's relay is (its loopback UDP port; None: not told).
         self.core_relay_port: int | None = None
+        #: Connections at the rendezvous from another user's process, refused.
+        self.foreign_peers = 0
 
     def fileno(self) -> int:
         return self._sock.fileno()
@@ -112,6 +129,12 @@ class CoreChannel:
         try:
             sock, _ = self._listener.accept()
         except (BlockingIOError, InterruptedError):
+            return False
+        pid, uid, _ = peer_credentials(sock)
+        if uid != os.getuid():
+            sock.close()
+            self.foreign_peers += 1
+            log.warning(LogEvent.WORKER_FOREIGN_PEER, pid=pid, uid=uid, refused=self.foreign_peers)
             return False
         sock.setblocking(False)
         old, self._sock = self._sock, sock

@@ -12,6 +12,7 @@ import json
 import os
 import signal
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -207,3 +208,61 @@ def test_a_killed_worker_leaves_no_gap_and_the_new_one_starts_from_the_cores_fil
         if r["kind"] == FdrKind.CORE_WORKER
     ]
     assert events[:4] == ["started", "lost", "started", "back"], events
+
+
+_FOREIGN_UID = 65534  # nobody
+
+
+def _as_nobody(code: str) -> subprocess.Popen[str]:
+    """``code`` in a Python child that has dropped to uid ``_FOREIGN_UID`` first (needs root)."""
+    prelude = f"import os, socket, sys, time; os.setgid({_FOREIGN_UID}); os.setuid({_FOREIGN_UID}); "
+    return subprocess.Popen([sys.executable, "-c", prelude + code], stdout=subprocess.PIPE, text=True)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="dropping a child to another user needs root")
+def test_the_rendezvous_takes_only_a_peer_of_the_same_user(tmp_path: Path) -> None:
+    """An abstract socket has no file permissions: a worker refuses a core of another user, and a core
+    refuses a rendezvous another user holds (it starts a worker of its own instead)."""
+    from gps_denied_onboard.daemon.core_channel import CoreChannel, rendezvous_address
+
+    # the worker's side: another user's connection is refused, its own core's is taken
+    name = rendezvous_address(tmp_path / "worker_side")
+    core_end, worker_end = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    channel = CoreChannel(worker_end.detach(), rendezvous=name, hello={"pid": os.getpid()})
+    core_end.close()
+    try:
+        intruder = _as_nobody(
+            f"s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET); s.connect({name!r}); "
+            "print('in', flush=True); time.sleep(5)"
+        )
+        assert intruder.stdout is not None and intruder.stdout.readline().strip() == "in"
+        assert not channel.adopt() and channel.foreign_peers == 1
+        intruder.kill()
+        with socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET) as own:
+            own.connect(name)
+            assert channel.adopt() and channel.adoptions == 1
+            own.settimeout(5.0)
+            assert b"hello" in own.recv(65536)
+    finally:
+        channel.close()
+
+    # the core's side: a name held by another user is not a worker to adopt
+    fdr = tmp_path / "core_side"
+    squatter = _as_nobody(
+        f"s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET); s.bind({rendezvous_address(fdr)!r}); "
+        "s.listen(1); print('bound', flush=True); time.sleep(30)"
+    )
+    try:
+        assert squatter.stdout is not None and squatter.stdout.readline().strip() == "bound"
+        port = _free_udp_port()
+        cfg = config_from_mapping({"mavlink": {"url": f"udpin:127.0.0.1:{port}"}, "fdr": {"dir": str(fdr)}})
+        clock = DaemonClock()
+        link = open_link_first(cfg, clock)
+        core = NavigatorCore(cfg, tmp_path / "unused.yaml", [], link=link, clock=clock)
+        try:
+            assert not core._adopt_worker()
+            assert core._worker.proc is None and core._worker.adoptions == 0
+        finally:
+            link.close()
+    finally:
+        squatter.kill()

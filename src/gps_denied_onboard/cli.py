@@ -121,16 +121,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from gps_denied_onboard.daemon.core import WORKER_SIGNING_LINK_ID
         from gps_denied_onboard.daemon.core_channel import CoreChannel, RendezvousTaken, rendezvous_address
 
+        hello = {"pid": os.getpid(), "mavlink_url": config.mavlink.url}
         try:  # listening for the core's next start from the first, so a core crash never ends the vision
             channel = CoreChannel(
                 args.worker_fd,
                 rendezvous=rendezvous_address(config.fdr.dir),
-                hello={"pid": os.getpid(), "mavlink_url": config.mavlink.url},
+                hello=hello,
                 clock_anchor_ns=clock.anchor_unix_ns,
             )
-        except RendezvousTaken as exc:
-            log.error("daemon.startup_refused", what="--worker-fd", error=str(exc))
-            return EXIT_FAILURE
+        except RendezvousTaken as exc:  # no adoption for this worker; the vision runs all the same
+            log.warning(LogEvent.WORKER_NO_RENDEZVOUS, error=str(exc))
+            channel = CoreChannel(args.worker_fd, hello=hello, clock_anchor_ns=clock.anchor_unix_ns)
         global _err_to_core
         _err_to_core = channel.send_refusal
         if not channel.poll():  # the core's handover, if it has an estimate, is already waiting

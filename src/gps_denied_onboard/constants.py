@@ -158,6 +158,8 @@ class LogEvent:
     CORE_WORKER_REFUSED: Final = "core.worker_refused"
     #: A worker left running by the core's previous process, taken over at this core's start.
     CORE_WORKER_ADOPTED: Final = "core.worker_adopted"
+    #: Another user's process holds the worker's rendezvous: no adoption, a new worker is started.
+    CORE_RENDEZVOUS_FOREIGN: Final = "core.rendezvous_foreign"
     CORE_STATUS: Final = "core.status"
     #: The vision worker's side: the core's handover taken, a message from the core refused, its core
     #: gone (it waits ``daemon.worker_orphan_s`` for the next), and taken over by a new core.
@@ -165,6 +167,10 @@ class LogEvent:
     WORKER_BAD_CORE_MESSAGE: Final = "worker.bad_core_message"
     WORKER_ORPHANED: Final = "worker.orphaned"
     WORKER_ADOPTED: Final = "worker.adopted"
+    #: A connection at the rendezvous from another user's process, refused; the name held by another
+    #: user at the worker's start (it runs without one).
+    WORKER_FOREIGN_PEER: Final = "worker.foreign_peer"
+    WORKER_NO_RENDEZVOUS: Final = "worker.no_rendezvous"
     CAMERA_CONNECTED: Final = "camera.connected"
     CAMERA_DISCONNECTED: Final = "camera.disconnected"
     CAMERA_FRAME_DROPPED: Final = "camera.frame_dropped"
