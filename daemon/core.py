@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import math
 import os
 import select
@@ -56,6 +57,7 @@ from typing import Any, Final
 import structlog
 from pymavlink import mavutil
 
+from gps_denied_onboard import __version__
 from gps_denied_onboard.clock import DaemonClock
 from gps_denied_onboard.components.c5_estimator.ekf import NavEstimator
 from gps_denied_onboard.components.c5_estimator.prior import ResumeState
@@ -109,6 +111,8 @@ WORKER_EOF_GRACE_S: Final = 0.5
 WORKER_STOP_GRACE_S: Final = 1.2
 #: The largest message on the socket (a state is about 1 KiB), bytes.
 MAX_MESSAGE_BYTES: Final = 65536
+#: The environment variable that carries a worker's ``launch_id`` from the core that started it.
+LAUNCH_ID_ENV: Final = "GDNAV_WORKER_LAUNCH_ID"
 #: An adopted worker's exit status, which only its parent could read (``_exit_text``: "ended").
 EXIT_UNKNOWN: Final = 256
 #: The core's share of ``fdr.max_bytes`` for its own records (at least two segments); the worker gets the
@@ -210,6 +214,8 @@ class NavigatorCore:
         self._cfg = config
         self._config_path = str(config_path)
         self._overrides = list(overrides)
+        #: What this core starts its workers with; an orphan started with anything else is not adopted.
+        self._launch_id = launch_id(self._config_path, self._overrides)
         self._link = link
         self._clock = clock
         self._notifier = notifier or SdNotifier()
@@ -348,6 +354,7 @@ class NavigatorCore:
         if handover is not None:
             core_end.send(pack(handover))  # waits in the socket for the worker's first read
         env = dict(os.environ)
+        env[LAUNCH_ID_ENV] = self._launch_id
         env.pop("NOTIFY_SOCKET", None)  # systemd hears the core only (NotifyAccess=main)
         env.pop("WATCHDOG_USEC", None)
         env.pop("WATCHDOG_PID", None)
@@ -534,8 +541,14 @@ class NavigatorCore:
         if message["kind"] == "refusal" and isinstance(message.get("text"), str):
             self.worker_refusal = message["text"]
             return
-        if message["kind"] == "hello":  # an adopted worker: where its link listens
+        if message["kind"] == "hello":  # an adopted worker: where its link listens, what it was started with
             w.port = _udpin_port(message.get("mavlink_url"))
+            if message.get("launch_id") != self._launch_id:
+                # another configuration or version than this core's (changed, then the core crashed):
+                # what the operator set now must take effect, so it is replaced, not adopted
+                theirs = message.get("launch_id")
+                log.warning(LogEvent.CORE_WORKER_STALE, launch_id=theirs, own=self._launch_id)
+                self._kill_worker("started with another configuration or version", "config changed")
             return
         if message["kind"] != "estimate":
             return  # "alive": loading, or waiting for its first prior
@@ -760,6 +773,17 @@ def _free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         probe.bind(("127.0.0.1", 0))
         return int(probe.getsockname()[1])
+
+
+def launch_id(config_path: str | Path, overrides: Sequence[str]) -> str:
+    """What a worker is started with, in 16 hex digits: the package's version, the configuration file's
+    bytes and the overrides (``LAUNCH_ID_ENV`` in its environment; it says it back in its ``hello``)."""
+    digest = hashlib.sha256(__version__.encode())
+    with contextlib.suppress(OSError):
+        digest.update(Path(config_path).read_bytes())
+    for item in overrides:
+        digest.update(b"\0" + item.encode())
+    return digest.hexdigest()[:16]
 
 
 def _udpin_port(url: object) -> int:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon_harness import build_small_cache, daemon_command, free_udp_port, start_daemon, wait_for
+from daemon_harness import build_small_cache, daemon_command, start_daemon, wait_for
 from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.constants import CORE_FDR_SUBDIR, FdrKind
@@ -179,7 +179,7 @@ def test_a_killed_core_leaves_its_vision_worker_to_the_next_core_and_an_unclaime
         d.proc.wait(10)
         assert wait_for(lambda: '"worker.orphaned"' in d.log_text(), 10.0), d.log_text()[-2000:]
         assert not _gone(worker)
-        mav_port = free_udp_port()
+        mav_port = d.mav_port  # the same command line, as systemd starts it again
         cmd = daemon_command(mav_port, d.cam_port, d.fdr_dir, f"cache.dir={small_cache}", *overrides)
         with (tmp_path / "second.log").open("wb") as log:
             second = subprocess.Popen(cmd, stdout=log, stderr=log)
@@ -206,3 +206,39 @@ def test_a_killed_core_leaves_its_vision_worker_to_the_next_core_and_an_unclaime
         d.stop()
         if not _gone(worker):
             os.kill(worker, signal.SIGKILL)
+
+
+def test_a_core_started_with_another_configuration_replaces_the_worker_it_finds(
+    tmp_path: Path, small_cache: Path
+) -> None:
+    """The core killed, then started again with a changed setting: the worker still running was started
+    with the old one, so the new core does not keep it (what the operator set must take effect): it
+    replaces it with a worker of its own."""
+    d = start_daemon(tmp_path, small_cache, overrides=("daemon.worker_orphan_s=5.0",))
+    second: subprocess.Popen[bytes] | None = None
+    try:
+        _autopilot_until_heartbeat(d.mav_port)
+        assert wait_for(lambda: '"daemon.ready"' in d.log_text() or d.proc.poll() is not None, 60.0)
+        d.proc.kill()
+        d.proc.wait(10)
+        assert wait_for(lambda: '"worker.orphaned"' in d.log_text(), 10.0), d.log_text()[-2000:]
+        mav_port = d.mav_port
+        changed = ("daemon.worker_orphan_s=6.0",)
+        cmd = daemon_command(mav_port, d.cam_port, d.fdr_dir, f"cache.dir={small_cache}", *changed)
+        second_log = tmp_path / "second.log"
+        with second_log.open("wb") as log:
+            second = subprocess.Popen(cmd, stdout=log, stderr=log)
+        _autopilot_until_heartbeat(mav_port)
+
+        def events() -> list[str]:
+            records = read_records(d.fdr_dir / CORE_FDR_SUBDIR)
+            return [r["event"] for r in records if r["kind"] == FdrKind.CORE_WORKER]
+
+        assert wait_for(lambda: events()[-1:] == ["started"] and len(events()) >= 4, 20.0), events()
+        assert events()[:4] == ["started", "adopted", "lost", "started"], events()
+        assert '"core.worker_stale"' in second_log.read_text(errors="replace")
+    finally:
+        if second is not None:
+            second.terminate()
+            second.wait(10)
+        d.stop()

@@ -118,10 +118,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
     clock = DaemonClock()
     channel = None
     if worker:
-        from gps_denied_onboard.daemon.core import WORKER_SIGNING_LINK_ID
+        from gps_denied_onboard.daemon.core import LAUNCH_ID_ENV, WORKER_SIGNING_LINK_ID
         from gps_denied_onboard.daemon.core_channel import CoreChannel, RendezvousTaken, rendezvous_address
 
-        hello = {"pid": os.getpid(), "mavlink_url": config.mavlink.url}
+        hello = {
+            "pid": os.getpid(),
+            "mavlink_url": config.mavlink.url,
+            "launch_id": os.environ.get(LAUNCH_ID_ENV),
+        }
         try:  # listening for the core's next start from the first, so a core crash never ends the vision
             channel = CoreChannel(
                 args.worker_fd,

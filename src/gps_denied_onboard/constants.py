@@ -158,6 +158,8 @@ class LogEvent:
     CORE_WORKER_REFUSED: Final = "core.worker_refused"
     #: A worker left running by the core's previous process, taken over at this core's start.
     CORE_WORKER_ADOPTED: Final = "core.worker_adopted"
+    #: The worker at the rendezvous was started with another configuration or version: replaced.
+    CORE_WORKER_STALE: Final = "core.worker_stale"
     #: Another user's process holds the worker's rendezvous: no adoption, a new worker is started.
     CORE_RENDEZVOUS_FOREIGN: Final = "core.rendezvous_foreign"
     CORE_STATUS: Final = "core.status"
