@@ -90,7 +90,7 @@ def apply_map_edits(
                     0.5 * (edit.path_from + edit.path_to) * traj.path_length_m
                 )
                 dc, dr = _metres_to_px(ds, mid_lat, mid_lon, *edit.offset_m)
-                shift = np.float32([[1, 0, dc], [0, 1, dr]])
+                shift = np.array([[1, 0, dc], [0, 1, dr]], dtype=np.float32)
                 moved = cv2.warpAffine(
                     img, shift, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
                 )

@@ -450,7 +450,7 @@ def analyse(
         )
         switch_lag = None if vp is None else vp - first_ii
 
-    def err(seq: int) -> float | None:
+    def error_at(seq: int) -> float | None:
         row = rows.get(seq)
         return None if row is None else row.get("horizontal_error_m")
 
@@ -460,9 +460,9 @@ def analyse(
     first_anchored = next((i for i, lab in enumerate(labels) if lab == "satellite_anchored"), len(seqs))
     first_gap = next((a for a, _ in segments if a > first_anchored), len(seqs))
     before = [
-        err(seqs[i])
+        error_at(seqs[i])
         for i in range(first_gap)
-        if labels[i] == "satellite_anchored" and err(seqs[i]) is not None
+        if labels[i] == "satellite_anchored" and error_at(seqs[i]) is not None
     ]
     nominal_p95 = _pct([e for e in before if e is not None], 95)
     vio = []
@@ -472,8 +472,8 @@ def analyse(
             float(haversine_m(p["true_lat_deg"], p["true_lon_deg"], q["true_lat_deg"], q["true_lon_deg"]))
             for p, q in itertools.pairwise(path)
         )
-        e0 = err(seqs[a - 1]) if a > 0 else None
-        during = [e for e in (err(seqs[i]) for i in range(a, b + 1)) if e is not None]
+        e0 = error_at(seqs[a - 1]) if a > 0 else None
+        during = [e for e in (error_at(seqs[i]) for i in range(a, b + 1)) if e is not None]
         growth = (max(during) - (e0 or 0.0)) if during else None
         recover = None
         if nominal_p95 is not None:
@@ -481,7 +481,7 @@ def analyse(
             for i in range(b + 1, len(seqs)):
                 if labels[i] == "satellite_anchored":
                     n_fixes += 1
-                    e = err(seqs[i])
+                    e = error_at(seqs[i])
                     if e is not None and e <= nominal_p95:
                         recover = n_fixes
                         break
