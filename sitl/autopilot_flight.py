@@ -32,7 +32,7 @@ from gps_denied_onboard.camera.stream import encode_frame
 from gps_denied_onboard.camera.types import Attitude
 from gps_denied_onboard.components.c13_fdr import read_records
 from gps_denied_onboard.config import ConfigError, load_config
-from gps_denied_onboard.constants import CORE_FDR_SUBDIR
+from gps_denied_onboard.constants import CORE_FDR_SUBDIR, FdrKind
 from gps_denied_onboard.geo import haversine_m
 from gps_denied_onboard.sitl.frame_server import FrameServer
 from gps_denied_onboard.sitl.host_faults import CpuHogs, child_pids
@@ -417,7 +417,7 @@ async def _run_flight(
             while not t0:
                 await asyncio.sleep(0.1)
             await asyncio.sleep(max(0.0, t0[0] + at_s - time.time()))
-            workers = child_pids(procs[-1].pid)
+            workers = child_pids(procs[-1].pid) or _adopted_worker(flight.workdir / "fdr" / CORE_FDR_SUBDIR)
             for pid in workers:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(pid, signal.SIGKILL)
@@ -524,6 +524,17 @@ def run_autopilot_cli(args: Any) -> int:
     print(f"autopilot     {args.autopilot}, truth from {report['autopilot']['truth_source']}")
     print(f"report        {opts.report_path}")
     return 0 if report["daemon_exit_code"] == 0 else 1
+
+
+def _adopted_worker(core_fdr: Path) -> list[int]:
+    """The vision worker a restarted core adopted (not its child): the pid of its newest ``core.worker``
+    record of a start or an adoption."""
+    pids = [
+        int(r["pid"])
+        for r in read_records(core_fdr)
+        if r.get("kind") == FdrKind.CORE_WORKER and r.get("event") in ("started", "adopted")
+    ]
+    return pids[-1:]
 
 
 def _percentiles(values: list[float]) -> dict[str, float] | None:
