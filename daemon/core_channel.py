@@ -60,8 +60,22 @@ def peer_credentials(sock: socket.socket) -> tuple[int, int, int]:
     return int(pid), int(uid), int(gid)
 
 
-class RendezvousTaken(RuntimeError):
-    """Another vision worker of this daemon holds the rendezvous: its core should have adopted it."""
+def _listen(rendezvous: bytes) -> socket.socket | None:
+    """The worker's listener at ``rendezvous``; None, logged, where the name cannot be had (held by a
+    worker its core did not adopt, or by another user's process): the vision runs all the same, only
+    no later core can adopt it."""
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        listener.bind(rendezvous)
+        listener.listen(1)
+    except OSError as exc:
+        listener.close()
+        held = exc.errno == errno.EADDRINUSE
+        name = rendezvous[1:].decode()
+        log.warning(LogEvent.WORKER_NO_RENDEZVOUS, rendezvous=name, held=held, error=str(exc))
+        return None
+    listener.setblocking(False)
+    return listener
 
 
 #: The largest message the core sends (a handover is about 1 KiB), bytes.
@@ -85,22 +99,7 @@ class CoreChannel:
         self._anchor_ns = clock_anchor_ns
         self._sock = socket.socket(fileno=fd)
         self._sock.setblocking(False)
-        self._listener: socket.socket | None = None
-        if rendezvous is not None:
-            listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-            try:
-                listener.bind(rendezvous)
-            except OSError as exc:
-                listener.close()
-                if exc.errno == errno.EADDRINUSE:
-                    raise RendezvousTaken(
-                        f"the rendezvous {rendezvous[1:]!r} is held by another process (a worker of this "
-                        "daemon its core did not adopt, or another user's)"
-                    ) from exc
-                raise
-            listener.listen(1)
-            listener.setblocking(False)
-            self._listener = listener
+        self._listener = None if rendezvous is None else _listen(rendezvous)
         self._hello = dict(hello or {})
         #: The core's filter to start from (None: none, or already taken).
         self.handover: WireState | None = None

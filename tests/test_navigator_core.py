@@ -266,3 +266,24 @@ def test_the_rendezvous_takes_only_a_peer_of_the_same_user(tmp_path: Path) -> No
             link.close()
     finally:
         squatter.kill()
+
+
+def test_a_worker_whose_rendezvous_is_held_runs_on_without_one(tmp_path: Path) -> None:
+    """The name held by another process (a worker its core did not adopt): the new worker's channel to its
+    own core still works, only no later core can adopt it."""
+    from gps_denied_onboard.daemon.core_channel import CoreChannel, rendezvous_address
+
+    name = rendezvous_address(tmp_path)
+    with socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET) as holder:
+        holder.bind(name)
+        holder.listen(1)
+        core_end, worker_end = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        channel = CoreChannel(worker_end.detach(), rendezvous=name)
+        try:
+            assert channel.rendezvous_fileno() is None and not channel.adopt()
+            assert channel.send_alive(system_status=3)
+            core_end.settimeout(5.0)
+            assert b"alive" in core_end.recv(65536)
+        finally:
+            channel.close()
+            core_end.close()

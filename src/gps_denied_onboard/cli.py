@@ -119,23 +119,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
     channel = None
     if worker:
         from gps_denied_onboard.daemon.core import LAUNCH_ID_ENV, WORKER_SIGNING_LINK_ID
-        from gps_denied_onboard.daemon.core_channel import CoreChannel, RendezvousTaken, rendezvous_address
+        from gps_denied_onboard.daemon.core_channel import CoreChannel, rendezvous_address
 
         hello = {
             "pid": os.getpid(),
             "mavlink_url": config.mavlink.url,
             "launch_id": os.environ.get(LAUNCH_ID_ENV),
         }
-        try:  # listening for the core's next start from the first, so a core crash never ends the vision
-            channel = CoreChannel(
-                args.worker_fd,
-                rendezvous=rendezvous_address(config.fdr.dir),
-                hello=hello,
-                clock_anchor_ns=clock.anchor_unix_ns,
-            )
-        except RendezvousTaken as exc:  # no adoption for this worker; the vision runs all the same
-            log.warning(LogEvent.WORKER_NO_RENDEZVOUS, error=str(exc))
-            channel = CoreChannel(args.worker_fd, hello=hello, clock_anchor_ns=clock.anchor_unix_ns)
+        channel = CoreChannel(  # listening for the core's next start, so a core crash never ends the vision
+            args.worker_fd,
+            rendezvous=rendezvous_address(config.fdr.dir),
+            hello=hello,
+            clock_anchor_ns=clock.anchor_unix_ns,
+        )
         global _err_to_core
         _err_to_core = channel.send_refusal
         if not channel.poll():  # the core's handover, if it has an estimate, is already waiting
