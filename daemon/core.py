@@ -368,16 +368,23 @@ class NavigatorCore:
             nice = os.getpriority(os.PRIO_PROCESS, 0) + self._cfg.daemon.worker_nice_offset
             os.setpriority(os.PRIO_PROCESS, proc.pid, min(19, nice))
         core_end.setblocking(False)
-        w.proc, w.sock = proc, core_end
-        w.started_s = time.monotonic()
-        w.first_message_s = self._cfg.daemon.worker_start_s
-        w.heard_s = w.estimate_s = w.eof_s = None
-        w.kill_reason = None
+        self._take_worker(proc, core_end, first_message_s=self._cfg.daemon.worker_start_s)
         w.starts += 1
-        w.system_status = mavutil.mavlink.MAV_STATE_BOOT
         fields = {"pid": proc.pid, "start": w.starts, "handover": handover is not None, "port": w.port}
         log.info(LogEvent.CORE_WORKER_STARTED, **fields)
         self._fdr.record(FdrKind.CORE_WORKER, {"event": "started", **fields})
+
+    def _take_worker(
+        self, proc: subprocess.Popen[bytes] | AdoptedWorker, sock: socket.socket, *, first_message_s: float
+    ) -> None:
+        """``proc`` is this core's worker from now on (started or adopted), heard on ``sock``."""
+        w = self._worker
+        w.proc, w.sock = proc, sock
+        w.started_s = time.monotonic()
+        w.first_message_s = first_message_s
+        w.heard_s = w.estimate_s = w.eof_s = None
+        w.kill_reason = None
+        w.system_status = mavutil.mavlink.MAV_STATE_BOOT
 
     def _adopt_worker(self) -> bool:
         """Take over a worker of this daemon left running by the core's previous process, if one waits
@@ -398,13 +405,10 @@ class NavigatorCore:
         except OSError:  # nobody listens (refused, or gone meanwhile): no worker of this daemon runs
             sock.close()
             return False
-        w.proc, w.sock, w.port = proc, sock, 0  # the port comes with its hello
-        w.started_s = time.monotonic()
-        w.first_message_s = self._cfg.daemon.worker_silence_s  # it runs already: it answers at once
-        w.heard_s = w.estimate_s = w.eof_s = None
-        w.kill_reason = None
+        w.port = 0  # the port comes with its hello
+        # it runs already: it answers at once
+        self._take_worker(proc, sock, first_message_s=self._cfg.daemon.worker_silence_s)
         w.adoptions += 1
-        w.system_status = mavutil.mavlink.MAV_STATE_BOOT
         fields = {"pid": pid, "adoptions": w.adoptions}
         log.warning(LogEvent.CORE_WORKER_ADOPTED, **fields)
         self._fdr.record(FdrKind.CORE_WORKER, {"event": "adopted", **fields})
@@ -550,8 +554,8 @@ class NavigatorCore:
                 log.warning(LogEvent.CORE_WORKER_STALE, launch_id=theirs, own=self._launch_id)
                 self._kill_worker("started with another configuration or version", "config changed")
             return
-        if message["kind"] != "estimate":
-            return  # "alive": loading, or waiting for its first prior
+        if message["kind"] != "estimate" or w.kill_reason is not None:
+            return  # "alive": loading, or waiting for its first prior; or a worker being killed
         ws = state_from_wire(message["state"], clock_anchor_ns=self._clock.anchor_unix_ns)
         if self._est is None or self._ltp != ws.ltp:
             self._est = NavEstimator(self._cfg.estimator, ws.ltp, accel_source=self._link.tracker)
