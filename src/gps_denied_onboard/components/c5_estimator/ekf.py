@@ -663,7 +663,7 @@ class NavEstimator:
                 # VO has said a different velocity frame after frame: a manoeuvre the state's velocity
                 # did not follow is as likely as VO being wrong. So the velocity the state claims is in
                 # doubt by what VO says, and its position by what that difference moved it over the
-                # frames gated (its sigma, and its speed sigma, leave 3D) until VO or a fix settles it.
+                # frames gated: the stated accuracy covers VO being right, and VO is heard again.
                 # A single blunder stays gated.
                 drift = innov * self._vo_gated_s
                 self._kf.P[3:5, 3:5] += np.outer(innov, innov)
