@@ -15,11 +15,12 @@ by gated fixes that agree over ``prior_conflict_span_m``); a C1 ``VoMotion`` (th
 velocity, moved to its end with the IMU when known, covariance ``vo_noise_scale * cov / dt^2``, scaled
 up while the recent VO innovations show VO noisier than it states: ``_vo_noise_factor``); the altitude
 (AGL plus the flat ground, on ``d``).
-Disagreement that persists is doubt, not noise (``CONSECUTIVE_GATED_INFLATE`` in a row): gated VO puts the
-state's velocity in doubt by VO's, and its position by what that moved it over the frames gated; gated
-fixes put the position in doubt by theirs, unless VO has carried the state since its last accepted fix
-(then they are a look-alike area and stay refused; VO back after a dead-reckoned stretch vouches for
-nothing before it).
+Disagreement that persists is doubt, not noise (``CONSECUTIVE_GATED_INFLATE`` in a row): gated VO that
+keeps saying one other velocity puts the state's velocity in doubt by VO's, and its position by what
+that moved it over the frames gated (VO that says another thing each frame stays gated); gated fixes
+put the position in doubt by theirs, unless VO has carried the state since its last accepted fix (then
+they are a look-alike area and stay refused; VO back after a dead-reckoned stretch vouches for nothing
+before it).
 Shared error: ``shared_sigma_m`` bounds the part of the map fixes' error they all share
 (``s <- ||I - K|| s + ||K|| s_fix`` per accepted fix) and is added to every output, so fusing more fixes
 never averages it away; the gates leave it out. A slope's share (``PoseFix.slope_sigma_m``) is in the
@@ -73,6 +74,10 @@ CHI2_2DOF_MEDIAN: Final[float] = 1.386
 #: The most VO's stated covariance is scaled up by the innovations it showed (5x its sigma).
 VO_NOISE_FACTOR_MAX: Final[float] = 25.0
 
+#: One gated VO velocity of a run (``EstimatorCheckpoint.vo_gated_run``): its innovation n, e (m/s), its
+#: covariance nn, ne, ee (m^2/s^2) and its interval (s).
+VoGated = tuple[float, float, float, float, float, float]
+
 #: Consecutive gated fixes after which their disagreement is added to the position covariance; and
 #: consecutive gated VO velocities after which theirs is added to the velocity covariance.
 CONSECUTIVE_GATED_INFLATE: Final[int] = 3
@@ -123,6 +128,28 @@ def _horiz_sigma_m(p_mat: np.ndarray) -> float:
     return float(np.sqrt(np.max(np.linalg.eigvalsh(p_mat[:2, :2]))))
 
 
+def _vo_agrees_with_run(
+    run: tuple[VoGated, ...],
+    innov: np.ndarray,
+    r_mat: np.ndarray,
+    dt_s: float,
+    accel_density_m_s2: float,
+    gate_chi2: float,
+) -> bool:
+    """Whether a gated VO velocity's innovation agrees with every one of ``run`` (gated VO before it, in
+    a row): they differ by no more than the two VO noises and what the state's velocity may have
+    wandered between them (``accel_density_m_s2`` white over the time apart) allow, gated like one
+    measurement. The state's own error is common to both and cancels."""
+    span_s = dt_s
+    for n, e, rnn, rne, ree, run_dt_s in reversed(run):
+        cov = r_mat + np.array([[rnn, rne], [rne, ree]]) + np.eye(2) * accel_density_m_s2**2 * span_s
+        diff = innov - np.array([n, e])
+        if float(diff @ np.linalg.solve(cov, diff)) > gate_chi2:
+            return False
+        span_s += run_dt_s
+    return True
+
+
 def _valid_accel(a: np.ndarray | None) -> np.ndarray | None:
     if a is None:
         return None
@@ -160,9 +187,9 @@ class EstimatorCheckpoint:
     prior_conflict: PriorConflict | None = None
     map_confirmed: bool = False
     vo_nis: tuple[float, ...] = ()
-    #: VO velocities gated in a row (``update_vo``), and the time they span, s.
-    vo_consecutive_gated: int = 0
-    vo_gated_s: float = 0.0
+    #: The VO velocities gated in a row that agree with each other (``update_vo``): per frame its
+    #: innovation (n, e; m/s), its covariance (nn, ne, ee; m^2/s^2) and its interval, s.
+    vo_gated_run: tuple[VoGated, ...] = ()
     #: Since the last accepted fix the state has moved without VO for longer than ``vo_recent_s`` (a
     #: dead-reckoned stretch), so VO fused now does not vouch for its position.
     dr_since_fix: bool = False
@@ -207,8 +234,7 @@ class NavEstimator:
         #: estimate): only then may the output be a 3D fix (``EstimatorState.map_confirmed``).
         self._map_confirmed = False
         self._last_vo_usec: int | None = None
-        self._vo_consecutive_gated = 0
-        self._vo_gated_s = 0.0
+        self._vo_gated_run: tuple[VoGated, ...] = ()
         self._dr_since_fix = False
         #: The normalised innovations of the newest VO updates against VO's stated covariance (gated
         #: ones too), the newest last (``_vo_noise_factor``).
@@ -271,8 +297,7 @@ class NavEstimator:
         self._prior_conflict = None
         self._map_confirmed = bool(map_confirmed)
         self._last_vo_usec = None
-        self._vo_consecutive_gated = 0
-        self._vo_gated_s = 0.0
+        self._vo_gated_run = ()
         self._dr_since_fix = False
         self._vo_nis = ()
         self._yaw_rad = None
@@ -304,8 +329,7 @@ class NavEstimator:
             self._prior_conflict,
             self._map_confirmed,
             self._vo_nis,
-            self._vo_consecutive_gated,
-            self._vo_gated_s,
+            self._vo_gated_run,
             self._dr_since_fix,
         )
 
@@ -324,8 +348,7 @@ class NavEstimator:
         self._prior_conflict = cp.prior_conflict
         self._map_confirmed = cp.map_confirmed
         self._vo_nis = cp.vo_nis
-        self._vo_consecutive_gated = cp.vo_consecutive_gated
-        self._vo_gated_s = cp.vo_gated_s
+        self._vo_gated_run = cp.vo_gated_run
         self._dr_since_fix = cp.dr_since_fix
 
     # -- prediction ---------------------------------------------------------------------------------------
@@ -648,8 +671,19 @@ class NavEstimator:
         s_mat = self._kf.P[3:5, 3:5] + r_mat
         nis = float(innov @ np.linalg.solve(s_mat, innov))
         if nis > self._config.fix_gate_chi2:
-            self._vo_consecutive_gated += 1
-            self._vo_gated_s += dt
+            density = self._config.accel_noise_m_s2 if accel is None else self._config.imu_accel_noise_m_s2
+            run = self._vo_gated_run
+            if not _vo_agrees_with_run(run, innov, r_mat, dt, density, self._config.fix_gate_chi2):
+                run = ()  # VO saying something else again: a new run starts with this frame
+            entry: VoGated = (
+                float(innov[0]),
+                float(innov[1]),
+                float(r_mat[0, 0]),
+                float(r_mat[0, 1]),
+                float(r_mat[1, 1]),
+                dt,
+            )
+            self._vo_gated_run = run = (*run, entry)
             self._emit(
                 "warning",
                 LogEvent.ESTIMATOR_VO_REJECTED,
@@ -657,24 +691,26 @@ class NavEstimator:
                 nis=nis,
                 gate=self._config.fix_gate_chi2,
                 noise_factor=round(factor, 2),
-                consecutive=self._vo_consecutive_gated,
+                consecutive=len(run),
             )
-            if self._vo_consecutive_gated >= CONSECUTIVE_GATED_INFLATE:
-                # VO has said a different velocity frame after frame: a manoeuvre the state's velocity
-                # did not follow is as likely as VO being wrong. So the velocity the state claims is in
-                # doubt by what VO says, and its position by what that difference moved it over the
-                # frames gated: the stated accuracy covers VO being right, and VO is heard again.
-                # A single blunder stays gated.
-                drift = innov * self._vo_gated_s
-                self._kf.P[3:5, 3:5] += np.outer(innov, innov)
+            if len(run) >= CONSECUTIVE_GATED_INFLATE:
+                # VO has said one other velocity frame after frame: a manoeuvre the state's velocity did
+                # not follow is as likely as VO being wrong. So the velocity the state claims is in doubt
+                # by what VO says, and its position by what that difference moved it over the frames
+                # gated: the stated accuracy covers VO being right, and VO is heard again. VO that says
+                # a different thing each frame (a blunder, or a camera whose lateness is not yet
+                # measured de-rotated with the wrong attitude in a turn) agrees with no run and stays
+                # gated: that is VO's noise, not the state's doubt.
+                mean = np.mean([e[:2] for e in run], axis=0)
+                drift = mean * sum(e[5] for e in run)
+                self._kf.P[3:5, 3:5] += np.outer(mean, mean)
                 self._kf.P[:2, :2] += np.outer(drift, drift)
-                self._vo_consecutive_gated = 0
-                self._vo_gated_s = 0.0
+                self._vo_gated_run = ()
                 self._emit(
                     "warning",
                     LogEvent.ESTIMATOR_COVARIANCE_INFLATED,
                     what="velocity",
-                    innovation_m_s=float(np.hypot(*innov)),
+                    innovation_m_s=float(np.hypot(*mean)),
                     speed_sigma_m_s=float(np.sqrt(np.trace(self._kf.P[3:5, 3:5]) / 2.0)),
                     horiz_sigma_m=_horiz_sigma_m(self._kf.P),
                 )
@@ -684,8 +720,7 @@ class NavEstimator:
             if (self._time_usec - carried_usec) / 1e6 > self._vo_recent_s:
                 self._dr_since_fix = True  # VO back after a stretch the state was dead-reckoned through
         self._kf.update(vel.reshape(2, 1), R=r_mat, H=_H_VEL_NE)
-        self._vo_consecutive_gated = 0
-        self._vo_gated_s = 0.0
+        self._vo_gated_run = ()
         self._last_vo_usec = self._time_usec
         self._refresh_provenance()
         return FixDecision(True, nis, FixReason.ACCEPTED)

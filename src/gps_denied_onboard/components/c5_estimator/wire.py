@@ -22,7 +22,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from gps_denied_onboard.components.c5_estimator.ekf import EstimatorCheckpoint, PriorConflict
+from gps_denied_onboard.components.c5_estimator.ekf import EstimatorCheckpoint, PriorConflict, VoGated
 from gps_denied_onboard.geo import LocalTangentPlane
 
 
@@ -46,6 +46,10 @@ def _matrix(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
     if out.shape != shape or not np.all(np.isfinite(out)):
         raise WireError(f"{name}: expected finite numbers of shape {shape}, got shape {out.shape}")
     return out
+
+
+def _vo_gated(v: np.ndarray) -> VoGated:
+    return (float(v[0]), float(v[1]), float(v[2]), float(v[3]), float(v[4]), float(v[5]))
 
 
 def _opt_int(value: Any, name: str) -> int | None:
@@ -99,8 +103,7 @@ def state_to_wire(
         },
         "confirmed": cp.map_confirmed,
         "vo_nis": list(cp.vo_nis),
-        "vo_gated": cp.vo_consecutive_gated,
-        "vo_gated_s": cp.vo_gated_s,
+        "vo_gated_run": [list(e) for e in cp.vo_gated_run],
         "dr_since_fix": cp.dr_since_fix,
     }
 
@@ -133,9 +136,9 @@ def state_from_wire(fields: Mapping[str, Any], *, clock_anchor_ns: int | None = 
         if shared is None or shared < 0:
             raise WireError(f"shared: expected a sigma >= 0 m, got {fields['shared']!r}")
         nis = tuple(float(v) for v in fields["vo_nis"])
-        vo_gated = fields.get("vo_gated", 0)  # absent from handovers recorded before it was sent
-        if not isinstance(vo_gated, int) or isinstance(vo_gated, bool) or vo_gated < 0:
-            raise WireError(f"vo_gated: expected a count, got {vo_gated!r}")
+        vo_run = tuple(  # absent from handovers recorded before it was sent
+            _vo_gated(_matrix(e, (6,), "vo_gated_run")) for e in fields.get("vo_gated_run", ())
+        )
         checkpoint = EstimatorCheckpoint(
             x=x,
             p_mat=p_mat,
@@ -150,8 +153,7 @@ def state_from_wire(fields: Mapping[str, Any], *, clock_anchor_ns: int | None = 
             prior_conflict=conflict,
             map_confirmed=bool(fields["confirmed"]),
             vo_nis=nis,
-            vo_consecutive_gated=vo_gated,
-            vo_gated_s=_opt_float(fields.get("vo_gated_s", 0.0), "vo_gated_s") or 0.0,
+            vo_gated_run=vo_run,
             dr_since_fix=bool(fields.get("dr_since_fix", False)),
         )
     except KeyError as exc:
