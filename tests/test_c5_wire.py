@@ -41,7 +41,9 @@ def _flown() -> NavEstimator:
         est.update_vo(_vo(np.array([3.0, 1.0]), 0.3, 1 / 3), time_unix_usec=t)
         est.update_fix(_fix(np.array([3.0 * k, 1.0 * k, 0.0]), 2.0, t, shared_sigma_m=0.5))
     for k in range(6, 8):
-        assert not est.update_vo(_vo(np.array([-3.0, 1.0]), 0.05, 1 / 3), time_unix_usec=T0 + k * S // 3).accepted
+        assert not est.update_vo(
+            _vo(np.array([-3.0, 1.0]), 0.05, 1 / 3), time_unix_usec=T0 + k * S // 3
+        ).accepted
     assert len(est.checkpoint().vo_gated_run) == 2
     return est
 
