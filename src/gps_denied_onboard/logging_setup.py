@@ -1,5 +1,10 @@
 """structlog configuration: one JSON object per line on stderr (journald/FDR friendly), and the debug
-log file where a command's unexpected exception keeps its traceback (``log_unexpected``)."""
+log file where a command's unexpected exception keeps its traceback (``log_unexpected``).
+
+Each line goes to stderr in one write, newline included: the navigator core and its vision worker share
+one stderr (the unit's journal stream, the SITL harness's log file), and a line written as the record and
+then its newline (``print``, two writes on an unbuffered stderr) let the other process's line in between:
+two records on one line, a lost newline, in a flight with the faults scenario."""
 
 from __future__ import annotations
 
@@ -37,7 +42,7 @@ def configure_logging(level: str = "info", *, json: bool = True) -> None:
     structlog.configure(
         processors=[*processors, renderer],
         wrapper_class=structlog.make_filtering_bound_logger(_LEVELS[level]),
-        logger_factory=structlog.PrintLoggerFactory(file=sys.stderr),
+        logger_factory=structlog.WriteLoggerFactory(file=sys.stderr),
         cache_logger_on_first_use=False,
     )
 
