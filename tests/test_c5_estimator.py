@@ -13,6 +13,7 @@ import structlog
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator import FixReason, NavEstimator
+from gps_denied_onboard.components.c5_estimator.protocol import ImuAcceleration
 from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.config import EstimatorConfig
 from gps_denied_onboard.constants import LogEvent, Provenance
@@ -437,8 +438,68 @@ def test_a_start_prior_is_unconfirmed_until_a_map_fix_is_fused() -> None:
 class _HoverImu:
     """The autopilot's IMU of a hovering vehicle: no acceleration."""
 
-    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray:
-        return np.zeros(3)
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> ImuAcceleration:
+        return ImuAcceleration(np.zeros(3))
+
+
+class _TiltedImu:
+    """The IMU of a hovering vehicle rotated with an attitude that may be off: it reads no acceleration,
+    stating ``tilt_bound`` of doubt, while the truth accelerates north by what the wrong tilt hid."""
+
+    def __init__(self, tilt_bound_m_s2: float) -> None:
+        self.tilt_bound_m_s2 = tilt_bound_m_s2
+
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> ImuAcceleration:
+        return ImuAcceleration(np.zeros(3), self.tilt_bound_m_s2)
+
+
+def _imu_alone_ratios(bound_m_s2: float, hidden_m_s2: float, held_s: float = 5.0) -> list[float]:
+    """VO measured the motion once, then the IMU alone carries the state of a vehicle whose wrong tilt
+    hid ``hidden_m_s2`` of acceleration, the IMU stating ``bound_m_s2``: at each 0.1 s the larger of the
+    velocity's and the position's error over their stated sigmas."""
+    est = NavEstimator(EstimatorConfig(), LTP, accel_source=_TiltedImu(bound_m_s2))
+    est.initialise(np.zeros(3), 0.5, T0_USEC - S // 3, vel_sigma_m_s=0.1)
+    assert est.update_vo(_vo(np.zeros(2), 0.05, 1 / 3), time_unix_usec=T0_USEC).accepted
+    ratios = []
+    for k in range(1, int(held_s * 10) + 1):
+        t_s = k / 10
+        st = est.state(T0_USEC + k * S // 10)
+        vel_err, pos_err = hidden_m_s2 * t_s, 0.5 * hidden_m_s2 * t_s**2
+        ratios.append(
+            max(
+                vel_err / math.sqrt(float(st.cov_vel_ned_m2_s2[0, 0])),
+                pos_err / math.sqrt(float(st.cov_pos_ned_m2[0, 0])),
+            )
+        )
+    return ratios
+
+
+@pytest.mark.parametrize("bound_m_s2", [0.3, 0.5, 0.9])
+def test_the_imu_alone_states_what_its_attitudes_doubt_can_put_into_it(bound_m_s2: float) -> None:
+    """VO and the fixes are gone (a landing: no texture, no map match below 20 m) and the IMU carries the
+    state, the autopilot's tilt off after its manoeuvres within the bound its swing sets, the error held
+    for the whole stretch (up to the tilt error's hold time). A bias at the bound's sigma (a bias
+    anywhere within it) stays within 1 stated sigma of velocity and position, one at the whole bound
+    within sqrt(3) of them: never beyond 3. With the IMU's own noise alone the bound's error ends beyond
+    1.3 of its sigmas, and the further the larger the tilt (a few degrees in the ArduPilot emulator's
+    landing flare: 5.5-10 m off at a stated 1.9-2.9 m)."""
+    sigma_m_s2 = bound_m_s2 / math.sqrt(3.0)
+    assert max(_imu_alone_ratios(bound_m_s2, sigma_m_s2)) <= 1.0
+    assert max(_imu_alone_ratios(bound_m_s2, bound_m_s2)) <= math.sqrt(3.0) + 1e-9
+    assert _imu_alone_ratios(0.0, bound_m_s2)[-1] > 1.3
+
+
+def test_the_tilt_doubt_adds_little_between_the_frames_vo_measures() -> None:
+    """The same doubt while VO measures every frame (3 Hz): the bias has a third of a second to act
+    before the next VO, and the stated speed sigma stays within a quarter of the IMU's own."""
+    sigmas = {}
+    for tilt in (0.0, 0.9):
+        est = NavEstimator(EstimatorConfig(), LTP, accel_source=_TiltedImu(tilt))
+        est.initialise(np.zeros(3), 0.5, T0_USEC, vel_sigma_m_s=0.1)
+        for k in range(1, 31):
+            assert est.update_vo(_vo(np.zeros(2), 0.3, 1 / 3), time_unix_usec=T0_USEC + k * S // 3).accepted
+        sigmas[tilt] = math.sqrt(float(est.state(T0_USEC + 30 * S // 3 + S // 4).cov_vel_ned_m2_s2[0, 0]))
+    assert sigmas[0.9] <= 1.25 * sigmas[0.0], sigmas
 
 
 def test_vo_noisier_than_it_states_is_weighed_as_it_shows_not_fused_on_one_side() -> None:

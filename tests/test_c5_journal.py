@@ -20,6 +20,7 @@ from gps_denied_onboard.components.c5_estimator.journal import (
     ReplayDivergence,
     ReplayJournal,
 )
+from gps_denied_onboard.components.c5_estimator.protocol import ImuAcceleration
 from gps_denied_onboard.config import EstimatorConfig
 from test_c5_estimator import LTP, _fix, _vo
 from test_c5_estimator import T0_USEC as T0
@@ -33,11 +34,11 @@ class _DriftingImu:
     def __init__(self) -> None:
         self.calls = 0
 
-    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray | None:
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> ImuAcceleration | None:
         self.calls += 1
         if self.calls % 7 == 0:
             return None  # stale now and then
-        return np.array([0.3 + 0.01 * self.calls, -0.2, 0.0])
+        return ImuAcceleration(np.array([0.3 + 0.01 * self.calls, -0.2, 0.0]), 0.05 * (self.calls % 3))
 
 
 def _run(axis: TimeAxis, clock: _Clock | None, script: list[tuple[str, int, Any]]) -> list[tuple[float, ...]]:
@@ -134,3 +135,23 @@ def test_journal_playback_refuses_an_unrecorded_imu_question() -> None:
     replay.begin(UNIT_TRACK, T0, 0)
     with pytest.raises(ReplayDivergence, match="beyond the recorded answers"):
         replay.accel_ned_mean(T0, T0 + 1)
+
+
+def test_journal_records_the_tilt_doubt_and_replays_a_recording_made_before_it_with_none() -> None:
+    """Each answer is recorded with its tilt doubt and served back with it; an answer recorded before
+    the doubt existed (``[t0, t1, mean]``) is served with a doubt of 0, as that code predicted."""
+    records: list[dict[str, Any]] = []
+    journal = RecordingJournal(_DriftingImu(), records.append)
+    journal.begin(UNIT_TRACK, T0, T0)
+    journal.accel_ned_mean(T0, T0 + 1)
+    journal.emit(journal.end({}) or {})
+    entry = records[0]["accel"][0]
+    assert len(entry) == 4 and entry[3] == pytest.approx(0.05)
+    old = {"n": 1, "unit": UNIT_TRACK, "time_unix_usec": T0, "clock_unix_usec": T0}
+    replay = ReplayJournal([{**old, "accel": [entry]}, {**old, "n": 2, "accel": [entry[:3]]}])
+    replay.begin(UNIT_TRACK, T0, 0)
+    assert replay.accel_ned_mean(T0, T0 + 1) == (pytest.approx(entry[2]), pytest.approx(0.05))
+    replay.end({})
+    replay.begin(UNIT_TRACK, T0, 0)
+    served = replay.accel_ned_mean(T0, T0 + 1)
+    assert served is not None and served.tilt_bound_m_s2 == 0.0

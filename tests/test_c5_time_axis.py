@@ -19,6 +19,7 @@ from conftest import REPO_ROOT
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator import FixReason, NavEstimator, Refusal, TimeAxis
+from gps_denied_onboard.components.c5_estimator.protocol import ImuAcceleration
 from gps_denied_onboard.config import ConfigError, EstimatorConfig, load_config
 from gps_denied_onboard.constants import LogEvent, Provenance
 from test_c5_estimator import LTP, S, _fix, _vo
@@ -42,9 +43,9 @@ class _ConstAccel:
         self.accel = accel_ned
         self.calls = 0
 
-    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray | None:
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> ImuAcceleration | None:
         self.calls += 1
-        return None if self.accel is None else self.accel.copy()
+        return None if self.accel is None else ImuAcceleration(self.accel.copy())
 
 
 def _axis(

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from gps_denied_onboard.components.c5_estimator.ekf import NavEstimator, PriorConflict
+from gps_denied_onboard.components.c5_estimator.protocol import ImuAcceleration
 from gps_denied_onboard.components.c5_estimator.wire import (
     WireError,
     pack,
@@ -27,8 +28,8 @@ from test_c5_estimator import T0_USEC as T0
 class _Accel:
     """A constant NED acceleration (the autopilot's IMU, as the tracker gives it)."""
 
-    def accel_ned_mean(self, t0: int, t1: int) -> np.ndarray:
-        return np.array([0.3, -0.2, 0.0])
+    def accel_ned_mean(self, t0: int, t1: int) -> ImuAcceleration:
+        return ImuAcceleration(np.array([0.3, -0.2, 0.0]), 0.1)
 
 
 def _flown() -> NavEstimator:

@@ -27,6 +27,7 @@ from gps_denied_onboard.components.c8_mavlink import (
 from gps_denied_onboard.components.c8_mavlink import messages as m
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT as D
 from gps_denied_onboard.components.c8_mavlink.messages import mavutil
+from gps_denied_onboard.components.c8_mavlink.vehicle_state import AHRS_SIGMA_PER_SWING
 from gps_denied_onboard.config import ConfigError, MavlinkConfig, config_from_mapping
 from gps_denied_onboard.constants import (
     GPS_INPUT_GPS_ID,
@@ -348,13 +349,37 @@ def test_tracker_acceleration_is_imu_rotated_by_attitude_minus_gravity() -> None
     t0 = T0_UNIX_USEC
     accel = tr.accel_ned_mean(t0, t0 + 100_000)
     assert accel is not None
-    np.testing.assert_allclose(accel, [0.0, 2.0, 0.0], atol=1e-4)
+    np.testing.assert_allclose(accel.mean_ned_m_s2, [0.0, 2.0, 0.0], atol=1e-4)
+    assert accel.tilt_bound_m_s2 == 0.0  # the attitude has not swung: nothing in doubt
     assert tr.accel_ned_mean(t0 + 400_000, t0 + 500_000) is None  # 300 ms past the last sample
     no_att = _tracker()
     no_att.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC, BOOT0_MS)), recv_s)
     rest = (0.0, 0.0, -9.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
     no_att.handle(_decoded(lambda mav: mav.highres_imu_encode(BOOT0_MS * 1000, *rest)), recv_s)
     assert no_att.accel_ned_mean(t0 - 10_000, t0 + 10_000) is None
+
+
+def test_tracker_acceleration_after_a_manoeuvre_carries_the_attitudes_doubt() -> None:
+    """After roll swung through 30 deg, the autopilot's roll and pitch may be off by
+    ``AHRS_SIGMA_PER_SWING`` of that (``ahrs_doubt_rad``), and so is the rotation that puts the IMU's
+    specific force into NED: the acceleration's tilt bound is the specific force's magnitude times it."""
+    tr = _tracker()
+    recv_s = T0_UNIX_USEC / 1e6
+    tr.handle(_decoded(lambda mav: mav.system_time_encode(T0_UNIX_USEC, BOOT0_MS)), recv_s)
+    rest = (0.0, 0.0, -9.80665, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+    for k in range(0, 51):  # 1 s at 50 Hz: a roll from 0 to 30 deg and level again
+        t_ms = BOOT0_MS + 20 * k
+        roll = math.radians(30.0) * math.sin(math.pi * k / 50)
+        at_s = recv_s + 0.02 * k
+        tr.handle(_decoded(lambda mav, t=t_ms, r=roll: mav.attitude_encode(t, r, 0.0, 0.0, 0, 0, 0)), at_s)
+        tr.handle(_decoded(lambda mav, t=t_ms: mav.highres_imu_encode(t * 1000, *rest)), at_s)
+    t1 = T0_UNIX_USEC + 1_000_000
+    accel = tr.accel_ned_mean(t1 - 100_000, t1)
+    doubt = tr.ahrs_doubt_rad(t1)
+    assert accel is not None and doubt is not None
+    assert doubt == pytest.approx(AHRS_SIGMA_PER_SWING * math.radians(30.0), rel=1e-3)
+    # |the interval's mean specific force| is g within the last 0.1 s's rolling (under 1 %)
+    assert accel.tilt_bound_m_s2 == pytest.approx(9.80665 * doubt, rel=0.01)
 
 
 def test_tracker_ignores_gcs_and_companion_heartbeats_over_udp(udp_pair: tuple) -> None:

@@ -26,6 +26,7 @@ import numpy as np
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator import NavEstimator, TimeAxis
+from gps_denied_onboard.components.c5_estimator.protocol import ImuAcceleration
 from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.config import EstimatorConfig
 from gps_denied_onboard.geo import LocalTangentPlane
@@ -40,8 +41,8 @@ DELAYS_S = (0.5, 2.0, 5.0, 10.0, 15.0, 20.0, 30.0, 45.0)
 
 
 class _ConstAccel:
-    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray:
-        return np.zeros(3)
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> ImuAcceleration:
+        return ImuAcceleration(np.zeros(3))
 
 
 def _fix(t_usec: int) -> PoseFix:

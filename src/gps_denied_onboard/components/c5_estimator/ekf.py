@@ -8,7 +8,9 @@ State: ``x = [n, e, d, vn, ve, vd]`` in the flight's local NED frame (m, m/s); t
 of what each input describes (a frame's exposure, never its arrival).
 Prediction: steps of at most ``PREDICT_STEP_S``, driven by the IMU's NED acceleration when the
 :class:`~gps_denied_onboard.components.c5_estimator.protocol.AccelerationSource` has one (noise
-``imu_accel_noise_m_s2``), else constant velocity (noise ``accel_noise_m_s2``).
+``imu_accel_noise_m_s2``, and what the attitude's doubt puts into the rotated acceleration as a bias held
+since VO or a fix last measured the motion: ``TILT_ERROR_HOLD_S``), else constant velocity (noise
+``accel_noise_m_s2``).
 Measurements: a C4 ``PoseFix`` (3-D, its own covariance, gated at ``fix_gate_chi2`` on the horizontal
 NIS; the gate is bypassed above ``reacquire_sigma_m``; a start prior no fix has confirmed is doubted
 by gated fixes that agree over ``prior_conflict_span_m``); a C1 ``VoMotion`` (the interval's mean
@@ -46,7 +48,7 @@ import structlog
 from gps_denied_onboard.components.c1_vio.types import VoMotion
 from gps_denied_onboard.components.c4_pose.types import PoseFix
 from gps_denied_onboard.components.c5_estimator.kalman import KalmanState, white_noise_accel_q
-from gps_denied_onboard.components.c5_estimator.protocol import AccelerationSource
+from gps_denied_onboard.components.c5_estimator.protocol import AccelerationSource, ImuAcceleration
 from gps_denied_onboard.components.c5_estimator.types import EstimatorState, FixDecision
 from gps_denied_onboard.config import EstimatorConfig
 from gps_denied_onboard.constants import LogEvent, Provenance
@@ -62,6 +64,25 @@ PREDICT_STEP_S: Final[float] = 0.1
 #: A VO interval longer than this with no IMU to move its mean velocity to the interval's end is a gap
 #: (frames lost, attitude missing): the velocity may have changed by much more than within a frame, s.
 VO_GAP_S: Final[float] = 0.5
+
+#: How long an autopilot's tilt error holds once a manoeuvre made it, s: on ArduPilot copter SITL it
+#: decayed over 5-10 s once level (``vehicle_state.AHRS_SIGMA_PER_SWING``). Rotated with that tilt, the
+#: IMU's acceleration carries a bias ``b``, not white noise: over ``T`` s with nothing measuring the
+#: motion it puts ``b T`` into the velocity and ``b T^2 / 2`` into the position. The prediction states it
+#: as white noise whose density grows with the time since VO or a fix last measured the motion, ``3 b^2
+#: min(t, TILT_ERROR_HOLD_S)``: over such a stretch that adds ``b^2 T^4 / 4`` to the position's variance
+#: (the bias's, exactly) and ``1.5 b^2 T^2`` to the velocity's (1.22 times the bias's sigma), and between
+#: frames that VO measures it adds little (a third of a second at 3 Hz).
+TILT_ERROR_HOLD_S: Final[float] = 5.0
+#: The factor on ``b^2 t`` above.
+TILT_NOISE_GROWTH: Final[float] = 3.0
+#: The bias's sigma per unit of the IMU answer's tilt doubt. The doubt bounds the tilt error rather than
+#: being its typical size (a tenth of the swing, against 2.5-3.4 deg measured after swings of 30-50 deg,
+#: and about half of it most of the time in the ArduPilot emulator's model of that measurement); a bias
+#: anywhere within a bound has a sigma of the bound over sqrt(3). Taken at the whole bound, the core's
+#: IMU-only prediction through a vision worker's restart stated a speed accuracy past EKF3's glitch test
+#: (1.55 m/s) after a corner.
+TILT_SIGMA_PER_DOUBT: Final[float] = 1.0 / math.sqrt(3.0)
 
 #: The least horizontal 1-sigma, m, a fix is weighed by once the slope's share is taken out
 #: (``_weighing_cov``).
@@ -88,6 +109,8 @@ PRIOR_CONTRADICTED_FIXES: Final[int] = 5
 _H_POS = np.hstack([np.eye(3), np.zeros((3, 3))])
 _H_VEL_NE = np.hstack([np.zeros((2, 3)), np.eye(3)[:2]])
 _H_D = np.array([[0.0, 0.0, 1.0, 0.0, 0.0, 0.0]])
+#: Keeps the horizontal (n, e) position and velocity entries of a process noise.
+_HORIZ = np.outer(*(2 * [np.array([1.0, 1.0, 0.0, 1.0, 1.0, 0.0])]))
 
 
 class FixReason:
@@ -150,11 +173,14 @@ def _vo_agrees_with_run(
     return True
 
 
-def _valid_accel(a: np.ndarray | None) -> np.ndarray | None:
+def _valid_accel(a: ImuAcceleration | None) -> ImuAcceleration | None:
     if a is None:
         return None
-    arr = np.asarray(a, dtype=np.float64).reshape(-1)
-    return arr if arr.shape == (3,) and np.all(np.isfinite(arr)) else None
+    arr = np.asarray(a.mean_ned_m_s2, dtype=np.float64).reshape(-1)
+    tilt = float(a.tilt_bound_m_s2)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)) or not (math.isfinite(tilt) and tilt >= 0.0):
+        return None
+    return ImuAcceleration(arr, tilt)
 
 
 @dataclass(frozen=True)
@@ -359,15 +385,36 @@ class NavEstimator:
         accel = self._imu_accel(t0, t1)
         f_mat = np.eye(6)
         f_mat[0:3, 3:6] = dt * np.eye(3)
-        density = self._config.accel_noise_m_s2 if accel is None else self._config.imu_accel_noise_m_s2
-        q_mat = white_noise_accel_q(dt, density**2)
+        if accel is None:
+            q_mat = white_noise_accel_q(dt, self._config.accel_noise_m_s2**2)
+        else:
+            q_mat = white_noise_accel_q(dt, self._config.imu_accel_noise_m_s2**2)
+            tilt_q = self._tilt_q(accel, (t0 + t1) // 2)
+            if tilt_q > 0.0:  # a tilt turns the specific force sideways: horizontal only
+                q_mat = q_mat + white_noise_accel_q(dt, tilt_q) * _HORIZ
         x_new = f_mat @ x
         if accel is not None:
-            x_new[0:3] += 0.5 * dt * dt * accel
-            x_new[3:6] += dt * accel
+            x_new[0:3] += 0.5 * dt * dt * accel.mean_ned_m_s2
+            x_new[3:6] += dt * accel.mean_ned_m_s2
         return x_new, f_mat @ p_mat @ f_mat.T + q_mat
 
-    def _imu_accel(self, t0: int, t1: int) -> np.ndarray | None:
+    def _tilt_q(self, accel: ImuAcceleration, t_usec: int) -> float:
+        """The tilt doubt's spectral density at ``t_usec``, (m/s^2)^2/Hz (``TILT_ERROR_HOLD_S``): it grows
+        with the time since VO or a fix last measured the motion (the whole hold before either did)."""
+        if accel.tilt_bound_m_s2 <= 0.0:
+            return 0.0
+        seen = max((t for t in (self._last_vo_usec, self._last_fix_usec) if t is not None), default=None)
+        held_s = TILT_ERROR_HOLD_S if seen is None else min(max(t_usec - seen, 0) / 1e6, TILT_ERROR_HOLD_S)
+        return TILT_NOISE_GROWTH * (TILT_SIGMA_PER_DOUBT * accel.tilt_bound_m_s2) ** 2 * held_s
+
+    def _accel_density_m_s2(self, accel: ImuAcceleration | None, t_usec: int) -> float:
+        """The prediction's horizontal white acceleration noise density at ``t_usec`` (``_step``):
+        constant velocity's without the IMU, else the IMU's own and its tilt doubt's."""
+        if accel is None:
+            return self._config.accel_noise_m_s2
+        return math.sqrt(self._config.imu_accel_noise_m_s2**2 + self._tilt_q(accel, t_usec))
+
+    def _imu_accel(self, t0: int, t1: int) -> ImuAcceleration | None:
         """The IMU's mean NED acceleration over ``[t0, t1]``, or None (no IMU, no valid sample, or the
         attitude it is rotated with found wrong)."""
         if self._accel is None or not self._imu_trusted:
@@ -654,7 +701,7 @@ class NavEstimator:
         if self._accel is not None:
             accel = self._imu_accel(t - round(dt * 1e6), t)
             if accel is not None:
-                vel = vel + accel[:2] * (dt / 2.0)
+                vel = vel + accel.mean_ned_m_s2[:2] * (dt / 2.0)
         r_mat = self._config.vo_noise_scale * cov / dt**2
         if accel is None and dt > VO_GAP_S:
             # Over a gap the interval's mean velocity can differ from the end velocity by an unmeasured
@@ -671,7 +718,7 @@ class NavEstimator:
         s_mat = self._kf.P[3:5, 3:5] + r_mat
         nis = float(innov @ np.linalg.solve(s_mat, innov))
         if nis > self._config.fix_gate_chi2:
-            density = self._config.accel_noise_m_s2 if accel is None else self._config.imu_accel_noise_m_s2
+            density = self._accel_density_m_s2(accel, t)
             run = self._vo_gated_run
             if not _vo_agrees_with_run(run, innov, r_mat, dt, density, self._config.fix_gate_chi2):
                 run = ()  # VO saying something else again: a new run starts with this frame

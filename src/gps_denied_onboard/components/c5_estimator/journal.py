@@ -9,10 +9,10 @@ note that there was none, fused at its frame's exposure).
 
 :class:`RecordingJournal` sits between the estimator and the real acceleration source, passes every
 answer through and keeps those inside a unit; at the unit's end it hands one record (``n``, ``unit``,
-``time_unix_usec``, ``clock_unix_usec``, the ``accel`` answers in order) to its sink (the FDR's
-``estimator.input``). ``n`` is given under the lock (the order the units happened); the record is
-written after the lock is released, so readers order by ``n``. Queries outside a unit (the output
-stream's ``state_at(now)``) never change the filter and are not kept.
+``time_unix_usec``, ``clock_unix_usec``, the ``accel`` answers in order, each ``[t0, t1, mean or None,
+tilt bound]``) to its sink (the FDR's ``estimator.input``). ``n`` is given under the lock (the order
+the units happened); the record is written after the lock is released, so readers order by ``n``.
+Queries outside a unit (the output stream's ``state_at(now)``) never change the filter and are not kept.
 
 :class:`ReplayJournal` plays the records back: the same units in the same order, the recorded answers
 and the recorded clock. A question the recording does not hold raises :class:`ReplayDivergence`: the
@@ -27,7 +27,7 @@ from typing import Any, Final, Protocol
 
 import numpy as np
 
-from gps_denied_onboard.components.c5_estimator.protocol import AccelerationSource
+from gps_denied_onboard.components.c5_estimator.protocol import AccelerationSource, ImuAcceleration
 
 #: Unit kinds (the ``unit`` field of an ``estimator.input`` record).
 UNIT_TRACK: Final = "track"
@@ -56,8 +56,20 @@ class ReplayDivergence(RuntimeError):
         self.unit = unit
 
 
-def _answer(a: np.ndarray | None) -> list[float] | None:
-    return None if a is None else [float(v) for v in np.asarray(a, dtype=np.float64).reshape(-1)]
+def _entry(t0_unix_usec: int, t1_unix_usec: int, a: ImuAcceleration | None) -> list[Any]:
+    """One recorded answer: ``[t0, t1, None]``, or ``[t0, t1, mean (3 floats), tilt bound]``."""
+    if a is None:
+        return [int(t0_unix_usec), int(t1_unix_usec), None]
+    mean = [float(v) for v in np.asarray(a.mean_ned_m_s2, dtype=np.float64).reshape(-1)]
+    return [int(t0_unix_usec), int(t1_unix_usec), mean, float(a.tilt_bound_m_s2)]
+
+
+def _replayed(entry: Sequence[Any]) -> ImuAcceleration | None:
+    """The answer an entry recorded (a recording made before the tilt doubt existed had none: 0)."""
+    if entry[2] is None:
+        return None
+    tilt = float(entry[3]) if len(entry) > 3 else 0.0
+    return ImuAcceleration(np.asarray(entry[2], dtype=np.float64), tilt)
 
 
 class RecordingJournal:
@@ -99,10 +111,10 @@ class RecordingJournal:
     def emit(self, record: dict[str, Any]) -> None:
         self._sink(record)
 
-    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray | None:
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> ImuAcceleration | None:
         a = self._inner.accel_ned_mean(t0_unix_usec, t1_unix_usec) if self._inner is not None else None
         if self._open is not None and self._owner == threading.get_ident():
-            self._open["accel"].append([int(t0_unix_usec), int(t1_unix_usec), _answer(a)])
+            self._open["accel"].append(_entry(t0_unix_usec, t1_unix_usec, a))
         return a
 
 
@@ -173,7 +185,7 @@ class ReplayJournal:
     def emit(self, record: dict[str, Any]) -> None:
         """Nothing to write: a replay plays records back."""
 
-    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray | None:
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> ImuAcceleration | None:
         rec = self._open
         if rec is None:
             raise ReplayDivergence(
@@ -185,9 +197,10 @@ class ReplayJournal:
                 f"unit {n}: IMU asked for [{t0_unix_usec}, {t1_unix_usec}] beyond the recorded answers",
                 unit=n,
             )
-        t0, t1, a = self._answers.pop(0)
-        if (int(t0), int(t1)) != (int(t0_unix_usec), int(t1_unix_usec)):
+        entry = self._answers.pop(0)
+        t0, t1 = int(entry[0]), int(entry[1])
+        if (t0, t1) != (int(t0_unix_usec), int(t1_unix_usec)):
             raise ReplayDivergence(
                 f"unit {n}: IMU asked for [{t0_unix_usec}, {t1_unix_usec}], recorded [{t0}, {t1}]", unit=n
             )
-        return None if a is None else np.asarray(a, dtype=np.float64)
+        return _replayed(entry)

@@ -38,6 +38,7 @@ import structlog
 
 from gps_denied_onboard.camera.types import Attitude
 from gps_denied_onboard.clock import AutopilotClock, TimeSource
+from gps_denied_onboard.components.c5_estimator.protocol import ImuAcceleration
 from gps_denied_onboard.components.c8_mavlink.messages import DIALECT
 from gps_denied_onboard.components.c8_mavlink.px4_params import bytewise_to_value
 from gps_denied_onboard.constants import LogEvent
@@ -589,15 +590,18 @@ class VehicleStateTracker:
         over the ``AHRS_SWING_WINDOW_S`` before it. None without attitude samples there."""
         with self._lock:
             offset = self._offset_usec()
-            ts = self._attitude.t_usec
-            if offset is None or not ts:
+            if offset is None:
                 return None
-            b1 = int(time_unix_usec - offset)
-            b0 = b1 - int(AHRS_SWING_WINDOW_S * 1e6)
-            lo, hi = bisect.bisect_left(ts, b0), bisect.bisect_right(ts, b1)
-            if hi - lo < 2:
-                return None
-            vals = np.asarray(self._attitude.values[lo:hi], dtype=np.float64)[:, :2]
+            return self._ahrs_doubt_boot(int(time_unix_usec - offset))
+
+    def _ahrs_doubt_boot(self, b1_usec: int) -> float | None:
+        """``ahrs_doubt_rad`` at the autopilot's boot time ``b1_usec``; the caller holds the lock."""
+        ts = self._attitude.t_usec
+        b0 = b1_usec - int(AHRS_SWING_WINDOW_S * 1e6)
+        lo, hi = bisect.bisect_left(ts, b0), bisect.bisect_right(ts, b1_usec)
+        if hi - lo < 2:
+            return None
+        vals = np.asarray(self._attitude.values[lo:hi], dtype=np.float64)[:, :2]
         swing = np.ptp(vals, axis=0)
         return float(AHRS_SIGMA_PER_SWING * np.hypot(swing[0], swing[1]))
 
@@ -638,12 +642,16 @@ class VehicleStateTracker:
                     return float(vals[0])
         return None
 
-    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> np.ndarray | None:
+    def accel_ned_mean(self, t0_unix_usec: int, t1_unix_usec: int) -> ImuAcceleration | None:
         """Mean kinematic acceleration over ``[t0, t1]`` (Unix usec) in NED, (3,) m/s^2: each IMU sample's
         specific force rotated by the attitude at its own time, plus gravity (the C5
         ``AccelerationSource``). Samples inside the interval are averaged; an interval shorter than the
         IMU period uses the nearest sample. None when no sample lies within ``IMU_MAX_GAP_S`` of both
-        ends, or no attitude is known at a sample's time: the prediction then must not pretend."""
+        ends, or no attitude is known at a sample's time: the prediction then must not pretend.
+
+        Its tilt bound is the mean specific force's magnitude times the attitude's own doubt at ``t1``
+        (``ahrs_doubt_rad``): the rotation that puts the specific force into NED is as wrong as the
+        autopilot's roll and pitch."""
         with self._lock:
             offset = self._offset_usec()
             ts = self._accel_body.t_usec
@@ -674,9 +682,11 @@ class VehicleStateTracker:
                     return None
                 r_ned_body = Attitude(att[0], att[1], att[2]).R_ned_body()
                 total += r_ned_body @ np.asarray(self._accel_body.values[j], dtype=np.float64)
-            mean = total / len(idx)
+            specific = total / len(idx)
+            doubt_rad = self._ahrs_doubt_boot(b1) or 0.0
+        mean = specific.copy()
         mean[2] += GRAVITY_M_S2
-        return mean
+        return ImuAcceleration(mean, float(np.linalg.norm(specific)) * doubt_rad)
 
     def home(self) -> tuple[float, float, float] | None:
         """(lat_deg, lon_deg, alt_amsl_m) from HOME_POSITION, or None before it was received."""
