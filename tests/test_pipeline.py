@@ -26,7 +26,7 @@ from gps_denied_onboard.components.c2_vpr.types import VprCandidate, VprQuery, V
 from gps_denied_onboard.components.c3_matcher.errors import InsufficientInliersError
 from gps_denied_onboard.components.c3_matcher.ladder import EffortLadder
 from gps_denied_onboard.components.c3_matcher.types import CandidateMatchSet, MatchResult
-from gps_denied_onboard.components.c4_pose.attitude_check import MIN_FIXES, AttitudeCheck
+from gps_denied_onboard.components.c4_pose.attitude_check import MIN_FIXES, AttitudeCheck, AttitudeVerdict
 from gps_denied_onboard.components.c4_pose.consistency import FixConsistency
 from gps_denied_onboard.components.c4_pose.integrity import FixIntegrity
 from gps_denied_onboard.components.c4_pose.types import PoseError, PoseFix
@@ -35,7 +35,12 @@ from gps_denied_onboard.components.c6_tiles.types import TileId
 from gps_denied_onboard.config import EstimatorConfig, IntegrityConfig, PoseConfig, VprConfig
 from gps_denied_onboard.constants import Provenance
 from gps_denied_onboard.geo import LocalTangentPlane, haversine_m
-from gps_denied_onboard.pipeline import MAX_CANDIDATES, InitialPrior, NavigationPipeline
+from gps_denied_onboard.pipeline import (
+    MAX_CANDIDATES,
+    TILT_JUMP_IMU_HOLD_S,
+    InitialPrior,
+    NavigationPipeline,
+)
 
 LTP = LocalTangentPlane(47.0, 8.0, 400.0)
 T0 = 1_700_000_000_000_000
@@ -433,6 +438,34 @@ def test_while_vo_ground_tilt_shows_the_autopilot_tilt_off_fixes_stand_on_their_
     assert p._imu_trusted is True
     assert fixes[-1].no_fix_reason is None and fixes[-1].fix_accepted
     assert fixes[-1].fix is not None and fixes[-1].fix.attitude_doubt_rad == 0.0
+
+
+@pytest.mark.parametrize("off", [False, True])
+def test_a_lone_tilt_jump_leaves_the_imu_out_for_a_while_a_proven_offset_until_a_verdict(off: bool) -> None:
+    """A fix whose tilt jumped (not yet proof that the attitude is off) leaves the IMU out; when no
+    verdict follows (the frames after it cannot tell a tilt from their timing doubt), the IMU is back
+    after ``TILT_JUMP_IMU_HOLD_S``, not left out for the rest of the flight (a link-drop flight on the
+    ArduPilot emulator: the speed sigma stayed above 3D's bound and the emulated EKF failed safe). An
+    attitude proven off keeps it out until a verdict says otherwise."""
+    now = [T0]
+    p = _pipeline(_Vpr(0), _Fdr(), vo=_HoverVo(), clock_unix_usec=lambda: now[0])
+    p.track(_frame(0, T0), InitialPrior(47.0, 8.0, 30.0, "test"))
+    jump = AttitudeVerdict((0.0, 2.1), 0.0, 11.0, 1.5, 16, off, not off, 2.1, (0.0, 2.1), T0)
+    t_jump = now[0] = T0 + 333_333
+    with p.time_axis.unit("fix", t_jump):
+        p._answer_tilt("fixes", jump, 120.0, t_jump)
+    assert p._imu_trusted is False
+    trusted = []
+    for k in range(2, 12):
+        now[0] = T0 + k * 333_333
+        p.track(_frame(k, now[0]), None)
+        trusted.append(p._imu_trusted)
+    if off:
+        assert not any(trusted), trusted
+    else:
+        back = (T0 + (2 + trusted.index(True)) * 333_333 - t_jump) / 1e6
+        assert TILT_JUMP_IMU_HOLD_S <= back < TILT_JUMP_IMU_HOLD_S + 0.34, back
+        assert all(trusted[trusted.index(True) :]), trusted
 
 
 def test_fixes_pull_back_the_state_vo_carried_off_while_the_autopilot_tilt_was_wrong() -> None:

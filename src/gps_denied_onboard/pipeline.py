@@ -89,6 +89,12 @@ log = structlog.get_logger(__name__)
 #: ``FixOutcome.no_fix_reason`` of a fix that passed every check but came later than the time axis can
 #: still fuse it (``estimator.max_fix_delay_s``).
 FIX_TOO_LATE_REASON: Final = f"gated:{Refusal.TOO_LATE.value}"
+#: How long one tilt jump (a fix's tilt that left what the ones before it pin, not yet proof that the
+#: attitude is off) leaves the IMU out when no verdict follows it, s: a check hears only frames whose
+#: timing doubt cannot make the tilt by itself, and in a link-drop flight on the ArduPilot emulator the
+#: jump seen at the cut's edge was the last such verdict: the IMU stayed out for the rest of the flight,
+#: the speed sigma above 3D's bound, and the emulated EKF failed safe. Four jumps in a row prove it off.
+TILT_JUMP_IMU_HOLD_S: Final[float] = 2.0
 #: A bare matcher's one rung gets every candidate C2.5 hands on (``rerank.top_n`` is at most this).
 MAX_CANDIDATES: Final = 10
 #: Alignment-only fixes in a row that disagree with the VO-propagated prior before the next ones state
@@ -302,8 +308,10 @@ class NavigationPipeline:
         #: The largest tilt error (deg) each check has shown in its current refusal, and answered by
         #: raising the position's sigma (``_answer_tilt``); 0 while it refuses nothing.
         self._tilt_answered_deg = {"fixes": 0.0, "vo": 0.0}
-        #: Which tilt checks last refused (``_answer_tilt``): the IMU is trusted while neither does.
-        self._tilt_refused = {"fixes": False, "vo": False}
+        #: Until when (us, Unix) each tilt check's last refusal leaves the IMU out (``_answer_tilt``):
+        #: None while it refuses nothing, the next verdict for an attitude proven off,
+        #: ``TILT_JUMP_IMU_HOLD_S`` after a jump. The IMU is trusted while neither holds.
+        self._tilt_refused_until: dict[str, float | None] = {"fixes": None, "vo": None}
         #: What this pipeline last told the time axis about the IMU (``c4_pose/attitude_check.py``).
         self._imu_trusted = True
         self._clock_ns = clock_ns
@@ -471,6 +479,8 @@ class NavigationPipeline:
                 elif before is not None and before.refused is not None and self._vo_off_spans:
                     self._note_vo_off(self._vo_off_spans[-1].until_usec, t - 1)  # never shown right before t
                 self._answer_tilt("vo", ground_tilt, frame.alt_agl_m, t)
+            elif not self._imu_trusted:
+                self._refresh_imu_trust(t)  # a jump's hold may have lapsed with no verdict since
             if self._axis.is_initialised:
                 fused: VoMotion | None = None
                 if motion is not None:
@@ -767,16 +777,27 @@ class NavigationPipeline:
         state back by that much. Raised once per error, not on every verdict: the fixes fused since are
         standing on their own images (``_stand_on_image_rad``), and VO states its own
         (``measured_ahrs_doubt_rad``). The IMU's accelerations are
-        rotated with the same attitude (gravity leaks in): it is left out while either check refuses,
-        and said again on the next verdict when the axis could not take it (not yet initialised)."""
+        rotated with the same attitude (gravity leaks in): it is left out while either check refuses
+        (after a lone jump, for ``TILT_JUMP_IMU_HOLD_S`` unless a verdict follows), and said again on
+        the next frame when the axis could not take it (not yet initialised)."""
         if verdict.suspect_deg is not None and verdict.suspect_deg > self._tilt_answered_deg[source]:
             tilt_m = agl_m * math.tan(math.radians(min(verdict.suspect_deg, 45.0)))
             if self._axis.raise_position_sigma(2.0 * tilt_m, t):
                 self._tilt_answered_deg[source] = verdict.suspect_deg
         elif verdict.refused is None:
             self._tilt_answered_deg[source] = 0.0
-        self._tilt_refused[source] = verdict.refused is not None
-        trusted = not any(self._tilt_refused.values())
+        if verdict.refused is None:
+            self._tilt_refused_until[source] = None
+        elif verdict.off:
+            self._tilt_refused_until[source] = math.inf
+        else:  # a jump: held back, not proof; the IMU comes back unless the next verdicts say so
+            self._tilt_refused_until[source] = t + TILT_JUMP_IMU_HOLD_S * 1e6
+        self._refresh_imu_trust(t)
+
+    def _refresh_imu_trust(self, t: int) -> None:
+        """Tell the time axis at ``t`` (inside one of its units) whether the IMU is trusted: while no tilt
+        check's refusal holds (``_tilt_refused_until``)."""
+        trusted = all(until is None or t >= until for until in self._tilt_refused_until.values())
         if trusted != self._imu_trusted and self._axis.set_imu_trusted(trusted, t):
             self._imu_trusted = trusted
 
