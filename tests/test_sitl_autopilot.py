@@ -19,8 +19,9 @@ import pytest
 import yaml
 
 from conftest import REPO_ROOT, shared_path
-from gps_denied_onboard.clock import CAMERA_OFFSET_SE_FLOOR_S
+from gps_denied_onboard.clock import CAMERA_OFFSET_MAX_SE_S, CAMERA_OFFSET_SE_FLOOR_S
 from gps_denied_onboard.components.c13_fdr import read_records
+from gps_denied_onboard.config import CameraConfig
 from gps_denied_onboard.constants import CORE_FDR_SUBDIR, FdrKind
 from gps_denied_onboard.sitl.render import MapRenderer
 from gps_denied_onboard.sitl.scenario import load_scenario
@@ -160,16 +161,25 @@ def _attitude_refused_right_fixes(report: dict[str, Any]) -> dict[str, int]:
 
 def _issue_26_bounds(report: dict[str, Any], emu: dict[str, Any]) -> None:
     """What a real ArduPilot flight must show (issue 26), judged on the emulator's rules: the mission
-    done with no failsafe or LAND before its own, no GPS glitch, GPS_INPUT p95 <= 5 m with 0 beyond
-    3 sigma, the autopilot's own position p95 <= 6 m, no right fix refused by a tilt check, and the
-    ground altitude read once the EKF had an origin."""
+    done with no failsafe or LAND before its own, no GPS glitch while the vehicle flies on the daemon
+    alone, GPS_INPUT p95 <= 5 m there, 0 beyond 3 sigma in the whole flight, the autopilot's own position
+    p95 <= 6 m, no right fix refused by a tilt check, and the ground altitude read once the EKF had an
+    origin.
+
+    In the landing, with the GNSS back, the daemon's speed accuracy may rise past EKF3's glitch test: the
+    matcher sees nothing below 20 m AGL, VO loses its texture in the flare, and the IMU alone carries
+    the velocity with the attitude's doubt. That is the honest answer (stated lower, 17 messages went
+    out beyond 3 sigma there once), and EKF3 then leans on the GNSS it has again."""
     kinds = [e["kind"] for e in report["mission"]["log"]]
     assert "landed" in kinds, kinds
     assert not [e for e in emu["events"] if e["kind"] in ("gps_loss", "ekf_failsafe")]
-    assert not [e for e in emu["events"] if e["kind"] == "gps_glitch"], "EKF3 would call the GPS glitching"
     off = report["gnss_off"]
+    lo, hi = off["window_unix_s"]
+    glitches = [e for e in emu["events"] if e["kind"] == "gps_glitch" and lo <= e["t_unix_s"] <= hi]
+    assert not glitches, f"EKF3 would call the GPS glitching: {glitches}"
     assert off["horizontal_error_m"]["p95"] <= 5.0, off["horizontal_error_m"]
     assert off["consistency"]["beyond_3sigma"] == 0, off["consistency"]
+    assert report["consistency"]["beyond_3sigma"] == 0, report["consistency"]
     assert off["glitch_spans_s"] == [], off["speed_accuracy_m_s"]
     ap = off["autopilot_position_error_m"]
     assert ap["n"] > 100 and ap["p95"] <= 6.0, ap
@@ -186,9 +196,13 @@ def test_square_meets_the_real_autopilot_bounds_with_its_clock_2_s_behind(square
 
 def test_square_with_a_camera_stamping_0_2_s_late(tmp_path: Path) -> None:
     """The camera stamps every frame 0.2 s after its exposure: the daemon measures the lateness from the
-    tilts, corrects it, and meets the same bounds. The correction is honest rather than exact: within 3
+    tilts and meets the same bounds. The correction is honest rather than exact: applied, it is within 3
     of its own stated sigmas of the truth (the fit ended at 0.185-0.285 s in six flights, stating
-    0.04 s), and more than half the lateness is taken off."""
+    0.04 s) and takes more than half the lateness off. It is applied only once the fit is sure
+    (``CAMERA_OFFSET_MAX_SE_S``); the emulator's attitude error, which follows the swings as ArduPilot
+    SITL's does, leans on the fit, and on an Intel Xeon the fit of 0.28-0.33 s kept stating
+    0.035-0.05 s for a whole flight (CI's failure of 2026-12-02). Then nothing is taken off and the
+    frames carry the camera's prior doubt instead, with the fit within 3 of its sigmas of the truth."""
     data = yaml.safe_load(SQUARE.read_text())
     data["name"] = "autopilot_square_camera_late"
     data["camera_stamp_offset_s"] = 0.2
@@ -201,7 +215,13 @@ def test_square_with_a_camera_stamping_0_2_s_late(tmp_path: Path) -> None:
     last = status[-1]
     assert last["camera_stamp_sigma_s"] >= CAMERA_OFFSET_SE_FLOOR_S, last
     assert abs(last["camera_stamp_offset_s"] - 0.2) <= 3 * last["camera_stamp_sigma_s"], last
-    assert last["camera_stamp_offset_s"] >= 0.1, last
+    if last["camera_stamp_offset_s"] == 0.0:  # never sure: carried as the prior's doubt
+        assert last["camera_stamp_sigma_s"] >= CameraConfig().stamp_sigma_s, last
+        fit_sigma_s = max(last["camera_stamp_fit_se_s"], CAMERA_OFFSET_SE_FLOOR_S)
+        assert last["camera_stamp_fit_se_s"] > CAMERA_OFFSET_MAX_SE_S, last
+        assert abs(last["camera_stamp_fit_s"] - 0.2) <= 3 * fit_sigma_s, last
+    else:
+        assert last["camera_stamp_offset_s"] >= 0.1, last
 
 
 def test_link_drop_trips_no_fix_and_recovers_without_failsafe(tmp_path: Path) -> None:
