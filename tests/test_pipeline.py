@@ -119,6 +119,7 @@ def _pipeline(
     mount: CameraMount | None = None,
     max_delay_s: float = 5.0,
     clock_unix_usec: object = None,
+    map_extent: tuple[float, float, float] | None = None,
 ) -> NavigationPipeline:
     calib = CameraCalibration.from_hfov(640, 480, 70.0)
     return NavigationPipeline(
@@ -144,6 +145,7 @@ def _pipeline(
         ground_tilt_check=AttitudeCheck(PoseConfig(), samples=24, max_age_s=10.0, ground_correlated=False),
         mount=mount,
         attitude_sigma_deg=PoseConfig().attitude_sigma_deg,
+        map_extent=map_extent,
     )
 
 
@@ -170,6 +172,29 @@ def test_pipeline_goes_corpus_wide_when_uncertainty_is_large() -> None:
     """F6: with a 500 m prior and an appearance strategy, the search is corpus-wide (region None)."""
     vpr = _Vpr(dim=256)
     p = _pipeline(vpr, _Fdr())
+    p.process(_frame(0, T0), InitialPrior(47.0, 8.0, 500.0, "test"))
+    assert vpr.regions == [None]
+
+
+@pytest.mark.parametrize("sigma_m", [500.0, 3000.0])
+def test_over_a_mission_area_a_wide_state_sweeps_the_region_it_can_be_in(sigma_m: float) -> None:
+    """Past the corpus-wide sigma over a map much larger than the state's region (a 50 km mission area),
+    the attempts sweep that region (3 sigma and the half-footprint, not clamped), ranked by the
+    strategy, rather than the whole map: the map is hours of attempts, the region minutes."""
+    vpr = _Vpr(dim=256)
+    p = _pipeline(vpr, _Fdr(), map_extent=(47.0, 8.0, 35_000.0))
+    for k in range(3):
+        p.process(_frame(k, T0 + k * 333_333), InitialPrior(47.0, 8.0, sigma_m, "test") if k == 0 else None)
+    assert all(isinstance(r, SearchRegion) for r in vpr.regions), vpr.regions
+    radius = vpr.regions[0].radius_m
+    assert radius == pytest.approx(3 * sigma_m + 120.0 * np.tan(np.radians(35.0)), rel=0.05)
+    assert p._search_mode == "reach"
+
+
+def test_a_wide_state_whose_region_holds_the_whole_map_searches_it_corpus_wide() -> None:
+    """The same state over a map its region covers (2 km across): corpus-wide (F6), as before."""
+    vpr = _Vpr(dim=256)
+    p = _pipeline(vpr, _Fdr(), map_extent=(47.0, 8.0, 1000.0))
     p.process(_frame(0, T0), InitialPrior(47.0, 8.0, 500.0, "test"))
     assert vpr.regions == [None]
 

@@ -251,6 +251,8 @@ class LogEvent:
     VPR_TOPK: Final = "c2.vpr.topk"
     VPR_CORPUS_WIDE: Final = "c2.vpr.corpus_wide_search"
     VPR_PRIOR_GATED: Final = "c2.vpr.prior_gated_search"
+    #: Past ``vpr.corpus_wide_sigma_m`` on a map larger than the state's region: that region is swept.
+    VPR_REACHABLE_SWEEP: Final = "c2.vpr.reachable_sweep"
     VPR_INDEX_BUILT: Final = "c10.cache.vpr_index_built"
     VPR_INDEX_UP_TO_DATE: Final = "c10.cache.vpr_index_up_to_date"
     #: ``gdnav cache features``: a strategy's precomputed tile features written (or already up to date).

@@ -367,16 +367,26 @@ class NavigationPipeline:
     def _search_region(
         self, state: EstimatorState, frame: NavCameraFrame
     ) -> tuple[SearchRegion | None, bool]:
-        """(region, sweep): the prior's uncertainty region, or None (corpus-wide, F6) once the uncertainty
-        is so large that the region says little and the VPR strategy can search by appearance; and
-        whether attempts sweep it (corpus-wide, or a doubted prior's region: ``_sweep``). A doubted
-        prior's region is not clamped to ``vpr.prior_radius_max_m``: it grows until the map answers."""
+        """(region, sweep): where this attempt searches, and whether attempts sweep it (``_sweep``).
+
+        - ``prior``: the state's uncertainty region (``vpr.prior_sigma_scale`` sigmas and the frame's
+          half-footprint, clamped to ``vpr.prior_radius_max_m``), the same tiles each attempt;
+        - ``doubt``: a doubted start prior's region, not clamped: it grows until the map answers, swept;
+        - past ``vpr.corpus_wide_sigma_m``, with an appearance strategy: ``reach``, the same region not
+          clamped and swept, while it leaves part of the map out (the vehicle is where the state's
+          sigma says, however long ago a fix last said so: over a mission area the whole map is hours
+          of attempts, the region minutes); ``corpus`` (F6, ``None``: ranked by appearance over the
+          whole map) once it covers the map, or when the map's extent is not known."""
         cfg = self._vpr_cfg
-        corpus_wide = (
+        # The tile centre can be up to the frame's half-footprint away from the camera and still overlap.
+        half_footprint_m = (frame.alt_agl_m or 0.0) * math.tan(self._calib.hfov_rad / 2.0)
+        radius = max(cfg.prior_sigma_scale * state.horiz_sigma_m + half_footprint_m, cfg.prior_radius_min_m)
+        wide = (
             state.horiz_sigma_m > cfg.corpus_wide_sigma_m
             and self._vpr is not None
             and self._vpr.descriptor_dim() > 0
         )
+        corpus_wide = wide and self._covers_map(state, radius)
         if corpus_wide != self._corpus_wide:
             self._corpus_wide = corpus_wide
             log.warning(
@@ -385,18 +395,31 @@ class NavigationPipeline:
                 threshold_m=cfg.corpus_wide_sigma_m,
             )
         doubted = self._doubt is not None and self._doubt.doubted
-        mode = "corpus" if corpus_wide else "doubt" if doubted else "prior"
+        reach = wide and not corpus_wide
+        mode = "corpus" if corpus_wide else "reach" if reach else "doubt" if doubted else "prior"
         if mode != self._search_mode:
+            if mode == "reach":
+                log.warning(
+                    LogEvent.VPR_REACHABLE_SWEEP,
+                    horiz_sigma_m=round(state.horiz_sigma_m, 1),
+                    radius_m=round(radius, 1),
+                    map_radius_m=None if self._map_extent is None else round(self._map_extent[2], 1),
+                )
             self._search_mode = mode
             self._sweep_rank, self._sweep_held = 0, False
         if corpus_wide:
             return None, True
-        # The tile centre can be up to the frame's half-footprint away from the camera and still overlap.
-        half_footprint_m = (frame.alt_agl_m or 0.0) * math.tan(self._calib.hfov_rad / 2.0)
-        radius = max(cfg.prior_sigma_scale * state.horiz_sigma_m + half_footprint_m, cfg.prior_radius_min_m)
-        if not doubted:
+        if not (doubted or reach):
             radius = min(radius, cfg.prior_radius_max_m)
-        return SearchRegion(state.lat_deg, state.lon_deg, radius), doubted
+        return SearchRegion(state.lat_deg, state.lon_deg, radius), doubted or reach
+
+    def _covers_map(self, state: EstimatorState, radius_m: float) -> bool:
+        """Whether a disc of ``radius_m`` at the state holds the whole map (True when its extent is not
+        known: corpus-wide is then the only whole search)."""
+        if self._map_extent is None:
+            return True
+        c_lat, c_lon, map_radius_m = self._map_extent
+        return float(haversine_m(state.lat_deg, state.lon_deg, c_lat, c_lon)) + map_radius_m <= radius_m
 
     def process(self, frame: NavCameraFrame, prior: InitialPrior | None) -> FrameOutcome:
         """Both halves on one frame, in sequence."""
