@@ -265,6 +265,33 @@ def test_vision_worker_killed_twice_the_stream_never_pauses(tmp_path: Path) -> N
     assert sum(t.startswith("GDN: vision back") for t in texts) == 2, texts
 
 
+#: After a kill -9 of the navigator core in flight, with two busy loops at nice 0 on the two cores,
+#: GPS_INPUT back and a 3D fix within these of the kill, s. Issue 36 asks 2.0 s and 3.0 s of the real
+#: ArduPilot, which logged 1.28-1.84 s and 2.28-2.74 s (docs/benchmarks.md, "A core crash"); this
+#: emulator flight gave 1.69-1.70 s and 2.58-2.89 s on an Intel Xeon, so CI's machines get a quarter
+#: more before a slower one fails it.
+CORE_KILL_GPS_INPUT_BACK_MAX_S = 2.5
+CORE_KILL_3D_BACK_MAX_S = 3.75
+
+
+def test_a_core_killed_beside_two_busy_loops_is_back_within_the_bounds_and_adopts_its_worker(
+    tmp_path: Path,
+) -> None:
+    """Issue 36: autopilot_restart, two busy processes at nice 0 for the whole flight (``cpu_hogs``), the
+    navigator core killed (SIGKILL) in the GNSS-off stretch and started again after the unit's
+    RestartSec=. The next core adopts the vision worker that ran on: GPS_INPUT is back and 3D soon after
+    the kill (the bounds above), the mission is completed with no failsafe and nothing beyond 3 sigma."""
+    report, emu, _cli = _fly(tmp_path, REPO_ROOT / "sitl" / "scenarios" / "autopilot_restart.yaml")
+    (restart,) = report["daemon_restarts"]
+    assert restart["worker_adopted"] is True, restart
+    assert restart["first_after_s"] is not None and restart["first_3d_after_s"] is not None, restart
+    assert restart["first_after_s"] <= CORE_KILL_GPS_INPUT_BACK_MAX_S, restart
+    assert restart["first_3d_after_s"] <= CORE_KILL_3D_BACK_MAX_S, restart
+    hogs = [f for f in report["faults_injected"] if f["kind"] == "cpu_hogs" and f["phase"] == "start"]
+    assert hogs and len(hogs[0]["pids"]) == 2, report["faults_injected"]
+    _issue_26_bounds(report, emu)
+
+
 @pytest.mark.sitl
 def test_home_off_the_map_is_refused_with_the_home_to_use(tmp_path: Path) -> None:
     """An autopilot whose home is off the map: exit 2, one line naming the map's extent and a --home."""
